@@ -1,0 +1,36 @@
+"""`a3cqp` command line: train | plot | evaluate | demo | bench.
+
+Each sub-command lazily imports its module so `a3cqp --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# sub-command -> "module:function" taking the remaining argv list and returning an exit code.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "train": ("algorithms.train:main", "train an A2C adaptation policy (point mass by default)"),
+    "plot": ("a3cqp_rl.plotting.cli:main", "policy maps (Fig. 5) and loss curves (Fig. 4) from runs"),
+    "demo": ("a3cqp_rl.demo:main", "demos, e.g. `a3cqp demo controller` (Panda QP controller in MuJoCo)"),
+    "bench": ("a3cqp_rl.bench_cli:main", "benchmarks: env | train | qp | controller | all"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Dispatch `a3cqp <command> ...` to the command's module; returns the process exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(prog="a3cqp", description=__doc__.splitlines()[0])
+    parser.add_argument("command", choices=sorted(COMMANDS), help="; ".join(f"{k}: {v[1]}" for k, v in COMMANDS.items()))
+    if not argv or argv[0] in ("-h", "--help"):
+        parser.print_help()
+        return 0 if argv else 2
+    args = parser.parse_args(argv[:1])
+    module_name, func_name = COMMANDS[args.command][0].split(":")
+    func = getattr(importlib.import_module(module_name), func_name)
+    return int(func(argv[1:]) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
