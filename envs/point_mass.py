@@ -1,0 +1,263 @@
+"""Batched 1-DoF point-mass surrogate of the A3CQP controller (paper 000, eq. 35), as a TorchRL env.
+
+One environment instance holds N independent point masses (``batch_size=[N]``) and steps all of
+them in one torch call. The agent acts at 100 Hz with a = (ẇ1, ẇ2, ẇ3, ḟd) ∈ [-1, 1]^4; eq. 29
+turns it into task weights w and desired force f_d, then eq. 35 is integrated at 1 kHz for
+``substeps`` steps (semi-implicit Euler):
+
+    Λẍ = f_ext + w1 Λ (Kp e − Kv ẋ + ẍ_pd) + w2 (Λ/Λd − 1) f_ext − w2 Cd ẋ + w3 f_d,  f_ext = f_env + f_ope
+
+with e = x_target − x and ẍ_pd = 0 (fixed target). Scenarios (free motion, operator pushes, a stiff
+wall in front of the target, both) are sampled per reset; see `a3cqp_rl.config.PointMassConfig`.
+All randomness is drawn at reset (targets, walls and the whole operator force schedule), so the
+step is a pure function of (state, action): deterministic, and compilable by `torch.compile`.
+
+Physics runs in float64; observations and rewards are float32 for the networks.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import Tensor
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from a3cqp_rl.adaptation import check_finite, integrate_force, integrate_weights, observe, reward
+from a3cqp_rl.config import AdaptationConfig, ExperimentConfig, PointMassConfig, RewardConfig
+
+__all__ = ["PointMassEnv", "SCENARIOS", "INFO_KEYS"]
+
+SCENARIOS = PointMassConfig.SCENARIOS
+"""Scenario names; the ``scenario`` info entry holds the index into this tuple."""
+INFO_KEYS = ("e", "x", "x_dot", "f_env", "f_ope", "w", "f_d", "target", "scenario")
+"""Per-step info entries written next to ``observation`` (for plots and evaluation)."""
+
+
+
+class PointMassEnv(EnvBase):
+    """N point masses under eq. 35 with the A3CQP adaptation law; batch_size=[num_envs]."""
+
+    _has_dynamic_specs = False
+
+    def __init__(
+        self,
+        num_envs: int,
+        config: ExperimentConfig | None = None,
+        seed: int | None = None,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        """Create `num_envs` point masses with `config` (paper defaults if None) on `device`."""
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        super().__init__(device=device, batch_size=torch.Size([num_envs]))
+        cfg = config or ExperimentConfig()
+        self.cfg: PointMassConfig = cfg.point_mass
+        self.adapt: AdaptationConfig = cfg.adaptation
+        self.rew: RewardConfig = cfg.reward
+        self.num_envs = num_envs
+        self.dtype = torch.float64
+        probs = torch.tensor([self.cfg.scenario_probs.get(s, 0.0) for s in SCENARIOS], dtype=torch.float64)
+        self._scenario_probs = probs / probs.sum()
+        # Operator schedule: enough on/off phases to cover an episode with the shortest phases.
+        T = self.cfg.episode_steps
+        episode_s = T * self.cfg.substeps * self.cfg.physics_dt
+        shortest = max(self.cfg.operator_on_min + self.cfg.operator_off_min, 1e-3)
+        self._n_phases = int(math.ceil(episode_s / shortest)) + 2
+        self._state: dict[str, Tensor] = {}
+        self._schedule = torch.zeros(num_envs, T + 1, dtype=self.dtype, device=self.device)
+        self._make_specs()
+        self._rng = torch.Generator(device=self.device)
+        self._set_seed(seed)
+        self._init_state()
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self) -> None:
+        N = self.batch_size
+        f32, f64 = torch.float32, torch.float64
+        info = {k: Unbounded(shape=(*N,), dtype=f64, device=self.device) for k in INFO_KEYS}
+        info["w"] = Bounded(0.0, 1.0, shape=(*N, 3), dtype=f64, device=self.device)
+        info["scenario"] = Unbounded(shape=(*N,), dtype=torch.int64, device=self.device)
+        self.observation_spec = Composite(
+            observation=Bounded(0.0, 1.0, shape=(*N, 3), dtype=f32, device=self.device),
+            **info,
+            shape=N,
+        )
+        self.action_spec = Bounded(-1.0, 1.0, shape=(*N, 4), dtype=f32, device=self.device)
+        self.reward_spec = Unbounded(shape=(*N, 1), dtype=f32, device=self.device)
+        flag = Categorical(2, shape=(*N, 1), dtype=torch.bool, device=self.device)
+        self.done_spec = Composite(done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=N)
+
+    def _set_seed(self, seed: int | None) -> None:
+        if seed is None:
+            seed = int(torch.empty((), dtype=torch.int64).random_().item())
+        self._rng.manual_seed(int(seed))
+
+    # ------------------------------------------------------------------ reset
+    def _init_state(self) -> None:
+        N, dev, f64 = self.num_envs, self.device, self.dtype
+        z = torch.zeros(N, dtype=f64, device=dev)
+        self._state = {
+            "x": z.clone(), "x_dot": z.clone(), "target": z.clone(), "w_logits": torch.zeros(N, 3, dtype=f64, device=dev),
+            "f_d": z.clone(), "wall_pos": z.clone(), "has_wall": torch.zeros(N, dtype=torch.bool, device=dev),
+            "t": torch.zeros(N, dtype=torch.int64, device=dev), "f_env": z.clone(), "f_ope": z.clone(),
+            "scenario": torch.zeros(N, dtype=torch.int64, device=dev),
+        }
+
+    def _uniform(self, n: int, lo: float, hi: float, *shape: int) -> Tensor:
+        u = torch.rand((n, *shape), generator=self._rng, dtype=self.dtype, device=self.device)
+        return lo + (hi - lo) * u
+
+    def _sample_episodes(self, idx: Tensor) -> None:
+        """Draw scenario, target, wall, initial weights and the operator schedule for envs `idx`."""
+        c, n, s = self.cfg, int(idx.numel()), self._state
+        if n == 0:
+            return
+        scen = torch.multinomial(self._scenario_probs.expand(n, -1), 1, generator=self._rng).squeeze(-1).to(self.device)
+        has_wall = (scen == 2) | (scen == 3)
+        has_op = (scen == 1) | (scen == 3)
+        sign = torch.where(self._uniform(n, 0, 1) < 0.5, -1.0, 1.0).to(self.dtype)
+        free_target = sign * self._uniform(n, c.target_min, c.target_max)
+        op_target = self._uniform(n, -c.operator_target_range, c.operator_target_range)
+        wall_pos = self._uniform(n, c.wall_min, c.wall_max)
+        wall_target = wall_pos + self._uniform(n, c.depth_min, c.depth_max)
+        target = torch.where(has_wall, wall_target, torch.where(has_op, op_target, free_target))
+        half = 0.5 * self.adapt.sigma_w
+        if c.random_initial_weights:
+            w_logits = self._uniform(n, -half, half, 3)
+            f_d = self._uniform(n, 0.0, self.adapt.f_d_max)
+        else:  # pure IK, no desired force
+            w_logits = torch.tensor([half, -half, -half], dtype=self.dtype, device=self.device).expand(n, 3).clone()
+            f_d = torch.zeros(n, dtype=self.dtype, device=self.device)
+        s["x"][idx] = 0.0
+        s["x_dot"][idx] = 0.0
+        s["target"][idx] = target
+        s["w_logits"][idx] = w_logits
+        s["f_d"][idx] = f_d
+        s["wall_pos"][idx] = wall_pos
+        s["has_wall"][idx] = has_wall
+        s["t"][idx] = 0
+        s["f_env"][idx] = 0.0
+        s["f_ope"][idx] = 0.0
+        s["scenario"][idx] = scen
+        self._schedule[idx] = self._operator_schedule(n) * has_op.unsqueeze(-1)
+
+    def _operator_schedule(self, n: int) -> Tensor:
+        """Piecewise-constant operator intent force [N] per agent step, shape [n, T + 1]."""
+        c, K = self.cfg, self._n_phases
+        off = self._uniform(n, c.operator_off_min, c.operator_off_max, K)
+        on = self._uniform(n, c.operator_on_min, c.operator_on_max, K)
+        sign = torch.where(self._uniform(n, 0, 1, K) < 0.5, -1.0, 1.0).to(self.dtype)
+        force = sign * self._uniform(n, c.operator_force_min, self.adapt.f_ope_max, K)
+        # Phase k is "off" during [start_k, start_k + off_k) then "on" until start_{k+1}.
+        ends_off = torch.cumsum(off + on, dim=-1) - on  # [n, K]
+        ends_on = torch.cumsum(off + on, dim=-1)
+        boundaries = torch.stack((ends_off, ends_on), dim=-1).reshape(n, 2 * K)  # sorted
+        agent_dt = c.substeps * c.physics_dt
+        times = torch.arange(c.episode_steps + 1, dtype=self.dtype, device=self.device) * agent_dt
+        seg = torch.searchsorted(boundaries, times.expand(n, -1).contiguous(), right=True)  # [n, T+1]
+        phase = (seg // 2).clamp(max=K - 1)
+        is_on = (seg % 2) == 1
+        return torch.where(is_on, torch.gather(force, 1, phase), torch.zeros((), dtype=self.dtype))
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        if mask is None:
+            idx = torch.arange(self.num_envs, device=self.device)
+        else:
+            idx = mask.reshape(self.num_envs).nonzero().squeeze(-1)
+        self._sample_episodes(idx)
+        return self._observation_td(done=torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device))
+
+    # ------------------------------------------------------------------ step
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action")
+        if action.shape != (self.num_envs, 4):
+            raise ValueError(f"action must have shape ({self.num_envs}, 4), got {tuple(action.shape)}")
+        check_finite(action=action)
+        self._state, reward = agent_step(self._state, action.to(self.dtype), self._schedule, self.cfg, self.adapt, self.rew)
+        truncated = (self._state["t"] >= self.cfg.episode_steps).unsqueeze(-1)
+        terminated = torch.zeros_like(truncated)  # eq. 35 has no terminal state; episodes end by time
+        out = self._observation_td(done=truncated | terminated)
+        out.set("reward", reward.to(torch.float32).unsqueeze(-1))
+        out.set("terminated", terminated)
+        out.set("truncated", truncated)
+        return out
+
+    def _observation_td(self, done: Tensor) -> TensorDictBase:
+        s = self._state
+        e = s["target"] - s["x"]
+        obs = observe_state(s, self.adapt)
+        w = torch.softmax(s["w_logits"], dim=-1)
+        return TensorDict(
+            {
+                "observation": obs.to(torch.float32),
+                "e": e, "x": s["x"].clone(), "x_dot": s["x_dot"].clone(), "f_env": s["f_env"].clone(),
+                "f_ope": s["f_ope"].clone(), "w": w, "f_d": s["f_d"].clone(), "target": s["target"].clone(),
+                "scenario": s["scenario"].clone(),
+                "done": done, "terminated": torch.zeros_like(done), "truncated": done.clone(),
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )
+
+    # ------------------------------------------------------------------ functional access
+    def functional(self) -> tuple[dict[str, Tensor], Tensor]:
+        """The live (state dict, operator schedule) for fused trainers; mutate only via `agent_step`."""
+        return self._state, self._schedule
+
+    def reset_where(self, done: Tensor) -> None:
+        """Resample the episodes of envs where `done` [N] is True (fused-trainer auto-reset)."""
+        self._sample_episodes(done.nonzero().squeeze(-1))
+
+
+def observe_state(state: dict[str, Tensor], adapt: AdaptationConfig) -> Tensor:
+    """Eq. 26 observation [N, 3] (float64) from a point-mass state dict."""
+    e = state["target"] - state["x"]
+    return observe(e, state["f_env"], state["f_ope"], adapt.e_max, adapt.f_env_max, adapt.f_ope_max, check=False)
+
+
+def agent_step(
+    state: dict[str, Tensor],
+    action: Tensor,
+    schedule: Tensor,
+    cfg: PointMassConfig,
+    adapt: AdaptationConfig,
+    rew: RewardConfig,
+) -> tuple[dict[str, Tensor], Tensor]:
+    """One 100 Hz agent step for all envs: eq. 29 on `action` [N, 4], then `substeps` × eq. 35; returns (state, reward [N]).
+
+    Pure function of its inputs (no RNG, no Python branching on data), so it can be compiled.
+    """
+    w_logits, w = integrate_weights(state["w_logits"], action[:, :3], adapt.sigma_w, adapt.dt, check=False)
+    f_d = integrate_force(state["f_d"], action[:, 3], adapt.sigma_f, adapt.dt, adapt.f_d_max, check=False)
+    t = state["t"]
+    f_cmd = torch.gather(schedule, 1, t.clamp(max=schedule.shape[1] - 1).unsqueeze(-1)).squeeze(-1)
+
+    m, kp, kv, dt = cfg.mass, cfg.kp, cfg.kv_value, cfg.physics_dt
+    adm_gain = m / cfg.lambda_d - 1.0
+    w1, w2, w3 = w.unbind(-1)
+    x, v, target, wall_pos, has_wall = state["x"], state["x_dot"], state["target"], state["wall_pos"], state["has_wall"]
+    sgn = torch.sign(f_cmd)
+    f_env = torch.zeros_like(x)
+    f_ope = torch.zeros_like(x)
+    for _ in range(cfg.substeps):  # 1 kHz sub-steps; a loop over time, not over envs
+        pen = x - wall_pos
+        contact = has_wall & (pen > 0)
+        # Unilateral wall: pushes back (−x) only, never pulls.
+        f_env = torch.where(contact, (-cfg.wall_stiffness * pen - cfg.wall_damping * v).clamp(max=0.0), 0.0)
+        # Operator hand with a linear force-velocity law: yielding along the push relieves the force.
+        f_ope = f_cmd * (1.0 - v * sgn / cfg.operator_v_hand).clamp(0.0, 1.0)
+        f_ext = f_env + f_ope
+        e = target - x
+        # eq. 35 (ẍ_pd = 0 for a fixed target)
+        acc = (f_ext + w1 * m * (kp * e - kv * v) + w2 * (adm_gain * f_ext - cfg.c_d * v) + w3 * f_d) / m
+        v = v + acc * dt
+        x = x + v * dt
+    new_state = dict(state)
+    new_state.update(x=x, x_dot=v, w_logits=w_logits, f_d=f_d, f_env=f_env, f_ope=f_ope, t=t + 1)
+    r = reward(target - x, f_env, f_ope, f_d, rew.alpha, adapt.e_max, adapt.f_env_max, adapt.f_ope_max,
+               adapt.f_d_max, check=False)  # eq. 30
+    return new_state, r

@@ -1,0 +1,84 @@
+"""Config loading: paper defaults, YAML files, and clear errors naming the file and key."""
+
+from pathlib import Path
+
+import pytest
+
+from a3cqp_rl.config import ExperimentConfig, config_to_dict, load_config
+from a3cqp_rl.exceptions import ConfigError
+
+CONFIGS = sorted((Path(__file__).parents[1] / "configs").glob("*.yaml"))
+
+
+def test_defaults_equal_paper_tables():
+    c = ExperimentConfig()
+    assert (c.controller.cp, c.controller.cv, c.controller.kp, c.controller.k_theta, c.controller.kq) == (3, 5, 150, 20, 10)
+    assert (c.controller.lambda_d, c.controller.c_d, c.controller.epsilon, c.controller.mu) == (5, 5, 1e-4, 0.4)
+    assert (c.adaptation.e_max, c.adaptation.f_env_max, c.adaptation.f_ope_max, c.adaptation.f_d_max) == (1, 30, 15, 20)
+    assert (c.adaptation.sigma_w, c.adaptation.sigma_f) == (6, 10)
+    assert c.reward.alpha == (0.5, 20, 2, 1)
+    a = c.a2c
+    assert (a.learning_rate, a.ent_coef, a.n_steps, a.rms_eps) == (4.25339846e-6, 3.371768978e-4, 4, 3.938214948e-5)
+    assert (a.max_grad_norm, a.gamma, a.vf_coef, a.rms_alpha, a.num_envs) == (4.24498881, 0.99, 0.5, 0.99, 4)
+    g = c.ga
+    assert (g.num_generations, g.num_parents_mating, g.sol_per_pop, g.num_genes, g.keep_parents) == (50, 4, 8, 5, 1)
+    assert (g.parent_selection_type, g.crossover_type, g.mutation_type, g.mutation_percent_genes) == ("sss", "single_point", "random", 10)
+    assert c.point_mass.mass == 10 and c.point_mass.kv_value == pytest.approx(2 * 150**0.5)
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
+def test_shipped_configs_load(path):
+    cfg = load_config(path)
+    assert isinstance(cfg, ExperimentConfig)
+
+
+def test_roundtrip_and_overrides(tmp_path):
+    import yaml
+
+    p = tmp_path / "c.yaml"
+    p.write_text(yaml.safe_dump({"a2c": {"learning_rate": "7e-4", "hidden": [32, 32]}, "seed": 3}))
+    cfg = load_config(p, overrides={"a2c": {"n_steps": 5}})
+    assert cfg.a2c.learning_rate == 7e-4 and cfg.a2c.hidden == (32, 32) and cfg.a2c.n_steps == 5 and cfg.seed == 3
+    assert load_config(overrides=config_to_dict(cfg)) == cfg
+
+
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        ("a2c: {learnin_rate: 0.1}", "a2c.learnin_rate"),
+        ("a2c: {learning_rate: 0}", "a2c.learning_rate"),
+        ("a2c: {learning_rate: -1e-3}", "a2c.learning_rate"),
+        ("a2c: {gamma: 1.2}", "a2c.gamma"),
+        ("a2c: {gamma: 0}", "a2c.gamma"),
+        ("a2c: {n_steps: 2.5}", "a2c.n_steps"),
+        ("a2c: {network: transformer}", "a2c.network"),
+        ("point_mass: {mass: -10}", "point_mass.mass"),
+        ("adaptation: {f_d_max: 0}", "adaptation.f_d_max"),
+        ("adaptation: {e_max: .nan}", "adaptation.e_max"),
+        ("reward: {alpha: [1, 2, 3]}", "reward.alpha"),
+        ("reward: {alpha: [1, 2, -3, 4]}", "reward.alpha"),
+        ("point_mass: {scenario_probs: {space: 1.0}}", "point_mass.scenario_probs"),
+        ("point_mass: {wall_min: 0.2, wall_max: 0.1}", "point_mass.wall_min"),
+        ("controller: {mu: yes}", "controller.mu"),
+        ("ga: {num_parents_mating: 9}", "ga.num_parents_mating"),
+        ("unknown_section: 1", "unknown_section"),
+    ],
+)
+def test_bad_values_name_file_and_key(tmp_path, text, key):
+    p = tmp_path / "bad.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(p)
+    assert str(p) in str(info.value) and key in str(info.value)
+
+
+def test_missing_and_non_mapping_files(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.yaml")
+    p = tmp_path / "list.yaml"
+    p.write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(p)
+    p.write_text("a2c: {gamma: [unclosed")
+    with pytest.raises(ConfigError, match="YAML"):
+        load_config(p)

@@ -1,0 +1,121 @@
+"""PointMassEnv: TorchRL specs, batching, determinism, eq. 35 behaviour per scenario, bad input."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from a3cqp_rl.config import ExperimentConfig, config_from_dict
+from envs.point_mass import SCENARIOS, PointMassEnv
+
+
+def scenario_env(n, scenario, seed=0, **pm):
+    cfg = config_from_dict({"point_mass": {"scenario_probs": {scenario: 1.0}, "random_initial_weights": False, **pm}})
+    return PointMassEnv(n, cfg, seed=seed)
+
+
+def run_const(env, action, steps):
+    """Roll out a constant action [4] for all envs; returns the stacked TensorDict [N, steps]."""
+    a = torch.tensor(action, dtype=torch.float32).expand(env.num_envs, 4)
+    td = env.reset()
+    out = []
+    for _ in range(steps):
+        td = env.step(td.set("action", a.clone()))
+        out.append(td["next"].clone())
+        td = td["next"]
+    return torch.stack(out, dim=1)
+
+
+@pytest.mark.parametrize("n", [1, 4, 4096])
+def test_specs_and_batch_sizes(n):
+    env = PointMassEnv(n, seed=1)
+    check_env_specs(env)
+    td = env.rollout(3, break_when_any_done=False)
+    assert td.batch_size == (n, 3)
+    assert td["next", "observation"].shape == (n, 3, 3)
+    assert td["next", "reward"].shape == (n, 3, 1)
+    assert td["next", "w"].shape == (n, 3, 3)
+    obs = td["next", "observation"]
+    assert obs.min() >= 0 and obs.max() <= 1
+
+
+def test_same_seed_same_trajectory_and_other_seed_differs():
+    def traj(seed):
+        env = PointMassEnv(8, seed=seed)
+        torch.manual_seed(123)  # random actions drawn from the global RNG, same for both runs
+        return env.rollout(200, break_when_any_done=False)
+
+    a, b, c = traj(5), traj(5), traj(6)
+    assert torch.equal(a["next", "x"], b["next", "x"]) and torch.equal(a["next", "reward"], b["next", "reward"])
+    assert not torch.equal(a["next", "x"], c["next", "x"])
+
+
+def test_ik_tracks_target_in_free_motion():
+    env = scenario_env(16, "free")
+    td = run_const(env, [1.0, -1.0, -1.0, -1.0], 300)  # w1 -> 1, f_d -> 0
+    e_final = td["e"][:, -1].abs()
+    assert e_final.max() < 1e-3, e_final.max()
+    assert td["f_d"][:, -1].max() == 0.0
+
+
+def test_admittance_yields_to_operator():
+    ik = run_const(scenario_env(32, "operator", seed=3), [1.0, -1.0, -1.0, -1.0], 400)
+    ac = run_const(scenario_env(32, "operator", seed=3), [-1.0, 1.0, -1.0, -1.0], 400)
+    f_ik, f_ac = ik["f_ope"].abs().mean(), ac["f_ope"].abs().mean()
+    assert f_ik > 1.0  # the operator really pushes in this scenario
+    assert f_ac < 0.5 * f_ik, (f_ac, f_ik)
+    # and the reward (eq. 30) says so
+    assert ac["reward"].mean() > ik["reward"].mean()
+
+
+def test_force_control_presses_wall_with_desired_force():
+    env = scenario_env(8, "wall")
+    td = run_const(env, [-1.0, -1.0, 1.0, 1.0], 400)  # w3 -> ~1, f_d -> f̄_d = 20 N
+    f_env = td["f_env"][:, -50:]
+    assert torch.allclose(td["f_d"][:, -1], torch.full((8,), 20.0, dtype=torch.float64))
+    w3 = td["w"][:, -1, 2]
+    # steady contact force balances w3 f_d plus the (small) residual IK pull towards the target
+    assert ((-f_env.mean(-1)) / (w3 * 20.0) - 1).abs().max() < 0.05
+    assert f_env.std(-1).max() < 0.2  # settled, no chatter
+    # the wall is a spring: penetration = contact force / stiffness (5000 N/m)
+    pen = td["x"][:, -1] - env.functional()[0]["wall_pos"]
+    assert torch.allclose(pen, -f_env[:, -1] / 5000.0, rtol=0.02)
+
+
+def test_scenarios_sampled_with_configured_probabilities():
+    env = PointMassEnv(4096, config_from_dict({"point_mass": {"scenario_probs": {"free": 0.5, "wall": 0.5}}}), seed=0)
+    td = env.reset()
+    counts = torch.bincount(td["scenario"], minlength=len(SCENARIOS)).double() / 4096
+    assert abs(counts[0] - 0.5) < 0.05 and abs(counts[2] - 0.5) < 0.05 and counts[1] == 0 and counts[3] == 0
+
+
+def test_operator_schedule_starts_and_stops():
+    env = scenario_env(64, "operator", operator_force_min=5.0)
+    env.reset()
+    _, sched = env.functional()
+    on = sched.abs() > 0
+    assert on.any(-1).all() and (~on).any(-1).all()  # every env has push and pause phases
+    assert sched.abs().max() <= 15.0 and sched[on].abs().min() >= 5.0
+
+
+def test_truncation_at_episode_end_and_partial_reset():
+    env = PointMassEnv(3, config_from_dict({"point_mass": {"episode_steps": 5}}), seed=0)
+    td = env.rollout(5, break_when_any_done=False)
+    assert td["next", "truncated"][:, -1].all() and not td["next", "terminated"].any()
+    assert not td["next", "done"][:, :-1].any()
+    before = env.functional()[0]["target"].clone()
+    env.reset(TensorDict({"_reset": torch.tensor([[True], [False], [False]])}, batch_size=[3]))
+    after = env.functional()[0]
+    assert after["t"].tolist() == [0, 5, 5]
+    assert torch.equal(after["target"][1:], before[1:])
+
+
+def test_bad_actions_raise_clear_errors():
+    env = PointMassEnv(4, seed=0)
+    td = env.reset()
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(td.clone().set("action", torch.full((4, 4), float("nan"))))
+    with pytest.raises((ValueError, RuntimeError)):
+        env.step(td.clone().set("action", torch.zeros(4, 3)))
+    with pytest.raises(ValueError, match="num_envs"):
+        PointMassEnv(0)
