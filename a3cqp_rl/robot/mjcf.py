@@ -1,0 +1,64 @@
+"""Panda MJCF assets: compose the arm with a swappable tool and optional scene objects (no downloads)."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+
+from a3cqp_rl.robot.exceptions import MjcfError, UnknownToolError
+
+__all__ = ["ASSETS_DIR", "PANDA_XML", "TOOLS", "DEFAULT_TOOL", "compose_mjcf", "mjcf_file", "table_xml"]
+
+ASSETS_DIR = Path(__file__).resolve().parent / "assets"
+PANDA_XML = ASSETS_DIR / "panda.xml"
+"""The arm with the default tool (peg) inline; a complete, loadable MJCF file."""
+TOOLS = ("peg", "disc", "none")
+"""Tool names; each has assets/tool_<name>.xml (a single <body name="tool"> with a site "tcp")."""
+DEFAULT_TOOL = "peg"
+
+_TOOL_MARKERS = ("<!-- TOOL BEGIN -->", "<!-- TOOL END -->")
+_SCENE_MARKERS = ("<!-- SCENE BEGIN -->", "<!-- SCENE END -->")
+
+
+def _replace_between(text: str, markers: tuple[str, str], body: str) -> str:
+    """Replace what lies between two marker comments (markers kept)."""
+    start, end = text.find(markers[0]), text.find(markers[1])
+    if start < 0 or end < start:
+        raise MjcfError(f"marker {markers} not found in {PANDA_XML}")
+    return text[: start + len(markers[0])] + "\n" + body + "\n" + text[end:]
+
+
+def table_xml(height: float = 0.3, size: tuple[float, float] = (0.3, 0.3), center: tuple[float, float] = (0.45, 0.0),
+              thickness: float = 0.04, name: str = "table") -> str:
+    """A fixed box whose top face is at `height` [m] (world z), for contact tests and scenes."""
+    return (f'<body name="{name}" pos="{center[0]} {center[1]} {height - thickness / 2}">'
+            f'<geom name="{name}" type="box" size="{size[0]} {size[1]} {thickness / 2}" contype="1" conaffinity="2" '
+            f'rgba="0.6 0.45 0.3 1" solref="0.005 1" friction="0.4 0.005 0.0001"/></body>')
+
+
+def compose_mjcf(tool: str = DEFAULT_TOOL, scene: str = "") -> str:
+    """The Panda MJCF text with `tool` mounted below the F/T sensor and `scene` (MJCF bodies) in the worldbody."""
+    if tool not in TOOLS:
+        raise UnknownToolError(f"unknown tool {tool!r}; known tools: {TOOLS}")
+    text = PANDA_XML.read_text()
+    tool_body = (ASSETS_DIR / f"tool_{tool}.xml").read_text()
+    text = _replace_between(text, _TOOL_MARKERS, tool_body)
+    return _replace_between(text, _SCENE_MARKERS, scene)
+
+
+def mjcf_file(tool: str = DEFAULT_TOOL, scene: str = "") -> Path:
+    """Path of a loadable MJCF file for (tool, scene): the packaged file for the default, else a cached copy."""
+    if tool == DEFAULT_TOOL and not scene:
+        return PANDA_XML
+    text = compose_mjcf(tool, scene)
+    digest = hashlib.sha1(text.encode()).hexdigest()[:12]
+    cache = Path(os.environ.get("A3CQP_CACHE", Path(tempfile.gettempdir()) / "a3cqp_rl")) / "mjcf"
+    cache.mkdir(parents=True, exist_ok=True)
+    path = cache / f"panda_{tool}_{digest}.xml"
+    if not path.exists():
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(text)
+        tmp.replace(path)  # atomic: concurrent workers never read a half-written file
+    return path

@@ -1,0 +1,161 @@
+"""N independent MuJoCo Panda simulations stepped together; exposes B(q), h + g and sensors as float64 tensors."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+import torch
+
+from a3cqp_rl.robot.mjcf import DEFAULT_TOOL, compose_mjcf
+from a3cqp_rl.robot.specs import PANDA_HOME
+
+__all__ = ["SimState", "PandaSim", "full_mass_matrix"]
+
+
+def full_mass_matrix(m: mujoco.MjModel, d: mujoco.MjData, dst: np.ndarray) -> None:
+    """Write the dense joint-space inertia [nv, nv] into dst (MuJoCo >= 4: mj_fullM(m, d, dst); 3.x: (m, dst, qM))."""
+    if hasattr(d, "qM"):  # MuJoCo 3.x
+        mujoco.mj_fullM(m, dst, d.qM)
+    else:
+        mujoco.mj_fullM(m, d, dst)
+
+
+@dataclass(frozen=True)
+class SimState:
+    """State and dynamics of N arms at the current time (tensors share memory with the simulator buffers)."""
+
+    q: torch.Tensor
+    """Joint positions [N, 7] (rad)."""
+    qd: torch.Tensor
+    """Joint velocities [N, 7] (rad/s)."""
+    mass: torch.Tensor
+    """Joint-space inertia B(q) [N, 7, 7] (kg m^2), armature included."""
+    bias: torch.Tensor
+    """h(q, q̇) + g(q) [N, 7] (N m): Coriolis, centrifugal and gravity torques (MuJoCo qfrc_bias)."""
+    tau_ext: torch.Tensor
+    """External joint torques of the previous step [N, 7] (N m): applied forces + contacts + joint-limit forces."""
+    ft: torch.Tensor
+    """F/T sensor reading of the previous step [N, 6] (N, N m), sensor frame: wrench the flange exerts on the
+    sensor + tool subtree (includes the tool's weight)."""
+
+
+class PandaSim:
+    """N Panda arms in MuJoCo (one MjModel, N MjData), split-stepped so control sees fresh B(q), h + g.
+
+    Usage per control period: `s = sim.observe()` (mj_step1: kinematics, B, bias) -> optional `sim.push(...)` ->
+    `sim.step(tau)` (mj_step2: actuation, contacts, integration).
+
+    Args:
+        n: number of arms.
+        tool: tool name (see a3cqp_rl.robot.mjcf.TOOLS).
+        scene: extra MJCF bodies for the worldbody (e.g. a3cqp_rl.robot.mjcf.table_xml()).
+        q0: initial joint configuration [7] (rad); default the "ready" pose.
+    """
+
+    def __init__(self, n: int = 1, tool: str = DEFAULT_TOOL, scene: str = "", q0: tuple[float, ...] = PANDA_HOME,
+                 timestep: float | None = None) -> None:
+        self.model = mujoco.MjModel.from_xml_string(compose_mjcf(tool, scene))
+        if timestep is not None:
+            self.model.opt.timestep = timestep
+        self.n = n
+        self.datas = [mujoco.MjData(self.model) for _ in range(n)]
+        self._mass = np.zeros((n, 7, 7))
+        self._bias = np.zeros((n, 7))
+        self._q = np.zeros((n, 7))
+        self._qd = np.zeros((n, 7))
+        self._tau_ext = np.zeros((n, 7))
+        self._ft = np.zeros((n, 6))
+        self._sensor_adr = (self.model.sensor("ft_force").adr[0], self.model.sensor("ft_torque").adr[0])
+        self.site_ids = {name: self.model.site(name).id for name in ("tcp", "handle", "ft_site", "flange")}
+        self._tau_push = np.zeros((n, self.model.nv))
+        self.reset(np.broadcast_to(np.asarray(q0, dtype=np.float64), (n, 7)))
+
+    @property
+    def dt(self) -> float:
+        """Simulation (= control) period [s]."""
+        return float(self.model.opt.timestep)
+
+    @property
+    def time(self) -> float:
+        """Simulated time of arm 0 [s]."""
+        return float(self.datas[0].time)
+
+    def reset(self, q: np.ndarray | torch.Tensor, qd: np.ndarray | torch.Tensor | None = None,
+              idx: list[int] | None = None) -> None:
+        """Set joint positions [N or len(idx), 7] (rad) and velocities (rad/s, default 0) and clear forces."""
+        idx = list(range(self.n)) if idx is None else list(idx)
+        q = np.asarray(q, dtype=np.float64).reshape(len(idx), 7)
+        qd = np.zeros_like(q) if qd is None else np.asarray(qd, dtype=np.float64).reshape(len(idx), 7)
+        for k, i in enumerate(idx):
+            d = self.datas[i]
+            mujoco.mj_resetData(self.model, d)
+            d.qpos[:7] = q[k]
+            d.qvel[:7] = qd[k]
+            mujoco.mj_forward(self.model, d)
+            self._tau_ext[i] = 0.0
+            self._ft[i] = d.sensordata[self._sensor_adr[0]:self._sensor_adr[0] + 3].tolist() + \
+                d.sensordata[self._sensor_adr[1]:self._sensor_adr[1] + 3].tolist()
+
+    def observe(self) -> SimState:
+        """Run mj_step1 on every arm and return state, B(q), h + g and last-step sensors as float64 tensors."""
+        m = self.model
+        fa, ta = self._sensor_adr
+        for i, d in enumerate(self.datas):
+            mujoco.mj_step1(m, d)
+            full_mass_matrix(m, d, self._mass[i])
+            self._bias[i] = d.qfrc_bias[:7]
+            self._q[i] = d.qpos[:7]
+            self._qd[i] = d.qvel[:7]
+            self._ft[i, :3] = d.sensordata[fa:fa + 3]
+            self._ft[i, 3:] = d.sensordata[ta:ta + 3]
+            d.xfrc_applied[:] = 0.0
+            self._tau_push[i] = 0.0
+        return SimState(q=torch.from_numpy(self._q), qd=torch.from_numpy(self._qd), mass=torch.from_numpy(self._mass),
+                        bias=torch.from_numpy(self._bias), tau_ext=torch.from_numpy(self._tau_ext),
+                        ft=torch.from_numpy(self._ft))
+
+    def push(self, force_world: np.ndarray | torch.Tensor, site: str = "handle",
+             torque_world: np.ndarray | torch.Tensor | None = None) -> None:
+        """Apply a world-frame force [N, 3] (N) (and torque [N, 3], N m) at `site` during the next step()."""
+        force = np.asarray(force_world, dtype=np.float64).reshape(self.n, 3)
+        torque = np.zeros_like(force) if torque_world is None else np.asarray(torque_world, np.float64).reshape(-1, 3)
+        sid = self.site_ids[site] if site in self.site_ids else self.model.site(site).id
+        body = int(self.model.site_bodyid[sid])
+        for i, d in enumerate(self.datas):
+            if np.any(force[i]) or np.any(torque[i]):
+                # a body force (xfrc_applied, at the body CoM) so that the F/T sensor sees pushes below it
+                d.xfrc_applied[body, :3] += force[i]
+                d.xfrc_applied[body, 3:] += torque[i] + np.cross(d.site_xpos[sid] - d.xipos[body], force[i])
+                mujoco.mj_applyFT(self.model, d, force[i], torque[i], d.site_xpos[sid], body, self._tau_push[i])
+
+    def step(self, tau: torch.Tensor | np.ndarray) -> None:
+        """Apply joint torques [N, 7] (N m, clipped by the motors' ranges) and run mj_step2 on every arm."""
+        tau = tau.detach().cpu().numpy() if isinstance(tau, torch.Tensor) else np.asarray(tau, dtype=np.float64)
+        m = self.model
+        for i, d in enumerate(self.datas):
+            d.ctrl[:7] = tau[i]
+            mujoco.mj_step2(m, d)
+            self._tau_ext[i] = d.qfrc_constraint[:7] + d.qfrc_applied[:7] + self._tau_push[i, :7]
+
+    def site_pose(self, site: str = "tcp") -> tuple[np.ndarray, np.ndarray]:
+        """World position [N, 3] (m) and rotation [N, 3, 3] of a site after the last step (kinematics of step1)."""
+        sid = self.model.site(site).id
+        return (np.stack([d.site_xpos[sid] for d in self.datas]),
+                np.stack([d.site_xmat[sid].reshape(3, 3) for d in self.datas]))
+
+    def contact_force(self, geom: str) -> np.ndarray:
+        """World-frame force [N, 3] (N) that all contacts involving `geom` exert on the robot side."""
+        gid = self.model.geom(geom).id
+        out = np.zeros((self.n, 3))
+        f6 = np.zeros(6)
+        for i, d in enumerate(self.datas):
+            for c in range(d.ncon):
+                con = d.contact[c]
+                if gid not in (con.geom1, con.geom2):
+                    continue
+                mujoco.mj_contactForce(self.model, d, c, f6)
+                f_world = con.frame.reshape(3, 3).T @ f6[:3]  # force on geom2 from geom1, in world
+                out[i] += f_world if con.geom1 == gid else -f_world  # force on the non-`geom` side = robot
+        return out
