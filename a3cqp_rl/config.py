@@ -143,7 +143,9 @@ class A2CConfig:
     log_every: int = 250
     """Updates between metric rows in metrics.csv."""
     compile: bool = True
-    """torch.compile the fused rollout+update step where the environment supports it."""
+    """torch.compile the rollout and update steps (one-time cost of ~30-60 s, then several times faster)."""
+    rollout: Literal["auto", "torchrl"] = "auto"
+    """'auto': the env's fused fast path when it has one (PointMassEnv), else a TorchRL Collector; 'torchrl': always the Collector."""
 
     def _check(self, err: _Errors) -> None:
         for name in ("learning_rate", "rms_eps", "max_grad_norm", "n_steps", "num_envs", "total_steps",

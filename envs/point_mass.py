@@ -203,14 +203,58 @@ class PointMassEnv(EnvBase):
             device=self.device,
         )
 
-    # ------------------------------------------------------------------ functional access
+    # ------------------------------------------------------------------ fused-trainer access
+    # The TorchRL step above costs ~1 ms of framework overhead per call; A2C at the paper's settings
+    # needs 62,500 rollouts of 4 steps, so trainers that can drive the env directly use these.
     def functional(self) -> tuple[dict[str, Tensor], Tensor]:
-        """The live (state dict, operator schedule) for fused trainers; mutate only via `agent_step`."""
+        """The live (state dict, operator schedule per agent step [N, T+1]); read-only for callers."""
         return self._state, self._schedule
 
-    def reset_where(self, done: Tensor) -> None:
-        """Resample the episodes of envs where `done` [N] is True (fused-trainer auto-reset)."""
+    def compile_step(self) -> None:
+        """Use a torch.compile'd `fast_agent_step` in `fast_step` (first call compiles for ~10-30 s)."""
+        self._fast_fn = torch.compile(fast_agent_step, dynamic=False)
+
+    def fast_observation(self) -> Tensor:
+        """Current observations [N, 3] (float32)."""
+        return observe_state(self._state, self.adapt).to(torch.float32)
+
+    def fast_step(self, action: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Step all envs with `action` [N, 4] (no checks, no auto-reset): (next_obs, reward, terminated, truncated)."""
+        fn = getattr(self, "_fast_fn", fast_agent_step)
+        self._state, obs, r, truncated = fn(self._state, action, self._schedule, self.cfg, self.adapt, self.rew)
+        return obs, r, torch.zeros_like(truncated), truncated
+
+    def reset_where(self, done: Tensor) -> Tensor:
+        """Resample the episodes of envs where `done` [N] is True; returns the new observations [N, 3]."""
         self._sample_episodes(done.nonzero().squeeze(-1))
+        return self.fast_observation()
+
+    def get_state(self) -> dict[str, Tensor]:
+        """Everything needed to continue bit-identically: physics state, schedule and RNG state."""
+        return {**{k: v.clone() for k, v in self._state.items()}, "_schedule": self._schedule.clone(),
+                "_rng": self._rng.get_state()}
+
+    def set_state(self, state: dict[str, Tensor]) -> None:
+        """Restore a `get_state()` snapshot (shapes must match this env's num_envs)."""
+        if state["x"].shape != (self.num_envs,):
+            raise ValueError(f"state is for {state['x'].shape[0]} envs, this env has {self.num_envs}")
+        self._state = {k: v.clone() for k, v in state.items() if not k.startswith("_")}
+        self._schedule = state["_schedule"].clone()
+        self._rng.set_state(state["_rng"])
+
+
+def fast_agent_step(
+    state: dict[str, Tensor],
+    action: Tensor,
+    schedule: Tensor,
+    cfg: PointMassConfig,
+    adapt: AdaptationConfig,
+    rew: RewardConfig,
+) -> tuple[dict[str, Tensor], Tensor, Tensor, Tensor]:
+    """`agent_step` plus observation: (state, obs [N, 3] f32, reward [N] f32, truncated [N] bool)."""
+    state, r = agent_step(state, action.to(torch.float64), schedule, cfg, adapt, rew)
+    obs = observe_state(state, adapt).to(torch.float32)
+    return state, obs, r.to(torch.float32), state["t"] >= cfg.episode_steps
 
 
 def observe_state(state: dict[str, Tensor], adapt: AdaptationConfig) -> Tensor:

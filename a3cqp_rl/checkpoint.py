@@ -1,0 +1,53 @@
+"""Atomic checkpoint files: written to a temporary file, fsynced, then renamed over the target.
+
+A run killed mid-write leaves the previous checkpoint intact. Loading uses
+`torch.load(..., weights_only=True)` only, so a checkpoint can hold tensors, numbers, strings,
+lists and dicts, never pickled code.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from a3cqp_rl.exceptions import CheckpointError
+
+__all__ = ["save_atomic", "load_checkpoint"]
+
+
+def save_atomic(obj: Any, path: str | Path) -> Path:
+    """Write `obj` with torch.save to `path` atomically (temp file in the same folder + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_checkpoint(path: str | Path, required: tuple[str, ...] = ()) -> dict:
+    """Load a checkpoint dict with weights_only=True; clear CheckpointError if missing, corrupt or incomplete."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # truncated zip, wrong format, pickled code...
+        raise CheckpointError(f"checkpoint {path} is corrupt or not a weights-only torch file: {exc}") from None
+    if not isinstance(data, dict):
+        raise CheckpointError(f"checkpoint {path} holds a {type(data).__name__}, expected a dict")
+    missing = [k for k in required if k not in data]
+    if missing:
+        raise CheckpointError(f"checkpoint {path} lacks {missing}; was it written by another program?")
+    return data

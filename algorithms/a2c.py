@@ -1,0 +1,397 @@
+"""Synchronous n-step advantage actor-critic (A2C), paper 000 eq. 31-32, hand-written.
+
+Reads top to bottom: n-step returns → `a2c_update` (eq. 31 loss, hand-derived gradients, λζ
+clipping, eq. 32 RMSProp) → two rollout sources → `train` (loop, logging, atomic checkpoints, resume).
+
+Conventions (those of Stable-Baselines3's A2C, the paper's library; defaults = Table IV):
+  * Gaussian policy on the raw action; the env receives it clipped to [-1, 1] and the update
+    uses the log-probability of the unclipped sample.
+  * Loss L = −mean(A·log π(a|s)) + λv·mean((R − V)²) − λβ·H(π). Paper eq. 31d prints "+λβ H"; as in
+    A3C (Mnih et al. 2016) and SB3 the entropy is a bonus, so it enters with a minus sign.
+  * n-step returns bootstrap from V(s') at the end of a rollout and at truncation (time limit),
+    and not at termination.
+Data comes from either (a) the env's fused fast path (`fast_step`/`reset_where`, PointMassEnv) or
+(b) any TorchRL EnvBase through a TorchRL `Collector` (ParallelEnv/SerialEnv, MuJoCo Panda).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from a3cqp_rl.checkpoint import load_checkpoint, save_atomic
+from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_to_dict
+from a3cqp_rl.exceptions import CheckpointError
+from algorithms.networks import LOG_2PI, ParamLayout, backward, forward
+from algorithms.rmsprop import clip_grad_norm_, rmsprop_step_
+
+__all__ = ["Batch", "nstep_returns", "a2c_update", "train", "TrainResult", "load_policy", "METRICS"]
+
+METRICS = ("policy_loss", "value_loss", "entropy", "grad_norm", "explained_variance")
+
+
+@dataclass
+class Batch:
+    """One rollout, time-major: obs/next_obs [T, N, obs], actions [T, N, act] (unclipped), rest [T, N]."""
+
+    obs: Tensor
+    actions: Tensor
+    rewards: Tensor
+    terminated: Tensor
+    truncated: Tensor
+    next_obs: Tensor  # observation after each step, before any reset
+
+
+def nstep_returns(rewards: Tensor, terminated: Tensor, truncated: Tensor, next_values: Tensor, gamma: float) -> Tensor:
+    """n-step returns [T, N]: R_t = r_t + γ·R_{t+1}, cut at episode ends; bootstrap V(s') at truncation and at t = T−1."""
+    T = rewards.shape[0]
+    bootstrap = gamma * next_values * (~terminated)
+    end = terminated | truncated
+    out = []
+    ret = bootstrap[T - 1] + rewards[T - 1]
+    out.append(ret)
+    for t in range(T - 2, -1, -1):
+        ret = rewards[t] + torch.where(end[t], bootstrap[t], gamma * ret)
+        out.append(ret)
+    return torch.stack(out[::-1])
+
+
+def a2c_update(layout: ParamLayout, flat: Tensor, square_avg: Tensor, batch: Batch, hp: A2CConfig) -> Tensor:
+    """One A2C step in place on `flat` and the RMSProp accumulator; returns METRICS as a tensor [5]."""
+    T, N = batch.rewards.shape
+    B = T * N
+    obs, actions = batch.obs.reshape(B, -1), batch.actions.reshape(B, -1)
+    mu, log_std, values, cache = forward(layout, flat, obs)  # [B, act], [act], [B]
+    next_values = forward(layout, flat, batch.next_obs.reshape(B, -1))[2].reshape(T, N)
+    returns = nstep_returns(batch.rewards, batch.terminated, batch.truncated, next_values, hp.gamma).reshape(B)
+    adv = returns - values
+    if hp.normalize_advantage:
+        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    inv_std = torch.exp(-log_std)
+    z = (actions - mu) * inv_std  # standardised action
+    log_prob = (-0.5 * z * z - log_std - 0.5 * LOG_2PI).sum(-1)
+    entropy = (log_std + 0.5 * (1.0 + LOG_2PI)).sum()  # state-independent std
+    policy_loss = -(adv * log_prob).mean()  # eq. 31b
+    value_loss = (returns - values).pow(2).mean()  # eq. 31c (without λv)
+    # ∂L/∂(mean, log-std, value) of L = policy_loss + λv·value_loss − λβ·entropy, by hand:
+    w = (adv / B).unsqueeze(-1)
+    g_mu = -w * z * inv_std
+    g_log_std = -(w * (z * z - 1.0)).sum(0) - hp.ent_coef
+    g_value = (2.0 * hp.vf_coef / B) * (values - returns)
+    grad = backward(layout, flat, cache, g_mu, g_log_std, g_value)
+    grad_norm = clip_grad_norm_([grad], hp.max_grad_norm)  # λζ
+    rmsprop_step_([flat], [grad], [square_avg], hp.learning_rate, hp.rms_alpha, hp.rms_eps)  # eq. 32
+    explained_var = 1.0 - (returns - values).var() / (returns.var() + 1e-8)
+    return torch.stack([policy_loss, value_loss, entropy, grad_norm, explained_var]).detach()
+
+
+# ------------------------------------------------------------------------------ rollout sources
+
+
+def _sample_action(layout: ParamLayout, flat: Tensor, obs: Tensor, noise: Tensor) -> Tensor:
+    mu, log_std, _, _ = forward(layout, flat, obs)
+    return mu + torch.exp(log_std) * noise
+
+
+class FusedRollout:
+    """n-step rollouts straight from an env with `fast_step`/`reset_where` (e.g. PointMassEnv)."""
+
+    def __init__(self, env, layout: ParamLayout, generator: torch.Generator, compile: bool) -> None:
+        """Drive `env` with actions sampled from `layout` params; noise from `generator`."""
+        self.env, self.layout, self.gen = env, layout, generator
+        self.num_envs = env.num_envs
+        self._sample = torch.compile(_sample_action, dynamic=False) if compile else _sample_action
+        if compile:
+            env.compile_step()
+        self.obs = env.fast_observation()
+        self.ep_return = torch.zeros(self.num_envs)
+        self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
+        self.finished: list[tuple[float, int]] = []
+
+    @torch.no_grad()
+    def collect(self, flat: Tensor, n: int) -> Batch:
+        """Run n steps in all envs; episodes that end are reset and their returns recorded."""
+        rows: list[tuple[Tensor, ...]] = []
+        for _ in range(n):
+            noise = torch.randn(self.num_envs, self.layout.act_dim, generator=self.gen)
+            action = self._sample(self.layout, flat, self.obs, noise)
+            next_obs, r, term, trunc = self.env.fast_step(action.clamp(-1.0, 1.0))
+            rows.append((self.obs, action, r, term, trunc, next_obs))
+            self.ep_return += r
+            self.ep_length += 1
+            done = term | trunc
+            if bool(done.any()):
+                self.finished += list(zip(self.ep_return[done].tolist(), self.ep_length[done].tolist()))
+                self.ep_return[done] = 0.0
+                self.ep_length[done] = 0
+                next_obs = torch.where(done.unsqueeze(-1), self.env.reset_where(done), next_obs)
+            self.obs = next_obs
+        return Batch(*(torch.stack(c) for c in zip(*rows)))
+
+    def state_dict(self) -> dict:
+        """Everything needed to resume bit-identically."""
+        return {"env": self.env.get_state(), "obs": self.obs, "ep_return": self.ep_return, "ep_length": self.ep_length}
+
+    def load_state_dict(self, d: dict) -> None:
+        """Restore `state_dict()`."""
+        self.env.set_state(d["env"])
+        self.obs, self.ep_return, self.ep_length = d["obs"], d["ep_return"], d["ep_length"]
+
+
+class TorchRLRollout:
+    """n-step rollouts of any TorchRL EnvBase (batched, ParallelEnv, SerialEnv) through a `Collector`."""
+
+    def __init__(self, env, layout: ParamLayout, generator: torch.Generator, n: int) -> None:
+        """`env` must expose `observation` [*, obs] and accept `action` [*, act]; batch size [N]."""
+        from tensordict.nn import TensorDictModule
+        from torchrl.collectors import Collector
+
+        self.layout, self.gen, self.flat = layout, generator, layout.init()
+        self.num_envs = int(env.batch_size.numel())
+
+        def policy(obs: Tensor) -> tuple[Tensor, Tensor]:
+            noise = torch.randn(obs.shape[:-1] + (layout.act_dim,), generator=self.gen)
+            raw = _sample_action(layout, self.flat, obs.reshape(-1, layout.obs_dim), noise.reshape(-1, layout.act_dim))
+            raw = raw.reshape(noise.shape)
+            return raw.clamp(-1.0, 1.0).to(env.action_spec.dtype), raw
+
+        module = TensorDictModule(policy, in_keys=["observation"], out_keys=["action", "action_raw"])
+        self.collector = Collector(env, module, frames_per_batch=n * self.num_envs, total_frames=-1)
+        self._iter = iter(self.collector)
+        self.ep_return = torch.zeros(self.num_envs)
+        self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
+        self.finished: list[tuple[float, int]] = []
+
+    @torch.no_grad()
+    def collect(self, flat: Tensor, n: int) -> Batch:
+        """Next batch from the collector, re-shaped time-major [n, N]."""
+        self.flat.copy_(flat)
+        td = next(self._iter).reshape(self.num_envs, n).transpose(0, 1)  # [T, N]
+        r = td["next", "reward"].reshape(n, self.num_envs).float()
+        term = td["next", "terminated"].reshape(n, self.num_envs)
+        trunc = td["next", "truncated"].reshape(n, self.num_envs) if ("next", "truncated") in td.keys(True) else torch.zeros_like(term)
+        for t in range(n):  # episode bookkeeping only (n is small)
+            self.ep_return += r[t]
+            self.ep_length += 1
+            done = term[t] | trunc[t]
+            if bool(done.any()):
+                self.finished += list(zip(self.ep_return[done].tolist(), self.ep_length[done].tolist()))
+                self.ep_return[done], self.ep_length[done] = 0.0, 0
+        obs = td["observation"].reshape(n, self.num_envs, -1).float()
+        return Batch(obs, td["action_raw"].reshape(n, self.num_envs, -1).float(), r, term, trunc,
+                     td["next", "observation"].reshape(n, self.num_envs, -1).float())
+
+    def state_dict(self) -> dict:
+        """Collector-driven envs cannot be snapshotted in general; resume restarts their episodes."""
+        return {}
+
+    def load_state_dict(self, d: dict) -> None:
+        """Nothing to restore (see `state_dict`)."""
+
+    def close(self) -> None:
+        """Shut the collector (and its env workers) down."""
+        self.collector.shutdown()
+
+
+# ------------------------------------------------------------------------------ training loop
+
+
+@dataclass
+class TrainResult:
+    """What `train` did: steps, timings and where files went."""
+
+    steps: int
+    updates: int
+    seconds: float
+    compile_seconds: float
+    steps_per_second: float
+    out_dir: Path | None
+    policy_path: Path | None
+    final_metrics: dict[str, float] = field(default_factory=dict)
+    episode_returns: list[float] = field(default_factory=list)
+
+
+CKPT_KEYS = ("format", "update", "flat", "square_avg", "gen", "rollout", "config", "layout", "metric_sum", "metric_count")
+
+
+def train(
+    cfg: ExperimentConfig,
+    out_dir: str | Path | None = None,
+    *,
+    total_steps: int | None = None,
+    resume: bool = False,
+    progress: bool = False,
+    env=None,
+    callback: Callable[[int, dict], None] | None = None,
+) -> TrainResult:
+    """Train the A3CQP adaptation policy with A2C; write metrics.csv, checkpoint.pt and policy.pt under `out_dir`."""
+    hp = cfg.a2c
+    total = int(total_steps if total_steps is not None else hp.total_steps)
+    if total <= 0:
+        raise ValueError(f"total_steps must be > 0, got {total}")
+    torch.manual_seed(cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    if env is None:
+        from envs.point_mass import PointMassEnv
+
+        env = PointMassEnv(hp.num_envs, cfg, seed=cfg.seed)
+        env.reset()
+    # look on the class: batched TorchRL envs forward unknown attributes to their workers
+    fused = getattr(type(env), "fast_step", None) is not None and hp.rollout == "auto"
+    obs_dim = 3
+    act_dim = 4
+    layout = ParamLayout(obs_dim, act_dim, hp.hidden, hp.network)
+    flat = layout.init(gen, hp.log_std_init)
+    square_avg = torch.full_like(flat, hp.rms_init)
+    runner = FusedRollout(env, layout, gen, hp.compile) if fused else TorchRLRollout(env, layout, gen, hp.n_steps)
+    n_envs = runner.num_envs
+    per_update = hp.n_steps * n_envs
+    num_updates = math.ceil(total / per_update)
+
+    out = Path(out_dir) if out_dir is not None else None
+    ckpt_path = out / "checkpoint.pt" if out else None
+    start = 0
+    metric_sum = torch.zeros(len(METRICS))  # running sums since the last logged row
+    metric_count = 0
+    if resume:
+        if ckpt_path is None:
+            raise CheckpointError("--resume needs an output directory holding checkpoint.pt")
+        ck = load_checkpoint(ckpt_path, CKPT_KEYS)
+        if ck["layout"] != [obs_dim, act_dim, list(hp.hidden), hp.network] or ck["flat"].shape != flat.shape:
+            raise CheckpointError(f"{ckpt_path} was written for network {ck['layout']}, config asks for "
+                                  f"{[obs_dim, act_dim, list(hp.hidden), hp.network]}")
+        flat.copy_(ck["flat"])
+        square_avg.copy_(ck["square_avg"])
+        gen.set_state(ck["gen"])
+        runner.load_state_dict(ck["rollout"])
+        runner.finished = [tuple(x) for x in ck.get("finished", [])]
+        start = int(ck["update"])
+        metric_sum, metric_count = ck["metric_sum"].clone(), int(ck["metric_count"])
+    if out:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "config.yaml").write_text(_yaml_dump(config_to_dict(cfg)))
+        _truncate_csv(out / "metrics.csv", keep_until_update=start, log_every=hp.log_every)
+
+    update = torch.compile(a2c_update, dynamic=False) if hp.compile else a2c_update
+    bar = _progress(num_updates * per_update, start * per_update, progress)
+    compile_s = 0.0
+    t_start = time.perf_counter()
+    last: dict[str, float] = {}
+    for u in range(start, num_updates):
+        t0 = time.perf_counter()
+        batch = runner.collect(flat, hp.n_steps)
+        metric_sum += update(layout, flat, square_avg, batch, hp)
+        metric_count += 1
+        if u == start and hp.compile:  # the first iteration pays for torch.compile
+            compile_s = time.perf_counter() - t0
+        done_updates = u + 1
+        boundary = done_updates % hp.log_every == 0
+        if boundary or done_updates == num_updates:
+            last = _log_row(out, done_updates, per_update, metric_sum / metric_count, runner, t_start, compile_s, start)
+            if not math.isfinite(last["value_loss"]) or not bool(torch.isfinite(flat).all()):
+                raise FloatingPointError(f"training diverged at update {done_updates}: {last}")
+            if boundary:  # a final, partial window stays in the sums so a resumed run re-logs it whole
+                metric_sum.zero_()
+                metric_count = 0
+            if callback:
+                callback(done_updates * per_update, last)
+            bar.set_postfix(ep_reward=f"{last['episode_reward']:.2f}", refresh=False)
+        bar.update(per_update)
+        if ckpt_path and (done_updates % hp.checkpoint_every == 0 or done_updates == num_updates):
+            save_atomic({"format": 1, "update": done_updates, "flat": flat, "square_avg": square_avg,
+                         "gen": gen.get_state(), "rollout": runner.state_dict(), "config": config_to_dict(cfg),
+                         "layout": [obs_dim, act_dim, list(hp.hidden), hp.network],
+                         "finished": [list(x) for x in runner.finished[-1000:]],
+                         "metric_sum": metric_sum, "metric_count": metric_count}, ckpt_path)
+    bar.close()
+    if isinstance(runner, TorchRLRollout):
+        runner.close()
+    elapsed = time.perf_counter() - t_start
+    steps_done = (num_updates - start) * per_update
+    policy_path = None
+    if out:
+        policy_path = save_atomic({"format": 1, "flat": flat.clone(), "layout": [obs_dim, act_dim, list(hp.hidden), hp.network],
+                                   "config": config_to_dict(cfg)}, out / "policy.pt")
+    return TrainResult(
+        steps=num_updates * per_update, updates=num_updates, seconds=elapsed, compile_seconds=compile_s,
+        steps_per_second=steps_done / max(elapsed - compile_s, 1e-9), out_dir=out, policy_path=policy_path,
+        final_metrics=last, episode_returns=[r for r, _ in runner.finished],
+    )
+
+
+def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
+    """Load OUT/policy.pt (or a checkpoint.pt); return f(obs [..., 3]) -> mean action [..., 4] clipped to [-1, 1]."""
+    data = load_checkpoint(path, ("flat", "layout"))
+    obs_dim, act_dim, hidden, network = data["layout"]
+    layout = ParamLayout(obs_dim, act_dim, hidden, network)
+    flat = data["flat"].float()
+    if flat.shape != (layout.size,):
+        raise CheckpointError(f"{path}: parameter vector has {flat.shape[0]} entries, layout needs {layout.size}")
+
+    @torch.no_grad()
+    def policy(obs: Tensor) -> Tensor:
+        if obs.shape[-1] != obs_dim:
+            raise ValueError(f"observations need a last dim of {obs_dim}, got shape {tuple(obs.shape)}")
+        if not bool(torch.isfinite(obs).all()):
+            raise ValueError("observations contain NaN or inf")
+        lead = obs.shape[:-1]
+        mu = forward(layout, flat, obs.reshape(-1, obs_dim).float())[0]
+        return mu.clamp(-1.0, 1.0).reshape(*lead, act_dim)
+
+    return policy
+
+
+# ------------------------------------------------------------------------------ helpers
+
+
+def _log_row(out, updates, per_update, means, runner, t_start, compile_s, start) -> dict[str, float]:
+    recent = [r for r, _ in runner.finished[-100:]]
+    row = {"step": updates * per_update, "update": updates,
+           **{k: float(v) for k, v in zip(METRICS, means)},
+           "episode_reward": float(sum(recent) / len(recent)) if recent else float("nan"),
+           "episodes": len(runner.finished),
+           "steps_per_second": (updates - start) * per_update / max(time.perf_counter() - t_start - compile_s, 1e-9)}
+    if out:
+        path = out / "metrics.csv"
+        new = not path.exists()
+        with path.open("a", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=list(row))
+            if new:
+                w.writeheader()
+            w.writerow(row)
+    return row
+
+
+def _truncate_csv(path: Path, keep_until_update: int, log_every: int) -> None:
+    """Drop metric rows past the checkpoint we resume from (and its partial final row): no step logged twice."""
+    if not path.exists():
+        return
+    with path.open() as f:
+        rows = list(csv.DictReader(f))
+    if not rows:
+        return
+    keep = [r for r in rows if int(r["update"]) <= keep_until_update and int(r["update"]) % log_every == 0]
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(keep)
+
+
+def _progress(total: int, initial: int, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, initial=initial, disable=not enabled, unit="step", unit_scale=True,
+                dynamic_ncols=True, desc="A2C")
+
+
+def _yaml_dump(d: dict) -> str:
+    import yaml
+
+    return yaml.safe_dump(d, sort_keys=False)

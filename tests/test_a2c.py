@@ -1,0 +1,150 @@
+"""A2C: hand-derived gradients vs autograd, n-step returns, training, checkpoints, resume, policy loading."""
+
+import math
+
+import pytest
+import torch
+
+from a3cqp_rl.config import config_from_dict
+from a3cqp_rl.exceptions import CheckpointError
+from algorithms.a2c import Batch, a2c_update, load_policy, nstep_returns, train
+from algorithms.networks import LOG_2PI, ActorCritic, ParamLayout, backward, forward
+
+
+def random_batch(T=4, N=3, seed=0, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    r = lambda *s: torch.rand(*s, generator=g, dtype=dtype)
+    term = r(T, N) < 0.2
+    trunc = (r(T, N) < 0.2) & ~term
+    return Batch(r(T, N, 3), 2 * r(T, N, 4) - 1, r(T, N) - 0.5, term, trunc, r(T, N, 3))
+
+
+def test_nstep_returns_by_hand():
+    g = 0.9
+    rew = torch.tensor([[1.0], [2.0], [3.0]])
+    nv = torch.tensor([[10.0], [20.0], [30.0]])
+    f = torch.zeros(3, 1, dtype=torch.bool)
+    # no episode end: bootstrap from V(s'_2) only
+    R = nstep_returns(rew, f, f, nv, g)
+    assert torch.allclose(R[:, 0], torch.tensor([1 + g * 2 + g * g * 3 + g**3 * 30, 2 + g * 3 + g * g * 30, 3 + g * 30]))
+    # terminated at t=1: no bootstrap there, t=0 sees only r0 + g r1
+    term = torch.tensor([[False], [True], [False]])
+    R = nstep_returns(rew, term, f, nv, g)
+    assert torch.allclose(R[:, 0], torch.tensor([1 + g * 2, 2.0, 3 + g * 30]))
+    # truncated at t=1: bootstrap from V(s'_1) = 20 (the final observation), not from later steps
+    R = nstep_returns(rew, f, term, nv, g)
+    assert torch.allclose(R[:, 0], torch.tensor([1 + g * (2 + g * 20), 2 + g * 20, 3 + g * 30]))
+
+
+@pytest.mark.parametrize("network", ["separate", "shared"])
+@pytest.mark.parametrize("normalize", [False, True])
+def test_hand_gradients_equal_autograd(network, normalize):
+    cfg = config_from_dict({"a2c": {"network": network, "normalize_advantage": normalize, "hidden": [8, 6],
+                                    "max_grad_norm": 1e9, "learning_rate": 1.0, "rms_alpha": 0.0, "rms_eps": 1e-300}})
+    hp = cfg.a2c
+    layout = ParamLayout(3, 4, hp.hidden, network)
+    flat = layout.init(torch.Generator().manual_seed(0)).double()
+    flat += 0.1 * torch.randn(flat.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    batch = random_batch()
+    # autograd reference of the same loss (SB3's A2C loss)
+    ac = ActorCritic(layout, flat)
+    T, N = batch.rewards.shape
+    mu, log_std, v = ac(batch.obs.reshape(T * N, 3))
+    with torch.no_grad():
+        nv = ac(batch.next_obs.reshape(T * N, 3))[2].reshape(T, N)
+    R = nstep_returns(batch.rewards, batch.terminated, batch.truncated, nv, hp.gamma).reshape(-1)
+    adv = (R - v).detach()
+    if normalize:
+        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    logp = ac.log_prob(mu, log_std, batch.actions.reshape(T * N, 4))
+    ent = (log_std + 0.5 * (1 + LOG_2PI)).sum()
+    loss = -(adv * logp).mean() + hp.vf_coef * ((R - v) ** 2).mean() - hp.ent_coef * ent
+    loss.backward()
+    ref = ac.flat.grad
+    # with alpha=0, eps≈0, lr=1 the RMSProp step is -grad/|grad| per element: recover grad direction and norm
+    sq = torch.zeros_like(flat)
+    before = flat.clone()
+    metrics = a2c_update(layout, flat, sq, batch, hp)
+    assert torch.allclose(sq.sqrt(), ref.abs(), rtol=1e-9, atol=1e-12)  # accumulator = grad² exactly
+    step = before - flat
+    nz = ref.abs() > 1e-12
+    assert torch.equal(torch.sign(step[nz]), torch.sign(ref[nz]))
+    assert metrics[3] == pytest.approx(ref.norm().item(), rel=1e-9)
+
+
+def test_backward_matches_autograd_for_arbitrary_output_gradients():
+    layout = ParamLayout(3, 4, (5, 7), "shared")
+    flat = layout.init(torch.Generator().manual_seed(2)).double().requires_grad_()
+    x = torch.randn(6, 3, dtype=torch.float64)
+    mu, ls, v, cache = forward(layout, flat, x)
+    gm, gl, gv = torch.randn_like(mu), torch.randn_like(ls), torch.randn_like(v)
+    (mu * gm).sum().add_((ls * gl).sum()).add_((v * gv).sum()).backward()
+    ours = backward(layout, flat.detach(), cache, gm, gl, gv)
+    assert torch.allclose(ours, flat.grad, atol=1e-12)
+
+
+def test_train_short_run_writes_files_and_learns_something(tmp_path):
+    cfg = config_from_dict({"a2c": {"compile": False, "log_every": 50, "checkpoint_every": 100}})
+    res = train(cfg, tmp_path / "run", total_steps=16 * 200)
+    assert res.steps == 3200 and res.updates == 200
+    for name in ("metrics.csv", "checkpoint.pt", "policy.pt", "config.yaml"):
+        assert (tmp_path / "run" / name).is_file()
+    rows = (tmp_path / "run" / "metrics.csv").read_text().strip().splitlines()
+    assert len(rows) == 1 + 4 and rows[0].startswith("step,update,policy_loss")
+    policy = load_policy(tmp_path / "run" / "policy.pt")
+    a = policy(torch.rand(7, 5, 3))
+    assert a.shape == (7, 5, 4) and a.abs().max() <= 1.0
+    with pytest.raises(ValueError, match="last dim"):
+        policy(torch.rand(2, 4))
+    with pytest.raises(ValueError, match="NaN"):
+        policy(torch.full((2, 3), float("nan")))
+
+
+def test_same_seed_same_numbers_and_resume_is_exact(tmp_path):
+    base = {"a2c": {"compile": False, "log_every": 10, "checkpoint_every": 25}, "point_mass": {"episode_steps": 30}}
+    cfg = config_from_dict(base)
+    full = train(cfg, tmp_path / "full", total_steps=16 * 50)
+    again = train(cfg, tmp_path / "again", total_steps=16 * 50)
+    p_full = torch.load(tmp_path / "full" / "policy.pt", weights_only=True)["flat"]
+    p_again = torch.load(tmp_path / "again" / "policy.pt", weights_only=True)["flat"]
+    assert torch.equal(p_full, p_again)
+    # "killed" after 25 updates (checkpoint), then resumed to 50: identical parameters and metrics
+    train(cfg, tmp_path / "part", total_steps=16 * 25)
+    train(cfg, tmp_path / "part", total_steps=16 * 50, resume=True)
+    p_part = torch.load(tmp_path / "part" / "policy.pt", weights_only=True)["flat"]
+    assert torch.equal(p_full, p_part)
+    full_csv = (tmp_path / "full" / "metrics.csv").read_text().splitlines()
+    part_csv = (tmp_path / "part" / "metrics.csv").read_text().splitlines()
+    strip = lambda rows: [r.rsplit(",", 1)[0] for r in rows]  # steps/s differs, nothing else
+    assert strip(full_csv) == strip(part_csv)
+    assert full.episode_returns  # 30-step episodes ended and were counted
+
+
+def test_missing_and_corrupt_checkpoints(tmp_path):
+    cfg = config_from_dict({"a2c": {"compile": False}})
+    with pytest.raises(CheckpointError, match="not found"):
+        train(cfg, tmp_path / "none", total_steps=16, resume=True)
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="corrupt"):
+        train(cfg, tmp_path / "bad", total_steps=16, resume=True)
+    with pytest.raises(CheckpointError, match="not found"):
+        load_policy(tmp_path / "nope.pt")
+
+
+def test_torchrl_collector_path_trains_on_a_plain_envbase():
+    from torchrl.envs import SerialEnv
+
+    from envs.point_mass import PointMassEnv
+
+    cfg = config_from_dict({"a2c": {"compile": False, "log_every": 5, "num_envs": 2}, "point_mass": {"episode_steps": 12}})
+    env = SerialEnv(2, lambda: PointMassEnv(1, cfg, seed=0))  # no fused API: the trainer uses a TorchRL Collector
+    res = train(cfg, None, total_steps=2 * 4 * 10, env=env)
+    assert res.updates == 10 and math.isfinite(res.final_metrics["value_loss"])
+    assert len(res.episode_returns) >= 2  # truncations seen through the collector
+
+
+def test_rollout_torchrl_option_uses_collector_on_batched_env():
+    cfg = config_from_dict({"a2c": {"compile": False, "log_every": 5, "rollout": "torchrl"}, "point_mass": {"episode_steps": 8}})
+    res = train(cfg, None, total_steps=16 * 5)
+    assert res.updates == 5 and len(res.episode_returns) == 8  # 4 envs x 2 episodes of 8 steps in 20 steps
