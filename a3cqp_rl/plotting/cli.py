@@ -1,0 +1,50 @@
+"""`a3cqp plot policy-map POLICY [--out F] [--fixed e --levels 0,0.05,0.3]` and
+`a3cqp plot loss-curves RUN [RUN ...] [--out F]` (PNG by default; --pdf or a .pdf name for PDF)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from a3cqp_rl.exceptions import A3CQPError
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry for the plot sub-commands; returns an exit code."""
+    p = argparse.ArgumentParser(prog="a3cqp plot", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="what", required=True)
+    pm = sub.add_parser("policy-map", help="paper Fig. 5: actions over the normalised state space")
+    pm.add_argument("policy", help="OUT/policy.pt or OUT/checkpoint.pt (or a run folder)")
+    pm.add_argument("--x", default="f_ope", choices=["e", "f_env", "f_ope"])
+    pm.add_argument("--y", default="f_env", choices=["e", "f_env", "f_ope"])
+    pm.add_argument("--fixed", default="e", choices=["e", "f_env", "f_ope"])
+    pm.add_argument("--levels", default="0,0.05,0.3", help="comma-separated levels of the fixed variable in [0, 1]")
+    pm.add_argument("--out", default=None)
+    pm.add_argument("--pdf", action="store_true")
+    lc = sub.add_parser("loss-curves", help="paper Fig. 4: policy/value loss, mean and IQR over runs")
+    lc.add_argument("runs", nargs="+", help="run folders holding metrics.csv (e.g. runs/sweep/seed_*)")
+    lc.add_argument("--out", default=None)
+    lc.add_argument("--pdf", action="store_true")
+    args = p.parse_args(argv)
+    ext = ".pdf" if args.pdf else ".png"
+    try:
+        if args.what == "policy-map":
+            from a3cqp_rl.plotting.policy_map import plot_policy_map
+
+            src = Path(args.policy)
+            if src.is_dir():
+                src = src / "policy.pt"
+            levels = [float(v) for v in args.levels.split(",")]
+            out = Path(args.out) if args.out else src.with_name("policy_map" + ext)
+            plot_policy_map(src, out, args.x, args.y, args.fixed, levels)
+        else:
+            from a3cqp_rl.plotting.loss_curves import plot_loss_curves
+
+            out = Path(args.out) if args.out else Path(args.runs[0]).parent / ("loss_curves" + ext)
+            plot_loss_curves(args.runs, out)
+    except (A3CQPError, FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {out}")
+    return 0

@@ -1,0 +1,93 @@
+"""`a3cqp train`: train the adaptation policy with A2C from a YAML config; one seed or a sweep of seeds.
+
+    a3cqp train --config configs/point_mass_a2c.yaml [--steps N] [--seed S | --seeds 0-19]
+                [--out runs/NAME] [--resume] [--no-compile] [--no-plots]
+
+Writes under OUT (per seed OUT/seed_S when sweeping): config.yaml, metrics.csv, checkpoint.pt
+(atomic, every `a2c.checkpoint_every` updates), policy.pt, and the plots policy_map.png and
+loss_curves.png. `--resume` continues a killed run from OUT/checkpoint.pt with no lost or
+repeated steps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from a3cqp_rl.exceptions import A3CQPError
+
+
+def parse_seeds(text: str) -> list[int]:
+    """'0-19' -> [0..19]; '1,3,5' -> [1, 3, 5]; '7' -> [7]."""
+    seeds: list[int] = []
+    try:
+        for part in text.split(","):
+            if "-" in part:
+                a, b = part.split("-")
+                if int(b) < int(a):
+                    raise ValueError
+                seeds += list(range(int(a), int(b) + 1))
+            else:
+                seeds.append(int(part))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid seed list {text!r}; use e.g. 0-19 or 1,3,5") from None
+    return seeds
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry: parse arguments, train each seed, plot; returns an exit code."""
+    p = argparse.ArgumentParser(prog="a3cqp train", description=__doc__.splitlines()[0])
+    p.add_argument("--config", default="configs/point_mass_a2c.yaml", help="YAML config (default: %(default)s)")
+    p.add_argument("--steps", type=int, default=None, help="total agent steps (default: a2c.total_steps)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--seed", type=int, default=None, help="random seed (default: the config's)")
+    g.add_argument("--seeds", type=parse_seeds, default=None, help="sweep, e.g. 0-19: one run per seed in OUT/seed_S")
+    p.add_argument("--out", default=None, help="output folder (default: runs/<config name>)")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    p.add_argument("--no-compile", action="store_true", help="skip torch.compile (slower steps, no compile wait)")
+    p.add_argument("--no-plots", action="store_true", help="do not draw policy map / loss curves at the end")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+
+    import torch
+
+    from a3cqp_rl.config import load_config
+    from algorithms.a2c import train
+
+    torch.set_num_threads(1)  # tiny networks: threads cost more than they give
+    try:
+        overrides: dict = {}
+        if args.no_compile:
+            overrides["a2c"] = {"compile": False}
+        cfg = load_config(args.config, overrides)
+        out = Path(args.out or Path("runs") / Path(args.config).stem)
+        seeds = args.seeds if args.seeds is not None else [cfg.seed if args.seed is None else args.seed]
+        run_dirs = []
+        for seed in seeds:
+            run_cfg = load_config(args.config, {**overrides, "seed": seed})
+            run_dir = out / f"seed_{seed}" if args.seeds is not None else out
+            if len(seeds) > 1:
+                print(f"[seed {seed}] -> {run_dir}")
+            res = train(run_cfg, run_dir, total_steps=args.steps, resume=args.resume, progress=not args.quiet)
+            run_dirs.append(run_dir)
+            print(f"trained {res.steps:,} steps in {res.seconds:.1f} s ({res.steps_per_second:,.0f} steps/s"
+                  f"{f', plus {res.compile_seconds:.0f} s compiling' if res.compile_seconds else ''}); "
+                  f"last mean episode reward {res.final_metrics.get('episode_reward', float('nan')):.2f}")
+        if not args.no_plots:
+            from a3cqp_rl.plotting.loss_curves import plot_loss_curves
+            from a3cqp_rl.plotting.policy_map import plot_policy_map
+
+            for d in run_dirs:
+                plot_policy_map(d / "policy.pt", d / "policy_map.png")
+            plot_loss_curves(run_dirs, out / "loss_curves.png")
+        print(f"results in {out}/: policy.pt (load with algorithms.a2c.load_policy), checkpoint.pt, metrics.csv"
+              + ("" if args.no_plots else f", plots {out}/loss_curves.png and <run>/policy_map.png"))
+    except (A3CQPError, FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
