@@ -11,7 +11,7 @@ import torch
 from a3cqp_rl.robot.mjcf import DEFAULT_TOOL, compose_mjcf
 from a3cqp_rl.robot.specs import PANDA_HOME
 
-__all__ = ["SimState", "PandaSim", "full_mass_matrix"]
+__all__ = ["SimState", "PandaSim", "full_mass_matrix", "mujoco_dynamics"]
 
 
 def full_mass_matrix(m: mujoco.MjModel, d: mujoco.MjData, dst: np.ndarray) -> None:
@@ -20,6 +20,23 @@ def full_mass_matrix(m: mujoco.MjModel, d: mujoco.MjData, dst: np.ndarray) -> No
         mujoco.mj_fullM(m, dst, d.qM)
     else:
         mujoco.mj_fullM(m, d, dst)
+
+
+def mujoco_dynamics(model: mujoco.MjModel, q: torch.Tensor, qd: torch.Tensor | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """B(q) [B, 7, 7] (kg m²) and h(q, q̇) + g(q) [B, 7] (N m) from MuJoCo for arbitrary states (float64, loop)."""
+    q_np = q.detach().cpu().numpy().astype(np.float64)
+    qd_np = np.zeros_like(q_np) if qd is None else qd.detach().cpu().numpy().astype(np.float64)
+    d = mujoco.MjData(model)
+    mass = np.zeros((len(q_np), model.nv, model.nv))
+    bias = np.zeros((len(q_np), model.nv))
+    for i in range(len(q_np)):
+        d.qpos[:7], d.qvel[:7] = q_np[i], qd_np[i]
+        mujoco.mj_fwdPosition(model, d)
+        mujoco.mj_fwdVelocity(model, d)
+        full_mass_matrix(model, d, mass[i])
+        bias[i] = d.qfrc_bias
+    return torch.from_numpy(mass[:, :7, :7]), torch.from_numpy(bias[:, :7])
 
 
 @dataclass(frozen=True)

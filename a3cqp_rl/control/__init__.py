@@ -1,0 +1,13 @@
+"""A3CQP controller: tasks (IK, AC, FC, JC), limits (viable joint bounds, wrench box, friction pyramid), QP + torque."""
+
+from a3cqp_rl.control.context import N_QDD, N_VARS, N_WRENCH, ControlContext
+from a3cqp_rl.control.controller import (A3CQPController, ControllerOptions, ControlOutput,
+                                         wrench_from_joint_torques)
+from a3cqp_rl.control.limits import (FrictionPyramid, Inequality, JointLimitsViability, Limit, WrenchBox,
+                                     joint_acceleration_bounds)
+from a3cqp_rl.control.tasks import Admittance, CartesianIK, ForceControl, JointCentering, Residual, Task
+
+__all__ = ["N_QDD", "N_VARS", "N_WRENCH", "ControlContext", "A3CQPController", "ControllerOptions", "ControlOutput",
+           "wrench_from_joint_torques", "FrictionPyramid", "Inequality", "JointLimitsViability", "Limit", "WrenchBox",
+           "joint_acceleration_bounds", "Admittance", "CartesianIK", "ForceControl", "JointCentering", "Residual",
+           "Task"]

@@ -1,0 +1,310 @@
+"""The A3CQP controller (paper 000, section III): batched QP over (q̈, f) from four tasks + limits, then eq. 4-7."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+
+from a3cqp_rl.config import ControllerConfig
+from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
+from a3cqp_rl.control.exceptions import ControlShapeError, InvalidGainError
+from a3cqp_rl.control.frames import block_rotation, pose_error, weights_to_world
+from a3cqp_rl.control.limits import FrictionPyramid, Inequality, JointLimitsViability, Limit, WrenchBox
+from a3cqp_rl.control.tasks import Admittance, CartesianIK, ForceControl, JointCentering, Task
+from a3cqp_rl.qp import QPSolution, solve_qp
+from a3cqp_rl.robot.kinematics import PandaModel
+from a3cqp_rl.robot.specs import PANDA_HOME, PANDA_LIMITS, PandaLimits
+
+__all__ = ["ControllerOptions", "ControlOutput", "A3CQPController", "wrench_from_joint_torques", "INVALID_INPUT"]
+
+logger = logging.getLogger(__name__)
+
+INVALID_INPUT = -1
+"""`ControlOutput.status` code of a robot whose inputs (state, B(q), references) were not finite."""
+
+
+@dataclass
+class ControllerOptions:
+    """Choices the paper leaves open (documented deviations are marked); Table I gains live in ControllerConfig."""
+
+    admittance_form: Literal["consistent", "paper"] = "consistent"
+    """"consistent": AC damping Λ Λd⁻¹ Cd ẋ so the closed loop is exactly eq. 17; "paper": eq. 18 as printed."""
+    jc_nullspace_weight: float = 1e-3
+    """ε_N: extra null-space weight of the JC task (0 = eq. 1 exactly; see tasks.JointCentering)."""
+    regularization: float = 1e-6
+    """Tikhonov term added to the QP Hessian ("the resulting QP Hessians are regularized", section III-A)."""
+    pinv_damping: float = 1e-6
+    """λ² added to J B⁻¹ Jᵀ (for Λ and f_ext) near singularities."""
+    nullspace_damping: float = 1e-9
+    """λ² added to J Jᵀ in J⁺ for the null-space projector N = I − J⁺J (small: N leaks λ/σ² into the row space)."""
+    desired_state_leak: float = 10.0
+    """[1/s] q*, q̇* relax toward the measured q, q̇ at this rate × (1 − min w1) (not in the paper: without it
+    q* drifts away from q while IK is off and q̈_pd would yank the arm back when IK returns)."""
+    joint_limit_target: Literal["total", "qdd"] = "total"
+    """What the viable joint bounds constrain: the commanded total acceleration (default) or q̈* only (eq. 24a)."""
+    joint_limits_include_f_ext: bool = False
+    """Count the measured f_ext in the bounded total acceleration (can make the QP infeasible; see limits.py)."""
+    q_margin: float = 0.01
+    """[rad] position limits are tightened by this much."""
+    dq_margin: float = 0.02
+    """[rad/s] velocity limits are tightened by this much."""
+    limit_horizon_steps: float = 2.0
+    """Horizon of the viability bounds in control periods (TSID uses 2)."""
+    contact_force_threshold: float = 1.0
+    """[N] measured contact force above which the friction pyramid is active."""
+    brake_gain: float = 20.0
+    """[1/s] fallback joint deceleration q̈ = −k q̇ (within the viable bounds) when a QP fails."""
+    qp_max_iter: int = 50
+    """Interior-point iteration budget of the QP solver."""
+    q_center: tuple[float, ...] = field(default=PANDA_HOME)
+    """q_d of the JC task (eq. 23) [rad]; default the Franka "ready" pose."""
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """Result of one control step for N robots (world frame, SI units)."""
+
+    tau: torch.Tensor
+    """Joint torques [N, 7] (N m), clipped to the datasheet limits (eq. 4)."""
+    qdd: torch.Tensor
+    """Optimal joint accelerations q̈* [N, 7] (rad/s²)."""
+    wrench: torch.Tensor
+    """Optimal end-effector wrench f* [N, 6] (N, N m)."""
+    qdd_pd: torch.Tensor
+    """Feedback acceleration q̈_pd [N, 7] (eq. 5)."""
+    pose_error: torch.Tensor
+    """e_x [N, 6] (m, rad) (eq. 10)."""
+    f_adm: torch.Tensor
+    """Admittance wrench reference [N, 6] (eq. 18)."""
+    f_ctc: torch.Tensor
+    """Contact wrench reference [N, 6] (eq. 20)."""
+    status: torch.Tensor
+    """QP status per robot [N] (0 solved; see a3cqp_rl.qp.QPStatus; −1 invalid input)."""
+    fallback: torch.Tensor
+    """Bool [N]: the QP failed and the safe fallback torque (brake + gravity compensation) was applied."""
+    saturated: torch.Tensor
+    """Bool [N]: some joint torque hit its limit."""
+    iterations: torch.Tensor
+    """QP solver iterations per robot [N]."""
+
+
+def wrench_from_joint_torques(tau_ext: torch.Tensor, jac: torch.Tensor, mass: torch.Tensor,
+                              damping: float = 1e-6) -> torch.Tensor:
+    """f_ext = J^{T†} τ_ext = Λ J B⁻¹ τ_ext [B, 6] (N, N m) from external joint torques [B, 7] (section V-A)."""
+    L = torch.linalg.cholesky(mass)
+    binv_jt = torch.cholesky_solve(jac.transpose(-1, -2), L)  # (B, 7, 6)
+    lam_inv = jac @ binv_jt + damping * torch.eye(6, dtype=jac.dtype, device=jac.device)
+    binv_tau = torch.cholesky_solve(tau_ext.unsqueeze(-1), L)
+    return torch.linalg.solve(lam_inv, jac @ binv_tau).squeeze(-1)
+
+
+def _mv(M: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return (M @ v.unsqueeze(-1)).squeeze(-1)
+
+
+class A3CQPController:
+    """Batched A3CQP QP controller for N Panda arms (paper 000, eq. 1-24), float64, one step per call.
+
+    Per robot and step the inputs are the measured state (q, q̇), MuJoCo's B(q) and h + g, the per-axis local task
+    weights w^𝓛 [6, 3] (columns IK, AC, FC), the local desired contact wrench f_d^𝓛 [6], the Cartesian reference
+    (position, rotation) and the measured external wrench f_ext at the control site.
+
+    Args:
+        n: number of robots N.
+        model: kinematics (default PandaModel() with the peg tool).
+        config: Table I gains and the wrench box (a3cqp_rl.config.ControllerConfig).
+        options: the choices the paper leaves open (ControllerOptions).
+        limits: joint limits (datasheet).
+        tasks, extra_limits: replace the default tasks / append limits (mink-style composition).
+    """
+
+    def __init__(self, n: int = 1, model: PandaModel | None = None, config: ControllerConfig | None = None,
+                 options: ControllerOptions | None = None, limits: PandaLimits = PANDA_LIMITS,
+                 tasks: list[Task] | None = None, extra_limits: list[Limit] | None = None) -> None:
+        self.n = n
+        self.model = model or PandaModel()
+        self.config = config or ControllerConfig()
+        self.options = options or ControllerOptions()
+        cfg, opt = self.config, self.options
+        self.dt = 1.0 / cfg.rate_hz
+        if not (cfg.cp >= 0 and cfg.cv >= 0 and opt.brake_gain >= 0 and opt.regularization > 0):
+            raise InvalidGainError(f"need cp, cv, brake_gain >= 0 and regularization > 0; got {cfg.cp}, {cfg.cv}, "
+                                   f"{opt.brake_gain}, {opt.regularization}")
+        self.tasks: list[Task] = tasks if tasks is not None else [
+            CartesianIK(cfg.kp, cfg.k_theta),
+            Admittance(cfg.lambda_d, cfg.c_d, form=opt.admittance_form),
+            ForceControl(),
+            JointCentering(torch.tensor(opt.q_center, dtype=torch.float64), cfg.kq, cfg.epsilon,
+                           opt.jc_nullspace_weight),
+        ]
+        lim = limits.tensors()
+        self.tau_max = lim["tau_max"]
+        self.joint_limits = JointLimitsViability(lim["q_min"], lim["q_max"], lim["dq_max"], lim["ddq_max"], self.dt,
+                                                 q_margin=opt.q_margin, dq_margin=opt.dq_margin,
+                                                 horizon_steps=opt.limit_horizon_steps, target=opt.joint_limit_target,
+                                                 include_f_ext=opt.joint_limits_include_f_ext)
+        self.limits: list[Limit] = [self.joint_limits, WrenchBox(cfg.force_limit, cfg.torque_limit),
+                                    FrictionPyramid(cfg.mu)] + list(extra_limits or [])
+        self.f_d_max = getattr(cfg, "f_d_max", 20.0)
+        self.q_des: torch.Tensor | None = None  # q*, eq. 7 [N, 7]
+        self.qd_des: torch.Tensor | None = None  # q̇*, eq. 6 [N, 7]
+        self._warm: QPSolution | None = None
+        self.fallback_count = 0
+        """Number of (robot, step) pairs that used the fallback since construction."""
+
+    # ------------------------------------------------------------------ state
+    def reset(self, q: torch.Tensor, qd: torch.Tensor | None = None, idx: torch.Tensor | list[int] | None = None) -> None:
+        """Set the integrated references q*, q̇* to the measured state (all robots, or rows `idx`)."""
+        q = torch.as_tensor(q, dtype=torch.float64)
+        qd = torch.zeros_like(q) if qd is None else torch.as_tensor(qd, dtype=torch.float64)
+        if self.q_des is None or idx is None:
+            self.q_des, self.qd_des = q.clone().reshape(self.n, N_QDD), qd.clone().reshape(self.n, N_QDD)
+            self._warm = None
+        else:
+            self.q_des[idx], self.qd_des[idx] = q, qd
+
+    # ------------------------------------------------------------------ pieces
+    def _check(self, name: str, t: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
+        if tuple(t.shape) != shape:
+            raise ControlShapeError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
+        return t.to(dtype=torch.float64)
+
+    def build_context(self, q: torch.Tensor, qd: torch.Tensor, mass: torch.Tensor, weights: torch.Tensor,
+                      f_d: torch.Tensor, pos_d: torch.Tensor, rot_d: torch.Tensor, f_ext: torch.Tensor,
+                      in_contact: torch.Tensor) -> ControlContext:
+        """All per-step matrices the tasks and limits need (one kinematics pass, one Cholesky of B)."""
+        opt, cfg, dt = self.options, self.config, self.dt
+        kin = self.model.kinematics(q, qd)
+        J = kin.jac
+        Jt = J.transpose(-1, -2)
+        eye6 = torch.eye(6, dtype=q.dtype, device=q.device)
+        L, _ = torch.linalg.cholesky_ex(mass)
+        binv_jt = torch.cholesky_solve(Jt, L)  # B⁻¹Jᵀ (B, 7, 6)
+        lam = torch.linalg.inv(J @ binv_jt + opt.pinv_damping * eye6)  # Λ, eq. 12
+        lam = 0.5 * (lam + lam.transpose(-1, -2))
+        D = block_rotation(kin.rot)  # eq. 3
+        W1, W2, W3 = (weights_to_world(D, weights[..., k]) for k in range(3))  # eq. 8
+        jpinv_j = Jt @ torch.linalg.solve(J @ Jt + opt.nullspace_damping * eye6, J)  # J⁺J (B, 7, 7)
+        nullspace = torch.eye(N_QDD, dtype=q.dtype, device=q.device) - jpinv_j
+        pd = Jt @ W1 @ J  # Jᵀ W1 J, eq. 5
+        dq0 = self.q_des + dt * self.qd_des - q  # q* − q with q̈* = 0 (eq. 7)
+        dv0 = self.qd_des - qd  # q̇* − q̇ with q̈* = 0 (eq. 6)
+        return ControlContext(
+            q=q, qd=qd, kin=kin, mass=mass, mass_inv_jt=binv_jt, cart_inertia=lam, D=D, W1=W1, W2=W2, W3=W3,
+            pose_error=pose_error(pos_d, rot_d, kin.pos, kin.rot), f_ext=f_ext,
+            f_d_local=f_d.clamp(0.0, self.f_d_max), in_contact=in_contact,
+            qdd_pd0=_mv(pd, cfg.cv * dv0 + cfg.cp * dq0), pd_qdd_gain=(cfg.cv * dt + cfg.cp * dt * dt / 2) * pd,
+            nullspace=nullspace, dt=dt)
+
+    def build_qp(self, ctx: ControlContext) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Stack the task costs and limit rows: (P [B, 13, 13], c [B, 13], G [B, m, 13], h [B, m]) (eq. 1, 24)."""
+        P = self.options.regularization * torch.eye(N_VARS, dtype=ctx.q.dtype, device=ctx.q.device).expand(
+            ctx.batch, N_VARS, N_VARS)
+        c = ctx.q.new_zeros(ctx.batch, N_VARS)
+        for task in self.tasks:
+            H, g = task.residual(ctx).objective()
+            P, c = P + H, c + g
+        rows: list[Inequality] = [lim.rows(ctx) for lim in self.limits]
+        G = torch.cat([r.G for r in rows], dim=1)
+        h = torch.cat([r.h for r in rows], dim=1)
+        return 0.5 * (P + P.transpose(-1, -2)), c, G, h
+
+    # ------------------------------------------------------------------ step
+    @torch.no_grad()
+    def step(self, q: torch.Tensor, qd: torch.Tensor, mass: torch.Tensor, bias: torch.Tensor, weights: torch.Tensor,
+             f_d: torch.Tensor, pos_d: torch.Tensor, rot_d: torch.Tensor, f_ext: torch.Tensor | None = None,
+             in_contact: torch.Tensor | None = None, f_env: torch.Tensor | None = None) -> ControlOutput:
+        """One 1 kHz control step for N robots: QP (eq. 24) then computed torque (eq. 4-7).
+
+        Args:
+            q, qd: measured joint positions/velocities [N, 7] (rad, rad/s).
+            mass: B(q) [N, 7, 7]; bias: h + g [N, 7] (N m) (MuJoCo qM, qfrc_bias).
+            weights: local per-axis task weights w^𝓛 [N, 6, 3], columns (w1 IK, w2 AC, w3 FC) (eq. 8, 28).
+            f_d: local desired contact wrench f_d^𝓛 [N, 6] (N, N m), clipped to [0, f̄_d] (eq. 21).
+            pos_d, rot_d: Cartesian reference of the control site [N, 3] (m), [N, 3, 3].
+            f_ext: measured external wrench at the control site [N, 6], world frame (default 0).
+            in_contact: bool [N] activating the friction pyramid; default |f_env force| > threshold, else False.
+            f_env: measured environment (F/T) wrench [N, 6], world frame, only used to infer `in_contact`.
+        """
+        n = self.n
+        q = self._check("q", q, (n, 7))
+        qd = self._check("qd", qd, (n, 7))
+        mass = self._check("mass", mass, (n, 7, 7))
+        bias = self._check("bias", bias, (n, 7))
+        weights = self._check("weights", weights, (n, 6, 3))
+        f_d = self._check("f_d", f_d, (n, 6))
+        pos_d = self._check("pos_d", pos_d, (n, 3))
+        rot_d = self._check("rot_d", rot_d, (n, 3, 3))
+        f_ext = q.new_zeros(n, 6) if f_ext is None else self._check("f_ext", f_ext, (n, 6))
+        if in_contact is None:
+            in_contact = (torch.zeros(n, dtype=torch.bool) if f_env is None
+                          else f_env[:, :3].norm(dim=-1) > self.options.contact_force_threshold)
+        if self.q_des is None:
+            self.reset(q, qd)
+
+        # invalid robots (non-finite inputs) are computed on a harmless stand-in and replaced by the fallback below
+        flat = [q, qd, mass.flatten(1), bias, weights.flatten(1), f_d, pos_d, rot_d.flatten(1), f_ext]
+        valid = torch.stack([torch.isfinite(t).all(-1) for t in flat], -1).all(-1)  # (N,)
+        if not bool(valid.all()):
+            eye7 = torch.eye(7, dtype=q.dtype).expand(n, 7, 7)
+            v1, v2, v3 = valid.view(n, 1), valid.view(n, 1, 1), valid
+            q, qd = torch.where(v1, q, self.q_des), torch.where(v1, qd, 0.0)
+            mass, bias = torch.where(v2, mass, eye7), torch.where(v1, bias, 0.0)
+            weights = torch.where(v2, weights, 1.0 / 3.0)
+            f_d, f_ext = torch.where(v1, f_d, 0.0), torch.where(v1, f_ext, 0.0)
+            pos_d, rot_d = torch.where(v1, pos_d, 0.0), torch.where(v2, rot_d, eye7[:, :3, :3])
+            del v3
+
+        ctx = self.build_context(q, qd, mass, weights, f_d, pos_d, rot_d, f_ext, in_contact)
+        P, c, G, h = self.build_qp(ctx)
+        warm = self._warm if self._warm is not None and self._warm.z.shape == (n, G.shape[1]) else None
+        sol = solve_qp(P, c, G=G, h=h, warm_start=warm, max_iter=self.options.qp_max_iter)
+        self._warm = sol
+        x = sol.x
+        ok = (sol.status == 0) & valid & torch.isfinite(x).all(-1)
+        qdd, f = x[:, :N_QDD], x[:, N_QDD:]
+
+        # eq. 6-7: integrate the desired joint state; eq. 5: feedback acceleration; eq. 4: torque
+        dt, cfg = self.dt, self.config
+        qd_des = self.qd_des + dt * qdd
+        q_des = self.q_des + dt * self.qd_des + 0.5 * dt * dt * qdd
+        J = ctx.kin.jac
+        pd = J.transpose(-1, -2) @ ctx.W1 @ J
+        qdd_pd = _mv(pd, cfg.cv * (qd_des - qd) + cfg.cp * (q_des - q))
+        tau = _mv(mass, qdd + qdd_pd) + _mv(J.transpose(-1, -2), f) + bias
+
+        # safe fallback for failed QPs / invalid inputs: brake within the viable bounds, zero wrench, hold gravity
+        if not bool(ok.all()):
+            lb, ub = self.joint_limits.bounds(q, qd)
+            qdd_fb = torch.minimum(torch.maximum(-self.options.brake_gain * qd, lb), ub)
+            tau_fb = _mv(mass, qdd_fb) + bias
+            o1 = ok.view(n, 1)
+            tau = torch.where(o1, tau, tau_fb)
+            qdd, f = torch.where(o1, qdd, qdd_fb), torch.where(o1, f, 0.0)
+            qdd_pd = torch.where(o1, qdd_pd, 0.0)
+            q_des, qd_des = torch.where(o1, q_des, q), torch.where(o1, qd_des, qd)
+            bad = (~ok).nonzero().flatten().tolist()
+            self.fallback_count += len(bad)
+            logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s, valid input %s",
+                           bad, sol.status[~ok].tolist(), valid[~ok].tolist())
+            self._warm = None
+
+        # relax q*, q̇* toward the measured state where IK is off (ControllerOptions.desired_state_leak)
+        w1_min = weights[..., 0].min(dim=-1).values.clamp(0.0, 1.0)
+        rate = (self.options.desired_state_leak * dt * (1.0 - w1_min)).clamp(0.0, 1.0).view(n, 1)
+        self.q_des = q_des - rate * (q_des - q)
+        self.qd_des = qd_des - rate * (qd_des - qd)
+
+        tau_max = self.tau_max.to(tau)
+        saturated = (tau.abs() > tau_max).any(-1)
+        tau = torch.nan_to_num(torch.maximum(torch.minimum(tau, tau_max), -tau_max), nan=0.0)
+        status = torch.where(valid, sol.status, torch.full_like(sol.status, INVALID_INPUT))
+        f_adm = self.tasks[1].admittance_wrench(ctx) if isinstance(self.tasks[1], Admittance) else torch.zeros_like(f)
+        f_ctc = self.tasks[2].contact_wrench(ctx) if isinstance(self.tasks[2], ForceControl) else torch.zeros_like(f)
+        return ControlOutput(tau=tau, qdd=qdd, wrench=f, qdd_pd=qdd_pd, pose_error=ctx.pose_error, f_adm=f_adm,
+                             f_ctc=f_ctc, status=status, fallback=~ok, saturated=saturated,
+                             iterations=sol.iterations)

@@ -1,0 +1,200 @@
+"""QP limits of the A3CQP controller: each returns inequality rows G x ≤ h on x = (q̈, f) (section III-B)."""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
+from a3cqp_rl.control.exceptions import InvalidGainError
+
+__all__ = ["Inequality", "Limit", "JointLimitsViability", "WrenchBox", "FrictionPyramid", "joint_acceleration_bounds"]
+
+_BIG = 1e10
+
+
+@dataclass(frozen=True)
+class Inequality:
+    """Rows G x ≤ h for a batch."""
+
+    G: torch.Tensor
+    """[B, m, 13]."""
+    h: torch.Tensor
+    """[B, m]."""
+
+
+class Limit(ABC):
+    """A QP limit: inequality rows from the step's context."""
+
+    name: str = "limit"
+
+    @abstractmethod
+    def rows(self, ctx: ControlContext) -> Inequality:
+        """Rows (G, h) of this limit for the batch in `ctx`."""
+
+
+def _acc_bounds_from_position(q, dq, q_min, q_max, dt):  # noqa: ANN001, ANN202
+    """Del Prete 2017: q̈ bounds keeping q_{k+1} = q + Δt q̇ + Δt²/2 q̈ in [q_min, q_max], braking if needed."""
+    two_dt_sq = 2.0 / dt**2
+    ub_q3 = two_dt_sq * (q_max - q - dt * dq)
+    lb_q3 = two_dt_sq * (q_min - q - dt * dq)
+    stop = -dq / dt  # q̈ that stops the joint in one step
+    # moving down (q̇ ≤ 0): the lower bound either keeps q ≥ q_min in one step or brakes to stop exactly at q_min
+    one = torch.ones_like(q)
+    lb_brake = torch.maximum(dq.square() / (2.0 * torch.where(q != q_min, q - q_min, one)), stop)
+    lb_down = torch.where(lb_q3 < stop, lb_q3, torch.where(q != q_min, lb_brake, stop))
+    ub_brake = torch.minimum(-dq.square() / (2.0 * torch.where(q != q_max, q_max - q, one)), stop)
+    ub_up = torch.where(ub_q3 > stop, ub_q3, torch.where(q != q_max, ub_brake, stop))
+    down = dq <= 0.0
+    return torch.where(down, lb_down, lb_q3), torch.where(down, ub_q3, ub_up)
+
+
+def _acc_bounds_from_viability(q, dq, q_min, q_max, ddq_stop, dt):  # noqa: ANN001, ANN202
+    """Del Prete 2017: q̈ bounds keeping the next state able to stop before the position limits with |q̈| ≤ ddq_stop."""
+    dt2 = dt * dt
+    two_a = 2.0 * dt2
+    stop = -dq / dt
+    b = 2.0 * dt * dq + ddq_stop * dt2
+    c = dq.square() - 2.0 * ddq_stop * (q_max - q - dt * dq)
+    delta = b.square() - 2.0 * two_a * c
+    ub = torch.where(delta >= 0.0, (-b + delta.clamp_min(0.0).sqrt()) / two_a, stop)
+    b = 2.0 * dt * dq - ddq_stop * dt2
+    c = dq.square() - 2.0 * ddq_stop * (q + dt * dq - q_min)
+    delta = b.square() - 2.0 * two_a * c
+    lb = torch.where(delta >= 0.0, (-b - delta.clamp_min(0.0).sqrt()) / two_a, stop)
+    return torch.minimum(lb, stop), torch.maximum(ub, stop)
+
+
+def joint_acceleration_bounds(q: torch.Tensor, dq: torch.Tensor, q_min: torch.Tensor, q_max: torch.Tensor,
+                              dq_max: torch.Tensor, ddq_max: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Viable joint acceleration bounds (lb, ub) [B, 7] (rad/s²) from position, velocity and acceleration limits.
+
+    Del Prete, "Joint position and velocity bounds in discrete-time acceleration/torque control of robot
+    manipulators", RA-L 2018 (as in OpenSoT JointLimitsViability / TSID TaskJointPosVelAccBounds): the most
+    conservative of the position, velocity, viability and acceleration bounds; on conflict the acceleration
+    bounds are dropped first, then viability, then only the position bounds are kept.
+    """
+    lb_p, ub_p = _acc_bounds_from_position(q, dq, q_min, q_max, dt)
+    lb_v, ub_v = (-dq_max - dq) / dt, (dq_max - dq) / dt
+    lb_s, ub_s = _acc_bounds_from_viability(q, dq, q_min, q_max, ddq_max, dt)
+    lb_a, ub_a = -ddq_max.expand_as(q), ddq_max.expand_as(q)
+    lb = torch.maximum(torch.maximum(lb_p, lb_v), torch.maximum(lb_s, lb_a))
+    ub = torch.minimum(torch.minimum(ub_p, ub_v), torch.minimum(ub_s, ub_a))
+    # conflict 1: drop the acceleration limits
+    c1 = ub < lb
+    lb1 = torch.maximum(torch.maximum(lb_p, lb_v), lb_s)
+    ub1 = torch.minimum(torch.minimum(ub_p, ub_v), ub_s)
+    lb, ub = torch.where(c1, lb1, lb), torch.where(c1, ub1, ub)
+    # conflict 2: drop viability too
+    c2 = ub < lb
+    lb, ub = torch.where(c2, torch.maximum(lb_p, lb_v), lb), torch.where(c2, torch.minimum(ub_p, ub_v), ub)
+    # conflict 3: position bounds only
+    c3 = ub < lb
+    return torch.where(c3, lb_p, lb), torch.where(c3, ub_p, ub)
+
+
+class JointLimitsViability(Limit):
+    """Joint position/velocity/acceleration limits made viable at acceleration level (Del Prete 2017).
+
+    Args:
+        q_min, q_max: position limits [7] (rad), shrunk by `q_margin`.
+        dq_max: velocity limits [7] (rad/s), shrunk by `dq_margin`.
+        ddq_max: acceleration limits [7] (rad/s²).
+        dt: control period [s]; the bounds use a horizon `horizon_steps` Δt (TSID uses 2) so that the one-step
+            delay and the simulator's semi-implicit Euler (q += Δt² q̈ instead of Δt²/2 q̈) stay inside.
+        target: "qdd" bounds q̈* + q̈_pd (eq. 24a and the remark after eq. 7); "total" (default) bounds, in
+            addition, the whole commanded joint acceleration q̈* + q̈_pd + B⁻¹Jᵀf (eq. 4: f enters the
+            torque through Jᵀf), so that AC/FC wrenches cannot drive the arm through its limits either.
+        include_f_ext: also count the measured external wrench in the total (q̈ = ... + B⁻¹Jᵀ(f + f_ext)). Off by
+            default: then x = (q̈ inside the bounds, f = 0) satisfies every row, so the QP is always feasible;
+            with it, an external wrench larger than the wrench box can make the QP infeasible (-> fallback).
+    """
+
+    name = "joint_limits"
+
+    def __init__(self, q_min: torch.Tensor, q_max: torch.Tensor, dq_max: torch.Tensor, ddq_max: torch.Tensor,
+                 dt: float, q_margin: float = 0.01, dq_margin: float = 0.02, horizon_steps: float = 2.0,
+                 target: Literal["total", "qdd"] = "total", include_f_ext: bool = False) -> None:
+        if target not in ("total", "qdd"):
+            raise InvalidGainError(f"target must be 'total' or 'qdd', got {target!r}")
+        if not (dt > 0 and horizon_steps >= 1 and q_margin >= 0 and dq_margin >= 0):
+            raise InvalidGainError(f"need dt > 0, horizon_steps >= 1, margins >= 0; got {dt}, {horizon_steps}, "
+                                   f"{q_margin}, {dq_margin}")
+        f64 = torch.float64
+        self.q_min = torch.as_tensor(q_min, dtype=f64) + q_margin
+        self.q_max = torch.as_tensor(q_max, dtype=f64) - q_margin
+        self.dq_max = torch.as_tensor(dq_max, dtype=f64) - dq_margin
+        self.ddq_max = torch.as_tensor(ddq_max, dtype=f64)
+        self.dt, self.horizon, self.target, self.include_f_ext = dt, horizon_steps * dt, target, include_f_ext
+
+    def bounds(self, q: torch.Tensor, qd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Viable acceleration bounds (lb, ub) [B, 7] (rad/s²) at state (q, q̇)."""
+        return joint_acceleration_bounds(q, qd, self.q_min.to(q), self.q_max.to(q), self.dq_max.to(q),
+                                         self.ddq_max.to(q), self.horizon)
+
+    def rows(self, ctx: ControlContext) -> Inequality:
+        lb, ub = self.bounds(ctx.q, ctx.qd)
+        B = ctx.batch
+        eye = torch.eye(N_QDD, dtype=ctx.q.dtype, device=ctx.q.device).expand(B, N_QDD, N_QDD)
+        # motion part: q̈* + q̈_pd = (I + ∂q̈_pd/∂q̈*) q̈* + q̈_pd0 ∈ [lb, ub] (eq. 5-7 are linear in q̈*)
+        motion = ctx.q.new_zeros(B, N_QDD, N_VARS)
+        motion[:, :, :N_QDD] = eye + ctx.pd_qdd_gain
+        G, h = [motion, -motion], [ub - ctx.qdd_pd0, ctx.qdd_pd0 - lb]
+        if self.target == "total":
+            # total commanded acceleration, adding the wrench's B⁻¹Jᵀ(f + f_ext). Both row sets are kept: with the
+            # total alone, an unweighted f could cancel an over-limit q̈* inside the sum and fake IK success.
+            total = motion.clone()
+            total[:, :, N_QDD:] = ctx.mass_inv_jt
+            offset = ctx.qdd_pd0
+            if self.include_f_ext:
+                offset = offset + (ctx.mass_inv_jt @ ctx.f_ext.unsqueeze(-1)).squeeze(-1)
+            G, h = G + [total, -total], h + [ub - offset, offset - lb]
+        return Inequality(G=torch.cat(G, dim=1), h=torch.cat(h, dim=1))
+
+
+class WrenchBox(Limit):
+    """Wrench limits |f_i| ≤ f_max (forces, N) and ≤ tau_max (torques, N m), world frame (section V-B: 20 N, 5 N m)."""
+
+    name = "wrench_box"
+
+    def __init__(self, force_limit: float = 20.0, torque_limit: float = 5.0) -> None:
+        if not (force_limit > 0 and torque_limit > 0 and math.isfinite(force_limit + torque_limit)):
+            raise InvalidGainError(f"wrench limits must be finite and > 0, got {force_limit}, {torque_limit}")
+        self.limit = torch.tensor([force_limit] * 3 + [torque_limit] * 3, dtype=torch.float64)
+
+    def rows(self, ctx: ControlContext) -> Inequality:
+        B = ctx.batch
+        S = ctx.q.new_zeros(B, 6, N_VARS)
+        S[:, :, N_QDD:] = torch.eye(6, dtype=ctx.q.dtype, device=ctx.q.device)
+        lim = self.limit.to(ctx.q).expand(B, 6)
+        return Inequality(G=torch.cat([S, -S], dim=1), h=torch.cat([lim, lim], dim=1))
+
+
+class FrictionPyramid(Limit):
+    """Linearised friction cone U(μ) f^𝓛 ≤ 0 (eq. 9) on the force part of f in 𝓛, normal = local z (tool axis).
+
+    Rows: ±f_x − μ f_z ≤ 0, ±f_y − μ f_z ≤ 0 with f^𝓛 = Dᵀ f. Active only for robots in contact (`ctx.in_contact`):
+    in free space the wrench must be free to follow the operator (AC) in any direction; inactive rows are 0 ≤ 1.
+    """
+
+    name = "friction"
+
+    def __init__(self, mu: float = 0.4) -> None:
+        if not (mu > 0 and math.isfinite(mu)):
+            raise InvalidGainError(f"mu must be finite and > 0, got {mu!r}")
+        self.mu = mu
+        self.U = torch.tensor([[1.0, 0.0, -mu], [-1.0, 0.0, -mu], [0.0, 1.0, -mu], [0.0, -1.0, -mu]],
+                              dtype=torch.float64)  # (4, 3) on the local force
+
+    def rows(self, ctx: ControlContext) -> Inequality:
+        B = ctx.batch
+        R = ctx.D[:, :3, :3]  # world <- local
+        G = ctx.q.new_zeros(B, 4, N_VARS)
+        active = ctx.in_contact.to(ctx.q.dtype).view(B, 1, 1)
+        G[:, :, N_QDD:N_QDD + 3] = active * (self.U.to(ctx.q) @ R.transpose(-1, -2))  # U Rᵀ f_world
+        h = (1.0 - active.view(B, 1)).expand(B, 4).clone()
+        return Inequality(G=G, h=h)

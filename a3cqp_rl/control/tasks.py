@@ -1,0 +1,173 @@
+"""QP tasks of the A3CQP controller (eq. 1, 10-11, 18-23): each returns a weighted residual ‖A x − b‖²_W.
+
+The variable is x = (q̈ [7], f [6]) (see context.py). A task only builds its residual (A, b) and its weight W;
+`Residual.objective` turns it into the quadratic cost ½ xᵀ H x + cᵀ x with H = AᵀWA, c = −AᵀWb, and the controller
+sums the costs (mink-style).
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+
+from a3cqp_rl.control.context import N_QDD, N_VARS, N_WRENCH, ControlContext
+from a3cqp_rl.control.exceptions import InvalidGainError
+
+__all__ = ["Residual", "Task", "CartesianIK", "Admittance", "ForceControl", "JointCentering"]
+
+
+@dataclass(frozen=True)
+class Residual:
+    """Weighted residual of one task for a batch: cost ‖A x − b‖²_W."""
+
+    A: torch.Tensor
+    """[B, k, 13] rows on x = (q̈, f)."""
+    b: torch.Tensor
+    """[B, k] target."""
+    W: torch.Tensor
+    """[B, k, k] symmetric positive semi-definite weight."""
+
+    def objective(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(H [B, 13, 13], c [B, 13]) of ½ xᵀHx + cᵀx, equal to ½‖Ax − b‖²_W up to a constant."""
+        AtW = self.A.transpose(-1, -2) @ self.W  # (B, 13, k)
+        return AtW @ self.A, -(AtW @ self.b.unsqueeze(-1)).squeeze(-1)
+
+
+def _select(batch: int, start: int, size: int, like: torch.Tensor) -> torch.Tensor:
+    """[B, size, 13] matrix picking x[start:start + size]."""
+    A = like.new_zeros(batch, size, N_VARS)
+    A[:, :, start:start + size] = torch.eye(size, dtype=like.dtype, device=like.device)
+    return A
+
+
+def _check_positive(**values: float) -> None:
+    for name, value in values.items():
+        if not (value >= 0.0 and math.isfinite(value)):
+            raise InvalidGainError(f"{name} must be finite and >= 0, got {value!r}")
+
+
+class Task(ABC):
+    """A QP task: its residual and weight from the step's context."""
+
+    name: str = "task"
+
+    @abstractmethod
+    def residual(self, ctx: ControlContext) -> Residual:
+        """Residual (A, b) and weight W of this task for the batch in `ctx`."""
+
+
+class CartesianIK(Task):
+    """IK task (eq. 1, 10-11): J q̈ + J̇q̇ = ẍ_d with ẍ_d = K_p e_x − K_v ẋ, weight W1.
+
+    Args:
+        kp: translational stiffness k_p [1/s²] (Table I: 150).
+        k_theta: rotational stiffness k_θ [1/s²] (Table I: 20). K_v = 2√K_p (critical damping, eq. 11).
+    """
+
+    name = "ik"
+
+    def __init__(self, kp: float = 150.0, k_theta: float = 20.0) -> None:
+        _check_positive(kp=kp, k_theta=k_theta)
+        self.kp, self.k_theta = kp, k_theta
+
+    def gains(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Diagonals of K_p and K_v [6] (eq. 11)."""
+        kp = like.new_tensor([self.kp] * 3 + [self.k_theta] * 3)
+        return kp, 2.0 * kp.sqrt()
+
+    def desired_acceleration(self, ctx: ControlContext) -> torch.Tensor:
+        """ẍ_d = K_p e_x − K_v ẋ [B, 6] (eq. 10), world frame (m/s², rad/s²)."""
+        kp, kv = self.gains(ctx.q)
+        return kp * ctx.pose_error - kv * ctx.kin.twist
+
+    def residual(self, ctx: ControlContext) -> Residual:
+        A = ctx.q.new_zeros(ctx.batch, 6, N_VARS)
+        A[:, :, :N_QDD] = ctx.kin.jac
+        return Residual(A=A, b=self.desired_acceleration(ctx) - ctx.kin.jdot_qdot, W=ctx.W1)
+
+
+class Admittance(Task):
+    """AC task (eq. 16-18): f = f_adm so that the closed loop follows Λd ẍ + Cd ẋ = f_ext (eq. 17), weight W2.
+
+    Args:
+        lambda_d: desired apparent mass Λd [kg] (Table I: 5), the same for all six axes.
+        c_d: desired damping Cd [N s/m] (Table I: 5).
+        form: "consistent" (default) uses f_adm = (ΛΛd⁻¹ − I) f_ext − (ΛΛd⁻¹ Cd J + Λ J̇) q̇, which is what
+            eq. 16 + 17 give and makes the steady velocity f_ext / Cd; "paper" uses eq. 18 as printed,
+            −(Cd J + Λ J̇) q̇, whose steady velocity is Λ Λd⁻¹ f_ext / Cd.
+    """
+
+    name = "ac"
+
+    def __init__(self, lambda_d: float = 5.0, c_d: float = 5.0,
+                 form: Literal["consistent", "paper"] = "consistent") -> None:
+        _check_positive(c_d=c_d)
+        if not lambda_d > 0.0:
+            raise InvalidGainError(f"lambda_d must be > 0, got {lambda_d!r}")
+        if form not in ("consistent", "paper"):
+            raise InvalidGainError(f"form must be 'consistent' or 'paper', got {form!r}")
+        self.lambda_d, self.c_d, self.form = lambda_d, c_d, form
+
+    def admittance_wrench(self, ctx: ControlContext) -> torch.Tensor:
+        """f_adm [B, 6] (N, N m), world frame (eq. 18)."""
+        lam = ctx.cart_inertia  # Λ (B, 6, 6)
+        lam_ratio = lam / self.lambda_d  # Λ Λd⁻¹ (Λd = Λd I)
+        mv = lambda M, v: (M @ v.unsqueeze(-1)).squeeze(-1)  # noqa: E731
+        damping = self.c_d * ctx.kin.twist  # Cd J q̇
+        if self.form == "consistent":
+            damping = mv(lam_ratio, damping)
+        return mv(lam_ratio, ctx.f_ext) - ctx.f_ext - damping - mv(lam, ctx.kin.jdot_qdot)
+
+    def residual(self, ctx: ControlContext) -> Residual:
+        return Residual(A=_select(ctx.batch, N_QDD, N_WRENCH, ctx.q), b=self.admittance_wrench(ctx), W=ctx.W2)
+
+
+class ForceControl(Task):
+    """FC task (eq. 20-21): f = D f_d^𝓛 with 0 ≤ f_d^𝓛 ≤ f̄_d (clipped when the context is built), weight W3."""
+
+    name = "fc"
+
+    def contact_wrench(self, ctx: ControlContext) -> torch.Tensor:
+        """f_ctc = D f_d^𝓛 [B, 6] (N, N m), world frame (eq. 20)."""
+        return (ctx.D @ ctx.f_d_local.unsqueeze(-1)).squeeze(-1)
+
+    def residual(self, ctx: ControlContext) -> Residual:
+        return Residual(A=_select(ctx.batch, N_QDD, N_WRENCH, ctx.q), b=self.contact_wrench(ctx), W=ctx.W3)
+
+
+class JointCentering(Task):
+    """JC task (eq. 23-24): q̈ = q̈_d = k_q (q_d − q) − 2√k_q q̇, weight ε JᵀW1J + ε_N N.
+
+    Eq. 1 weights JC by ε JᵀW1J only; that weight is zero on the null space of J, so by itself it cannot move the
+    arm in its null space (it only adds ε to the IK task). `nullspace_weight` ε_N adds ε_N N (N = I − J⁺J, the
+    null-space projector): the null-space motion then follows q̈_d exactly as in a strict hierarchy (the two
+    weights act on orthogonal subspaces, so IK is not disturbed). ε_N = 0 reproduces eq. 1 exactly.
+
+    Args:
+        q_center: q_d [7] (rad), a configuration far from joint limits and singularities.
+        kq: joint centering gain k_q [1/s²] (Table I: 10).
+        epsilon: ε (Table I: 1e-4).
+        nullspace_weight: ε_N (default 1e-3).
+    """
+
+    name = "jc"
+
+    def __init__(self, q_center: torch.Tensor, kq: float = 10.0, epsilon: float = 1e-4,
+                 nullspace_weight: float = 1e-3) -> None:
+        _check_positive(kq=kq, epsilon=epsilon, nullspace_weight=nullspace_weight)
+        self.q_center = torch.as_tensor(q_center, dtype=torch.float64)
+        self.kq, self.epsilon, self.nullspace_weight = kq, epsilon, nullspace_weight
+
+    def desired_acceleration(self, ctx: ControlContext) -> torch.Tensor:
+        """q̈_d [B, 7] (rad/s²), eq. 23."""
+        e_q = self.q_center.to(ctx.q) - ctx.q
+        return self.kq * e_q - 2.0 * math.sqrt(self.kq) * ctx.qd
+
+    def residual(self, ctx: ControlContext) -> Residual:
+        J = ctx.kin.jac
+        W = self.epsilon * (J.transpose(-1, -2) @ ctx.W1 @ J) + self.nullspace_weight * ctx.nullspace
+        return Residual(A=_select(ctx.batch, 0, N_QDD, ctx.q), b=self.desired_acceleration(ctx), W=W)
