@@ -188,13 +188,13 @@ _MAX_SWEEPS = 8
 
 def _eq_solve(
     P: Tensor, q: Tensor, C: Tensor, d: Tensor, mask: Tensor, z: Tensor, x: Tensor, tol: float
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """Solve min ½xᵀPx + qᵀx s.t. C_i x = d_i for rows with mask_i, by proximal augmented Lagrangian.
 
     One Cholesky of P + ρ C_WᵀC_W + δI, then multiplier sweeps until |C_W x − d_W| ≤ tol (at most
     _MAX_SWEEPS); the matrix stays positive definite for PSD P and for dependent rows.  Returns
-    (x [B, n], z [B, r]), z zero on unmasked rows; stationarity P x + q + Cᵀz = O(δ|Δx|) holds by
-    construction, so feasibility of the active rows is all that is left to check.
+    (x [B, n], z [B, r], stationarity residual [B]), z zero on unmasked rows; P x + q + Cᵀz equals
+    δ(x_prev − x) by construction, so that and feasibility are all that is left to check.
     """
     n = P.shape[-1]
     scale = _diag_scale(P)
@@ -210,11 +210,15 @@ def _eq_solve(
     for k in range(_MAX_SWEEPS):
         # H x = −q − Cᵀ(z − ρd) + δ x_prev : minimiser of the augmented, proximal Lagrangian.
         rhs = delta * x - q - _mtv(Cm, z - rho * dm)
+        x_prev = x
         x = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
         err = _mv(Cm, x) - dm
         z = z + rho * err
         if k >= 1 and (err.numel() == 0 or bool(err.abs().amax() <= tol)):
             break
+    # Stationarity residual left by the proximal term: P x + q + Cᵀz = δ (x_prev − x).  It is only
+    # large where P is singular along a direction no active row fixes (unbounded or not yet bounded).
+    return x, z, (delta * (x - x_prev)).abs().amax(-1)
     return x, z
 
 
@@ -251,13 +255,13 @@ def _pdas(
     ok_out = torch.zeros(B, dtype=torch.bool, device=q.device)
     it_out = torch.zeros(B, dtype=torch.long, device=q.device)
     for k in range(max_iter):
-        x, z = _eq_solve(P, q, C, d, torch.cat([eq_rows, W], 1), z, x, 1e-2 * tol)
+        x, z, stat_err = _eq_solve(P, q, C, d, torch.cat([eq_rows, W], 1), z, x, 1e-2 * tol)
         viol = _mv(G, x) - h  # (b, m) > 0 means violated
         zG = z[:, p:]
         eq_err = (_mv(A, x) - b).abs() if p else viol[:, :0]
         # Certified optimum: feasible (active rows tight, others satisfied), multipliers ≥ 0.
         ok = (viol <= tol_p).all(-1) & (zG >= -tol_d).all(-1) & (eq_err <= tol_p).all(-1)
-        ok = ok & (viol.abs() * W <= tol_p).all(-1)
+        ok = ok & (viol.abs() * W <= tol_p).all(-1) & (stat_err <= tol_d[:, 0])
         if bool(ok.any()):
             sel = idx[ok]
             x_out[sel], z_out[sel], ok_out[sel], it_out[sel] = x[ok], z[ok], True, k + 1
@@ -485,7 +489,7 @@ class _QPFunction(torch.autograd.Function):
         mask = torch.cat([torch.ones_like(y, dtype=torch.bool), active], 1)
         # Adjoint: [[P, C_Wᵀ], [C_W, 0]] [wx; wν] = [gx; 0], i.e. min ½wᵀPw − gxᵀw s.t. C_W w = 0.
         zr = torch.zeros_like(C[..., 0])
-        wx, wnu = _eq_solve(Ps, -gx, C, zr, mask, zr, torch.zeros_like(x), 1e-13 * (1.0 + float(gx.abs().amax())))
+        wx, wnu, _ = _eq_solve(Ps, -gx, C, zr, mask, zr, torch.zeros_like(x), 1e-13 * (1.0 + float(gx.abs().amax())))
         wy, wz = wnu[:, :p], wnu[:, p:]
         nu = torch.cat([y, z * active], 1)
         gP = -0.5 * (wx.unsqueeze(-1) * x.unsqueeze(-2) + x.unsqueeze(-1) * wx.unsqueeze(-2))

@@ -1,0 +1,235 @@
+"""Tests of the batched torch QP solver: accuracy vs cvxpy + Clarabel, robustness, warm starts, gradients."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from a3cqp_rl.qp import QPShapeError, QPStatus, solve_qp
+from a3cqp_rl.qp.random_qp import clarabel_reference, random_qp_batch
+
+DT = torch.float64
+
+
+def _active_any(sol) -> torch.Tensor:
+    """Instances with at least one active inequality or bound (positive multiplier)."""
+    return (sol.z > 0).any(-1) | (sol.z_lb > 0).any(-1) | (sol.z_ub > 0).any(-1)
+
+
+def _kkt_residuals(qp, sol) -> dict[str, float]:
+    """Max KKT violations of a solution (stationarity, primal feasibility, complementarity, dual sign)."""
+    x = sol.x
+    r = (qp.P @ x.unsqueeze(-1)).squeeze(-1) + qp.q + (qp.G.mT @ sol.z.unsqueeze(-1)).squeeze(-1)
+    r = r - sol.z_lb + sol.z_ub
+    if qp.A is not None:
+        r = r + (qp.A.mT @ sol.y.unsqueeze(-1)).squeeze(-1)
+    g = (qp.G @ x.unsqueeze(-1)).squeeze(-1) - qp.h
+    return {"stat": r.abs().max().item(), "feas": g.max().item(), "compl": (sol.z * g).abs().max().item()}
+
+
+# 1000 instances in four families, each compared with cvxpy + Clarabel (tol 1e-12).
+FAMILIES = [dict(n=13, m=30), dict(n=13, m=30, p=3), dict(n=13, m=20, bounds=True), dict(n=13, m=24, p=2, bounds=True)]
+
+
+@pytest.mark.parametrize("family", range(len(FAMILIES)))
+def test_random_instances_match_clarabel(family: int) -> None:
+    qp = random_qp_batch(250, seed=100 + family, **FAMILIES[family])
+    sol = solve_qp(*qp.args())
+    x_ref, statuses = clarabel_reference(qp)
+    assert set(statuses) == {"optimal"}
+    assert bool(sol.solved.all())
+    frac_active = _active_any(sol).double().mean().item()
+    assert 0.3 <= frac_active <= 0.5, frac_active  # the generator's promise: a mix of both regimes
+    assert (sol.x - x_ref).abs().max().item() <= 1e-6
+    res = _kkt_residuals(qp, sol)
+    assert res["stat"] < 1e-8 and res["feas"] < 1e-8 and res["compl"] < 1e-8, res
+    assert (sol.z >= 0).all() and (sol.z_lb >= 0).all() and (sol.z_ub >= 0).all()
+
+
+def test_heavily_constrained_instances_match_clarabel() -> None:
+    # Far from the unconstrained optimum: 5-10 active rows, the interior-point stage does the work.
+    qp = random_qp_batch(100, m=30, p=2, bounds=True, spread=0.35, seed=7)
+    sol = solve_qp(*qp.args())
+    x_ref, _ = clarabel_reference(qp)
+    assert bool(sol.solved.all())
+    assert (sol.z > 0).sum(-1).float().mean() > 3
+    assert (sol.x - x_ref).abs().max().item() <= 1e-6
+
+
+def test_warm_start_reduces_iterations_and_keeps_answer() -> None:
+    qp = random_qp_batch(200, spread=0.3, seed=3)
+    cold = solve_qp(*qp.args())
+    # The control loop's situation: the next QP is a small perturbation of the previous one.
+    q2 = qp.q + 1e-3 * torch.randn(qp.q.shape, generator=torch.Generator().manual_seed(0), dtype=DT)
+    cold2 = solve_qp(qp.P, q2, G=qp.G, h=qp.h)
+    warm2 = solve_qp(qp.P, q2, G=qp.G, h=qp.h, warm_start=cold)
+    assert bool(warm2.solved.all())
+    assert (warm2.x - cold2.x).abs().max() < 1e-8
+    assert warm2.iterations.float().mean() < 0.3 * cold2.iterations.float().mean()
+    assert warm2.iterations.float().mean() <= 1.5
+
+
+def test_infeasible_instances_are_flagged_and_do_not_poison_the_batch() -> None:
+    qp = random_qp_batch(6, n=5, m=8, p=1, seed=4)
+    G, h, A, b = qp.G.clone(), qp.h.clone(), qp.A.clone(), qp.b.clone()
+    # Instance 1: x0 <= -1 and -x0 <= -1 (x0 >= 1). Instance 3: two parallel inconsistent equalities
+    # (written as A x = b with one equality and a contradicting inequality pair).
+    G[1, 0], h[1, 0] = torch.eye(5, dtype=DT)[0], -1.0
+    G[1, 1], h[1, 1] = -torch.eye(5, dtype=DT)[0], -1.0
+    G[3, 0], h[3, 0] = A[3, 0], b[3, 0] - 1.0  # A x = b and A x <= b - 1
+    sol = solve_qp(qp.P, qp.q, A, b, G, h)
+    assert sol.status[1] == QPStatus.PRIMAL_INFEASIBLE and sol.status[3] == QPStatus.PRIMAL_INFEASIBLE
+    assert torch.isfinite(sol.x).all() and torch.isfinite(sol.z).all() and torch.isfinite(sol.y).all()
+    good = torch.tensor([0, 2, 4, 5])
+    ref = solve_qp(qp.P[good], qp.q[good], A[good], b[good], G[good], h[good])
+    assert (sol.status[good] == QPStatus.SOLVED).all()
+    assert (sol.x[good] - ref.x).abs().max() < 1e-10
+
+
+def test_infeasible_equalities_and_bounds() -> None:
+    n = 3
+    P = torch.eye(n, dtype=DT).expand(2, n, n)
+    q = torch.zeros(2, n, dtype=DT)
+    A = torch.tensor([[1.0, 0, 0], [1.0, 0, 0]], dtype=DT).expand(2, 2, n)
+    b = torch.tensor([[1.0, 1.0], [1.0, 2.0]], dtype=DT)  # instance 0 redundant, instance 1 inconsistent
+    sol = solve_qp(P, q, A, b)
+    assert sol.status.tolist() == [QPStatus.SOLVED, QPStatus.PRIMAL_INFEASIBLE]
+    assert torch.allclose(sol.x[0], torch.tensor([1.0, 0, 0], dtype=DT), atol=1e-9)
+    assert torch.isfinite(sol.x).all()
+    lb = torch.tensor([[0.0, 0, 0], [0.0, 1.0, 0]], dtype=DT)
+    ub = torch.tensor([[1.0, 1, 1], [1.0, 0.5, 1]], dtype=DT)  # lb > ub in instance 1
+    sol = solve_qp(P, q - 1.0, lb=lb, ub=ub)
+    assert sol.status.tolist() == [QPStatus.SOLVED, QPStatus.PRIMAL_INFEASIBLE]
+    assert torch.allclose(sol.x[0], torch.ones(n, dtype=DT), atol=1e-9)
+
+
+def test_unbounded_instance_is_flagged() -> None:
+    # P = diag(1, 0): x1 is free with cost -x1 and only bounded below -> unbounded; instance 0 is fine.
+    P = torch.diag(torch.tensor([1.0, 0.0], dtype=DT)).expand(2, 2, 2)
+    q = torch.tensor([[1.0, 1.0], [1.0, -1.0]], dtype=DT)
+    G = torch.tensor([[0.0, -1.0]], dtype=DT).expand(2, 1, 2)
+    h = torch.zeros(2, 1, dtype=DT)
+    sol = solve_qp(P, q, G=G, h=h)
+    assert sol.status.tolist() == [QPStatus.SOLVED, QPStatus.DUAL_INFEASIBLE]
+    assert torch.isfinite(sol.x).all()
+    assert torch.allclose(sol.x[0], torch.tensor([-1.0, 0.0], dtype=DT), atol=1e-8)
+
+
+def test_degenerate_redundant_and_semidefinite_cases() -> None:
+    qp = random_qp_batch(50, n=6, m=10, p=1, spread=0.2, seed=11)
+    # Duplicate every row (dependent active constraints) and add an always-redundant row.
+    G = torch.cat([qp.G, qp.G, torch.zeros_like(qp.G[:, :1])], 1)
+    h = torch.cat([qp.h, qp.h, torch.ones_like(qp.h[:, :1])], 1)
+    base = solve_qp(qp.P, qp.q, qp.A, qp.b, qp.G, qp.h)
+    dup = solve_qp(qp.P, qp.q, qp.A, qp.b, G, h)
+    assert bool(dup.solved.all()) and (dup.x - base.x).abs().max() < 1e-8
+    # Weakly active constraint: a row through the unconstrained optimum with zero multiplier.
+    P = torch.eye(2, dtype=DT).unsqueeze(0)
+    sol = solve_qp(P, torch.tensor([[-1.0, -1.0]], dtype=DT), G=torch.tensor([[[1.0, 0.0]]], dtype=DT), h=torch.tensor([[1.0]], dtype=DT))
+    assert bool(sol.solved.all()) and torch.allclose(sol.x, torch.ones(1, 2, dtype=DT), atol=1e-8)
+    # P singular but positive definite on the feasible set (x2 fixed by an equality).
+    P = torch.diag(torch.tensor([1.0, 0.0], dtype=DT)).unsqueeze(0)
+    sol = solve_qp(P, torch.tensor([[-2.0, 5.0]], dtype=DT), A=torch.tensor([[[0.0, 1.0]]], dtype=DT), b=torch.tensor([[3.0]], dtype=DT))
+    assert bool(sol.solved.all()) and torch.allclose(sol.x, torch.tensor([[2.0, 3.0]], dtype=DT), atol=1e-8)
+    assert torch.allclose(sol.y, torch.tensor([[-5.0]], dtype=DT), atol=1e-7)
+    # A linear program (P = 0) with bounds: vertex solution.
+    sol = solve_qp(torch.zeros(1, 3, 3, dtype=DT), torch.tensor([[1.0, -2.0, 0.5]], dtype=DT), lb=-torch.ones(1, 3, dtype=DT), ub=torch.ones(1, 3, dtype=DT))
+    assert bool(sol.solved.all()) and torch.allclose(sol.x, torch.tensor([[-1.0, 1.0, -1.0]], dtype=DT), atol=1e-8)
+
+
+def test_equality_only_bounds_only_and_infinite_bounds() -> None:
+    qp = random_qp_batch(20, n=8, m=1, p=3, seed=5)
+    sol = solve_qp(qp.P, qp.q, qp.A, qp.b)
+    # Closed form of the equality-constrained QP from the full KKT matrix.
+    K = torch.cat([torch.cat([qp.P, qp.A.mT], 2), torch.cat([qp.A, torch.zeros(20, 3, 3, dtype=DT)], 2)], 1)
+    xy = torch.linalg.solve(K, torch.cat([-qp.q, qp.b], 1))
+    assert (sol.x - xy[:, :8]).abs().max() < 1e-9 and (sol.y - xy[:, 8:]).abs().max() < 1e-8
+    assert (sol.iterations == 1).all()
+    # Bounds only, some infinite: the solution is the clipped unconstrained minimiser for diagonal P.
+    d = torch.rand(20, 8, dtype=DT) + 0.5
+    lb = torch.full((20, 8), -0.3, dtype=DT)
+    ub = torch.full((20, 8), 0.3, dtype=DT)
+    lb[:, 0], ub[:, 1] = -torch.inf, torch.inf
+    sol = solve_qp(torch.diag_embed(d), qp.q, lb=lb, ub=ub)
+    expected = torch.minimum(torch.maximum(-qp.q / d, lb), ub)
+    assert bool(sol.solved.all()) and (sol.x - expected).abs().max() < 1e-9
+    assert (sol.z_lb[:, 0] == 0).all() and (sol.z_ub[:, 1] == 0).all()
+
+
+def test_float32_with_looser_tolerance() -> None:
+    qp = random_qp_batch(200, p=2, bounds=True, seed=9)
+    ref = solve_qp(*qp.args())
+    args32 = [t.float() if t is not None else None for t in qp.args()]
+    sol = solve_qp(*args32)
+    assert sol.x.dtype == torch.float32
+    assert bool(sol.solved.all())
+    assert (sol.x.double() - ref.x).abs().max() < 1e-3
+
+
+def test_unbatched_arguments_broadcast_and_shape_errors() -> None:
+    qp = random_qp_batch(5, n=4, m=6, seed=2)
+    shared = solve_qp(qp.P[0], qp.q, G=qp.G[0], h=qp.h[0])
+    per = solve_qp(qp.P[:1].expand(5, 4, 4), qp.q, G=qp.G[:1].expand(5, 6, 4), h=qp.h[:1].expand(5, 6))
+    assert shared.x.shape == (5, 4) and (shared.x - per.x).abs().max() < 1e-12
+    with pytest.raises(QPShapeError, match="G must have 4 columns"):
+        solve_qp(qp.P, qp.q, G=qp.G[..., :3], h=qp.h)
+    with pytest.raises(QPShapeError, match="batch size"):
+        solve_qp(qp.P[:2], qp.q)
+    with pytest.raises(QPShapeError, match="together"):
+        solve_qp(qp.P, qp.q, G=qp.G)
+    with pytest.raises(QPShapeError, match="dtype"):
+        solve_qp(qp.P.float(), qp.q)
+
+
+def test_max_iter_status_and_finite_output() -> None:
+    qp = random_qp_batch(10, spread=0.35, seed=6)
+    sol = solve_qp(*qp.args(), max_iter=2, active_set_iter=1)
+    assert (sol.status == QPStatus.MAX_ITER).any()
+    assert torch.isfinite(sol.x).all()
+
+
+def _small_problem(seed: int):
+    g = torch.Generator().manual_seed(seed)
+    B, n, m, p = 3, 4, 5, 1
+    M = torch.randn(B, n, n, generator=g, dtype=DT)
+    P = M @ M.mT + 0.5 * torch.eye(n, dtype=DT)
+    q = torch.randn(B, n, generator=g, dtype=DT)
+    G = torch.randn(B, m, n, generator=g, dtype=DT)
+    h = torch.rand(B, m, generator=g, dtype=DT) * 0.3
+    A = torch.randn(B, p, n, generator=g, dtype=DT)
+    b = torch.randn(B, p, generator=g, dtype=DT) * 0.1
+    lb = -torch.rand(B, n, generator=g, dtype=DT) * 0.3 - 0.2
+    ub = torch.rand(B, n, generator=g, dtype=DT) * 0.1 + 0.05
+    return [t.requires_grad_() for t in (P, q, A, b, G, h, lb, ub)]
+
+
+def test_gradcheck_all_arguments() -> None:
+    args = _small_problem(1)
+    sol = solve_qp(*args)
+    # Make sure the instance exercises active inequalities and bounds, so those gradients are non-trivial.
+    assert (sol.z > 0).any() and ((sol.z_lb > 0) | (sol.z_ub > 0)).any()
+    assert torch.autograd.gradcheck(lambda *a: solve_qp(*a).x, args, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_gradients_match_cvxpylayers() -> None:
+    cvxpylayers_torch = pytest.importorskip("cvxpylayers.torch")
+    import cvxpy as cp
+
+    qp = random_qp_batch(8, n=5, m=7, p=1, spread=0.1, seed=12)
+    n, m = 5, 7
+    x = cp.Variable(n)
+    Lt, qv, Gp, hp, Ap, bp = cp.Parameter((n, n)), cp.Parameter(n), cp.Parameter((m, n)), cp.Parameter(m), cp.Parameter((1, n)), cp.Parameter(1)
+    prob = cp.Problem(cp.Minimize(0.5 * cp.sum_squares(Lt @ x) + qv @ x), [Gp @ x <= hp, Ap @ x == bp])
+    layer = cvxpylayers_torch.CvxpyLayer(prob, parameters=[Lt, qv, Gp, hp, Ap, bp], variables=[x])
+    L = torch.linalg.cholesky(qp.P)
+    leaves = [t.clone().requires_grad_() for t in (L, qp.q, qp.G, qp.h, qp.A, qp.b)]
+    w = torch.randn(8, n, generator=torch.Generator().manual_seed(1), dtype=DT)
+    (x_ref,) = layer(leaves[0].mT, *leaves[1:], solver_args={"solve_method": "Clarabel", "tol_gap_abs": 1e-12, "tol_gap_rel": 1e-12, "tol_feas": 1e-12, "tol_ktratio": 1e-10})
+    (x_ref * w).sum().backward()
+    ref_grads = [t.grad.clone() for t in leaves]
+    mine = [t.clone().requires_grad_() for t in (L, qp.q, qp.G, qp.h, qp.A, qp.b)]
+    sol = solve_qp(mine[0] @ mine[0].mT, mine[1], mine[4], mine[5], mine[2], mine[3])
+    (sol.x * w).sum().backward()
+    assert (sol.x - x_ref).abs().max() < 1e-5
+    for a, r in zip(mine, ref_grads):
+        assert torch.allclose(a.grad, r, atol=1e-4, rtol=1e-3), (a.grad - r).abs().max()
