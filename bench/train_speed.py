@@ -113,6 +113,20 @@ def run_sb3(cfg, steps: int) -> tuple[float, float]:
     return done / elapsed, elapsed
 
 
+def env_only_rate(cfg, steps: int = 5000) -> float:
+    """Steps/s of PointMassGym.step alone (fixed random actions, auto-reset): the env's share of SB3's cost."""
+    import numpy as np
+
+    env = _import_gym_env()(cfg)
+    env.reset(seed=0)
+    acts = np.random.default_rng(0).uniform(-1, 1, size=(steps, 4)).astype(np.float32)
+    t0 = time.perf_counter()
+    for a in acts:
+        if env.step(a)[3]:
+            env.reset()
+    return steps / (time.perf_counter() - t0)
+
+
 def run_ours(cfg, steps: int) -> tuple[float, float, float, int]:
     """Train with algorithms.a2c for `steps`; returns (steps/s excl. compile, compile s, wall s of train(), steps done)."""
     from algorithms.a2c import train
@@ -209,6 +223,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  run {i + 1}: ours {rate:>10,.0f} steps/s  (train() {wall:.2f} s = {done / rate:.2f} s steps "
                   f"+ {comp:.2f} s compile_seconds + {setup:.2f} s other setup)", flush=True)
 
+    if sb3.rates:
+        env_rate = env_only_rate(cfg)
+        print(f"  PointMassGym.step alone: {env_rate:,.0f} steps/s, i.e. ~{100 * sb3.rate / env_rate:.0f} % of "
+              "SB3's training time is the environment")
     print()
     print(f"{'trainer':<50} {'steps/s':>10} {'one-time':>10} {'1e6 steps (projected)':>22}")
     for m in (sb3, ours):
