@@ -1,0 +1,285 @@
+"""Benchmark: batched QP solves, a3cqp_rl.qp vs cvxpylayers, qpth, ProxSuite and OSQP on the same QPs.
+
+Instances: `random_qp_batch` (n = 13 variables, m = 30 inequality rows, the controller's size;
+30-50 % of instances have active constraints).  For every solver and batch size B it prints the
+median over repeats of µs per QP for the forward solve and for forward + backward (gradient of
+Σ w·x with respect to all QP data, where the peer supports it), and the max |x − x_ref| against
+cvxpy + Clarabel (tol 1e-12).  Ratios are computed against peers measured in the same run only.
+
+    python bench/qp.py [--quick] [--threads T] [--batches 1 64 1024]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from a3cqp_rl.qp import solve_qp
+from a3cqp_rl.qp.random_qp import RandomQP, clarabel_reference, random_qp_batch
+
+N_VARS, N_ROWS = 13, 30
+
+
+@dataclass
+class Row:
+    """One solver at one batch size: µs/QP (median), accuracy, notes."""
+
+    solver: str
+    batch: int
+    fwd_us: float | None = None
+    fwd_bwd_us: float | None = None
+    max_err: float | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def _median_us(fn: Callable[[], object], repeats: int, batch: int) -> float:
+    """Median wall time of fn() over `repeats` runs after one warm-up, in µs per QP."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) / batch * 1e6
+
+
+def _weights(qp: RandomQP) -> torch.Tensor:
+    return torch.linspace(-1.0, 1.0, qp.q.shape[1], dtype=qp.q.dtype).expand_as(qp.q)
+
+
+# ------------------------------------------------------------------------------------------------
+# Solvers: each returns (forward fn -> x tensor, forward+backward fn or None)
+# ------------------------------------------------------------------------------------------------
+
+
+def ours(qp: RandomQP, warm: bool = False):
+    """a3cqp_rl.qp.solve_qp (cold, or warm-started from the solution of the same batch)."""
+    sol0 = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h) if warm else None
+
+    def fwd():
+        return solve_qp(qp.P, qp.q, G=qp.G, h=qp.h, warm_start=sol0).x
+
+    w = _weights(qp)
+
+    def fwd_bwd():
+        leaves = [t.detach().clone().requires_grad_() for t in (qp.P, qp.q, qp.G, qp.h)]
+        x = solve_qp(leaves[0], leaves[1], G=leaves[2], h=leaves[3], warm_start=sol0).x
+        (x * w).sum().backward()
+        return x
+
+    return fwd, fwd_bwd
+
+
+def qpth_solver(qp: RandomQP):
+    """qpth (OptNet) batched PDIPM, eps 1e-12."""
+    from qpth.qp import QPFunction
+
+    e = torch.empty(0, dtype=qp.q.dtype)
+    w = _weights(qp)
+
+    def fwd():
+        return QPFunction(verbose=-1, eps=1e-12, maxIter=50)(qp.P, qp.q, qp.G, qp.h, e, e)
+
+    def fwd_bwd():
+        leaves = [t.detach().clone().requires_grad_() for t in (qp.P, qp.q, qp.G, qp.h)]
+        x = QPFunction(verbose=-1, eps=1e-12, maxIter=50)(*leaves, e, e)
+        (x * w).sum().backward()
+        return x
+
+    return fwd, fwd_bwd
+
+
+def proxsuite_torch(qp: RandomQP):
+    """proxsuite.torch QPFunction (dense ProxQP per instance, OpenMP over the batch), eps 1e-9."""
+    from proxsuite.torch.qplayer import QPFunction
+
+    B = qp.q.shape[0]
+    e = torch.empty(0, dtype=qp.q.dtype)
+    lower = torch.full_like(qp.h, -1e20)
+    w = _weights(qp)
+    f = QPFunction(eps=1e-9, omp_parallel=True)
+
+    def fwd():
+        return f(qp.P, qp.q, e, e, qp.G, lower, qp.h)[0]
+
+    def fwd_bwd():
+        leaves = [t.detach().clone().requires_grad_() for t in (qp.P, qp.q, qp.G, qp.h)]
+        x = f(leaves[0], leaves[1], e, e, leaves[2], lower, leaves[3])[0]
+        (x * w).sum().backward()
+        return x
+
+    del B
+    return fwd, fwd_bwd
+
+
+def proxsuite_parallel(qp: RandomQP, threads: int):
+    """ProxSuite dense BatchQP + solve_in_parallel (forward only), including setup from numpy."""
+    from proxsuite import proxqp
+
+    P, q, G, h = (t.numpy() for t in (qp.P, qp.q, qp.G, qp.h))
+    B, n = q.shape
+    m = G.shape[1]
+    lower = np.full(m, -1e20)
+
+    def fwd():
+        batch = proxqp.dense.BatchQP(B)
+        for i in range(B):
+            sub = batch.init_qp_in_place(n, 0, m)
+            sub.settings.eps_abs = 1e-9
+            sub.settings.eps_rel = 0.0
+            sub.init(P[i], q[i], None, None, G[i], lower, h[i])
+        proxqp.dense.solve_in_parallel(batch, threads)
+        return torch.as_tensor(np.stack([batch.get(i).results.x for i in range(B)]))
+
+    return fwd, None
+
+
+def osqp_solver(qp: RandomQP):
+    """OSQP 1.x, one setup + solve per instance (eps 1e-9, polish), forward only."""
+    import osqp
+    import scipy.sparse as sp
+
+    P, q, G, h = (t.numpy() for t in (qp.P, qp.q, qp.G, qp.h))
+    B, n = q.shape
+    lower = np.full(G.shape[1], -np.inf)
+    Ps = [sp.csc_matrix(np.triu(P[i])) for i in range(B)]
+    Gs = [sp.csc_matrix(G[i]) for i in range(B)]
+
+    def fwd():
+        xs = np.empty((B, n))
+        for i in range(B):
+            s = osqp.OSQP()
+            s.setup(Ps[i], q[i], Gs[i], lower, h[i], eps_abs=1e-9, eps_rel=0.0, polishing=True, verbose=False, max_iter=20000)
+            xs[i] = s.solve().x
+        return torch.as_tensor(xs)
+
+    return fwd, None
+
+
+def cvxpylayers_solver(qp: RandomQP):
+    """cvxpylayers 1.x CvxpyLayer at its default solver settings."""
+    import cvxpy as cp
+    from cvxpylayers.torch import CvxpyLayer
+
+    n, m = qp.q.shape[1], qp.G.shape[1]
+    x = cp.Variable(n)
+    Lt, qv, Gp, hp = cp.Parameter((n, n)), cp.Parameter(n), cp.Parameter((m, n)), cp.Parameter(m)
+    prob = cp.Problem(cp.Minimize(0.5 * cp.sum_squares(Lt @ x) + qv @ x), [Gp @ x <= hp])
+    layer = CvxpyLayer(prob, parameters=[Lt, qv, Gp, hp], variables=[x])
+    Lt_val = torch.linalg.cholesky(qp.P).mT.contiguous()
+    w = _weights(qp)
+
+    def fwd():
+        return layer(Lt_val, qp.q, qp.G, qp.h)[0]
+
+    def fwd_bwd():
+        leaves = [t.detach().clone().requires_grad_() for t in (Lt_val, qp.q, qp.G, qp.h)]
+        xv = layer(*leaves)[0]
+        (xv * w).sum().backward()
+        return xv
+
+    return fwd, fwd_bwd
+
+
+# ------------------------------------------------------------------------------------------------
+
+
+def _run(name: str, make: Callable, qp: RandomQP, x_ref: torch.Tensor, repeats: int, bwd: bool) -> Row:
+    """Time one solver on one batch; failures are reported, not raised."""
+    B = qp.q.shape[0]
+    row = Row(name, B)
+    try:
+        fwd, fwd_bwd = make(qp)
+        x = fwd()
+        row.max_err = float((x.detach().double() - x_ref).abs().nan_to_num(nan=float("inf")).max())
+        row.fwd_us = _median_us(fwd, repeats, B)
+        if fwd_bwd is not None and bwd:
+            row.fwd_bwd_us = _median_us(fwd_bwd, repeats, B)
+    except ImportError as exc:
+        row.notes.append(f"skipped: not installed ({exc.name})")
+    except Exception as exc:  # a peer failing must not stop the benchmark
+        row.notes.append(f"failed: {type(exc).__name__}: {str(exc)[:120]}")
+    return row
+
+
+def _fmt(v: float | None, spec: str) -> str:
+    return format(v, spec) if v is not None else "-"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the QP benchmark and print the table and ratios; returns 0."""
+    parser = argparse.ArgumentParser(prog="a3cqp bench qp", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="B = 1, 64 only and fewer repeats")
+    parser.add_argument("--batches", type=int, nargs="+", default=None, help="batch sizes (default 1 64 1024)")
+    parser.add_argument("--threads", type=int, default=None, help="torch / ProxSuite threads (default: torch's)")
+    parser.add_argument("--skip", nargs="*", default=[], help="solvers to skip (cvxpylayers qpth proxsuite osqp)")
+    parser.add_argument("--spread", type=float, default=0.015, help="instance generator spread (0.35: many active rows)")
+    args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    threads = torch.get_num_threads()
+    batches = args.batches or ([1, 64] if args.quick else [1, 64, 1024])
+    print(f"QP benchmark: n={N_VARS}, m={N_ROWS}, float64, torch {torch.__version__}, {threads} thread(s)", flush=True)
+
+    peers: list[tuple[str, Callable, str]] = [
+        ("a3cqp_rl.qp (cold)", lambda qp: ours(qp), "ours"),
+        ("a3cqp_rl.qp (warm)", lambda qp: ours(qp, warm=True), "ours"),
+        ("proxsuite.torch", proxsuite_torch, "proxsuite"),
+        ("proxsuite parallel", lambda qp: proxsuite_parallel(qp, threads), "proxsuite"),
+        ("qpth", qpth_solver, "qpth"),
+        ("osqp (loop)", osqp_solver, "osqp"),
+        ("cvxpylayers (defaults)", cvxpylayers_solver, "cvxpylayers"),
+    ]
+    rows: list[Row] = []
+    for B in batches:
+        qp = random_qp_batch(B, N_VARS, N_ROWS, spread=args.spread, seed=1000 + B)
+        x_ref, statuses = clarabel_reference(qp)
+        n_active = int((((qp.G @ x_ref.unsqueeze(-1)).squeeze(-1) - qp.h) > -1e-7).any(-1).sum())
+        print(f"\nB={B}: {n_active}/{B} instances with active constraints; Clarabel statuses {sorted(set(statuses))}", flush=True)
+        for name, make, key in peers:
+            if key in args.skip:
+                continue
+            slow = key in ("cvxpylayers", "osqp")
+            repeats = (3 if args.quick else 9) if B <= 64 else (3 if not slow else 1)
+            if slow and B >= 1024 and args.quick:
+                continue
+            row = _run(name, make, qp, x_ref, repeats, bwd=True)
+            rows.append(row)
+            print(
+                f"  {name:24s} fwd {_fmt(row.fwd_us, '10.1f')} µs/QP   fwd+bwd {_fmt(row.fwd_bwd_us, '10.1f')} µs/QP"
+                f"   max|x-x_ref| {_fmt(row.max_err, '.1e')}  {' '.join(row.notes)}",
+                flush=True,
+            )
+
+    print("\n| solver | B | forward µs/QP | forward+backward µs/QP | max abs error vs Clarabel |")
+    print("|---|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r.solver} | {r.batch} | {_fmt(r.fwd_us, '.1f')} | {_fmt(r.fwd_bwd_us, '.1f')} | {_fmt(r.max_err, '.1e')} |")
+
+    print("\nRatios (fastest peer time / our cold time; > 1 means we are faster; peers at ≤ 1e-6 error only):")
+    for B in batches:
+        mine = next((r for r in rows if r.batch == B and r.solver.startswith("a3cqp_rl.qp (cold)")), None)
+        warm = next((r for r in rows if r.batch == B and r.solver.startswith("a3cqp_rl.qp (warm)")), None)
+        others = [r for r in rows if r.batch == B and not r.solver.startswith("a3cqp_rl") and r.fwd_us is not None]
+        accurate = [r for r in others if r.max_err is not None and r.max_err <= 1e-6]
+        for kind, attr in (("forward", "fwd_us"), ("forward+backward", "fwd_bwd_us")):
+            for label, pool in (("any accuracy", others), ("accurate", accurate)):
+                cands = [r for r in pool if getattr(r, attr) is not None]
+                if mine is None or getattr(mine, attr) is None or not cands:
+                    continue
+                best = min(cands, key=lambda r: getattr(r, attr))
+                ratio = getattr(best, attr) / getattr(mine, attr)
+                extra = f"; warm-started: {getattr(best, attr) / getattr(warm, attr):.2f}x" if warm and getattr(warm, attr) else ""
+                print(f"  B={B:5d} {kind:17s} vs fastest peer ({label}: {best.solver}, {getattr(best, attr):.1f} µs): {ratio:.2f}x{extra}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
