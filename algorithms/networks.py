@@ -21,7 +21,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-__all__ = ["ParamLayout", "ActorCritic", "forward", "backward"]
+__all__ = ["ParamLayout", "ActorCritic", "forward", "policy_mean", "backward"]
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -97,6 +97,14 @@ def forward(layout: ParamLayout, flat: Tensor, obs: Tensor) -> tuple[Tensor, Ten
     mu = torch.addmm(p["pi.out.b"], h_pi, p["pi.out.w"].T)
     value = torch.addmm(p["vf.out.b"], h_vf, p["vf.out.w"].T).squeeze(-1)
     return mu, p["log_std"], value, cache
+
+
+def policy_mean(layout: ParamLayout, flat: Tensor, obs: Tensor) -> Tensor:
+    """Policy mean [B, act] only (no value head): what acting needs."""
+    p = layout.views(flat)
+    stack = "pi" if layout.network == "separate" else "trunk"
+    h = _stack_forward(p, stack, len(layout.hidden), obs)[-1]
+    return torch.addmm(p["pi.out.b"], h, p["pi.out.w"].T)
 
 
 def backward(

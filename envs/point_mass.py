@@ -11,12 +11,15 @@ with e = x_target − x and ẍ_pd = 0 (fixed target). Scenarios (free motion, o
 wall in front of the target, both) are sampled per reset; see `a3cqp_rl.config.PointMassConfig`.
 All randomness is drawn at reset (targets, walls and the whole operator force schedule), so the
 step is a pure function of (state, action): deterministic, and compilable by `torch.compile`.
+Each env also holds a *pending* next episode, drawn in advance, so fused trainers can step through
+episode ends inside one compiled graph (`fused_functions`) and draw the next pending episode afterwards.
 
 Physics runs in float64; observations and rewards are float32 for the networks.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -67,7 +70,9 @@ class PointMassEnv(EnvBase):
         shortest = max(self.cfg.operator_on_min + self.cfg.operator_off_min, 1e-3)
         self._n_phases = int(math.ceil(episode_s / shortest)) + 2
         self._state: dict[str, Tensor] = {}
-        self._schedule = torch.zeros(num_envs, T + 1, dtype=self.dtype, device=self.device)
+        self._pending: dict[str, Tensor] = {}
+        # Operator force per agent step, double-buffered: [slot, env, step]; state["slot"] is the live one.
+        self._schedule = torch.zeros(2, num_envs, T + 1, dtype=self.dtype, device=self.device)
         self._make_specs()
         self._rng = torch.Generator(device=self.device)
         self._set_seed(seed)
@@ -104,15 +109,21 @@ class PointMassEnv(EnvBase):
             "f_d": z.clone(), "wall_pos": z.clone(), "has_wall": torch.zeros(N, dtype=torch.bool, device=dev),
             "t": torch.zeros(N, dtype=torch.int64, device=dev), "f_env": z.clone(), "f_ope": z.clone(),
             "scenario": torch.zeros(N, dtype=torch.int64, device=dev),
+            "slot": torch.zeros(N, dtype=torch.int64, device=dev),
         }
+        self._pending = {k: self._state[k].clone() for k in EPISODE_KEYS}
 
     def _uniform(self, n: int, lo: float, hi: float, *shape: int) -> Tensor:
         u = torch.rand((n, *shape), generator=self._rng, dtype=self.dtype, device=self.device)
         return lo + (hi - lo) * u
 
-    def _sample_episodes(self, idx: Tensor) -> None:
-        """Draw scenario, target, wall, initial weights and the operator schedule for envs `idx`."""
-        c, n, s = self.cfg, int(idx.numel()), self._state
+    def _sample_episodes(self, idx: Tensor, pending: bool = False) -> None:
+        """Draw scenario, target, wall, initial weights and operator schedule for envs `idx`.
+
+        pending=False starts the episode now (resets the dynamics); pending=True stores it as the
+        episode that `auto_reset` will switch to when the current one ends.
+        """
+        c, n = self.cfg, int(idx.numel())
         if n == 0:
             return
         scen = torch.multinomial(self._scenario_probs.expand(n, -1), 1, generator=self._rng).squeeze(-1).to(self.device)
@@ -131,18 +142,14 @@ class PointMassEnv(EnvBase):
         else:  # pure IK, no desired force
             w_logits = torch.tensor([half, -half, -half], dtype=self.dtype, device=self.device).expand(n, 3).clone()
             f_d = torch.zeros(n, dtype=self.dtype, device=self.device)
-        s["x"][idx] = 0.0
-        s["x_dot"][idx] = 0.0
-        s["target"][idx] = target
-        s["w_logits"][idx] = w_logits
-        s["f_d"][idx] = f_d
-        s["wall_pos"][idx] = wall_pos
-        s["has_wall"][idx] = has_wall
-        s["t"][idx] = 0
-        s["f_env"][idx] = 0.0
-        s["f_ope"][idx] = 0.0
-        s["scenario"][idx] = scen
-        self._schedule[idx] = self._operator_schedule(n) * has_op.unsqueeze(-1)
+        dest = self._pending if pending else self._state
+        for k, v in zip(EPISODE_KEYS, (target, wall_pos, has_wall, scen, w_logits, f_d)):
+            dest[k][idx] = v
+        slot = self._state["slot"][idx]
+        self._schedule[(1 - slot) if pending else slot, idx] = self._operator_schedule(n) * has_op.unsqueeze(-1)
+        if not pending:
+            for k in ("x", "x_dot", "t", "f_env", "f_ope"):
+                self._state[k][idx] = 0
 
     def _operator_schedule(self, n: int) -> Tensor:
         """Piecewise-constant operator intent force [N] per agent step, shape [n, T + 1]."""
@@ -169,6 +176,7 @@ class PointMassEnv(EnvBase):
         else:
             idx = mask.reshape(self.num_envs).nonzero().squeeze(-1)
         self._sample_episodes(idx)
+        self._sample_episodes(idx, pending=True)
         return self._observation_td(done=torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device))
 
     # ------------------------------------------------------------------ step
@@ -205,62 +213,90 @@ class PointMassEnv(EnvBase):
 
     # ------------------------------------------------------------------ fused-trainer access
     # The TorchRL step above costs ~1 ms of framework overhead per call; A2C at the paper's settings
-    # needs 62,500 rollouts of 4 steps, so trainers that can drive the env directly use these.
+    # needs 62,500 rollouts of 4 steps, so trainers that can drive the env directly use these:
+    # (state, pending, schedule) go into a compiled graph with the `fused_functions`, the new state comes back
+    # through `fused_commit`, and `refill` draws new pending episodes for the envs that reset.
     def functional(self) -> tuple[dict[str, Tensor], Tensor]:
-        """The live (state dict, operator schedule per agent step [N, T+1]); read-only for callers."""
+        """The live (state dict, operator schedule [2, N, T+1]); read-only for callers."""
         return self._state, self._schedule
 
-    def compile_step(self) -> None:
-        """Use a torch.compile'd `fast_agent_step` in `fast_step` (first call compiles for ~10-30 s)."""
-        self._fast_fn = torch.compile(fast_agent_step, dynamic=False)
+    def fused_inputs(self) -> tuple[dict[str, Tensor], dict[str, Tensor], Tensor]:
+        """(state, pending episode, schedule) to pass to the `fused_functions`."""
+        return self._state, self._pending, self._schedule
 
-    def fast_observation(self) -> Tensor:
-        """Current observations [N, 3] (float32)."""
-        return observe_state(self._state, self.adapt).to(torch.float32)
+    def fused_functions(self):
+        """Pure functions (step_fn, observe_fn), free of this module so compiled graphs guard only on configs.
 
-    def fast_step(self, action: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """Step all envs with `action` [N, 4] (no checks, no auto-reset): (next_obs, reward, terminated, truncated)."""
-        fn = getattr(self, "_fast_fn", fast_agent_step)
-        self._state, obs, r, truncated = fn(self._state, action, self._schedule, self.cfg, self.adapt, self.rew)
-        return obs, r, torch.zeros_like(truncated), truncated
+        step_fn(state, pending, schedule, action) -> (state, final_obs, next_obs, reward, terminated, truncated);
+        observe_fn(state) -> obs [N, 3] float32.
+        """
+        step_fn = functools.partial(fused_agent_step, cfg=self.cfg, adapt=self.adapt, rew=self.rew)
+        observe_fn = functools.partial(observe_state, adapt=self.adapt, dtype=torch.float32)
+        return step_fn, observe_fn
 
-    def reset_where(self, done: Tensor) -> Tensor:
-        """Resample the episodes of envs where `done` [N] is True; returns the new observations [N, 3]."""
-        self._sample_episodes(done.nonzero().squeeze(-1))
-        return self.fast_observation()
+    def fused_commit(self, state: dict[str, Tensor]) -> None:
+        """Adopt the state returned by the fused step function."""
+        self._state = state
+
+    def refill(self, done: Tensor) -> None:
+        """Draw new pending episodes for envs where `done` [N] (they just switched to their pending one)."""
+        self._sample_episodes(done.nonzero().squeeze(-1), pending=True)
 
     def get_state(self) -> dict[str, Tensor]:
-        """Everything needed to continue bit-identically: physics state, schedule and RNG state."""
-        return {**{k: v.clone() for k, v in self._state.items()}, "_schedule": self._schedule.clone(),
-                "_rng": self._rng.get_state()}
+        """Everything needed to continue bit-identically: state, pending episodes, schedule, RNG."""
+        return {**{k: v.clone() for k, v in self._state.items()},
+                **{f"_pending.{k}": v.clone() for k, v in self._pending.items()},
+                "_schedule": self._schedule.clone(), "_rng": self._rng.get_state()}
 
     def set_state(self, state: dict[str, Tensor]) -> None:
         """Restore a `get_state()` snapshot (shapes must match this env's num_envs)."""
         if state["x"].shape != (self.num_envs,):
             raise ValueError(f"state is for {state['x'].shape[0]} envs, this env has {self.num_envs}")
         self._state = {k: v.clone() for k, v in state.items() if not k.startswith("_")}
+        self._pending = {k[len("_pending."):]: v.clone() for k, v in state.items() if k.startswith("_pending.")}
         self._schedule = state["_schedule"].clone()
         self._rng.set_state(state["_rng"])
 
 
-def fast_agent_step(
+EPISODE_KEYS = ("target", "wall_pos", "has_wall", "scenario", "w_logits", "f_d")
+"""State entries drawn per episode (w_logits and f_d are their initial values)."""
+
+
+def auto_reset(state: dict[str, Tensor], pending: dict[str, Tensor], done: Tensor) -> dict[str, Tensor]:
+    """Switch envs where `done` [N] to their pending episode (dynamics zeroed, schedule slot flipped)."""
+    out = dict(state)
+    for k in EPISODE_KEYS:
+        d = done.view(-1, *([1] * (state[k].dim() - 1)))
+        out[k] = torch.where(d, pending[k], state[k])
+    for k in ("x", "x_dot", "t", "f_env", "f_ope"):
+        out[k] = torch.where(done, torch.zeros_like(state[k]), state[k])
+    out["slot"] = torch.where(done, 1 - state["slot"], state["slot"])
+    return out
+
+
+def fused_agent_step(
     state: dict[str, Tensor],
-    action: Tensor,
+    pending: dict[str, Tensor],
     schedule: Tensor,
+    action: Tensor,
     cfg: PointMassConfig,
     adapt: AdaptationConfig,
     rew: RewardConfig,
-) -> tuple[dict[str, Tensor], Tensor, Tensor, Tensor]:
-    """`agent_step` plus observation: (state, obs [N, 3] f32, reward [N] f32, truncated [N] bool)."""
+) -> tuple[dict[str, Tensor], Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """`agent_step` + observation + auto-reset: (state, final_obs, next_obs, reward, terminated, truncated)."""
     state, r = agent_step(state, action.to(torch.float64), schedule, cfg, adapt, rew)
-    obs = observe_state(state, adapt).to(torch.float32)
-    return state, obs, r.to(torch.float32), state["t"] >= cfg.episode_steps
+    final_obs = observe_state(state, adapt).to(torch.float32)
+    truncated = state["t"] >= cfg.episode_steps
+    terminated = torch.zeros_like(truncated)  # eq. 35 has no terminal state
+    state = auto_reset(state, pending, truncated | terminated)
+    next_obs = observe_state(state, adapt).to(torch.float32)
+    return state, final_obs, next_obs, r.to(torch.float32), terminated, truncated
 
 
-def observe_state(state: dict[str, Tensor], adapt: AdaptationConfig) -> Tensor:
-    """Eq. 26 observation [N, 3] (float64) from a point-mass state dict."""
+def observe_state(state: dict[str, Tensor], adapt: AdaptationConfig, dtype: torch.dtype = torch.float64) -> Tensor:
+    """Eq. 26 observation [N, 3] from a point-mass state dict."""
     e = state["target"] - state["x"]
-    return observe(e, state["f_env"], state["f_ope"], adapt.e_max, adapt.f_env_max, adapt.f_ope_max, check=False)
+    return observe(e, state["f_env"], state["f_ope"], adapt.e_max, adapt.f_env_max, adapt.f_ope_max, check=False).to(dtype)
 
 
 def agent_step(
@@ -273,12 +309,15 @@ def agent_step(
 ) -> tuple[dict[str, Tensor], Tensor]:
     """One 100 Hz agent step for all envs: eq. 29 on `action` [N, 4], then `substeps` × eq. 35; returns (state, reward [N]).
 
+    `schedule` [2, N, T+1] holds the operator's intent force per agent step for both episode slots.
+
     Pure function of its inputs (no RNG, no Python branching on data), so it can be compiled.
     """
     w_logits, w = integrate_weights(state["w_logits"], action[:, :3], adapt.sigma_w, adapt.dt, check=False)
     f_d = integrate_force(state["f_d"], action[:, 3], adapt.sigma_f, adapt.dt, adapt.f_d_max, check=False)
     t = state["t"]
-    f_cmd = torch.gather(schedule, 1, t.clamp(max=schedule.shape[1] - 1).unsqueeze(-1)).squeeze(-1)
+    env_idx = torch.arange(t.shape[0], device=t.device)
+    f_cmd = schedule[state["slot"], env_idx, t.clamp(max=schedule.shape[-1] - 1)]
 
     m, kp, kv, dt = cfg.mass, cfg.kp, cfg.kv_value, cfg.physics_dt
     adm_gain = m / cfg.lambda_d - 1.0

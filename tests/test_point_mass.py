@@ -92,7 +92,8 @@ def test_scenarios_sampled_with_configured_probabilities():
 def test_operator_schedule_starts_and_stops():
     env = scenario_env(64, "operator", operator_force_min=5.0)
     env.reset()
-    _, sched = env.functional()
+    state, sched = env.functional()
+    sched = sched[state["slot"], torch.arange(64)]  # the live slot of each env: [N, T+1]
     on = sched.abs() > 0
     assert on.any(-1).all() and (~on).any(-1).all()  # every env has push and pause phases
     assert sched.abs().max() <= 15.0 and sched[on].abs().min() >= 5.0
@@ -119,3 +120,30 @@ def test_bad_actions_raise_clear_errors():
         env.step(td.clone().set("action", torch.zeros(4, 3)))
     with pytest.raises(ValueError, match="num_envs"):
         PointMassEnv(0)
+
+
+def test_fused_step_with_auto_reset_equals_torchrl_step_then_reset():
+    """The fused path (pending episode, auto-reset) yields the same trajectory as step + TorchRL reset."""
+    cfg = config_from_dict({"point_mass": {"episode_steps": 7}})
+    a, b = PointMassEnv(5, cfg, seed=11), PointMassEnv(5, cfg, seed=11)
+    a.reset()
+    g = torch.Generator().manual_seed(0)
+    td = b.reset()
+    step_fn, _ = a.fused_functions()
+    for step in range(20):
+        act = 2 * torch.rand(5, 4, generator=g) - 1
+        state, pending, sched = a.fused_inputs()
+        new_state, final_obs, next_obs, r, term, trunc = step_fn(state, pending, sched, act)
+        a.fused_commit(new_state)
+        # b: TorchRL step; at the episode end, reset b to the very episode a switched to
+        out = b.step(td.set("action", act.clone()))["next"]
+        assert torch.allclose(out["observation"], final_obs) and torch.allclose(out["reward"].squeeze(-1), r)
+        assert torch.equal(out["truncated"].squeeze(-1), trunc)
+        if trunc.any():
+            b.set_state(a.get_state())
+            a.refill(trunc)
+            td = b._observation_td(torch.zeros(5, 1, dtype=torch.bool))
+            assert torch.equal(a.functional()[0]["t"], torch.zeros(5, dtype=torch.int64))
+        else:
+            td = out
+        assert torch.allclose(td["observation"], next_obs)
