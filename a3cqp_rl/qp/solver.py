@@ -198,7 +198,9 @@ def _eq_solve(
     """
     n = P.shape[-1]
     scale = _diag_scale(P)
-    rho = (_RHO * scale)[:, None]  # [B, 1]
+    # Penalty per row relative to its squared norm, so the conditioning does not depend on how the
+    # rows are scaled.
+    rho = (_RHO * scale)[:, None] / (C * C).sum(-1).clamp_min(1e-30)  # [B, r]
     delta = (1e-10 * scale)[:, None]
     maskf = mask.to(P.dtype)
     Cm = C * maskf.unsqueeze(-1)  # (B, r, n)
@@ -219,7 +221,6 @@ def _eq_solve(
     # Stationarity residual left by the proximal term: P x + q + Cᵀz = δ (x_prev − x).  It is only
     # large where P is singular along a direction no active row fixes (unbounded or not yet bounded).
     return x, z, (delta * (x - x_prev)).abs().amax(-1)
-    return x, z
 
 
 # ----------------------------------------------------------------------------------------------
@@ -228,54 +229,94 @@ def _eq_solve(
 
 
 def _residual_scales(q: Tensor, b: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
-    """Per-instance absolute tolerances' scales for primal and dual residuals."""
-    bh = torch.cat([b, h], -1)
+    """Per-instance scales [B] of the primal and dual tolerances: 1 + |(b, h)|∞ and 1 + |q|∞."""
+    bh = torch.cat([b, h], -1) if b.shape[-1] else h
     sp = 1.0 + (bh.abs().amax(-1) if bh.shape[-1] else q.new_zeros(q.shape[0]))
     sd = 1.0 + q.abs().amax(-1)
     return sp, sd
 
 
+_LU_MAX_BATCH = 32
+"""Up to this batch size the active-set KKT system is solved directly by one batched LU (fewest
+torch ops, i.e. lowest latency); above it, by the augmented-Lagrangian Cholesky (fewest flops)."""
+
+
+def _kkt_lu(P: Tensor, q: Tensor, C: Tensor, d: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Solve [[P, C_Wᵀ], [C_W, 0]] (x, z_W) = (−q, d_W) by LU; unmasked rows get z = 0.
+
+    Returns (x, z, stationarity residual |Px + q + Cᵀz|∞ [B], +inf where the matrix is singular,
+    e.g. dependent active rows or P singular on their null space: the caller then falls back).
+    """
+    n = P.shape[-1]
+    maskf = mask.to(P.dtype)
+    Cm = C * maskf.unsqueeze(-1)  # (B, r, n)
+    # Inactive rows become −z_i = 0, so every instance keeps the same (n + r) × (n + r) shape.
+    K = torch.cat([torch.cat([P, Cm.mT], 2), torch.cat([Cm, torch.diag_embed(maskf - 1.0)], 2)], 1)
+    sol, info = torch.linalg.solve_ex(K, torch.cat([-q, d * maskf], 1))
+    x, z = sol[:, :n], sol[:, n:] * maskf
+    stat = (torch.baddbmm(q.unsqueeze(-1), P, x.unsqueeze(-1)).squeeze(-1) + _mtv(Cm, z)).abs().amax(-1)
+    stat = torch.where((info == 0) & torch.isfinite(stat), stat, torch.full_like(stat, torch.inf))
+    return x, z, stat
+
+
 def _pdas(
-    P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z0: Tensor, tol: float, max_iter: int
+    P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z0: Tensor,
+    sp: Tensor, sd: Tensor, tol: float, max_iter: int,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Active-set stage on the whole batch; returns x, y, z, certified-optimal mask, iterations."""
+    """Active-set stage on the whole batch; returns x, y, z, certified-optimal mask, iterations.
+
+    z0 [B, m] seeds the working set W = {z0 > 0}; sp, sd [B] scale the tolerances.
+    """
     B, n = q.shape
     p, m = A.shape[1], G.shape[1]
-    C = torch.cat([A, G], 1)  # (B, p + m, n)
-    d = torch.cat([b, h], 1)
-    sp, sd = _residual_scales(q, b, h)
-    tol_p = (tol * sp)[:, None]
-    tol_d = (tol * sd)[:, None]
+    C = torch.cat([A, G], 1) if p else G  # (B, p + m, n)
+    d = torch.cat([b, h], 1) if p else h
+    tol_p = (tol * sp).unsqueeze(-1)
+    tol_d = (tol * sd).unsqueeze(-1)
     W = z0 > 0  # (B, m) working set
-    z = torch.cat([q.new_zeros(B, p), z0 * W], 1)
+    z = torch.cat([q.new_zeros(B, p), z0], 1) if p else z0
     x = q.new_zeros(B, n)
-    eq_rows = torch.ones(B, p, dtype=torch.bool, device=q.device)
-    idx = torch.arange(B, device=q.device)
-    x_out, z_out = q.new_zeros(B, n), q.new_zeros(B, p + m)
-    ok_out = torch.zeros(B, dtype=torch.bool, device=q.device)
-    it_out = torch.zeros(B, dtype=torch.long, device=q.device)
+    idx = out = None
     for k in range(max_iter):
-        x, z, stat_err = _eq_solve(P, q, C, d, torch.cat([eq_rows, W], 1), z, x, 1e-2 * tol)
-        viol = _mv(G, x) - h  # (b, m) > 0 means violated
+        mask = torch.cat([W.new_ones(W.shape[0], p), W], 1) if p else W
+        if x.shape[0] <= _LU_MAX_BATCH:
+            x_lu, z_lu, stat_err = _kkt_lu(P, q, C, d, mask)
+            if bool(torch.isinf(stat_err).any()):
+                # Singular KKT matrix (dependent working rows, or P singular on their null space):
+                # the augmented Lagrangian handles both.
+                x, z, stat_err = _eq_solve(P, q, C, d, mask, z, x, 1e-2 * tol)
+            else:
+                x, z = x_lu, z_lu
+        else:
+            x, z, stat_err = _eq_solve(P, q, C, d, mask, z, x, 1e-2 * tol)
+        stat_err = stat_err.unsqueeze(-1)
+        viol = _mv(C, x) - d  # (b, p + m): > 0 violated; equality rows must be ~0
+        # Certified optimum: every row feasible, working rows (and equalities) tight, multipliers
+        # of inequalities ≥ 0, stationarity residual small.
+        tight = torch.where(mask, viol.abs(), viol)
         zG = z[:, p:]
-        eq_err = (_mv(A, x) - b).abs() if p else viol[:, :0]
-        # Certified optimum: feasible (active rows tight, others satisfied), multipliers ≥ 0.
-        ok = (viol <= tol_p).all(-1) & (zG >= -tol_d).all(-1) & (eq_err <= tol_p).all(-1)
-        ok = ok & (viol.abs() * W <= tol_p).all(-1) & (stat_err <= tol_d[:, 0])
+        ok = (tight <= tol_p).all(-1) & (zG >= -tol_d).all(-1) & (stat_err <= tol_d).squeeze(-1)
+        if k == 0 and bool(ok.all()):
+            # Fast exit (the warm-started control loop): no bookkeeping ops at all.
+            return x, z[:, :p], zG, ok, torch.ones(B, dtype=torch.long, device=q.device)
+        if out is None:
+            idx = torch.arange(B, device=q.device)
+            out = (q.new_zeros(B, n), q.new_zeros(B, p + m), torch.zeros(B, dtype=torch.bool, device=q.device),
+                   torch.full((B,), max_iter, dtype=torch.long, device=q.device))
         if bool(ok.any()):
             sel = idx[ok]
-            x_out[sel], z_out[sel], ok_out[sel], it_out[sel] = x[ok], z[ok], True, k + 1
+            out[0][sel], out[1][sel], out[2][sel], out[3][sel] = x[ok], z[ok], True, k + 1
         if bool(ok.all()) or k == max_iter - 1:
             break
         keep = ~ok
-        # Semismooth Newton step on min(z, h − Gx) = 0: keep rows with positive multipliers,
-        # add the violated ones.
-        W = (W & (zG > 0)) | (~W & (viol > tol_p))
+        # Semismooth Newton step on min(z, h − Gx) = 0: keep working rows with positive
+        # multipliers, add the violated rows.
+        vG = viol[:, p:]
+        W = (W & (zG > 0)) | (~W & (vG > tol_p))
         if not bool(keep.all()):
             idx, P, q, A, b, G, h, C, d, x, z, W = (t[keep] for t in (idx, P, q, A, b, G, h, C, d, x, z, W))
-            tol_p, tol_d, eq_rows = tol_p[keep], tol_d[keep], eq_rows[keep]
-    it_out[~ok_out] = max_iter
-    return x_out, z_out[:, :p], z_out[:, p:], ok_out, it_out
+            tol_p, tol_d = tol_p[keep], tol_d[keep]
+    return out[0], out[1][:, :p], out[1][:, p:], out[2], out[3]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -423,43 +464,43 @@ def _solve_canonical(
     B, n = q.shape
     p, m = A.shape[1], G.shape[1]
     P = 0.5 * (P + P.mT)
-    # Unit-norm rows: one tolerance fits all rows and the IPM's Farkas test is scale-free.
-    nA = A.norm(dim=-1).clamp_min(1e-30) if p else b
-    nG = G.norm(dim=-1)
-    nG = torch.where(nG > 0, nG, torch.ones((), dtype=q.dtype))
-    As, bs = (A / nA.unsqueeze(-1), b / nA) if p else (A, b)
-    Gs, hs = G / nG.unsqueeze(-1), h / nG
-    z0 = z_warm * nG if z_warm is not None else q.new_zeros(B, m)
+    sp, sd = _residual_scales(q, b, h)
+    z0 = z_warm if z_warm is not None else q.new_zeros(B, m)
+    x, y, z, ok, iters = _pdas(P, q, A, b, G, h, z0, sp, sd, tol, active_set_iter)
+    if bool(ok.all()):
+        return x, y, z, torch.zeros(B, dtype=torch.long, device=q.device), iters
 
-    x, y, z, ok, iters = _pdas(P, q, As, bs, Gs, hs, z0, tol, active_set_iter)
+    bad = ~ok
     status = torch.zeros(B, dtype=torch.long, device=q.device)
-    if not bool(ok.all()):
-        bad = ~ok
-        Gi, hi = (Gs[bad], hs[bad]) if m else (q.new_zeros(int(bad.sum()), 1, n), q.new_ones(int(bad.sum()), 1))
-        xi, yi, zi, si, ii = _ipm(P[bad], q[bad], As[bad], bs[bad], Gi, hi, tol, max_iter)
-        if m:
-            # Polish: the IPM's strictly complementary active set (z > s) seeds one more active-set
-            # solve, which returns the exact vertex of the active set and multipliers that are zero
-            # on inactive rows (an IPM stopped at μ ≈ tol leaves O(√μ) errors on degenerate rows).
-            good = si == QPStatus.SOLVED
-            if bool(good.any()):
-                sub = bad.nonzero().squeeze(-1)[good]
-                slack = hs[sub] - _mv(Gs[sub], xi[good])
-                zi_act = torch.where(zi[good] > slack, zi[good], torch.zeros((), dtype=q.dtype))
-                xp, yp, zp, okp, itp = _pdas(P[sub], q[sub], As[sub], bs[sub], Gs[sub], hs[sub], zi_act, tol, 2)
-                gi = good.nonzero().squeeze(-1)
-                xi[gi[okp]], zi[gi[okp]], ii[gi] = xp[okp], zp[okp], ii[gi] + itp.clamp(max=2)
-                if p:
-                    yi[gi[okp]] = yp[okp]
-        x[bad], status[bad], iters[bad] = xi, si, iters[bad] + ii
-        if p:
-            y[bad] = yi
-        if m:
-            z[bad] = zi
+    Pi, qi, Ai, bi, Gi, hi = P[bad], q[bad], A[bad], b[bad], G[bad], h[bad]
+    # Unit-norm rows for the interior point: one tolerance fits all rows and its Farkas test is
+    # scale-free; multipliers are scaled back below.
+    nA = Ai.norm(dim=-1).clamp_min(1e-30)
+    nG = Gi.norm(dim=-1)
+    nG = torch.where(nG > 0, nG, torch.ones((), dtype=q.dtype))
+    Gs, hs = (Gi / nG.unsqueeze(-1), hi / nG) if m else (q.new_zeros(Gi.shape[0], 1, n), q.new_ones(Gi.shape[0], 1))
+    xi, yi, zi, si, ii = _ipm(Pi, qi, Ai / nA.unsqueeze(-1), bi / nA, Gs, hs, tol, max_iter)
+    yi = yi / nA
+    # Active set decided in the normalised rows, where multipliers and slacks are comparable.
+    act_ipm = zi[:, :m] > (hs - _mv(Gs, xi))[:, :m]
+    zi = zi[:, :m] / nG
+    if m:
+        # Polish: the IPM's strictly complementary active set (z > s) seeds one more active-set
+        # solve, which returns the exact vertex of the active set and multipliers that are zero on
+        # inactive rows (an IPM stopped at μ ≈ tol leaves O(√μ) errors on degenerate rows).
+        good = si == QPStatus.SOLVED
+        if bool(good.any()):
+            gi = good.nonzero().squeeze(-1)
+            z_act = torch.where(act_ipm[gi], zi[gi], torch.zeros((), dtype=q.dtype))
+            xp, yp, zp, okp, itp = _pdas(Pi[gi], qi[gi], Ai[gi], bi[gi], Gi[gi], hi[gi], z_act, sp[bad][gi], sd[bad][gi], tol, 2)
+            sel = gi[okp]
+            xi[sel], zi[sel], yi[sel] = xp[okp], zp[okp], yp[okp]
+            ii[gi] = ii[gi] + itp.clamp(max=2)
+    x[bad], y[bad], z[bad], status[bad], iters[bad] = xi, yi, zi, si, iters[bad] + ii
     # Never hand NaN/inf to the caller: a failed instance keeps a finite (if meaningless) x.
     x = torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
-    y = torch.nan_to_num(y / nA, nan=0.0, posinf=0.0, neginf=0.0) if p else y
-    z = torch.nan_to_num((z / nG).clamp_min(0.0), nan=0.0, posinf=0.0, neginf=0.0)
+    y = torch.nan_to_num(y, nan=0.0, posinf=0.0, neginf=0.0)
+    z = torch.nan_to_num(z.clamp_min(0.0), nan=0.0, posinf=0.0, neginf=0.0)
     return x, y, z, status, iters
 
 
@@ -573,7 +614,11 @@ def solve_qp(
             if z_warm.shape != h_all.shape:
                 raise QPShapeError(f"warm_start duals have shape {tuple(z_warm.shape)}, expected {tuple(h_all.shape)}")
 
-    x, y, z_all, status, iters = _QPFunction.apply(P, q, A, b, G_all, h_all, z_warm, float(tol), int(max_iter), int(active_set_iter))
+    solver_args = (z_warm, float(tol), int(max_iter), int(active_set_iter))
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (P, q, A, b, G_all, h_all)):
+        x, y, z_all, status, iters = _QPFunction.apply(P, q, A, b, G_all, h_all, *solver_args)
+    else:
+        x, y, z_all, status, iters = _solve_canonical(P, q, A, b, G_all, h_all, *solver_args)
     zero = q.new_zeros(batch, n)
     z = z_all[:, :m]
     z_lb = z_all[:, m : m + n] if has_lb else zero
