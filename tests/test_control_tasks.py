@@ -11,7 +11,7 @@ from a3cqp_rl.control import A3CQPController, Admittance, CartesianIK, Controlle
 from a3cqp_rl.control.context import ControlContext
 from a3cqp_rl.control.exceptions import ControlShapeError, InvalidGainError
 from a3cqp_rl.control.frames import block_rotation, pose_error, rotation_log, weights_to_world
-from a3cqp_rl.control.tasks import ForceControl, Residual
+from a3cqp_rl.control.tasks import CartesianAccelerationRegularizer, ForceControl, Residual
 from a3cqp_rl.robot import PANDA_LIMITS, mujoco_dynamics
 
 B = 32
@@ -111,7 +111,11 @@ def test_ik_reference_eq10_11() -> None:
     res = ik.residual(ctx)
     xdd_d = kp * ctx.pose_error - kv * ctx.kin.twist
     # x = (q̈, f) with J q̈ = ẍ_d − J̇q̇ (least-norm) zeroes the IK residual, whatever f is
-    qdd = torch.linalg.lstsq(ctx.kin.jac, (xdd_d - ctx.kin.jdot_qdot).unsqueeze(-1)).solution.squeeze(-1)
+    # out of contact the wrench that AC/FC will command is fed forward: J q̈ + Λ⁻¹ f_ff + J̇q̇ = ẍ_d
+    f_ff = ctx.wrench_feedforward
+    assert f_ff[ctx.in_contact].abs().max() == 0.0 and f_ff[~ctx.in_contact].abs().max() > 1.0
+    target = xdd_d - ctx.kin.jdot_qdot - mv(ctx.cart_inertia_inv, f_ff)
+    qdd = torch.linalg.lstsq(ctx.kin.jac, target.unsqueeze(-1)).solution.squeeze(-1)
     x = torch.cat([qdd, torch.randn(B, 6, dtype=torch.float64)], dim=-1)
     assert (mv(res.A, x) - res.b).abs().max() < 1e-9
     assert res.W is ctx.W1
@@ -182,6 +186,25 @@ def test_controller_rejects_wrong_shapes() -> None:
     with pytest.raises(ControlShapeError):
         ctrl.step(z(2, 7), z(2, 7), torch.eye(7).expand(2, 7, 7), z(2, 7), z(2, 6), z(2, 6), z(2, 3),
                   torch.eye(3).expand(2, 3, 3))
+
+
+def test_wrench_feedforward_is_the_unconstrained_wrench_optimum() -> None:
+    ctrl, ctx = make_context(seed=16)
+    f_ff = ctrl.wrench_feedforward(ctx)
+    ac, fc = ctrl.tasks[1].residual(ctx), ctrl.tasks[2].residual(ctx)
+    # stationarity of ½‖f − f_adm‖²_W2 + ½‖f − f_ctc‖²_W3 + ½ r‖f‖² (eq. 24b without limits)
+    grad = mv(ac.W, f_ff - ac.b) + mv(fc.W, f_ff - fc.b) + ctrl.options.regularization * f_ff
+    assert grad.abs().max() < 1e-8
+
+
+def test_cartesian_regularizer_weights_only_non_ik_axes() -> None:
+    w = torch.zeros(B, 6, 3, dtype=torch.float64)
+    w[:, :3, 0], w[:, 3:, 2] = 1.0, 1.0  # IK on the local forces' axes, FC on the rotations
+    ctrl, ctx = make_context(seed=17, weights=w)
+    reg = CartesianAccelerationRegularizer(gamma=0.5).residual(ctx)
+    expected = 0.5 * weights_to_world(ctx.D, torch.tensor([0.0] * 3 + [1.0] * 3, dtype=torch.float64).expand(B, 6))
+    assert torch.allclose(reg.W, expected, atol=1e-12)
+    assert reg.b.abs().max() == 0.0
 
 
 def test_options_select_the_paper_forms() -> None:

@@ -34,6 +34,8 @@ class ControlContext:
     """B⁻¹ Jᵀ [B, 7, 6]: joint acceleration per unit end-effector wrench."""
     cart_inertia: torch.Tensor
     """Λ = (J B⁻¹ Jᵀ)⁻¹ [B, 6, 6] (kg, kg m²), eq. 12."""
+    cart_inertia_inv: torch.Tensor
+    """Λ⁻¹ = J B⁻¹ Jᵀ [B, 6, 6]: site acceleration per unit wrench applied through Jᵀ."""
     D: torch.Tensor
     """blockdiag(R, R) [B, 6, 6] with R the rotation of the local frame 𝓛 (eq. 3)."""
     W1: torch.Tensor
@@ -53,11 +55,16 @@ class ControlContext:
     qdd_pd0: torch.Tensor
     """q̈_pd of eq. 5 evaluated with q̈* = 0 [B, 7] (rad/s²)."""
     pd_qdd_gain: torch.Tensor
-    """∂q̈_pd/∂q̈* = (c_v Δt + c_p Δt²/2) Jᵀ W1 J [B, 7, 7] (eq. 5-7 are linear in q̈*)."""
+    """∂q̈_pd/∂q̈* = (c_v Δt + c_p Δt²/2) P W1 J [B, 7, 7] (eq. 5-7 are linear in q̈*)."""
     nullspace: torch.Tensor
     """N = I − J⁺J [B, 7, 7], damped pseudo-inverse: the joint motions that leave the site still."""
+    pd_matrix: torch.Tensor
+    """P W1 J [B, 7, 7] of eq. 5 (P = Jᵀ as printed, or J⁺; see ControllerOptions.pd_projection)."""
     dt: float
     """Control period Δt [s]."""
+    wrench_feedforward: torch.Tensor | None = None
+    """Wrench the AC/FC tasks are expected to command [B, 6] (N, N m) (set by the controller; None = 0): the IK task
+    can subtract its acceleration Λ⁻¹ f so that AC/FC on some axes do not drag the IK axes (Λ⁻¹ couples them)."""
 
     @property
     def batch(self) -> int:

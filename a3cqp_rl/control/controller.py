@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-import math
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -14,7 +14,8 @@ from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import ControlShapeError, InvalidGainError
 from a3cqp_rl.control.frames import block_rotation, pose_error, weights_to_world
 from a3cqp_rl.control.limits import FrictionPyramid, Inequality, JointLimitsViability, Limit, WrenchBox
-from a3cqp_rl.control.tasks import Admittance, CartesianIK, ForceControl, JointCentering, Task
+from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer, CartesianIK, ForceControl,
+                                    JointCentering, Task)
 from a3cqp_rl.qp import QPSolution, solve_qp
 from a3cqp_rl.robot.kinematics import PandaModel
 from a3cqp_rl.robot.specs import PANDA_HOME, PANDA_LIMITS, PandaLimits
@@ -33,6 +34,15 @@ class ControllerOptions:
 
     admittance_form: Literal["consistent", "paper"] = "consistent"
     """"consistent": AC damping Λ Λd⁻¹ Cd ẋ so the closed loop is exactly eq. 17; "paper": eq. 18 as printed."""
+    ik_wrench_feedforward: bool = True
+    """Out of contact, IK subtracts the acceleration Λ⁻¹ f_ff of the wrench that AC/FC will command (f_ff = the
+    unconstrained optimum of eq. 24b), so that AC/FC axes do not drag the IK axes through the off-diagonal terms of
+    Λ⁻¹ (not in the paper; False = eq. 1). In contact the environment cancels that acceleration, so it is off."""
+    pd_projection: Literal["transpose", "pinv"] = "pinv"
+    """q̈_pd = P W1 J (c_v Δq̇ + c_p Δq) with P = Jᵀ (eq. 5 as printed) or J⁺ ("pinv", default): with J⁺ the
+    feedback acceleration J q̈_pd = W1 J(...) stays on the IK axes instead of leaking into the FC axis through JJᵀ."""
+    cartesian_regularization: float = 1e-2
+    """γ of CartesianAccelerationRegularizer: keeps q̈* out of the axes IK does not weight (0 = eq. 1)."""
     jc_nullspace_weight: float = 1e-3
     """ε_N: extra null-space weight of the JC task (0 = eq. 1 exactly; see tasks.JointCentering)."""
     regularization: float = 1e-6
@@ -141,6 +151,8 @@ class A3CQPController:
             JointCentering(torch.tensor(opt.q_center, dtype=torch.float64), cfg.kq, cfg.epsilon,
                            opt.jc_nullspace_weight),
         ]
+        if tasks is None and opt.cartesian_regularization > 0:
+            self.tasks.append(CartesianAccelerationRegularizer(opt.cartesian_regularization))
         lim = limits.tensors()
         self.tau_max = lim["tau_max"]
         self.joint_limits = JointLimitsViability(lim["q_min"], lim["q_max"], lim["dq_max"], lim["ddq_max"], self.dt,
@@ -184,21 +196,36 @@ class A3CQPController:
         eye6 = torch.eye(6, dtype=q.dtype, device=q.device)
         L, _ = torch.linalg.cholesky_ex(mass)
         binv_jt = torch.cholesky_solve(Jt, L)  # B⁻¹Jᵀ (B, 7, 6)
-        lam = torch.linalg.inv(J @ binv_jt + opt.pinv_damping * eye6)  # Λ, eq. 12
+        lam_inv = J @ binv_jt + opt.pinv_damping * eye6
+        lam = torch.linalg.inv(lam_inv)  # Λ, eq. 12
         lam = 0.5 * (lam + lam.transpose(-1, -2))
         D = block_rotation(kin.rot)  # eq. 3
         W1, W2, W3 = (weights_to_world(D, weights[..., k]) for k in range(3))  # eq. 8
-        jpinv_j = Jt @ torch.linalg.solve(J @ Jt + opt.nullspace_damping * eye6, J)  # J⁺J (B, 7, 7)
-        nullspace = torch.eye(N_QDD, dtype=q.dtype, device=q.device) - jpinv_j
-        pd = Jt @ W1 @ J  # Jᵀ W1 J, eq. 5
+        jpinv = Jt @ torch.linalg.inv(J @ Jt + opt.nullspace_damping * eye6)  # J⁺ (B, 7, 6)
+        pd = (jpinv if opt.pd_projection == "pinv" else Jt) @ W1 @ J  # Jᵀ W1 J (eq. 5) or J⁺ W1 J
         dq0 = self.q_des + dt * self.qd_des - q  # q* − q with q̈* = 0 (eq. 7)
         dv0 = self.qd_des - qd  # q̇* − q̇ with q̈* = 0 (eq. 6)
-        return ControlContext(
-            q=q, qd=qd, kin=kin, mass=mass, mass_inv_jt=binv_jt, cart_inertia=lam, D=D, W1=W1, W2=W2, W3=W3,
+        ctx = ControlContext(
+            q=q, qd=qd, kin=kin, mass=mass, mass_inv_jt=binv_jt, cart_inertia=lam, cart_inertia_inv=lam_inv,
+            D=D, W1=W1, W2=W2, W3=W3,
             pose_error=pose_error(pos_d, rot_d, kin.pos, kin.rot), f_ext=f_ext,
             f_d_local=f_d.clamp(0.0, self.f_d_max), in_contact=in_contact,
             qdd_pd0=_mv(pd, cfg.cv * dv0 + cfg.cp * dq0), pd_qdd_gain=(cfg.cv * dt + cfg.cp * dt * dt / 2) * pd,
-            nullspace=nullspace, dt=dt)
+            nullspace=torch.eye(N_QDD, dtype=q.dtype, device=q.device) - jpinv @ J, pd_matrix=pd, dt=dt)
+        if opt.ik_wrench_feedforward:
+            f_ff = self.wrench_feedforward(ctx) * (~in_contact).to(q.dtype).unsqueeze(-1)
+            ctx = dataclasses.replace(ctx, wrench_feedforward=f_ff)
+        return ctx
+
+    def wrench_feedforward(self, ctx: ControlContext) -> torch.Tensor:
+        """Unconstrained optimum of the wrench sub-problem (eq. 24b): (W2 + W3 + r I)⁻¹(W2 f_adm + W3 f_ctc) [B, 6]."""
+        rhs = ctx.q.new_zeros(ctx.batch, 6)
+        H = self.options.regularization * torch.eye(6, dtype=ctx.q.dtype, device=ctx.q.device).expand(ctx.batch, 6, 6)
+        for task in self.tasks:
+            if isinstance(task, (Admittance, ForceControl)):
+                res = task.residual(ctx)
+                H, rhs = H + res.W, rhs + _mv(res.W, res.b)
+        return torch.linalg.solve(H, rhs)
 
     def build_qp(self, ctx: ControlContext) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Stack the task costs and limit rows: (P [B, 13, 13], c [B, 13], G [B, m, 13], h [B, m]) (eq. 1, 24)."""
@@ -247,17 +274,21 @@ class A3CQPController:
             self.reset(q, qd)
 
         # invalid robots (non-finite inputs) are computed on a harmless stand-in and replaced by the fallback below
-        flat = [q, qd, mass.flatten(1), bias, weights.flatten(1), f_d, pos_d, rot_d.flatten(1), f_ext]
-        valid = torch.stack([torch.isfinite(t).all(-1) for t in flat], -1).all(-1)  # (N,)
+        def finite(t: torch.Tensor) -> torch.Tensor:
+            return torch.isfinite(t.flatten(1)).all(-1)
+
+        inputs = [q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext]
+        valid = torch.stack([finite(t) for t in inputs], -1).all(-1)  # (N,)
         if not bool(valid.all()):
+            def keep(t: torch.Tensor, default: torch.Tensor | float) -> torch.Tensor:
+                ok = finite(t).view(-1, *([1] * (t.dim() - 1)))
+                return torch.where(ok, t, default)
+
             eye7 = torch.eye(7, dtype=q.dtype).expand(n, 7, 7)
-            v1, v2, v3 = valid.view(n, 1), valid.view(n, 1, 1), valid
-            q, qd = torch.where(v1, q, self.q_des), torch.where(v1, qd, 0.0)
-            mass, bias = torch.where(v2, mass, eye7), torch.where(v1, bias, 0.0)
-            weights = torch.where(v2, weights, 1.0 / 3.0)
-            f_d, f_ext = torch.where(v1, f_d, 0.0), torch.where(v1, f_ext, 0.0)
-            pos_d, rot_d = torch.where(v1, pos_d, 0.0), torch.where(v2, rot_d, eye7[:, :3, :3])
-            del v3
+            q, qd = keep(q, self.q_des), keep(qd, 0.0)
+            mass, bias = keep(mass, eye7), keep(bias, 0.0)
+            weights, f_d, f_ext = keep(weights, 1.0 / 3.0), keep(f_d, 0.0), keep(f_ext, 0.0)
+            pos_d, rot_d = keep(pos_d, 0.0), keep(rot_d, eye7[:, :3, :3])
 
         ctx = self.build_context(q, qd, mass, weights, f_d, pos_d, rot_d, f_ext, in_contact)
         P, c, G, h = self.build_qp(ctx)
@@ -273,8 +304,7 @@ class A3CQPController:
         qd_des = self.qd_des + dt * qdd
         q_des = self.q_des + dt * self.qd_des + 0.5 * dt * dt * qdd
         J = ctx.kin.jac
-        pd = J.transpose(-1, -2) @ ctx.W1 @ J
-        qdd_pd = _mv(pd, cfg.cv * (qd_des - qd) + cfg.cp * (q_des - q))
+        qdd_pd = _mv(ctx.pd_matrix, cfg.cv * (qd_des - qd) + cfg.cp * (q_des - q))
         tau = _mv(mass, qdd + qdd_pd) + _mv(J.transpose(-1, -2), f) + bias
 
         # safe fallback for failed QPs / invalid inputs: brake within the viable bounds, zero wrench, hold gravity

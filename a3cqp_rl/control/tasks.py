@@ -17,7 +17,8 @@ import torch
 from a3cqp_rl.control.context import N_QDD, N_VARS, N_WRENCH, ControlContext
 from a3cqp_rl.control.exceptions import InvalidGainError
 
-__all__ = ["Residual", "Task", "CartesianIK", "Admittance", "ForceControl", "JointCentering"]
+__all__ = ["Residual", "Task", "CartesianIK", "Admittance", "ForceControl", "JointCentering",
+           "CartesianAccelerationRegularizer"]
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,10 @@ class CartesianIK(Task):
     def residual(self, ctx: ControlContext) -> Residual:
         A = ctx.q.new_zeros(ctx.batch, 6, N_VARS)
         A[:, :, :N_QDD] = ctx.kin.jac
-        return Residual(A=A, b=self.desired_acceleration(ctx) - ctx.kin.jdot_qdot, W=ctx.W1)
+        b = self.desired_acceleration(ctx) - ctx.kin.jdot_qdot
+        if ctx.wrench_feedforward is not None:  # J q̈ + Λ⁻¹ f_ff + J̇q̇ = ẍ_d on the IK axes
+            b = b - (ctx.cart_inertia_inv @ ctx.wrench_feedforward.unsqueeze(-1)).squeeze(-1)
+        return Residual(A=A, b=b, W=ctx.W1)
 
 
 class Admittance(Task):
@@ -171,3 +175,24 @@ class JointCentering(Task):
         J = ctx.kin.jac
         W = self.epsilon * (J.transpose(-1, -2) @ ctx.W1 @ J) + self.nullspace_weight * ctx.nullspace
         return Residual(A=_select(ctx.batch, 0, N_QDD, ctx.q), b=self.desired_acceleration(ctx), W=W)
+
+
+class CartesianAccelerationRegularizer(Task):
+    """J q̈ ≈ 0 on the axes IK does not weight: ‖J q̈‖² with weight γ D(I − w1^𝓛)Dᵀ (not in the paper).
+
+    Eq. 1 leaves q̈ free on the axes where w1 = 0 and only the Tikhonov term picks it; the minimum-norm q̈ then
+    accelerates those axes (and pushes, through B q̈, on the AC/FC axes: a 10 N FC force loses ~2 N). With this
+    term the IK/JC acceleration stays out of the AC/FC axes. γ = 0 removes it.
+    """
+
+    name = "cartesian_regularizer"
+
+    def __init__(self, gamma: float = 1e-2) -> None:
+        _check_positive(gamma=gamma)
+        self.gamma = gamma
+
+    def residual(self, ctx: ControlContext) -> Residual:
+        A = ctx.q.new_zeros(ctx.batch, 6, N_VARS)
+        A[:, :, :N_QDD] = ctx.kin.jac
+        eye = torch.eye(6, dtype=ctx.q.dtype, device=ctx.q.device)
+        return Residual(A=A, b=ctx.q.new_zeros(ctx.batch, 6), W=self.gamma * (eye - ctx.W1))

@@ -56,6 +56,9 @@ class SimState:
     ft: torch.Tensor
     """F/T sensor reading of the previous step [N, 6] (N, N m), sensor frame: wrench the flange exerts on the
     sensor + tool subtree (includes the tool's weight)."""
+    f_env: torch.Tensor
+    """Environment wrench on the tool [N, 6] (N, N m about the sensor site), world frame, from the F/T reading with
+    the tool's static weight removed (its inertial forces, ~m a, are not compensated)."""
 
 
 class PandaSim:
@@ -84,6 +87,10 @@ class PandaSim:
         self._qd = np.zeros((n, 7))
         self._tau_ext = np.zeros((n, 7))
         self._ft = np.zeros((n, 6))
+        self._f_env = np.zeros((n, 6))
+        self._ft_body = int(self.model.site_bodyid[self.model.site("ft_site").id])
+        self._ft_site = self.model.site("ft_site").id
+        self._tool_mass = float(self.model.body_subtreemass[self._ft_body])
         self._sensor_adr = (self.model.sensor("ft_force").adr[0], self.model.sensor("ft_torque").adr[0])
         self.site_ids = {name: self.model.site(name).id for name in ("tcp", "handle", "ft_site", "flange")}
         self._tau_push = np.zeros((n, self.model.nv))
@@ -127,11 +134,17 @@ class PandaSim:
             self._qd[i] = d.qvel[:7]
             self._ft[i, :3] = d.sensordata[fa:fa + 3]
             self._ft[i, 3:] = d.sensordata[ta:ta + 3]
+            # reading = (weight support) − (environment wrench), both on the tool subtree: remove the static part
+            R = d.site_xmat[self._ft_site].reshape(3, 3)
+            weight = np.array([0.0, 0.0, self._tool_mass * -m.opt.gravity[2]])  # upward support at rest
+            r_com = d.subtree_com[self._ft_body] - d.site_xpos[self._ft_site]
+            self._f_env[i, :3] = weight - R @ self._ft[i, :3]
+            self._f_env[i, 3:] = -np.cross(r_com, -weight) - R @ self._ft[i, 3:]
             d.xfrc_applied[:] = 0.0
             self._tau_push[i] = 0.0
         return SimState(q=torch.from_numpy(self._q), qd=torch.from_numpy(self._qd), mass=torch.from_numpy(self._mass),
                         bias=torch.from_numpy(self._bias), tau_ext=torch.from_numpy(self._tau_ext),
-                        ft=torch.from_numpy(self._ft))
+                        ft=torch.from_numpy(self._ft), f_env=torch.from_numpy(self._f_env))
 
     def push(self, force_world: np.ndarray | torch.Tensor, site: str = "handle",
              torque_world: np.ndarray | torch.Tensor | None = None) -> None:
@@ -163,7 +176,7 @@ class PandaSim:
                 np.stack([d.site_xmat[sid].reshape(3, 3) for d in self.datas]))
 
     def contact_force(self, geom: str) -> np.ndarray:
-        """World-frame force [N, 3] (N) that all contacts involving `geom` exert on the robot side."""
+        """World-frame force [N, 3] (N) that all contacts involving `geom` exert on `geom`."""
         gid = self.model.geom(geom).id
         out = np.zeros((self.n, 3))
         f6 = np.zeros(6)
@@ -174,5 +187,5 @@ class PandaSim:
                     continue
                 mujoco.mj_contactForce(self.model, d, c, f6)
                 f_world = con.frame.reshape(3, 3).T @ f6[:3]  # force on geom2 from geom1, in world
-                out[i] += f_world if con.geom1 == gid else -f_world  # force on the non-`geom` side = robot
+                out[i] += -f_world if con.geom1 == gid else f_world  # the frame's normal points from geom1 to geom2
         return out
