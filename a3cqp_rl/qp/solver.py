@@ -244,19 +244,19 @@ torch ops, i.e. lowest latency); above it, by the augmented-Lagrangian Cholesky 
 def _kkt_lu(P: Tensor, q: Tensor, C: Tensor, d: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Solve [[P, C_Wᵀ], [C_W, 0]] (x, z_W) = (−q, d_W) by LU; unmasked rows get z = 0.
 
-    Returns (x, z, stationarity residual |Px + q + Cᵀz|∞ [B], +inf where the matrix is singular,
-    e.g. dependent active rows or P singular on their null space: the caller then falls back).
+    Returns (x, z, residual [B]): the max-norm residual of the whole KKT system, computed a
+    posteriori, so a singular or ill-conditioned matrix (dependent working rows, P singular on
+    their null space) shows up as a large or NaN residual and the caller falls back.
     """
     n = P.shape[-1]
     maskf = mask.to(P.dtype)
     Cm = C * maskf.unsqueeze(-1)  # (B, r, n)
     # Inactive rows become −z_i = 0, so every instance keeps the same (n + r) × (n + r) shape.
     K = torch.cat([torch.cat([P, Cm.mT], 2), torch.cat([Cm, torch.diag_embed(maskf - 1.0)], 2)], 1)
-    sol, info = torch.linalg.solve_ex(K, torch.cat([-q, d * maskf], 1))
-    x, z = sol[:, :n], sol[:, n:] * maskf
-    stat = (torch.baddbmm(q.unsqueeze(-1), P, x.unsqueeze(-1)).squeeze(-1) + _mtv(Cm, z)).abs().amax(-1)
-    stat = torch.where((info == 0) & torch.isfinite(stat), stat, torch.full_like(stat, torch.inf))
-    return x, z, stat
+    rhs = torch.cat([-q, d * maskf], 1)
+    sol = torch.linalg.solve_ex(K, rhs)[0]
+    res = torch.baddbmm(rhs.unsqueeze(-1), K, sol.unsqueeze(-1), beta=-1.0).abs().amax((-2, -1))
+    return sol[:, :n], sol[:, n:], res
 
 
 def _pdas(
@@ -275,27 +275,31 @@ def _pdas(
     tol_d = (tol * sd).unsqueeze(-1)
     W = z0 > 0  # (B, m) working set
     z = torch.cat([q.new_zeros(B, p), z0], 1) if p else z0
-    x = q.new_zeros(B, n)
+    x = None
     idx = out = None
+    tol_r = tol * torch.minimum(sp, sd)
     for k in range(max_iter):
         mask = torch.cat([W.new_ones(W.shape[0], p), W], 1) if p else W
-        if x.shape[0] <= _LU_MAX_BATCH:
-            x_lu, z_lu, stat_err = _kkt_lu(P, q, C, d, mask)
-            if bool(torch.isinf(stat_err).any()):
-                # Singular KKT matrix (dependent working rows, or P singular on their null space):
-                # the augmented Lagrangian handles both.
-                x, z, stat_err = _eq_solve(P, q, C, d, mask, z, x, 1e-2 * tol)
-            else:
-                x, z = x_lu, z_lu
+        lu_ok = False
+        if q.shape[0] <= _LU_MAX_BATCH:
+            x_lu, z_lu, res = _kkt_lu(P, q, C, d, mask)
+            lu_ok = bool((res <= tol_r).all())
+        if lu_ok:
+            x, z = x_lu, z_lu
+            viol = None
+            vG = _mv(G, x) - h  # (b, m): > 0 means violated
         else:
-            x, z, stat_err = _eq_solve(P, q, C, d, mask, z, x, 1e-2 * tol)
-        stat_err = stat_err.unsqueeze(-1)
-        viol = _mv(C, x) - d  # (b, p + m): > 0 violated; equality rows must be ~0
-        # Certified optimum: every row feasible, working rows (and equalities) tight, multipliers
-        # of inequalities ≥ 0, stationarity residual small.
-        tight = torch.where(mask, viol.abs(), viol)
+            # Large batch (fewer flops), or a singular/ill-conditioned KKT matrix (dependent working
+            # rows, P singular on their null space): the augmented Lagrangian handles both.
+            x = x if x is not None else q.new_zeros(q.shape[0], n)
+            x, z, stat = _eq_solve(P, q, C, d, mask, z, x, 1e-2 * tol)
+            viol = _mv(C, x) - d
+            res = torch.maximum(stat, torch.where(mask, viol.abs(), torch.zeros((), dtype=q.dtype)).amax(-1))
+            vG = viol[:, p:]
+        # Certified optimum: KKT residual of the working set small, every row feasible, inequality
+        # multipliers ≥ 0.
         zG = z[:, p:]
-        ok = (tight <= tol_p).all(-1) & (zG >= -tol_d).all(-1) & (stat_err <= tol_d).squeeze(-1)
+        ok = (res <= tol_r) & (vG <= tol_p).all(-1) & (zG >= -tol_d).all(-1)
         if k == 0 and bool(ok.all()):
             # Fast exit (the warm-started control loop): no bookkeeping ops at all.
             return x, z[:, :p], zG, ok, torch.ones(B, dtype=torch.long, device=q.device)
@@ -311,11 +315,10 @@ def _pdas(
         keep = ~ok
         # Semismooth Newton step on min(z, h − Gx) = 0: keep working rows with positive
         # multipliers, add the violated rows.
-        vG = viol[:, p:]
         W = (W & (zG > 0)) | (~W & (vG > tol_p))
         if not bool(keep.all()):
             idx, P, q, A, b, G, h, C, d, x, z, W = (t[keep] for t in (idx, P, q, A, b, G, h, C, d, x, z, W))
-            tol_p, tol_d = tol_p[keep], tol_d[keep]
+            tol_p, tol_d, tol_r = tol_p[keep], tol_d[keep], tol_r[keep]
     return out[0], out[1][:, :p], out[1][:, p:], out[2], out[3]
 
 
