@@ -124,8 +124,9 @@ def _stack_inequalities(
         rows_G.append(G)
         rows_h.append(h)
         m = G.shape[1]
-    eye = torch.eye(n, dtype=like.dtype, device=like.device).expand(batch, n, n)
     has_lb, has_ub = lb is not None, ub is not None
+    if has_lb or has_ub:
+        eye = torch.eye(n, dtype=like.dtype, device=like.device).expand(batch, n, n)
     if has_lb:
         rows_G.append(-eye)
         rows_h.append(-lb)
@@ -272,12 +273,12 @@ def _pdas(
     C = torch.cat([A, G], 1) if p else G  # (B, p + m, n)
     d = torch.cat([b, h], 1) if p else h
     tol_p = (tol * sp).unsqueeze(-1)
-    tol_d = (tol * sd).unsqueeze(-1)
+    ntol_d = (-tol * sd).unsqueeze(-1)
     W = z0 > 0  # (B, m) working set
     z = torch.cat([q.new_zeros(B, p), z0], 1) if p else z0
     x = None
     idx = out = None
-    tol_r = tol * torch.minimum(sp, sd)
+    tol_r = tol * torch.minimum(sp, sd) if p or m else tol * sd
     for k in range(max_iter):
         mask = torch.cat([W.new_ones(W.shape[0], p), W], 1) if p else W
         lu_ok = False
@@ -299,7 +300,7 @@ def _pdas(
         # Certified optimum: KKT residual of the working set small, every row feasible, inequality
         # multipliers ≥ 0.
         zG = z[:, p:]
-        ok = (res <= tol_r) & (vG <= tol_p).all(-1) & (zG >= -tol_d).all(-1)
+        ok = (res <= tol_r) & (vG <= tol_p).all(-1) & (zG >= ntol_d).all(-1)
         if k == 0 and bool(ok.all()):
             # Fast exit (the warm-started control loop): no bookkeeping ops at all.
             return x, z[:, :p], zG, ok, torch.ones(B, dtype=torch.long, device=q.device)
@@ -318,7 +319,7 @@ def _pdas(
         W = (W & (zG > 0)) | (~W & (vG > tol_p))
         if not bool(keep.all()):
             idx, P, q, A, b, G, h, C, d, x, z, W = (t[keep] for t in (idx, P, q, A, b, G, h, C, d, x, z, W))
-            tol_p, tol_d, tol_r = tol_p[keep], tol_d[keep], tol_r[keep]
+            tol_p, ntol_d, tol_r = tol_p[keep], ntol_d[keep], tol_r[keep]
     return out[0], out[1][:, :p], out[1][:, p:], out[2], out[3]
 
 
@@ -613,7 +614,7 @@ def solve_qp(
         parts += [warm_start.z_lb] if has_lb else []
         parts += [warm_start.z_ub] if has_ub else []
         if parts:
-            z_warm = torch.cat(parts, -1).to(dtype).detach()
+            z_warm = (torch.cat(parts, -1) if len(parts) > 1 else parts[0]).detach().to(dtype)
             if z_warm.shape != h_all.shape:
                 raise QPShapeError(f"warm_start duals have shape {tuple(z_warm.shape)}, expected {tuple(h_all.shape)}")
 
