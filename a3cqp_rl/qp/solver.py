@@ -557,6 +557,17 @@ def _solve_canonical(
     return x, y, z, status, iters
 
 
+def _adjoint_direct(P: Tensor, gx: Tensor, C: Tensor, zr: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Direct solve of the adjoint KKT system (LU for small batches, Schur on the working rows for large)."""
+    if gx.shape[0] <= _LU_MAX_BATCH:
+        return _kkt_lu(P, -gx, C, zr, mask)
+    L, info = torch.linalg.cholesky_ex(P)
+    if not bool((info == 0).all()):
+        return gx, zr, None
+    x_u = torch.cholesky_solve(gx.unsqueeze(-1), L).squeeze(-1)
+    return _kkt_schur(L, x_u, P, -gx, C, zr, mask)
+
+
 class _QPFunction(torch.autograd.Function):
     """x*(P, q, A, b, G, h) with a backward by implicit differentiation of the KKT conditions."""
 
@@ -583,7 +594,12 @@ class _QPFunction(torch.autograd.Function):
         mask = torch.cat([torch.ones_like(y, dtype=torch.bool), active], 1)
         # Adjoint: [[P, C_Wᵀ], [C_W, 0]] [wx; wν] = [gx; 0], i.e. min ½wᵀPw − gxᵀw s.t. C_W w = 0.
         zr = torch.zeros_like(C[..., 0])
-        wx, wnu, _, _ = _eq_solve(Ps, -gx, C, zr, mask, zr, torch.zeros_like(x), 1e-13 * (1.0 + float(gx.abs().amax())))
+        tol_w = 1e-12 * (1.0 + float(gx.abs().amax()))
+        wx, wnu, res = _adjoint_direct(Ps, gx, C, zr, mask)
+        if res is None or not bool((res <= tol_w * (1.0 + wnu.abs().amax(-1))).all()):
+            # Singular KKT (dependent active rows, P singular on their null space): the augmented
+            # Lagrangian is exact in the limit and stays well posed.
+            wx, wnu, _, _ = _eq_solve(Ps, -gx, C, zr, mask, zr, torch.zeros_like(x), 0.1 * tol_w)
         wy, wz = wnu[:, :p], wnu[:, p:]
         nu = torch.cat([y, z * active], 1)
         gP = -0.5 * (wx.unsqueeze(-1) * x.unsqueeze(-2) + x.unsqueeze(-1) * wx.unsqueeze(-2))
