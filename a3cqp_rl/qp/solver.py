@@ -8,37 +8,40 @@ Algorithm (why this one)
 ------------------------
 The controller solves one small QP (n ≈ 13, m ≈ 30-40 rows) per robot every millisecond, with a
 solution from the previous millisecond at hand, and training solves thousands at once.  In eager
-torch every op costs a few µs whatever its size, so at B = 1 the *number of ops* decides latency,
-and at B = 1024 the number of batched factorisations decides throughput.  Measured here: an
-interior point (IPM) iteration is ~60 ops (~250 µs at B = 1), and a cold IPM needs 8-20 of them.
-So the solver works in two stages, each vectorised over the batch:
+torch every op costs a few µs whatever its size, so at B = 1 the *number of ops* decides latency;
+at B = 1024 the passes over the [B, m, n] constraint data and the batched factorisations decide
+throughput.  Measured here: an interior-point (IPM) iteration is ~60 ops (~250 µs at B = 1) and
+one full pass of P + Gᵀ D G costs ~1 ms at B = 1024; a cold IPM needs 8-20 iterations.  So the
+solver works in two stages, each vectorised over the batch:
 
-1. **Primal-dual active set (PDAS, semismooth Newton on the complementarity conditions)**, from
-   the warm start's active set (or the empty set).  For a working set W the equality-constrained
-   QP (Ax = b, G_W x = h_W) is solved by a proximal augmented Lagrangian on one n × n Cholesky
-   factor of P + ρ CᵀC + δI (C = [A; G_W]): two back-solves give the exact solution and
-   multipliers, it stays positive definite when P is only semi-definite on the feasible set, and
-   redundant active rows do not make it singular.  A candidate is *certified* optimal (primal
-   feasible, multipliers ≥ 0, stationarity exact by construction) before it is accepted, so the
-   stage can only return correct answers.  Warm-started in the control loop the active set rarely
-   changes, and one PDAS iteration (~30 ops) solves the QP exactly; cold, W = ∅ already solves
-   every instance whose unconstrained optimum is feasible.
+1. **Primal-dual active set (PDAS: semismooth Newton on min(z, h − Gx) = 0)**, from the warm
+   start's active set (or the empty set).  Each iteration solves the equality-constrained QP of
+   the working set W (Ax = b, G_W x = h_W) exactly:
+   - B ≤ 32: one batched LU of the masked KKT matrix (fewest ops, lowest latency);
+   - B > 32: Cholesky of P once per solve, then the Schur complement on the *gathered* working
+     rows only (k = max |W|, typically 0-5 of 30 rows), O(n²k) per iteration;
+   - fallback (singular KKT: dependent active rows, P singular on their null space): a proximal
+     augmented Lagrangian on the Cholesky factor of P + C_Wᵀ ρ C_W + δI, which stays definite.
+   A candidate is accepted only when *certified* optimal a posteriori (KKT residual of the
+   working set, primal feasibility of every row and non-negative multipliers, all within tol), so
+   this stage never returns a wrong answer.  Warm-started in the control loop the active set
+   rarely changes and one PDAS iteration solves the QP; cold, W = ∅ already solves every instance
+   whose unconstrained optimum is feasible, and 1-4 iterations the rest of our test families.
 2. **Mehrotra predictor-corrector IPM** for the instances the active-set stage did not certify
-   within a few iterations (cycling, many active-set changes, infeasible or unbounded problems).
-   It factors P + Gᵀ(z/s)G (+ρAᵀA with a p × p Schur complement for equalities) by batched
-   Cholesky, converges in a predictable 8-20 iterations, detects primal infeasibility (Farkas
-   certificate from the duals) and unboundedness (a recession direction from the iterates), and
-   finished instances are dropped from the working batch so a hard instance does not make the
-   easy ones pay.
+   within `active_set_iter` iterations (cycling, many active-set changes, infeasible or unbounded
+   problems).  It factors P + Gᵀ(z/s)G (+ρAᵀA with a p × p Schur complement for equalities) by
+   batched Cholesky on unit-norm rows, detects primal infeasibility (Farkas certificate from the
+   duals) and unboundedness (a recession direction from the steps), drops finished instances
+   from the working batch, and its strictly complementary active set (z > s) seeds a final PDAS
+   "polish" that returns the exact solution of that active set.
 
-Rows of G and A are scaled to unit norm internally (duals are scaled back), infinite bounds and
-right-hand sides become inert rows (0·x ≤ 1), and a failed instance never produces NaN: x is the
-last finite iterate and `status` says what happened.
+Infinite bounds and right-hand sides become inert rows (0·x ≤ 1), and a failed instance never
+produces NaN: x is the last finite iterate and `status` says what happened.
 
 Backward: implicit differentiation of the KKT system at the solution (as OptNet/qpth), with the
-active set read from the duals and slacks.  The adjoint system is again an equality-constrained QP
-with the same structure, solved by the same augmented-Lagrangian routine, and gives the gradients
-with respect to P, q, A, b, G, h, lb, ub in closed form.  Nothing is unrolled.
+active set read from the duals and slacks (z > h − Gx).  The adjoint system has the same structure
+as a PDAS step and is solved by the same LU / Schur / augmented-Lagrangian routines; it gives the
+gradients with respect to P, q, A, b, G, h, lb, ub in closed form.  Nothing is unrolled.
 """
 
 from __future__ import annotations
