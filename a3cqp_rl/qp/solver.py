@@ -322,38 +322,39 @@ def _pdas(
     tol_r = tol * torch.minimum(sp, sd) if p or m else tol * sd
     for k in range(max_iter):
         mask = torch.cat([W.new_ones(W.shape[0], p), W], 1) if p else W
-        lu_ok = False
+        direct = False
         if q.shape[0] <= _LU_MAX_BATCH:
-            x_lu, z_lu, res = _kkt_lu(P, q, C, d, mask)
-            lu_ok = bool((res <= tol_r).all())
+            x_d, z_d, res = _kkt_lu(P, q, C, d, mask)
+            direct = True
         elif chol_ok:
             if L is None:
                 L, info = torch.linalg.cholesky_ex(P)
                 chol_ok = bool((info == 0).all())  # P only semi-definite somewhere: use the ALM
                 x_u = torch.cholesky_solve(-q.unsqueeze(-1), L).squeeze(-1)
             if chol_ok:
-                x_lu, z_lu, res = _kkt_schur(L, x_u, P, q, C, d, mask)
-                lu_ok = bool((res <= tol_r).all())
-        if lu_ok:
-            x, z = x_lu, z_lu
-            viol = None
-            vG = _mv(G, x) - h  # (b, m): > 0 means violated
-        else:
-            # Large batch (fewer flops), or a singular/ill-conditioned KKT matrix (dependent working
-            # rows, P singular on their null space): the augmented Lagrangian handles both.
+                x_d, z_d, res = _kkt_schur(L, x_u, P, q, C, d, mask)
+                direct = True
+        if direct:
+            # Certified optimum: KKT residual of the working set small, every row feasible,
+            # inequality multipliers ≥ 0.
+            vG = _mv(G, x_d) - h  # (b, m): > 0 means violated
+            zG = z_d[:, p:]
+            ok = (res <= tol_r) & (vG <= tol_p).all(-1) & (zG >= ntol_d).all(-1)
+            if k == 0 and bool(ok.all()):
+                # Fast exit (the warm-started control loop): no bookkeeping ops at all.
+                return x_d, z_d[:, :p], zG, ok, torch.ones(B, dtype=torch.long, device=q.device)
+            direct = bool((res <= tol_r).all())
+            x, z = (x_d, z_d) if direct else (x, z)
+        if not direct:
+            # Singular or ill-conditioned KKT matrix (dependent working rows, P singular on their
+            # null space): the proximal augmented Lagrangian handles both.
             x = x if x is not None else q.new_zeros(q.shape[0], n)
             if row_sq is None:
                 row_sq = (C * C).sum(-1)
             x, z, stat, viol = _eq_solve(P, q, C, d, mask, z, x, 1e-2 * tol, row_sq, _RHO_FAST)
             res = torch.maximum(stat, (viol * mask).abs().amax(-1))
-            vG = viol[:, p:]
-        # Certified optimum: KKT residual of the working set small, every row feasible, inequality
-        # multipliers ≥ 0.
-        zG = z[:, p:]
-        ok = (res <= tol_r) & (vG <= tol_p).all(-1) & (zG >= ntol_d).all(-1)
-        if k == 0 and bool(ok.all()):
-            # Fast exit (the warm-started control loop): no bookkeeping ops at all.
-            return x, z[:, :p], zG, ok, torch.ones(B, dtype=torch.long, device=q.device)
+            vG, zG = viol[:, p:], z[:, p:]
+            ok = (res <= tol_r) & (vG <= tol_p).all(-1) & (zG >= ntol_d).all(-1)
         if out is None:
             idx = torch.arange(B, device=q.device)
             out = (q.new_zeros(B, n), q.new_zeros(B, p + m), torch.zeros(B, dtype=torch.bool, device=q.device),
