@@ -260,6 +260,16 @@ def _kkt_lu(P: Tensor, q: Tensor, C: Tensor, d: Tensor, mask: Tensor) -> tuple[T
     their null space) shows up as a large or NaN residual and the caller falls back.
     """
     n = P.shape[-1]
+    if C.shape[0] == 1:
+        # Single instance (the control loop): keep only the working rows, an (n + k) × (n + k)
+        # system with k ≈ 0-5 instead of n + r ≈ 40-70 (LU cost is cubic).
+        rows = mask[0].nonzero().squeeze(-1)  # (k,)
+        Cw = C[:, rows]
+        K = torch.cat([torch.cat([P, Cw.mT], 2), torch.cat([Cw, Cw.new_zeros(1, rows.shape[0], rows.shape[0])], 2)], 1)
+        rhs = torch.cat([-q, d[:, rows]], 1)
+        sol = torch.linalg.solve_ex(K, rhs)[0]
+        res = torch.baddbmm(rhs.unsqueeze(-1), K, sol.unsqueeze(-1), beta=-1.0).abs().amax((-2, -1))
+        return sol[:, :n], torch.zeros_like(d).index_copy_(1, rows, sol[:, n:]), res
     maskf = mask.to(P.dtype)
     Cm = C * maskf.unsqueeze(-1)  # (B, r, n)
     # Inactive rows become −z_i = 0, so every instance keeps the same (n + r) × (n + r) shape.
