@@ -2,7 +2,8 @@
 
 Prints samples/s (agent steps × envs per second, median of repeats) for
   - PointMassEnv(4) and PointMassEnv(4096) through the TorchRL `rollout` API,
-  - the same env's functional step (`envs.point_mass.agent_step`, what the fused trainer calls),
+  - the same env's functional step (`envs.point_mass.agent_step`), eager and torch.compile'd with
+    auto-reset (`fused_functions`, what the fused trainer runs inside its compiled graph),
   - ParallelEnv(4 × PointMassEnv(1)), the usual way to run 4 envs in TorchRL,
 and the ratios against the ParallelEnv baseline, all measured in this run.
 
@@ -56,6 +57,16 @@ def main(argv: list[str] | None = None) -> int:
                 s, _r = agent_step(s, action, sched, env.cfg, env.adapt, env.rew)
 
         rows.append((f"PointMassEnv({n}) functional step", _median_rate(raw, steps * n, repeats)))
+        step_fn, _ = env.fused_functions()
+        compiled = torch.compile(step_fn, dynamic=False)
+        _, pending, _ = env.fused_inputs()
+
+        def fused(compiled=compiled, state=state, pending=pending, sched=sched, action=action.float()):
+            s = state
+            for _ in range(steps):
+                s = compiled(s, pending, sched, action)[0]
+
+        rows.append((f"PointMassEnv({n}) compiled fused step", _median_rate(fused, steps * n, repeats)))
 
     penv = ParallelEnv(4, functools.partial(PointMassEnv, 1, seed=0))
     try:
