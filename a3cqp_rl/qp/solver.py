@@ -369,20 +369,26 @@ def _pdas(
             idx = torch.arange(B, device=q.device)
             out = (q.new_zeros(B, n), q.new_zeros(B, p + m), torch.zeros(B, dtype=torch.bool, device=q.device),
                    torch.full((B,), max_iter, dtype=torch.long, device=q.device))
-        if bool(ok.any()):
-            sel = idx[ok]
-            out[0][sel], out[1][sel], out[2][sel], out[3][sel] = x[ok], z[ok], True, k + 1
-        if bool(ok.all()) or k == max_iter - 1:
+        n_ok = int(ok.sum())
+        if n_ok:
+            ok_i = ok.nonzero().squeeze(-1)
+            sel = idx[ok_i]
+            out[0][sel], out[1][sel], out[2][sel], out[3][sel] = x[ok_i], z[ok_i], True, k + 1
+        if n_ok == ok.shape[0] or k == max_iter - 1:
             break
-        keep = ~ok
         # Semismooth Newton step on min(z, h − Gx) = 0: keep working rows with positive
         # multipliers, add the violated rows.
         W = (W & (zG > 0)) | (~W & (vG > tol_p))
-        if not bool(keep.all()):
-            idx, P, q, A, b, G, h, C, d, x, z, W = (t[keep] for t in (idx, P, q, A, b, G, h, C, d, x, z, W))
-            row_sq = row_sq[keep] if row_sq is not None else None
-            L, x_u = (L[keep], x_u[keep]) if L is not None else (None, None)
-            tol_p, ntol_d, tol_r = tol_p[keep], ntol_d[keep], tol_r[keep]
+        if n_ok:
+            # Drop certified instances (one integer index, reused; C and d alias G and h if p = 0).
+            keep = (~ok).nonzero().squeeze(-1)
+            idx, P, q, G, h, x, z, W, tol_p, ntol_d, tol_r = (
+                t.index_select(0, keep) for t in (idx, P, q, G, h, x, z, W, tol_p, ntol_d, tol_r)
+            )
+            A, b = A.index_select(0, keep), b.index_select(0, keep)
+            C, d = (torch.cat([A, G], 1), torch.cat([b, h], 1)) if p else (G, h)
+            row_sq = row_sq.index_select(0, keep) if row_sq is not None else None
+            L, x_u = (L.index_select(0, keep), x_u.index_select(0, keep)) if L is not None else (None, None)
     return out[0], out[1][:, :p], out[1][:, p:], out[2], out[3]
 
 
