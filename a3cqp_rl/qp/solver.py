@@ -610,8 +610,8 @@ class _QPFunction(torch.autograd.Function):
         Ps = 0.5 * (P + P.mT)
         slack = (h - _mv(G, x)).clamp_min(0.0)
         active = z > slack  # strictly complementary part of the active set
-        C = torch.cat([A, G], 1)
-        mask = torch.cat([torch.ones_like(y, dtype=torch.bool), active], 1)
+        C = torch.cat([A, G], 1) if p else G
+        mask = torch.cat([torch.ones_like(y, dtype=torch.bool), active], 1) if p else active
         # Adjoint: [[P, C_Wᵀ], [C_W, 0]] [wx; wν] = [gx; 0], i.e. min ½wᵀPw − gxᵀw s.t. C_W w = 0.
         zr = torch.zeros_like(C[..., 0])
         tol_w = 1e-12 * (1.0 + float(gx.abs().amax()))
@@ -621,12 +621,17 @@ class _QPFunction(torch.autograd.Function):
             # Lagrangian is exact in the limit and stays well posed.
             wx, wnu, _, _ = _eq_solve(Ps, -gx, C, zr, mask, zr, torch.zeros_like(x), 0.1 * tol_w)
         wy, wz = wnu[:, :p], wnu[:, p:]
-        nu = torch.cat([y, z * active], 1)
-        gP = -0.5 * (wx.unsqueeze(-1) * x.unsqueeze(-2) + x.unsqueeze(-1) * wx.unsqueeze(-2))
-        gq = -wx
-        gC = -(nu.unsqueeze(-1) * wx.unsqueeze(-2) + wnu.unsqueeze(-1) * x.unsqueeze(-2))
-        gA, gG = gC[:, :p], gC[:, p:]
-        return gP, gq, gA, wy, gG, wz, None, None, None, None
+        nu = torch.cat([y, z * active], 1) if p else z * active
+        # Sums of two outer products as one bmm with inner dimension 2: a single pass over the
+        # [B, r, n] output instead of four.
+        need = ctx.needs_input_grad
+        u = torch.stack([wx, x], -2)  # (B, 2, n)
+        gP = (torch.stack([x, wx], -1) @ u).mul_(-0.5) if need[0] else None  # −½(x wxᵀ + wx xᵀ)
+        gA = gG = None
+        if need[2] or need[4]:
+            gC = (torch.stack([nu, wnu], -1) @ u).neg_()  # −(ν wxᵀ + wν xᵀ), (B, r, n)
+            gA, gG = gC[:, :p], gC[:, p:]
+        return gP, -wx, gA, wy, gG, wz, None, None, None, None
 
 
 def solve_qp(
