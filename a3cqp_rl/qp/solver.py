@@ -350,9 +350,10 @@ def _pdas(
             vG = _mv(G, x_d) - h  # (b, m): > 0 means violated
             zG = z_d[:, p:]
             ok = (res <= tol_r) & (vG <= tol_p).all(-1) & (zG >= ntol_d).all(-1)
-            if k == 0 and bool(ok.all()):
-                # Fast exit (the warm-started control loop): no bookkeeping ops at all.
-                return x_d, z_d[:, :p], zG, ok, torch.ones(B, dtype=torch.long, device=q.device)
+            if out is None and bool(ok.all()):
+                # Fast exit (the warm-started control loop, or a single instance): every instance
+                # certified in the same iteration, so no bookkeeping ops at all.
+                return x_d, z_d[:, :p], zG, ok, torch.full((B,), k + 1, dtype=torch.long, device=q.device)
             direct = bool((res <= tol_r).all())
             x, z = (x_d, z_d) if direct else (x, z)
         if not direct:
@@ -365,11 +366,14 @@ def _pdas(
             res = torch.maximum(stat, (viol * mask).abs().amax(-1))
             vG, zG = viol[:, p:], z[:, p:]
             ok = (res <= tol_r) & (vG <= tol_p).all(-1) & (zG >= ntol_d).all(-1)
-        if out is None:
+        n_ok = int(ok.sum())
+        if n_ok and out is None and n_ok == ok.shape[0]:
+            return x, z[:, :p], z[:, p:], ok, torch.full((B,), k + 1, dtype=torch.long, device=q.device)
+        if n_ok and out is None:
+            # First partial success: from now on certified instances are written out and dropped.
             idx = torch.arange(B, device=q.device)
             out = (q.new_zeros(B, n), q.new_zeros(B, p + m), torch.zeros(B, dtype=torch.bool, device=q.device),
                    torch.full((B,), max_iter, dtype=torch.long, device=q.device))
-        n_ok = int(ok.sum())
         if n_ok:
             ok_i = ok.nonzero().squeeze(-1)
             sel = idx[ok_i]
@@ -389,6 +393,9 @@ def _pdas(
             C, d = (torch.cat([A, G], 1), torch.cat([b, h], 1)) if p else (G, h)
             row_sq = row_sq.index_select(0, keep) if row_sq is not None else None
             L, x_u = (L.index_select(0, keep), x_u.index_select(0, keep)) if L is not None else (None, None)
+    if out is None:  # nothing certified: every instance goes on to the interior point
+        return q.new_zeros(B, n), q.new_zeros(B, p), q.new_zeros(B, m), torch.zeros(B, dtype=torch.bool, device=q.device), torch.full(
+            (B,), max_iter, dtype=torch.long, device=q.device)
     return out[0], out[1][:, :p], out[1][:, p:], out[2], out[3]
 
 
