@@ -252,3 +252,17 @@ def test_large_batch_paths_agree_with_small_batch_paths() -> None:
     assert (x_big - torch.cat([x_a, x_b])).abs().max() < 1e-9
     for gb, ga, gc in zip(g_big, g_a, g_b):
         assert (gb - torch.cat([ga, gc])).abs().max() < 1e-7
+
+
+@pytest.mark.parametrize("batch", [4, 40])  # dense-LU path and Schur path
+def test_nan_instance_does_not_poison_the_batch(batch: int) -> None:
+    qp = random_qp_batch(batch, n=6, m=9, spread=0.1, seed=31)
+    q = qp.q.clone()
+    q[1, 2] = torch.nan
+    sol = solve_qp(qp.P, q, G=qp.G, h=qp.h)
+    ref = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h)
+    assert sol.status[1] != QPStatus.SOLVED
+    assert torch.isfinite(sol.x).all() and torch.isfinite(sol.z).all()
+    others = torch.arange(batch) != 1
+    assert (sol.status[others] == QPStatus.SOLVED).all()
+    assert (sol.x[others] - ref.x[others]).abs().max() < 1e-9
