@@ -266,3 +266,16 @@ def test_nan_instance_does_not_poison_the_batch(batch: int) -> None:
     others = torch.arange(batch) != 1
     assert (sol.status[others] == QPStatus.SOLVED).all()
     assert (sol.x[others] - ref.x[others]).abs().max() < 1e-9
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("n,m,p,bounds,spread", [(5, 8, 1, True, 0.3), (13, 40, 3, True, 0.35), (20, 50, 4, False, 0.5), (13, 30, 0, True, 1.0)])
+def test_wide_sweep_against_clarabel(n: int, m: int, p: int, bounds: bool, spread: float) -> None:
+    # Heavier families than the default run: many active rows, bigger problems.
+    for seed in range(3):
+        qp = random_qp_batch(300, n=n, m=m, p=p, bounds=bounds, spread=spread, seed=500 + seed)
+        sol = solve_qp(*qp.args())
+        x_ref, statuses = clarabel_reference(qp)
+        assert set(statuses) == {"optimal"}
+        assert bool(sol.solved.all())
+        assert (sol.x - x_ref).abs().max().item() <= 1e-6
