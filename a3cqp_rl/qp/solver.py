@@ -162,7 +162,8 @@ def _mv(M: Tensor, v: Tensor) -> Tensor:
 
 def _mtv(M: Tensor, v: Tensor) -> Tensor:
     """Batched transposed product Mᵀv: [B, r, c] x [B, r] -> [B, c]."""
-    return (v.unsqueeze(-2) @ M).squeeze(-2)
+    # Broadcast-multiply and reduce: for these tiny matrices ~2x faster than a [B, 1, r] bmm.
+    return (M * v.unsqueeze(-1)).sum(-2)
 
 
 def _cholesky(H: Tensor, scale: Tensor) -> Tensor:
@@ -459,6 +460,7 @@ def _ipm(
     s = s + torch.where(s.amin(-1, keepdim=True) < 1e-8, 1.0 - s.amin(-1, keepdim=True), 0.0)
     z = z + torch.where(z.amin(-1, keepdim=True) < 1e-8, 1.0 - z.amin(-1, keepdim=True), 0.0)
     dx = torch.zeros_like(x)
+    Gdx = torch.zeros_like(h)
 
     idx = torch.arange(B, device=q.device)
     x_out, y_out, z_out = q.new_zeros(B, n), q.new_zeros(B, p), q.new_zeros(B, m)
@@ -471,9 +473,9 @@ def _ipm(
         st_out[sel], it_out[sel] = status[mask], it
 
     for it in range(max_iter + 1):
-        rd = torch.baddbmm(q.unsqueeze(-1), P, x.unsqueeze(-1)).squeeze(-1) + _mtv(G, z)
+        ray = _mtv(G, z) + _mtv(A, y) if p else _mtv(G, z)  # Gᵀz + Aᵀy
+        rd = torch.baddbmm(q.unsqueeze(-1), P, x.unsqueeze(-1)).squeeze(-1) + ray
         if p:
-            rd = rd + _mtv(A, y)
             rp = _mv(A, x) - b
         ri = _mv(G, x) + s - h
         mu = (s * z).sum(-1) / m
@@ -481,15 +483,14 @@ def _ipm(
         if p:
             err_p = torch.maximum(err_p, rp.abs().amax(-1))
         solved = (err_p <= tol * sp) & (rd.abs().amax(-1) <= tol * sd) & (mu <= tol * sd)
-        # Farkas certificate: z ≥ 0, Gᵀz + Aᵀy ≈ 0 and hᵀz + bᵀy < 0 (relative to |hᵀz + bᵀy|, which
-        # bounds the norm of any feasible point from below by 1/1e-7).
-        ray = _mtv(G, z) + (_mtv(A, y) if p else 0.0)
+        # Farkas certificate: z ≥ 0, Gᵀz + Aᵀy ≈ 0 and hᵀz + bᵀy < 0, relative to |hᵀz + bᵀy|, which
+        # bounds the norm of any feasible point from below by 1/1e-7.
         gap = (h * z).sum(-1) + ((b * y).sum(-1) if p else 0.0)
         pinf = (gap < 0) & (ray.abs().amax(-1) <= -1e-7 * gap) & ~solved
         # Recession direction from the last step: P d ≈ 0, A d ≈ 0, G d ≤ 0 and qᵀd < 0.
         qd = (q * dx).sum(-1)
         dref = -1e-7 * qd
-        dinf = (qd < 0) & (_mv(P, dx).abs().amax(-1) <= dref) & (_mv(G, dx).amax(-1) <= dref) & ~solved & ~pinf
+        dinf = (qd < 0) & (_mv(P, dx).abs().amax(-1) <= dref) & (Gdx.amax(-1) <= dref) & ~solved & ~pinf
         if p:
             dinf = dinf & (_mv(A, dx).abs().amax(-1) <= dref)
         done = solved | pinf | dinf
@@ -501,7 +502,7 @@ def _ipm(
                     emit(~done, torch.full_like(status, int(QPStatus.MAX_ITER)), it)
                 break
             keep = ~done
-            idx, P, q, A, b, G, h, x, y, z, s, dx = (t[keep] for t in (idx, P, q, A, b, G, h, x, y, z, s, dx))
+            idx, P, q, A, b, G, h, x, y, z, s, dx, Gdx = (t[keep] for t in (idx, P, q, A, b, G, h, x, y, z, s, dx, Gdx))
             rd, ri, mu, sp, sd, scale, reg = rd[keep], ri[keep], mu[keep], sp[keep], sd[keep], scale[keep], reg[keep]
             if p:
                 rp = rp[keep]
@@ -523,6 +524,7 @@ def _ipm(
         dx, dy, ds, dz = direction(s * z + ds * dz - (sigma * mu).unsqueeze(-1))
         a = (0.99 * torch.minimum(_max_step(s, ds), _max_step(z, dz))).clamp(max=1.0).unsqueeze(-1)
         dx = a * dx
+        Gdx = a * (-ri - ds)  # = G dx, from the eliminated row G dx + ds = −ri (saves a pass over G)
         x, s, z = x + dx, s + a * ds, z + a * dz
         if p:
             y = y + a * dy
