@@ -215,7 +215,7 @@ def assert_within_limits(log: Log) -> None:
 
 
 def test_random_switching_weights_respect_joint_limits_fast() -> None:
-    log = random_switching(n=4, steps=2000, seed=0)
+    log = random_switching(n=3, steps=1500, seed=0)
     assert_within_limits(log)
     assert np.abs(log.qd).max() > 0.5  # the arms really moved
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -96,6 +97,10 @@ def test_residual_objective_equals_weighted_norm() -> None:
     L = torch.randn(B, 6, 6, generator=gen, dtype=torch.float64)
     W = L @ L.transpose(-1, -2)
     H, c = Residual(A=A, b=b, W=W).objective()
+    assert torch.equal(Residual(A=A, b=b, W=W).rows(), A)
+    Hi, ci = Residual(A=None, b=b, W=W, col=7).objective()  # identity rows on the wrench block
+    Ai = Residual(A=None, b=b, W=W, col=7).rows()
+    assert torch.allclose(Hi, Ai.transpose(-1, -2) @ W @ Ai) and torch.allclose(ci, -mv(Ai.transpose(-1, -2) @ W, b))
     x = torch.randn(B, 13, generator=gen, dtype=torch.float64)
     r = mv(A, x) - b
     cost = 0.5 * (r * mv(W, r)).sum(-1)
@@ -108,16 +113,17 @@ def test_ik_reference_eq10_11() -> None:
     ik = CartesianIK(kp=150.0, k_theta=20.0)
     kp, kv = ik.gains(ctx.q)
     assert torch.allclose(kv, 2.0 * kp.sqrt()) and kp.tolist() == [150.0] * 3 + [20.0] * 3
-    res = ik.residual(ctx)
     xdd_d = kp * ctx.pose_error - kv * ctx.kin.twist
-    # x = (q̈, f) with J q̈ = ẍ_d − J̇q̇ (least-norm) zeroes the IK residual, whatever f is
-    # out of contact the wrench that AC/FC will command is fed forward: J q̈ + Λ⁻¹ f_ff + J̇q̇ = ẍ_d
-    f_ff = ctx.wrench_feedforward
-    assert f_ff[ctx.in_contact].abs().max() == 0.0 and f_ff[~ctx.in_contact].abs().max() > 1.0
+    # the least-norm q̈ with J q̈ = ẍ_d − J̇q̇ − Λ⁻¹ f_ff zeroes the IK residual: out of contact, the wrench that
+    # AC/FC will command is fed forward (J q̈ + Λ⁻¹ f_ff + J̇q̇ = ẍ_d); f_ff = 0 in contact
+    assert ctx.wrench_feedforward is None
+    f_ff = ctrl.wrench_feedforward(ctx) * (~ctx.in_contact).double().unsqueeze(-1)
+    assert f_ff[~ctx.in_contact].abs().max() > 1.0
+    ctx = dataclasses.replace(ctx, wrench_feedforward=f_ff)
+    res = ik.residual(ctx)
     target = xdd_d - ctx.kin.jdot_qdot - mv(ctx.cart_inertia_inv, f_ff)
     qdd = torch.linalg.lstsq(ctx.kin.jac, target.unsqueeze(-1)).solution.squeeze(-1)
-    x = torch.cat([qdd, torch.randn(B, 6, dtype=torch.float64)], dim=-1)
-    assert (mv(res.A, x) - res.b).abs().max() < 1e-9
+    assert (mv(res.A, qdd) - res.b).abs().max() < 1e-9 and res.col == 0
     assert res.W is ctx.W1
     with pytest.raises(InvalidGainError):
         CartesianIK(kp=-1.0)

@@ -38,6 +38,8 @@ class ControlContext:
     """Λ⁻¹ = J B⁻¹ Jᵀ [B, 6, 6]: site acceleration per unit wrench applied through Jᵀ."""
     D: torch.Tensor
     """blockdiag(R, R) [B, 6, 6] with R the rotation of the local frame 𝓛 (eq. 3)."""
+    weights_local: torch.Tensor
+    """Per-axis local weights w^𝓛 [B, 6, 3] (columns IK, AC, FC)."""
     W1: torch.Tensor
     """IK weight in world [B, 6, 6] (eq. 8)."""
     W2: torch.Tensor

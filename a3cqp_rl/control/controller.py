@@ -15,7 +15,7 @@ from a3cqp_rl.control.exceptions import ControlShapeError, InvalidGainError
 from a3cqp_rl.control.frames import block_rotation, pose_error, weights_to_world
 from a3cqp_rl.control.limits import FrictionPyramid, Inequality, JointLimitsViability, Limit, WrenchBox
 from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer, CartesianIK, ForceControl,
-                                    JointCentering, Task)
+                                    JointCentering, Residual, Task)
 from a3cqp_rl.qp import QPSolution, solve_qp
 from a3cqp_rl.robot.kinematics import PandaModel
 from a3cqp_rl.robot.specs import PANDA_HOME, PANDA_LIMITS, PandaLimits
@@ -165,6 +165,8 @@ class A3CQPController:
         self.q_des: torch.Tensor | None = None  # q*, eq. 7 [N, 7]
         self.qd_des: torch.Tensor | None = None  # q̇*, eq. 6 [N, 7]
         self._warm: QPSolution | None = None
+        self.residuals: dict[str, Residual] = {}
+        """Task residuals of the last step, by task name (their b are the references f_adm, f_ctc, ...)."""
         self.fallback_count = 0
         """Number of (robot, step) pairs that used the fallback since construction."""
 
@@ -200,41 +202,71 @@ class A3CQPController:
         lam = torch.linalg.inv(lam_inv)  # Λ, eq. 12
         lam = 0.5 * (lam + lam.transpose(-1, -2))
         D = block_rotation(kin.rot)  # eq. 3
-        W1, W2, W3 = (weights_to_world(D, weights[..., k]) for k in range(3))  # eq. 8
+        W1, W2, W3 = weights_to_world(D.unsqueeze(1), weights.transpose(1, 2)).unbind(1)  # eq. 8, (B, 6, 6) each
         jpinv = Jt @ torch.linalg.inv(J @ Jt + opt.nullspace_damping * eye6)  # J⁺ (B, 7, 6)
         pd = (jpinv if opt.pd_projection == "pinv" else Jt) @ W1 @ J  # Jᵀ W1 J (eq. 5) or J⁺ W1 J
         dq0 = self.q_des + dt * self.qd_des - q  # q* − q with q̈* = 0 (eq. 7)
         dv0 = self.qd_des - qd  # q̇* − q̇ with q̈* = 0 (eq. 6)
         ctx = ControlContext(
             q=q, qd=qd, kin=kin, mass=mass, mass_inv_jt=binv_jt, cart_inertia=lam, cart_inertia_inv=lam_inv,
-            D=D, W1=W1, W2=W2, W3=W3,
+            D=D, weights_local=weights, W1=W1, W2=W2, W3=W3,
             pose_error=pose_error(pos_d, rot_d, kin.pos, kin.rot), f_ext=f_ext,
             f_d_local=f_d.clamp(0.0, self.f_d_max), in_contact=in_contact,
             qdd_pd0=_mv(pd, cfg.cv * dv0 + cfg.cp * dq0), pd_qdd_gain=(cfg.cv * dt + cfg.cp * dt * dt / 2) * pd,
             nullspace=torch.eye(N_QDD, dtype=q.dtype, device=q.device) - jpinv @ J, pd_matrix=pd, dt=dt)
-        if opt.ik_wrench_feedforward:
-            f_ff = self.wrench_feedforward(ctx) * (~in_contact).to(q.dtype).unsqueeze(-1)
-            ctx = dataclasses.replace(ctx, wrench_feedforward=f_ff)
         return ctx
 
-    def wrench_feedforward(self, ctx: ControlContext) -> torch.Tensor:
-        """Unconstrained optimum of the wrench sub-problem (eq. 24b): (W2 + W3 + r I)⁻¹(W2 f_adm + W3 f_ctc) [B, 6]."""
-        rhs = ctx.q.new_zeros(ctx.batch, 6)
-        H = self.options.regularization * torch.eye(6, dtype=ctx.q.dtype, device=ctx.q.device).expand(ctx.batch, 6, 6)
-        for task in self.tasks:
-            if isinstance(task, (Admittance, ForceControl)):
-                res = task.residual(ctx)
-                H, rhs = H + res.W, rhs + _mv(res.W, res.b)
-        return torch.linalg.solve(H, rhs)
+    def wrench_feedforward(self, ctx: ControlContext, residuals: dict[str, Residual] | None = None) -> torch.Tensor:
+        """Unconstrained optimum of the wrench sub-problem (eq. 24b): (W2 + W3 + r I)⁻¹(W2 f_adm + W3 f_ctc) [B, 6].
+
+        With W_i = D diag(w_i) Dᵀ (eq. 8) the inverse is D diag(1 / (w2 + w3 + r)) Dᵀ, computed per local axis.
+        """
+        if residuals is None:
+            residuals = {t.name: t.residual(ctx) for t in self.tasks if isinstance(t, (Admittance, ForceControl))}
+        Dt = ctx.D.transpose(-1, -2)
+        num = ctx.q.new_zeros(ctx.batch, 6)
+        den = ctx.q.new_full((ctx.batch, 6), self.options.regularization)
+        for task_type, k in ((Admittance, 1), (ForceControl, 2)):
+            for res in (residuals.get(t.name) for t in self.tasks if isinstance(t, task_type)):
+                if res is not None:
+                    w = ctx.weights_local[..., k]
+                    num, den = num + w * _mv(Dt, res.b), den + w
+        return _mv(ctx.D, num / den)
 
     def build_qp(self, ctx: ControlContext) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Stack the task costs and limit rows: (P [B, 13, 13], c [B, 13], G [B, m, 13], h [B, m]) (eq. 1, 24)."""
-        P = self.options.regularization * torch.eye(N_VARS, dtype=ctx.q.dtype, device=ctx.q.device).expand(
-            ctx.batch, N_VARS, N_VARS)
-        c = ctx.q.new_zeros(ctx.batch, N_VARS)
+        """Stack the task costs and limit rows: (P [B, 13, 13], c [B, 13], G [B, m, 13], h [B, m]) (eq. 1, 24).
+
+        The wrench tasks are evaluated first so that IK can feed their wrench forward (ik_wrench_feedforward);
+        the residuals of this call are kept in `self.residuals` (their b are the references f_adm, f_ctc, ...).
+        """
+        B = ctx.batch
+        P = self.options.regularization * torch.eye(N_VARS, dtype=ctx.q.dtype, device=ctx.q.device).repeat(B, 1, 1)
+        c = ctx.q.new_zeros(B, N_VARS)
+        residuals = {t.name: t.residual(ctx) for t in self.tasks if isinstance(t, (Admittance, ForceControl))}
+        if self.options.ik_wrench_feedforward and residuals:
+            f_ff = self.wrench_feedforward(ctx, residuals) * (~ctx.in_contact).to(ctx.q.dtype).unsqueeze(-1)
+            ctx = dataclasses.replace(ctx, wrench_feedforward=f_ff)
         for task in self.tasks:
-            H, g = task.residual(ctx).objective()
-            P, c = P + H, c + g
+            if task.name not in residuals:
+                residuals[task.name] = task.residual(ctx)
+        # residuals sharing the same rows A (e.g. IK and the Cartesian regularizer on J) are merged first:
+        # Σ Aᵀ W_i (A x − b_i) = Aᵀ (Σ W_i) A x − Aᵀ Σ W_i b_i, one pair of products per distinct A
+        groups: dict[tuple[int, int], list[Residual]] = {}
+        for res in residuals.values():
+            groups.setdefault((id(res.A), res.col), []).append(res)
+        for members in groups.values():
+            first = members[0]
+            W = first.W if len(members) == 1 else sum(r.W for r in members)
+            Wb = sum(_mv(r.W, r.b) for r in members)
+            if first.A is None:
+                H, g = W, -Wb
+            else:
+                At = first.A.transpose(-1, -2)
+                H, g = At @ W @ first.A, -_mv(At, Wb)
+            sl = slice(first.col, first.col + first.size)
+            P[:, sl, sl] += H
+            c[:, sl] += g
+        self.residuals = residuals
         rows: list[Inequality] = [lim.rows(ctx) for lim in self.limits]
         G = torch.cat([r.G for r in rows], dim=1)
         h = torch.cat([r.h for r in rows], dim=1)
@@ -278,7 +310,7 @@ class A3CQPController:
             return torch.isfinite(t.flatten(1)).all(-1)
 
         inputs = [q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext]
-        valid = torch.stack([finite(t) for t in inputs], -1).all(-1)  # (N,)
+        valid = torch.isfinite(torch.cat([t.flatten(1) for t in inputs], dim=1)).all(-1)  # (N,)
         if not bool(valid.all()):
             def keep(t: torch.Tensor, default: torch.Tensor | float) -> torch.Tensor:
                 ok = finite(t).view(-1, *([1] * (t.dim() - 1)))
@@ -333,8 +365,8 @@ class A3CQPController:
         saturated = (tau.abs() > tau_max).any(-1)
         tau = torch.nan_to_num(torch.maximum(torch.minimum(tau, tau_max), -tau_max), nan=0.0)
         status = torch.where(valid, sol.status, torch.full_like(sol.status, INVALID_INPUT))
-        f_adm = self.tasks[1].admittance_wrench(ctx) if isinstance(self.tasks[1], Admittance) else torch.zeros_like(f)
-        f_ctc = self.tasks[2].contact_wrench(ctx) if isinstance(self.tasks[2], ForceControl) else torch.zeros_like(f)
+        f_adm = self.residuals["ac"].b if "ac" in self.residuals else torch.zeros_like(f)
+        f_ctc = self.residuals["fc"].b if "fc" in self.residuals else torch.zeros_like(f)
         return ControlOutput(tau=tau, qdd=qdd, wrench=f, qdd_pd=qdd_pd, pose_error=ctx.pose_error, f_adm=f_adm,
                              f_ctc=f_ctc, status=status, fallback=~ok, saturated=saturated,
                              iterations=sol.iterations)

@@ -7,6 +7,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Literal
 
+import numpy as np
 import torch
 
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
@@ -37,36 +38,53 @@ class Limit(ABC):
         """Rows (G, h) of this limit for the batch in `ctx`."""
 
 
-def _acc_bounds_from_position(q, dq, q_min, q_max, dt):  # noqa: ANN001, ANN202
+def _acc_bounds_from_position(q, dq, q_min, q_max, dt, xp):  # noqa: ANN001, ANN202
     """Del Prete 2017: q̈ bounds keeping q_{k+1} = q + Δt q̇ + Δt²/2 q̈ in [q_min, q_max], braking if needed."""
     two_dt_sq = 2.0 / dt**2
     ub_q3 = two_dt_sq * (q_max - q - dt * dq)
     lb_q3 = two_dt_sq * (q_min - q - dt * dq)
     stop = -dq / dt  # q̈ that stops the joint in one step
     # moving down (q̇ ≤ 0): the lower bound either keeps q ≥ q_min in one step or brakes to stop exactly at q_min
-    one = torch.ones_like(q)
-    lb_brake = torch.maximum(dq.square() / (2.0 * torch.where(q != q_min, q - q_min, one)), stop)
-    lb_down = torch.where(lb_q3 < stop, lb_q3, torch.where(q != q_min, lb_brake, stop))
-    ub_brake = torch.minimum(-dq.square() / (2.0 * torch.where(q != q_max, q_max - q, one)), stop)
-    ub_up = torch.where(ub_q3 > stop, ub_q3, torch.where(q != q_max, ub_brake, stop))
+    dq2 = dq * dq
+    lb_brake = xp.maximum(dq2 / (2.0 * xp.where(q != q_min, q - q_min, 1.0)), stop)
+    lb_down = xp.where(lb_q3 < stop, lb_q3, xp.where(q != q_min, lb_brake, stop))
+    ub_brake = xp.minimum(-dq2 / (2.0 * xp.where(q != q_max, q_max - q, 1.0)), stop)
+    ub_up = xp.where(ub_q3 > stop, ub_q3, xp.where(q != q_max, ub_brake, stop))
     down = dq <= 0.0
-    return torch.where(down, lb_down, lb_q3), torch.where(down, ub_q3, ub_up)
+    return xp.where(down, lb_down, lb_q3), xp.where(down, ub_q3, ub_up)
 
 
-def _acc_bounds_from_viability(q, dq, q_min, q_max, ddq_stop, dt):  # noqa: ANN001, ANN202
+def _acc_bounds_from_viability(q, dq, q_min, q_max, ddq_stop, dt, xp):  # noqa: ANN001, ANN202
     """Del Prete 2017: q̈ bounds keeping the next state able to stop before the position limits with |q̈| ≤ ddq_stop."""
     dt2 = dt * dt
     two_a = 2.0 * dt2
     stop = -dq / dt
+    dq2 = dq * dq
     b = 2.0 * dt * dq + ddq_stop * dt2
-    c = dq.square() - 2.0 * ddq_stop * (q_max - q - dt * dq)
-    delta = b.square() - 2.0 * two_a * c
-    ub = torch.where(delta >= 0.0, (-b + delta.clamp_min(0.0).sqrt()) / two_a, stop)
+    c = dq2 - 2.0 * ddq_stop * (q_max - q - dt * dq)
+    delta = b * b - 2.0 * two_a * c
+    ub = xp.where(delta >= 0.0, (-b + xp.sqrt(xp.maximum(delta, 0.0))) / two_a, stop)
     b = 2.0 * dt * dq - ddq_stop * dt2
-    c = dq.square() - 2.0 * ddq_stop * (q + dt * dq - q_min)
-    delta = b.square() - 2.0 * two_a * c
-    lb = torch.where(delta >= 0.0, (-b - delta.clamp_min(0.0).sqrt()) / two_a, stop)
-    return torch.minimum(lb, stop), torch.maximum(ub, stop)
+    c = dq2 - 2.0 * ddq_stop * (q + dt * dq - q_min)
+    delta = b * b - 2.0 * two_a * c
+    lb = xp.where(delta >= 0.0, (-b - xp.sqrt(xp.maximum(delta, 0.0))) / two_a, stop)
+    return xp.minimum(lb, stop), xp.maximum(ub, stop)
+
+
+def _acc_bounds(q, dq, q_min, q_max, dq_max, ddq_max, dt, xp):  # noqa: ANN001, ANN202
+    lb_p, ub_p = _acc_bounds_from_position(q, dq, q_min, q_max, dt, xp)
+    lb_v, ub_v = (-dq_max - dq) / dt, (dq_max - dq) / dt
+    lb_s, ub_s = _acc_bounds_from_viability(q, dq, q_min, q_max, ddq_max, dt, xp)
+    lb_pv, ub_pv = xp.maximum(lb_p, lb_v), xp.minimum(ub_p, ub_v)
+    lb_pvs, ub_pvs = xp.maximum(lb_pv, lb_s), xp.minimum(ub_pv, ub_s)
+    lb, ub = xp.maximum(lb_pvs, -ddq_max), xp.minimum(ub_pvs, ddq_max)
+    # on conflict drop the acceleration limits, then viability, then keep only the position bounds
+    c1 = ub < lb
+    lb, ub = xp.where(c1, lb_pvs, lb), xp.where(c1, ub_pvs, ub)
+    c2 = ub < lb
+    lb, ub = xp.where(c2, lb_pv, lb), xp.where(c2, ub_pv, ub)
+    c3 = ub < lb
+    return xp.where(c3, lb_p, lb), xp.where(c3, ub_p, ub)
 
 
 def joint_acceleration_bounds(q: torch.Tensor, dq: torch.Tensor, q_min: torch.Tensor, q_max: torch.Tensor,
@@ -77,24 +95,29 @@ def joint_acceleration_bounds(q: torch.Tensor, dq: torch.Tensor, q_min: torch.Te
     manipulators", RA-L 2018 (as in OpenSoT JointLimitsViability / TSID TaskJointPosVelAccBounds): the most
     conservative of the position, velocity, viability and acceleration bounds; on conflict the acceleration
     bounds are dropped first, then viability, then only the position bounds are kept.
+    CPU tensors without gradients are evaluated with numpy (≈40 elementwise ops, ~5x less overhead than torch).
     """
-    lb_p, ub_p = _acc_bounds_from_position(q, dq, q_min, q_max, dt)
-    lb_v, ub_v = (-dq_max - dq) / dt, (dq_max - dq) / dt
-    lb_s, ub_s = _acc_bounds_from_viability(q, dq, q_min, q_max, ddq_max, dt)
-    lb_a, ub_a = -ddq_max.expand_as(q), ddq_max.expand_as(q)
-    lb = torch.maximum(torch.maximum(lb_p, lb_v), torch.maximum(lb_s, lb_a))
-    ub = torch.minimum(torch.minimum(ub_p, ub_v), torch.minimum(ub_s, ub_a))
-    # conflict 1: drop the acceleration limits
-    c1 = ub < lb
-    lb1 = torch.maximum(torch.maximum(lb_p, lb_v), lb_s)
-    ub1 = torch.minimum(torch.minimum(ub_p, ub_v), ub_s)
-    lb, ub = torch.where(c1, lb1, lb), torch.where(c1, ub1, ub)
-    # conflict 2: drop viability too
-    c2 = ub < lb
-    lb, ub = torch.where(c2, torch.maximum(lb_p, lb_v), lb), torch.where(c2, torch.minimum(ub_p, ub_v), ub)
-    # conflict 3: position bounds only
-    c3 = ub < lb
-    return torch.where(c3, lb_p, lb), torch.where(c3, ub_p, ub)
+    args = (q, dq, q_min.expand_as(q), q_max.expand_as(q), dq_max.expand_as(q), ddq_max.expand_as(q))
+    if q.device.type == "cpu" and not any(t.requires_grad for t in args):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lb, ub = _acc_bounds(*(t.detach().numpy() for t in args), dt, np)
+        return torch.from_numpy(np.asarray(lb)).to(q.dtype), torch.from_numpy(np.asarray(ub)).to(q.dtype)
+    return _acc_bounds(*args, dt, _TorchOps)
+
+
+class _TorchOps:
+    """The few numpy functions `_acc_bounds` uses, on torch tensors (scalars allowed)."""
+
+    where = staticmethod(torch.where)
+    sqrt = staticmethod(torch.sqrt)
+
+    @staticmethod
+    def maximum(a: torch.Tensor, b: torch.Tensor | float) -> torch.Tensor:
+        return torch.maximum(a, torch.as_tensor(b, dtype=a.dtype, device=a.device))
+
+    @staticmethod
+    def minimum(a: torch.Tensor, b: torch.Tensor | float) -> torch.Tensor:
+        return torch.minimum(a, torch.as_tensor(b, dtype=a.dtype, device=a.device))
 
 
 class JointLimitsViability(Limit):

@@ -14,7 +14,7 @@ from typing import Literal
 
 import torch
 
-from a3cqp_rl.control.context import N_QDD, N_VARS, N_WRENCH, ControlContext
+from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import InvalidGainError
 
 __all__ = ["Residual", "Task", "CartesianIK", "Admittance", "ForceControl", "JointCentering",
@@ -23,26 +23,47 @@ __all__ = ["Residual", "Task", "CartesianIK", "Admittance", "ForceControl", "Joi
 
 @dataclass(frozen=True)
 class Residual:
-    """Weighted residual of one task for a batch: cost ‖A x − b‖²_W."""
+    """Weighted residual of one task for a batch: cost ‖A x_blk − b‖²_W on the block x_blk = x[col:col + m]."""
 
-    A: torch.Tensor
-    """[B, k, 13] rows on x = (q̈, f)."""
+    A: torch.Tensor | None
+    """[B, k, m] rows on the block (None: the identity, k = m)."""
     b: torch.Tensor
     """[B, k] target."""
     W: torch.Tensor
     """[B, k, k] symmetric positive semi-definite weight."""
+    col: int = 0
+    """First variable of the block: 0 for q̈ (m = 7), 7 for f (m = 6)."""
+
+    @property
+    def size(self) -> int:
+        """Block width m."""
+        return self.b.shape[-1] if self.A is None else self.A.shape[-1]
+
+    def block_objective(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(H [B, m, m], c [B, m]) of the block cost ½ x_blkᵀ H x_blk + cᵀ x_blk (= ½‖A x_blk − b‖²_W + const)."""
+        Wb = (self.W @ self.b.unsqueeze(-1)).squeeze(-1)
+        if self.A is None:
+            return self.W, -Wb
+        At = self.A.transpose(-1, -2)
+        return At @ self.W @ self.A, -(At @ Wb.unsqueeze(-1)).squeeze(-1)
 
     def objective(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(H [B, 13, 13], c [B, 13]) of ½ xᵀHx + cᵀx, equal to ½‖Ax − b‖²_W up to a constant."""
-        AtW = self.A.transpose(-1, -2) @ self.W  # (B, 13, k)
-        return AtW @ self.A, -(AtW @ self.b.unsqueeze(-1)).squeeze(-1)
+        """(H [B, 13, 13], c [B, 13]) on the whole x = (q̈, f)."""
+        Hb, cb = self.block_objective()
+        H = Hb.new_zeros(Hb.shape[0], N_VARS, N_VARS)
+        c = cb.new_zeros(cb.shape[0], N_VARS)
+        sl = slice(self.col, self.col + self.size)
+        H[:, sl, sl] = Hb
+        c[:, sl] = cb
+        return H, c
 
-
-def _select(batch: int, start: int, size: int, like: torch.Tensor) -> torch.Tensor:
-    """[B, size, 13] matrix picking x[start:start + size]."""
-    A = like.new_zeros(batch, size, N_VARS)
-    A[:, :, start:start + size] = torch.eye(size, dtype=like.dtype, device=like.device)
-    return A
+    def rows(self) -> torch.Tensor:
+        """A as [B, k, 13] rows on the whole x."""
+        B, k = self.b.shape
+        A = self.b.new_zeros(B, k, N_VARS)
+        A[:, :, self.col:self.col + self.size] = (torch.eye(k, dtype=self.b.dtype, device=self.b.device)
+                                                  if self.A is None else self.A)
+        return A
 
 
 def _check_positive(**values: float) -> None:
@@ -86,12 +107,10 @@ class CartesianIK(Task):
         return kp * ctx.pose_error - kv * ctx.kin.twist
 
     def residual(self, ctx: ControlContext) -> Residual:
-        A = ctx.q.new_zeros(ctx.batch, 6, N_VARS)
-        A[:, :, :N_QDD] = ctx.kin.jac
         b = self.desired_acceleration(ctx) - ctx.kin.jdot_qdot
         if ctx.wrench_feedforward is not None:  # J q̈ + Λ⁻¹ f_ff + J̇q̇ = ẍ_d on the IK axes
             b = b - (ctx.cart_inertia_inv @ ctx.wrench_feedforward.unsqueeze(-1)).squeeze(-1)
-        return Residual(A=A, b=b, W=ctx.W1)
+        return Residual(A=ctx.kin.jac, b=b, W=ctx.W1, col=0)
 
 
 class Admittance(Task):
@@ -127,7 +146,7 @@ class Admittance(Task):
         return mv(lam_ratio, ctx.f_ext) - ctx.f_ext - damping - mv(lam, ctx.kin.jdot_qdot)
 
     def residual(self, ctx: ControlContext) -> Residual:
-        return Residual(A=_select(ctx.batch, N_QDD, N_WRENCH, ctx.q), b=self.admittance_wrench(ctx), W=ctx.W2)
+        return Residual(A=None, b=self.admittance_wrench(ctx), W=ctx.W2, col=N_QDD)
 
 
 class ForceControl(Task):
@@ -140,7 +159,7 @@ class ForceControl(Task):
         return (ctx.D @ ctx.f_d_local.unsqueeze(-1)).squeeze(-1)
 
     def residual(self, ctx: ControlContext) -> Residual:
-        return Residual(A=_select(ctx.batch, N_QDD, N_WRENCH, ctx.q), b=self.contact_wrench(ctx), W=ctx.W3)
+        return Residual(A=None, b=self.contact_wrench(ctx), W=ctx.W3, col=N_QDD)
 
 
 class JointCentering(Task):
@@ -174,7 +193,7 @@ class JointCentering(Task):
     def residual(self, ctx: ControlContext) -> Residual:
         J = ctx.kin.jac
         W = self.epsilon * (J.transpose(-1, -2) @ ctx.W1 @ J) + self.nullspace_weight * ctx.nullspace
-        return Residual(A=_select(ctx.batch, 0, N_QDD, ctx.q), b=self.desired_acceleration(ctx), W=W)
+        return Residual(A=None, b=self.desired_acceleration(ctx), W=W, col=0)
 
 
 class CartesianAccelerationRegularizer(Task):
@@ -192,7 +211,5 @@ class CartesianAccelerationRegularizer(Task):
         self.gamma = gamma
 
     def residual(self, ctx: ControlContext) -> Residual:
-        A = ctx.q.new_zeros(ctx.batch, 6, N_VARS)
-        A[:, :, :N_QDD] = ctx.kin.jac
         eye = torch.eye(6, dtype=ctx.q.dtype, device=ctx.q.device)
-        return Residual(A=A, b=ctx.q.new_zeros(ctx.batch, 6), W=self.gamma * (eye - ctx.W1))
+        return Residual(A=ctx.kin.jac, b=ctx.q.new_zeros(ctx.batch, 6), W=self.gamma * (eye - ctx.W1), col=0)
