@@ -355,7 +355,11 @@ def _pdas(
                 # Fast exit (the warm-started control loop, or a single instance): every instance
                 # certified in the same iteration, so no bookkeeping ops at all.
                 return x_d, z_d[:, :p], zG, ok, torch.full((B,), k + 1, dtype=torch.long, device=q.device)
-            direct = bool((res <= tol_r).all())
+            # A singular working-set system (dependent rows, more rows than variables, P singular
+            # on their null space) leaves its instance uncertified.  Small batches then retry with
+            # the augmented Lagrangian, which copes with all three; large batches go on (those
+            # instances change working set or reach the interior point) rather than pay it.
+            direct = q.shape[0] > _LU_MAX_BATCH or bool((res <= tol_r).all())
             x, z = (x_d, z_d) if direct else (x, z)
         if not direct:
             # Singular or ill-conditioned KKT matrix (dependent working rows, P singular on their
@@ -538,6 +542,43 @@ def _ipm(
 # ----------------------------------------------------------------------------------------------
 
 
+_IPM_POLISH_TOL = 1e-6
+"""Complementarity at which the interior point hands its active set to the exact polish."""
+
+
+def _ipm_polished(
+    P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, sp: Tensor, sd: Tensor,
+    tol_ipm: float, tol: float, max_iter: int,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Interior point to tol_ipm, then an active-set polish to tol; returns x, y, z, status, iterations, polished."""
+    nb, n = q.shape
+    m = G.shape[1]
+    # Unit-norm rows for the interior point: one tolerance fits all rows and its Farkas test is
+    # scale-free; multipliers are scaled back below.
+    nA = A.norm(dim=-1).clamp_min(1e-30)
+    nG = G.norm(dim=-1)
+    nG = torch.where(nG > 0, nG, torch.ones((), dtype=q.dtype))
+    Gs, hs = (G / nG.unsqueeze(-1), h / nG) if m else (q.new_zeros(nb, 1, n), q.new_ones(nb, 1))
+    xi, yi, zi, si, ii = _ipm(P, q, A / nA.unsqueeze(-1), b / nA, Gs, hs, tol_ipm, max_iter)
+    yi = yi / nA
+    # Active set decided in the normalised rows, where multipliers and slacks are comparable.
+    act_ipm = zi[:, :m] > (hs - _mv(Gs, xi))[:, :m]
+    zi = zi[:, :m] / nG
+    polished = torch.zeros(nb, dtype=torch.bool, device=q.device)
+    good = (si == QPStatus.SOLVED).nonzero().squeeze(-1)
+    if good.numel():
+        # Polish: the IPM's strictly complementary active set (z > s) seeds an active-set solve,
+        # which returns the exact solution of that active set and multipliers that are zero on
+        # inactive rows (an IPM stopped at μ leaves O(√μ) errors on degenerate rows).
+        z_act = torch.where(act_ipm[good], zi[good], torch.zeros((), dtype=q.dtype)) if m else zi[good]
+        sub = [t.index_select(0, good) for t in (P, q, A, b, G, h, z_act, sp, sd)]
+        xp, yp, zp, okp, itp = _pdas(*sub, tol, 2)
+        sel = good[okp]
+        xi[sel], zi[sel], yi[sel], polished[sel] = xp[okp], zp[okp], yp[okp], True
+        ii[good] = ii[good] + itp.clamp(max=2)
+    return xi, yi, zi, si, ii, polished
+
+
 def _solve_canonical(
     P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
     tol: float, max_iter: int, active_set_iter: int,
@@ -552,32 +593,18 @@ def _solve_canonical(
     if bool(ok.all()):
         return x, y, z, torch.zeros(B, dtype=torch.long, device=q.device), iters
 
-    bad = ~ok
+    bad = ok.logical_not().nonzero().squeeze(-1)
     status = torch.zeros(B, dtype=torch.long, device=q.device)
-    Pi, qi, Ai, bi, Gi, hi = P[bad], q[bad], A[bad], b[bad], G[bad], h[bad]
-    # Unit-norm rows for the interior point: one tolerance fits all rows and its Farkas test is
-    # scale-free; multipliers are scaled back below.
-    nA = Ai.norm(dim=-1).clamp_min(1e-30)
-    nG = Gi.norm(dim=-1)
-    nG = torch.where(nG > 0, nG, torch.ones((), dtype=q.dtype))
-    Gs, hs = (Gi / nG.unsqueeze(-1), hi / nG) if m else (q.new_zeros(Gi.shape[0], 1, n), q.new_ones(Gi.shape[0], 1))
-    xi, yi, zi, si, ii = _ipm(Pi, qi, Ai / nA.unsqueeze(-1), bi / nA, Gs, hs, tol, max_iter)
-    yi = yi / nA
-    # Active set decided in the normalised rows, where multipliers and slacks are comparable.
-    act_ipm = zi[:, :m] > (hs - _mv(Gs, xi))[:, :m]
-    zi = zi[:, :m] / nG
-    if m:
-        # Polish: the IPM's strictly complementary active set (z > s) seeds one more active-set
-        # solve, which returns the exact vertex of the active set and multipliers that are zero on
-        # inactive rows (an IPM stopped at μ ≈ tol leaves O(√μ) errors on degenerate rows).
-        good = si == QPStatus.SOLVED
-        if bool(good.any()):
-            gi = good.nonzero().squeeze(-1)
-            z_act = torch.where(act_ipm[gi], zi[gi], torch.zeros((), dtype=q.dtype))
-            xp, yp, zp, okp, itp = _pdas(Pi[gi], qi[gi], Ai[gi], bi[gi], Gi[gi], hi[gi], z_act, sp[bad][gi], sd[bad][gi], tol, 2)
-            sel = gi[okp]
-            xi[sel], zi[sel], yi[sel] = xp[okp], zp[okp], yp[okp]
-            ii[gi] = ii[gi] + itp.clamp(max=2)
+    sub = [t.index_select(0, bad) for t in (P, q, A, b, G, h, sp, sd)]
+    # The IPM only has to find the active set: stopped at a looser μ, its strictly complementary
+    # set seeds the polish, which is exact.  Only where that polish fails (degenerate or weakly
+    # active rows) is the IPM rerun to the full tolerance.
+    tol_ipm = max(tol, _IPM_POLISH_TOL)
+    xi, yi, zi, si, ii, pol = _ipm_polished(*sub, tol_ipm, tol, max_iter)
+    redo = ((si == QPStatus.SOLVED) & ~pol).nonzero().squeeze(-1) if tol_ipm > tol else pol[:0].nonzero().squeeze(-1)
+    if redo.numel():
+        xr, yr, zr, sr, ir, _ = _ipm_polished(*(t.index_select(0, redo) for t in sub), tol, tol, max_iter)
+        xi[redo], yi[redo], zi[redo], si[redo], ii[redo] = xr, yr, zr, sr, ii[redo] + ir
     x[bad], y[bad], z[bad], status[bad], iters[bad] = xi, yi, zi, si, iters[bad] + ii
     # Never hand NaN/inf to the caller: a failed instance keeps a finite (if meaningless) x.
     x = torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
@@ -656,7 +683,7 @@ def solve_qp(
     warm_start: QPSolution | None = None,
     tol: float | None = None,
     max_iter: int = 50,
-    active_set_iter: int = 4,
+    active_set_iter: int = 6,
 ) -> QPSolution:
     """Solve a batch of QPs min ½xᵀPx + qᵀx s.t. Ax = b, Gx ≤ h, lb ≤ x ≤ ub (differentiable).
 
