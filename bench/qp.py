@@ -6,12 +6,14 @@ median over repeats of µs per QP for the forward solve and for forward + backwa
 Σ w·x with respect to all QP data, where the peer supports it), and the max |x − x_ref| against
 cvxpy + Clarabel (tol 1e-12).  Ratios are computed against peers measured in the same run only.
 
-    python bench/qp.py [--quick] [--threads T] [--batches 1 64 1024]
+    python bench/qp.py [--quick] [--threads T] [--batches 1 64 1024] [--spread 0.35]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import statistics
 import sys
 import time
@@ -141,6 +143,20 @@ def proxsuite_parallel(qp: RandomQP, threads: int):
     return fwd, None
 
 
+@contextlib.contextmanager
+def _quiet_c_stdout():
+    """Silence prints from C extensions (OSQP's polish messages) by pointing fd 1 at /dev/null."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    with open(os.devnull, "w") as devnull:
+        os.dup2(devnull.fileno(), 1)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 1)
+            os.close(saved)
+
+
 def osqp_solver(qp: RandomQP):
     """OSQP 1.x, one setup + solve per instance (eps 1e-9, polish), forward only."""
     import osqp
@@ -154,10 +170,11 @@ def osqp_solver(qp: RandomQP):
 
     def fwd():
         xs = np.empty((B, n))
-        for i in range(B):
-            s = osqp.OSQP()
-            s.setup(Ps[i], q[i], Gs[i], lower, h[i], eps_abs=1e-9, eps_rel=0.0, polishing=True, verbose=False, max_iter=20000)
-            xs[i] = s.solve().x
+        with _quiet_c_stdout():
+            for i in range(B):
+                s = osqp.OSQP()
+                s.setup(Ps[i], q[i], Gs[i], lower, h[i], eps_abs=1e-9, eps_rel=0.0, polishing=True, verbose=False, max_iter=20000)
+                xs[i] = s.solve().x
         return torch.as_tensor(xs)
 
     return fwd, None
@@ -218,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="a3cqp bench qp", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="B = 1, 64 only and fewer repeats")
     parser.add_argument("--batches", type=int, nargs="+", default=None, help="batch sizes (default 1 64 1024)")
-    parser.add_argument("--threads", type=int, default=None, help="torch / ProxSuite threads (default: torch's)")
+    parser.add_argument("--threads", type=int, default=1, help="torch / ProxSuite threads (default 1: on a shared 2-core box, OpenMP batch loops with 2 threads stall for ms)")
     parser.add_argument("--skip", nargs="*", default=[], help="solvers to skip (cvxpylayers qpth proxsuite osqp)")
     parser.add_argument("--spread", type=float, default=0.015, help="instance generator spread (0.35: many active rows)")
     args = parser.parse_args(argv)
