@@ -21,9 +21,11 @@ def _phase_logits(t: float) -> tuple[np.ndarray, float, np.ndarray, str]:
     push = np.zeros(3)
     if t < 1.5:  # IK: move above the table
         return np.tile(ik, (6, 1)), 0.0, push, "IK"
-    if t < 3.5:  # AC: the operator pushes the handle sideways for 1 s, the arm follows
-        if t < 2.5:
+    if t < 3.5:  # AC: the operator pushes the handle sideways for 0.3 s, then holds it back for 0.3 s
+        if t < 1.8:
             push = np.array([0.0, 10.0, 0.0])
+        elif t < 2.1:
+            push = np.array([0.0, -10.0, 0.0])
         return np.tile(ac, (6, 1)), 0.0, push, "AC"
     if t < 4.5:  # IK + JC: back to the target (JC keeps the elbow centred in the null space)
         return np.tile(ik, (6, 1)), 0.0, push, "IK+JC"
@@ -32,7 +34,7 @@ def _phase_logits(t: float) -> tuple[np.ndarray, float, np.ndarray, str]:
     return logits, 10.0, push, "FC"
 
 
-def controller_demo(seconds: float = 6.0, out: Path | None = None, tool: str = "peg") -> Path:
+def controller_demo(seconds: float = 6.0, png: Path | None = None, tool: str = "peg") -> Path:
     """Simulate one Panda switching IK -> AC -> IK+JC -> FC with smooth (C⁰) weights; write and return a PNG."""
     import matplotlib
 
@@ -108,9 +110,9 @@ def controller_demo(seconds: float = 6.0, out: Path | None = None, tool: str = "
         ax[0].text(r["t"][i] + 0.02, ax[0].get_ylim()[1] * 0.5, r["phase"][i], fontsize=9)
     fig.suptitle(f"A3CQP controller on the Panda ({tool}), {seconds:.1f} s simulated in {wall:.1f} s")
     fig.tight_layout()
-    out = out or Path(tempfile.gettempdir()) / "a3cqp_demo_controller.png"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    png = png or Path(tempfile.gettempdir()) / "a3cqp_demo_controller.png"
+    png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png, dpi=110)
     plt.close(fig)
     fc = r["phase"] == "FC"
     if fc.any():
@@ -120,7 +122,7 @@ def controller_demo(seconds: float = 6.0, out: Path | None = None, tool: str = "
     if ik.any():
         print(f"IK phase: final position error {1e3 * np.linalg.norm(r['err'][ik][-1, :3]):.3f} mm")
     print(f"simulated {seconds:.1f} s in {wall:.1f} s ({seconds / wall:.2f}x real time)")
-    return out
+    return png
 
 
 def main(argv: list[str] | None = None) -> int:
