@@ -16,21 +16,24 @@ __all__ = ["main", "controller_demo"]
 
 
 def _phase_logits(t: float) -> tuple[np.ndarray, float, np.ndarray, str]:
-    """Scripted schedule: per-axis weight logits [6, 3] (IK, AC, FC), f_d along the tool axis, push, phase name."""
+    """Scripted schedule: per-axis weight logits [6, 3] (IK, AC, FC), f_d along the tool axis, push, phase name.
+
+    The logits move toward these goals at σw = 6 per second (eq. 29 with |ẇ| = 1), so each switch takes ~1 s.
+    """
     ik, ac, fc = np.array([3.0, -3.0, -3.0]), np.array([-3.0, 3.0, -3.0]), np.array([-3.0, -3.0, 3.0])
     push = np.zeros(3)
-    if t < 1.5:  # IK: move above the table
+    if t < 1.2:  # IK: move to the target above the table
         return np.tile(ik, (6, 1)), 0.0, push, "IK"
     if t < 3.5:  # AC: the operator pushes the handle sideways for 0.3 s, then holds it back for 0.3 s
-        if t < 1.8:
+        if 2.2 <= t < 2.5:
             push = np.array([0.0, 10.0, 0.0])
-        elif t < 2.1:
+        elif 2.5 <= t < 2.8:
             push = np.array([0.0, -10.0, 0.0])
         return np.tile(ac, (6, 1)), 0.0, push, "AC"
     if t < 4.5:  # IK + JC: back to the target (JC keeps the elbow centred in the null space)
         return np.tile(ik, (6, 1)), 0.0, push, "IK+JC"
-    logits = np.tile(ik, (6, 1))  # FC on the tool axis (local z), IK on the others: press on the table
-    logits[2] = fc
+    logits = np.tile(ik, (6, 1))  # FC (with some AC damping) on the tool axis, IK on the others: press on the table
+    logits[2] = np.array([-3.0, 1.0, 3.0])
     return logits, 10.0, push, "FC"
 
 
@@ -117,7 +120,8 @@ def controller_demo(seconds: float = 6.0, png: Path | None = None, tool: str = "
     fc = r["phase"] == "FC"
     if fc.any():
         tail = r["f_env"][fc][-500:, 2]
-        print(f"FC phase: contact force {tail.mean():.2f} ± {tail.std():.2f} N (f_d = 10 N)")
+        print(f"FC phase, last 0.5 s: contact force {tail.mean():.2f} ± {tail.std():.2f} N "
+              f"(f_d = 10 N x w3 = {10 * r['w_z'][-1, 2]:.2f} N)")
     ik = r["phase"] == "IK"
     if ik.any():
         print(f"IK phase: final position error {1e3 * np.linalg.norm(r['err'][ik][-1, :3]):.3f} mm")

@@ -58,7 +58,8 @@ class SimState:
     sensor + tool subtree (includes the tool's weight)."""
     f_env: torch.Tensor
     """Environment wrench on the tool [N, 6] (N, N m about the sensor site), world frame, from the F/T reading with
-    the tool's static weight removed (its inertial forces, ~m a, are not compensated)."""
+    the tool's weight and the inertial force m a_com of the sensor + tool subtree removed (previous step's
+    acceleration; the rotational inertia term is neglected)."""
 
 
 class PandaSim:
@@ -91,6 +92,8 @@ class PandaSim:
         self._ft_body = int(self.model.site_bodyid[self.model.site("ft_site").id])
         self._ft_site = self.model.site("ft_site").id
         self._tool_mass = float(self.model.body_subtreemass[self._ft_body])
+        self._acc6 = np.zeros(6)
+        self._vel6 = np.zeros(6)
         self._sensor_adr = (self.model.sensor("ft_force").adr[0], self.model.sensor("ft_torque").adr[0])
         self.site_ids = {name: self.model.site(name).id for name in ("tcp", "handle", "ft_site", "flange")}
         self._tau_push = np.zeros((n, self.model.nv))
@@ -136,10 +139,16 @@ class PandaSim:
             self._ft[i, 3:] = d.sensordata[ta:ta + 3]
             # reading = (weight support) − (environment wrench), both on the tool subtree: remove the static part
             R = d.site_xmat[self._ft_site].reshape(3, 3)
-            weight = np.array([0.0, 0.0, self._tool_mass * -m.opt.gravity[2]])  # upward support at rest
+            # Newton on the sensor + tool subtree: F_env = m a_com − m g − F_flange (F_flange = R · reading)
+            mujoco.mj_objectAcceleration(m, d, mujoco.mjtObj.mjOBJ_BODY, self._ft_body, self._acc6, 0)
+            mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, self._ft_body, self._vel6, 0)
+            r = d.subtree_com[self._ft_body] - d.xpos[self._ft_body]
+            w, alpha = self._vel6[:3], self._acc6[:3]
+            a_com = self._acc6[3:] + np.cross(alpha, r) + np.cross(w, np.cross(w, r))
+            support = self._tool_mass * a_com  # MuJoCo's body accelerations include −g: weight support + m a
             r_com = d.subtree_com[self._ft_body] - d.site_xpos[self._ft_site]
-            self._f_env[i, :3] = weight - R @ self._ft[i, :3]
-            self._f_env[i, 3:] = -np.cross(r_com, -weight) - R @ self._ft[i, 3:]
+            self._f_env[i, :3] = support - R @ self._ft[i, :3]
+            self._f_env[i, 3:] = np.cross(r_com, support) - R @ self._ft[i, 3:]
             d.xfrc_applied[:] = 0.0
             self._tau_push[i] = 0.0
         return SimState(q=torch.from_numpy(self._q), qd=torch.from_numpy(self._qd), mass=torch.from_numpy(self._mass),
