@@ -40,10 +40,11 @@ class NormalEquations:
         return (u - self.X @ dy).squeeze(-1), dy.squeeze(-1)
 
 
-def max_step(v: Tensor, dv: Tensor) -> Tensor:
-    """Largest α ∈ [0, 1] with v + α dv ≥ 0, per instance [B]."""
-    ratio = torch.where(dv < 0, -v / dv, torch.ones((), dtype=v.dtype))
-    return ratio.amin(-1).clamp(max=1.0)
+def max_step(s: Tensor, ds: Tensor, z: Tensor, dz: Tensor) -> Tensor:
+    """Largest α ∈ [0, 1] with s + α ds ≥ 0 and z + α dz ≥ 0 (s, z > 0), per instance [B]."""
+    # α_max = 1 / max(1, max_i(−dv_i / v_i)): no masking needed since v > 0.
+    worst = (torch.cat([ds, dz], -1) / torch.cat([s, z], -1)).amin(-1)  # most negative dv / v
+    return (-worst).clamp_min(1.0).reciprocal()
 
 
 def interior_point(
@@ -57,6 +58,7 @@ def interior_point(
     scale = diag_scale(P)
     reg = (1e-10 * scale)[:, None, None] * eye
     sp, sd = residual_scales(q, b, h)
+    tol_p, tol_d = tol * sp, tol * sd
 
     # Cold start (as CVXOPT): least-squares point of the KKT system with unit weights, then shift
     # slacks and multipliers into the positive orthant.
@@ -89,7 +91,7 @@ def interior_point(
         err_p = ri.abs().amax(-1)
         if p:
             err_p = torch.maximum(err_p, rp.abs().amax(-1))
-        solved = (err_p <= tol * sp) & (rd.abs().amax(-1) <= tol * sd) & (mu <= tol * sd)
+        solved = (err_p <= tol_p) & (rd.abs().amax(-1) <= tol_d) & (mu <= tol_d)
         # Farkas certificate: z ≥ 0, Gᵀz + Aᵀy ≈ 0 and hᵀz + bᵀy < 0, relative to |hᵀz + bᵀy|, which
         # bounds the norm of any feasible point from below by 1/1e-7.
         gap = (h * z).sum(-1) + ((b * y).sum(-1) if p else 0.0)
@@ -110,7 +112,7 @@ def interior_point(
                 break
             keep = ~done
             idx, P, q, A, b, G, h, x, y, z, s, dx, Gdx = (t[keep] for t in (idx, P, q, A, b, G, h, x, y, z, s, dx, Gdx))
-            rd, ri, mu, sp, sd, scale, reg = rd[keep], ri[keep], mu[keep], sp[keep], sd[keep], scale[keep], reg[keep]
+            rd, ri, mu, tol_p, tol_d, scale, reg = rd[keep], ri[keep], mu[keep], tol_p[keep], tol_d[keep], scale[keep], reg[keep]
             if p:
                 rp = rp[keep]
         ry = -rp if p else y
@@ -125,11 +127,11 @@ def interior_point(
 
         # Predictor (affine scaling) then Mehrotra corrector with centring σ = (μ_aff / μ)³.
         dx, dy, ds, dz = direction(s * z)
-        a = torch.minimum(max_step(s, ds), max_step(z, dz)).unsqueeze(-1)
+        a = max_step(s, ds, z, dz).unsqueeze(-1)
         mu_aff = ((s + a * ds) * (z + a * dz)).sum(-1) / m
         sigma = (mu_aff / mu).clamp(0.0, 1.0) ** 3
         dx, dy, ds, dz = direction(s * z + ds * dz - (sigma * mu).unsqueeze(-1))
-        a = (0.99 * torch.minimum(max_step(s, ds), max_step(z, dz))).clamp(max=1.0).unsqueeze(-1)
+        a = (0.99 * max_step(s, ds, z, dz)).unsqueeze(-1)
         dx = a * dx
         Gdx = a * (-ri - ds)  # = G dx, from the eliminated row G dx + ds = −ri (saves a pass over G)
         x, s, z = x + dx, s + a * ds, z + a * dz
