@@ -286,7 +286,7 @@ def solve_qp(
     warm_start: QPSolution | None = None,
     tol: float | None = None,
     max_iter: int = 50,
-    active_set_iter: int = 6,
+    active_set_iter: int | None = None,
 ) -> QPSolution:
     """Solve a batch of QPs min ½xᵀPx + qᵀx s.t. Ax = b, Gx ≤ h, lb ≤ x ≤ ub (differentiable).
 
@@ -300,7 +300,9 @@ def solve_qp(
         tol: absolute tolerance on residuals and complementarity, relative to 1 + |data|;
             default 1e-9 in float64, 1e-5 in float32.
         max_iter: interior-point iteration budget for instances the active-set stage leaves.
-        active_set_iter: primal-dual active-set iterations tried before the interior point.
+        active_set_iter: primal-dual active-set iterations tried before the interior point; default
+            15 for B ≤ 32 (an active-set iteration costs ~1/3 of an interior-point one there) and
+            10 above (measured best on heavily constrained batches).
 
     Any argument may also be given unbatched (without the leading B) to share it across the batch.
     Gradients flow to every tensor argument through x (implicit differentiation of the KKT system).
@@ -347,6 +349,8 @@ def solve_qp(
             if z_warm.shape != h_all.shape:
                 raise QPShapeError(f"warm_start duals have shape {tuple(z_warm.shape)}, expected {tuple(h_all.shape)}")
 
+    if active_set_iter is None:
+        active_set_iter = 15 if batch <= LU_MAX_BATCH else 10
     solver_args = (z_warm, float(tol), int(max_iter), int(active_set_iter))
     if torch.is_grad_enabled() and any(t.requires_grad for t in (P, q, A, b, G_all, h_all)):
         x, y, z_all, status, iters = _QPFunction.apply(P, q, A, b, G_all, h_all, *solver_args)
