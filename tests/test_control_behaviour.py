@@ -277,3 +277,21 @@ def test_non_finite_inputs_fall_back_without_nan() -> None:
     assert out.status.tolist() == [-1, 0] and out.fallback.tolist() == [True, False]
     assert torch.isfinite(out.tau).all()
     assert torch.allclose(out.tau[0], s.bias[0], atol=1e-9)  # at rest: brake = 0, pure gravity compensation
+
+
+def test_solver_exception_falls_back_for_all_robots(monkeypatch: pytest.MonkeyPatch,
+                                                    caplog: pytest.LogCaptureFixture) -> None:
+    import a3cqp_rl.control.controller as controller_module
+
+    def broken(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise IndexError("solver bug")
+
+    n = 2
+    sim, ctrl = PandaSim(n), A3CQPController(n)
+    pos0, rot0 = home_reference(ctrl, n)
+    s = sim.observe()
+    monkeypatch.setattr(controller_module, "solve_qp", broken)
+    with caplog.at_level(logging.ERROR, logger="a3cqp_rl.control.controller"):
+        out = ctrl.step(s.q, s.qd, s.mass, s.bias, task_weights(n, [IK] * 6), torch.zeros(n, 6, dtype=F64), pos0, rot0)
+    assert out.status.tolist() == [controller_module.SOLVER_ERROR] * n and bool(out.fallback.all())
+    assert "solve_qp raised" in caplog.text and torch.isfinite(out.tau).all()

@@ -20,12 +20,15 @@ from a3cqp_rl.qp import QPSolution, solve_qp
 from a3cqp_rl.robot.kinematics import PandaModel
 from a3cqp_rl.robot.specs import PANDA_HOME, PANDA_LIMITS, PandaLimits
 
-__all__ = ["ControllerOptions", "ControlOutput", "A3CQPController", "wrench_from_joint_torques", "INVALID_INPUT"]
+__all__ = ["ControllerOptions", "ControlOutput", "A3CQPController", "wrench_from_joint_torques", "INVALID_INPUT",
+           "SOLVER_ERROR"]
 
 logger = logging.getLogger(__name__)
 
 INVALID_INPUT = -1
 """`ControlOutput.status` code of a robot whose inputs (state, B(q), references) were not finite."""
+SOLVER_ERROR = -2
+"""`ControlOutput.status` code when solve_qp raised instead of returning (every robot of the batch falls back)."""
 
 
 @dataclass
@@ -325,10 +328,17 @@ class A3CQPController:
         ctx = self.build_context(q, qd, mass, weights, f_d, pos_d, rot_d, f_ext, in_contact)
         P, c, G, h = self.build_qp(ctx)
         warm = self._warm if self._warm is not None and self._warm.z.shape == (n, G.shape[1]) else None
-        sol = solve_qp(P, c, G=G, h=h, warm_start=warm, max_iter=self.options.qp_max_iter)
-        self._warm = sol
-        x = sol.x
-        ok = (sol.status == 0) & valid & torch.isfinite(x).all(-1)
+        try:
+            sol = solve_qp(P, c, G=G, h=h, warm_start=warm, max_iter=self.options.qp_max_iter)
+            x, qp_status, iterations = sol.x, sol.status, sol.iterations
+            self._warm = sol
+        except Exception:  # a solver bug must not take the arms down: brake every robot and say so loudly
+            logger.exception("A3CQP: solve_qp raised; every robot of the batch falls back")
+            x = P.new_zeros(n, N_VARS)
+            qp_status = torch.full((n,), SOLVER_ERROR, dtype=torch.long)
+            iterations = torch.zeros(n, dtype=torch.long)
+            self._warm = None
+        ok = (qp_status == 0) & valid & torch.isfinite(x).all(-1)
         qdd, f = x[:, :N_QDD], x[:, N_QDD:]
 
         # eq. 6-7: integrate the desired joint state; eq. 5: feedback acceleration; eq. 4: torque
@@ -352,7 +362,7 @@ class A3CQPController:
             bad = (~ok).nonzero().flatten().tolist()
             self.fallback_count += len(bad)
             logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s, valid input %s",
-                           bad, sol.status[~ok].tolist(), valid[~ok].tolist())
+                           bad, qp_status[~ok].tolist(), valid[~ok].tolist())
             self._warm = None
 
         # relax q*, q̇* toward the measured state where IK is off (ControllerOptions.desired_state_leak)
@@ -364,9 +374,9 @@ class A3CQPController:
         tau_max = self.tau_max.to(tau)
         saturated = (tau.abs() > tau_max).any(-1)
         tau = torch.nan_to_num(torch.maximum(torch.minimum(tau, tau_max), -tau_max), nan=0.0)
-        status = torch.where(valid, sol.status, torch.full_like(sol.status, INVALID_INPUT))
+        status = torch.where(valid, qp_status, torch.full_like(qp_status, INVALID_INPUT))
         f_adm = self.residuals["ac"].b if "ac" in self.residuals else torch.zeros_like(f)
         f_ctc = self.residuals["fc"].b if "fc" in self.residuals else torch.zeros_like(f)
         return ControlOutput(tau=tau, qdd=qdd, wrench=f, qdd_pd=qdd_pd, pose_error=ctx.pose_error, f_adm=f_adm,
                              f_ctc=f_ctc, status=status, fallback=~ok, saturated=saturated,
-                             iterations=sol.iterations)
+                             iterations=iterations)
