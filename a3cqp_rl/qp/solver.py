@@ -10,8 +10,9 @@ The controller solves one small QP (n ≈ 13, m ≈ 30-40 rows) per robot every 
 solution from the previous millisecond at hand, and training solves thousands at once.  In eager
 torch every op costs a few µs whatever its size, so at B = 1 the *number of ops* decides latency;
 at B = 1024 the passes over the [B, m, n] constraint data and the batched factorisations decide
-throughput.  Measured here: an interior-point (IPM) iteration is ~60 ops (~250 µs at B = 1) and
-one full pass of P + Gᵀ D G costs ~1 ms at B = 1024; a cold IPM needs 8-20 iterations.  So the
+throughput.  Measured here: an interior-point (IPM) iteration is ~150 torch calls (0.5-0.9 ms at
+B = 1 on the shared 2-core box) and forming P + Gᵀ D G costs ~1 ms at B = 1024; a cold IPM needs
+7-20 iterations, while an active-set iteration is ~40 calls.  So the
 solver works in two stages, each vectorised over the batch:
 
 1. **Primal-dual active set (PDAS: semismooth Newton on min(z, h − Gx) = 0)**, from the warm
@@ -26,7 +27,8 @@ solver works in two stages, each vectorised over the batch:
    working set, primal feasibility of every row and non-negative multipliers, all within tol), so
    this stage never returns a wrong answer.  Warm-started in the control loop the active set
    rarely changes and one PDAS iteration solves the QP; cold, W = ∅ already solves every instance
-   whose unconstrained optimum is feasible, and 1-4 iterations the rest of our test families.
+   whose unconstrained optimum is feasible; the controller-like test family needs 1-4 iterations,
+   heavily constrained instances (5-10 active rows) 5-15 or the IPM.
 2. **Mehrotra predictor-corrector IPM** for the instances the active-set stage did not certify
    within `active_set_iter` iterations (15 for B ≤ 32, 10 above) (cycling, many active-set changes, infeasible or unbounded
    problems).  It factors P + Gᵀ(z/s)G (+ρAᵀA with a p × p Schur complement for equalities) by
