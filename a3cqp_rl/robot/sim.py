@@ -92,8 +92,10 @@ class PandaSim:
         self._ft_body = int(self.model.site_bodyid[self.model.site("ft_site").id])
         self._ft_site = self.model.site("ft_site").id
         self._tool_mass = float(self.model.body_subtreemass[self._ft_body])
-        self._acc6 = np.zeros(6)
-        self._vel6 = np.zeros(6)
+        self._root_body = int(self.model.body_rootid[self._ft_body])
+        self._R = np.zeros((n, 3, 3))
+        self._site_pos, self._com, self._root_com = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+        self._cacc, self._cvel = np.zeros((n, 6)), np.zeros((n, 6))
         self._sensor_adr = (self.model.sensor("ft_force").adr[0], self.model.sensor("ft_torque").adr[0])
         self.site_ids = {name: self.model.site(name).id for name in ("tcp", "handle", "ft_site", "flange")}
         self._tau_push = np.zeros((n, self.model.nv))
@@ -137,23 +139,35 @@ class PandaSim:
             self._qd[i] = d.qvel[:7]
             self._ft[i, :3] = d.sensordata[fa:fa + 3]
             self._ft[i, 3:] = d.sensordata[ta:ta + 3]
-            # reading = (weight support) − (environment wrench), both on the tool subtree: remove the static part
-            R = d.site_xmat[self._ft_site].reshape(3, 3)
-            # Newton on the sensor + tool subtree: F_env = m a_com − m g − F_flange (F_flange = R · reading)
-            mujoco.mj_objectAcceleration(m, d, mujoco.mjtObj.mjOBJ_BODY, self._ft_body, self._acc6, 0)
-            mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_BODY, self._ft_body, self._vel6, 0)
-            r = d.subtree_com[self._ft_body] - d.xpos[self._ft_body]
-            w, alpha = self._vel6[:3], self._acc6[:3]
-            a_com = self._acc6[3:] + np.cross(alpha, r) + np.cross(w, np.cross(w, r))
-            support = self._tool_mass * a_com  # MuJoCo's body accelerations include −g: weight support + m a
-            r_com = d.subtree_com[self._ft_body] - d.site_xpos[self._ft_site]
-            self._f_env[i, :3] = support - R @ self._ft[i, :3]
-            self._f_env[i, 3:] = np.cross(r_com, support) - R @ self._ft[i, 3:]
+            b = self._ft_body
+            self._R[i] = d.site_xmat[self._ft_site].reshape(3, 3)
+            self._site_pos[i] = d.site_xpos[self._ft_site]
+            self._com[i] = d.subtree_com[b]
+            self._root_com[i] = d.subtree_com[self._root_body]
+            self._cacc[i] = d.cacc[b]
+            self._cvel[i] = d.cvel[b]
             d.xfrc_applied[:] = 0.0
             self._tau_push[i] = 0.0
+        self._update_f_env()
         return SimState(q=torch.from_numpy(self._q), qd=torch.from_numpy(self._qd), mass=torch.from_numpy(self._mass),
                         bias=torch.from_numpy(self._bias), tau_ext=torch.from_numpy(self._tau_ext),
                         ft=torch.from_numpy(self._ft), f_env=torch.from_numpy(self._f_env))
+
+    def _update_f_env(self) -> None:
+        """Environment wrench on the tool from the F/T reading, batched over arms (see SimState.f_env).
+
+        Newton on the sensor + tool subtree: F_env = m a_com − m g − R·reading. MuJoCo's com-based body
+        acceleration cacc (rot, lin; at the tree's centre of mass c, gravity included as −g) gives the material
+        acceleration of the subtree's centre of mass p as lin + α × (p − c) + ω × v_p (as mj_objectAcceleration).
+        """
+        r = self._com - self._root_com  # (N, 3)
+        w, v = self._cvel[:, :3], self._cvel[:, 3:] + np.cross(self._cvel[:, :3], r)
+        a_com = self._cacc[:, 3:] + np.cross(self._cacc[:, :3], r) + np.cross(w, v)
+        support = self._tool_mass * a_com  # weight support + m a
+        force_flange = np.einsum("nij,nj->ni", self._R, self._ft[:, :3])
+        torque_flange = np.einsum("nij,nj->ni", self._R, self._ft[:, 3:])
+        self._f_env[:, :3] = support - force_flange
+        self._f_env[:, 3:] = np.cross(self._com - self._site_pos, support) - torque_flange
 
     def push(self, force_world: np.ndarray | torch.Tensor, site: str = "handle",
              torque_world: np.ndarray | torch.Tensor | None = None) -> None:
