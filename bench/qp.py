@@ -2,7 +2,8 @@
 
 Instances: `random_qp_batch` (n = 13 variables, m = 30 inequality rows, the controller's size;
 30-50 % of instances have active constraints).  For every solver and batch size B it prints the
-median over repeats of µs per QP for the forward solve and for forward + backward (gradient of
+median over repeats (timed round-robin across solvers, so load changes on a shared machine hit
+all of them alike) of µs per QP for the forward solve and for forward + backward (gradient of
 Σ w·x with respect to all QP data, where the peer supports it), and the max |x − x_ref| against
 cvxpy + Clarabel (tol 1e-12).  Ratios are computed against peers measured in the same run only.
 
@@ -39,17 +40,6 @@ class Row:
     fwd_bwd_us: float | None = None
     max_err: float | None = None
     notes: list[str] = field(default_factory=list)
-
-
-def _median_us(fn: Callable[[], object], repeats: int, batch: int) -> float:
-    """Median wall time of fn() over `repeats` runs after one warm-up, in µs per QP."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times) / batch * 1e6
 
 
 def _weights(qp: RandomQP) -> torch.Tensor:
@@ -208,22 +198,39 @@ def cvxpylayers_solver(qp: RandomQP):
 # ------------------------------------------------------------------------------------------------
 
 
-def _run(name: str, make: Callable, qp: RandomQP, x_ref: torch.Tensor, repeats: int, bwd: bool) -> Row:
-    """Time one solver on one batch; failures are reported, not raised."""
-    B = qp.q.shape[0]
-    row = Row(name, B)
+def _prepare(name: str, make: Callable, qp: RandomQP, x_ref: torch.Tensor) -> tuple[Row, Callable | None, Callable | None]:
+    """Build one solver's closures, run it once (warm-up) and record its accuracy; failures are noted."""
+    row = Row(name, qp.q.shape[0])
     try:
         fwd, fwd_bwd = make(qp)
         x = fwd()
         row.max_err = float((x.detach().double() - x_ref).abs().nan_to_num(nan=float("inf")).max())
-        row.fwd_us = _median_us(fwd, repeats, B)
-        if fwd_bwd is not None and bwd:
-            row.fwd_bwd_us = _median_us(fwd_bwd, repeats, B)
+        if fwd_bwd is not None:
+            fwd_bwd()
+        return row, fwd, fwd_bwd
     except ImportError as exc:
         row.notes.append(f"skipped: not installed ({exc.name})")
     except Exception as exc:  # a peer failing must not stop the benchmark
         row.notes.append(f"failed: {type(exc).__name__}: {str(exc)[:120]}")
-    return row
+    return row, None, None
+
+
+def _time_interleaved(jobs: list[tuple[Row, Callable | None, Callable | None, int]]) -> None:
+    """Median µs/QP of every solver, timed round-robin so load changes hit all solvers alike."""
+    samples: dict[tuple[int, str], list[float]] = {}
+    for rep in range(max(j[3] for j in jobs)):
+        for k, (row, fwd, fwd_bwd, repeats) in enumerate(jobs):
+            if rep >= repeats:
+                continue
+            for kind, fn in (("fwd", fwd), ("fwd_bwd", fwd_bwd)):
+                if fn is None:
+                    continue
+                t0 = time.perf_counter()
+                fn()
+                samples.setdefault((k, kind), []).append((time.perf_counter() - t0) / row.batch * 1e6)
+    for k, (row, *_rest) in enumerate(jobs):
+        row.fwd_us = statistics.median(samples[(k, "fwd")]) if (k, "fwd") in samples else None
+        row.fwd_bwd_us = statistics.median(samples[(k, "fwd_bwd")]) if (k, "fwd_bwd") in samples else None
 
 
 def _fmt(v: float | None, spec: str) -> str:
@@ -260,17 +267,21 @@ def main(argv: list[str] | None = None) -> int:
         x_ref, statuses = clarabel_reference(qp)
         n_active = int((((qp.G @ x_ref.unsqueeze(-1)).squeeze(-1) - qp.h) > -1e-7).any(-1).sum())
         print(f"\nB={B}: {n_active}/{B} instances with active constraints; Clarabel statuses {sorted(set(statuses))}", flush=True)
+        jobs = []
         for name, make, key in peers:
             if key in args.skip:
                 continue
             slow = key in ("cvxpylayers", "osqp")
-            repeats = (3 if args.quick else 9) if B <= 64 else (3 if not slow else 1)
             if slow and B >= 1024 and args.quick:
                 continue
-            row = _run(name, make, qp, x_ref, repeats, bwd=True)
+            repeats = (3 if args.quick else 9) if B <= 64 else (3 if not slow else 1)
+            row, fwd, fwd_bwd = _prepare(name, make, qp, x_ref)
+            jobs.append((row, fwd, fwd_bwd, repeats))
+        _time_interleaved(jobs)
+        for row, *_rest in jobs:
             rows.append(row)
             print(
-                f"  {name:24s} fwd {_fmt(row.fwd_us, '10.1f')} µs/QP   fwd+bwd {_fmt(row.fwd_bwd_us, '10.1f')} µs/QP"
+                f"  {row.solver:24s} fwd {_fmt(row.fwd_us, '10.1f')} µs/QP   fwd+bwd {_fmt(row.fwd_bwd_us, '10.1f')} µs/QP"
                 f"   max|x-x_ref| {_fmt(row.max_err, '.1e')}  {' '.join(row.notes)}",
                 flush=True,
             )
