@@ -279,3 +279,19 @@ def test_wide_sweep_against_clarabel(n: int, m: int, p: int, bounds: bool, sprea
         assert set(statuses) == {"optimal"}
         assert bool(sol.solved.all())
         assert (sol.x - x_ref).abs().max().item() <= 1e-6
+
+
+def test_interior_point_batch_mixing_infeasible_and_hard_feasible_instances() -> None:
+    # Regression: the polish after the interior point must index the feasible subset correctly
+    # when other instances of the same IPM batch are infeasible (seen in the controller's
+    # fallback test).  One active-set iteration forces the hard instances through the IPM.
+    qp = random_qp_batch(5, n=6, m=12, spread=0.5, seed=41)
+    G, h = qp.G.clone(), qp.h.clone()
+    G[2, 0], h[2, 0] = torch.eye(6, dtype=DT)[0], -1.0
+    G[2, 1], h[2, 1] = -torch.eye(6, dtype=DT)[0], -1.0
+    sol = solve_qp(qp.P, qp.q, G=G, h=h, active_set_iter=1)
+    ref = solve_qp(qp.P, qp.q, G=G, h=h)
+    others = torch.tensor([0, 1, 3, 4])
+    assert sol.status[2] == QPStatus.PRIMAL_INFEASIBLE
+    assert (sol.status[others] == QPStatus.SOLVED).all() and (sol.iterations[others] > 1).any()
+    assert (sol.x[others] - ref.x[others]).abs().max() < 1e-8

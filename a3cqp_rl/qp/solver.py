@@ -178,7 +178,7 @@ def _ipm_polished(
         # Polish: the IPM's strictly complementary active set (z > s) seeds an active-set solve,
         # which returns the exact solution of that active set and multipliers that are zero on
         # inactive rows (an IPM stopped at μ leaves O(√μ) errors on degenerate rows).
-        z_act = torch.where(act_ipm[good], zi[good], torch.zeros((), dtype=q.dtype)) if m else zi[good]
+        z_act = torch.where(act_ipm, zi, torch.zeros((), dtype=q.dtype)) if m else zi
         sub = [t.index_select(0, good) for t in (P, q, A, b, G, h, z_act, sp, sd)]
         xp, yp, zp, okp, itp = active_set_stage(*sub, tol, 2)
         sel = good[okp]
