@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cvxpy as cp
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from a3cqp_rl.control import FrictionPyramid, JointLimitsViability, WrenchBox, joint_acceleration_bounds
+from a3cqp_rl.control import FrictionPyramid, JointLimitsViability, TorqueLimits, WrenchBox, joint_acceleration_bounds
 from a3cqp_rl.control.exceptions import InvalidGainError
 from a3cqp_rl.qp import solve_qp
 from test_control_tasks import B, make_context, mv
@@ -164,3 +165,16 @@ def test_stacked_qp_matches_cvxpy_clarabel() -> None:
         np.testing.assert_allclose(x, ref, atol=1e-4 * (1 + np.abs(ref).max()))
         active += int((G[i].numpy() @ ref - h[i].numpy() > -1e-7).sum())
     assert active > 0  # some limits bind in these random instances, so the inequality handling is exercised
+
+
+def test_torque_limit_rows_match_the_torque_law_eq4() -> None:
+    ctrl, ctx = make_context(seed=18)
+    bias = torch.randn(B, 7, generator=torch.Generator().manual_seed(19), dtype=torch.float64)
+    ctx = dataclasses.replace(ctx, bias=bias)
+    rows = TorqueLimits(torch.tensor([87.0] * 4 + [12.0] * 3, dtype=torch.float64), scale=1.0).rows(ctx)
+    x = torch.randn(B, 13, generator=torch.Generator().manual_seed(20), dtype=torch.float64)
+    qdd, f = x[:, :7], x[:, 7:]
+    qdd_pd = ctx.qdd_pd0 + mv(ctx.pd_qdd_gain, qdd)  # eq. 5 with q*, q̇* from eq. 6-7
+    tau = mv(ctx.mass, qdd + qdd_pd) + mv(ctx.kin.jac.transpose(-1, -2), f) + bias  # eq. 4
+    lim = torch.tensor([87.0] * 4 + [12.0] * 3, dtype=torch.float64)
+    assert torch.allclose(mv(rows.G, x) - rows.h, torch.cat([tau - lim, -tau - lim], dim=1), atol=1e-8)

@@ -3,12 +3,13 @@
 from a3cqp_rl.control.context import N_QDD, N_VARS, N_WRENCH, ControlContext
 from a3cqp_rl.control.controller import (A3CQPController, ControllerOptions, ControlOutput,
                                          wrench_from_joint_torques)
-from a3cqp_rl.control.limits import (FrictionPyramid, Inequality, JointLimitsViability, Limit, WrenchBox,
+from a3cqp_rl.control.limits import (FrictionPyramid, Inequality, JointLimitsViability, Limit, TorqueLimits,
+                                     WrenchBox,
                                      joint_acceleration_bounds)
 from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer, CartesianIK, ForceControl,
                                     JointCentering, Residual, Task)
 
 __all__ = ["N_QDD", "N_VARS", "N_WRENCH", "ControlContext", "A3CQPController", "ControllerOptions", "ControlOutput",
            "wrench_from_joint_torques", "FrictionPyramid", "Inequality", "JointLimitsViability", "Limit", "WrenchBox",
-           "joint_acceleration_bounds", "Admittance", "CartesianAccelerationRegularizer", "CartesianIK", "ForceControl", "JointCentering", "Residual",
+           "joint_acceleration_bounds", "TorqueLimits", "Admittance", "CartesianAccelerationRegularizer", "CartesianIK", "ForceControl", "JointCentering", "Residual",
            "Task"]

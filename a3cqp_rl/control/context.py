@@ -64,6 +64,8 @@ class ControlContext:
     """P W1 J [B, 7, 7] of eq. 5 (P = Jᵀ as printed, or J⁺; see ControllerOptions.pd_projection)."""
     dt: float
     """Control period Δt [s]."""
+    bias: torch.Tensor | None = None
+    """h + g [B, 7] (N m), for the torque limits (None when the caller did not provide it)."""
     wrench_feedforward: torch.Tensor | None = None
     """Wrench the AC/FC tasks are expected to command [B, 6] (N, N m) (set by the controller; None = 0): the IK task
     can subtract its acceleration Λ⁻¹ f so that AC/FC on some axes do not drag the IK axes (Λ⁻¹ couples them)."""

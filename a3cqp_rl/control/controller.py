@@ -13,7 +13,8 @@ from a3cqp_rl.config import ControllerConfig
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import ControlShapeError, InvalidGainError
 from a3cqp_rl.control.frames import block_rotation, pose_error, weights_to_world
-from a3cqp_rl.control.limits import FrictionPyramid, Inequality, JointLimitsViability, Limit, WrenchBox
+from a3cqp_rl.control.limits import (FrictionPyramid, Inequality, JointLimitsViability, Limit, TorqueLimits,
+                                     WrenchBox)
 from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer, CartesianIK, ForceControl,
                                     JointCentering, Residual, Task)
 from a3cqp_rl.qp import QPSolution, solve_qp
@@ -67,6 +68,8 @@ class ControllerOptions:
     """[rad/s] velocity limits are tightened by this much."""
     limit_horizon_steps: float = 2.0
     """Horizon of the viability bounds in control periods (TSID uses 2)."""
+    torque_limits: bool = True
+    """Add |τ| ≤ 0.98 τ_max rows (TorqueLimits; not in the paper) so the QP never asks for unrealisable torques."""
     contact_force_threshold: float = 1.0
     """[N] measured contact force above which the friction pyramid is active."""
     brake_gain: float = 20.0
@@ -163,7 +166,10 @@ class A3CQPController:
                                                  horizon_steps=opt.limit_horizon_steps, target=opt.joint_limit_target,
                                                  include_f_ext=opt.joint_limits_include_f_ext)
         self.limits: list[Limit] = [self.joint_limits, WrenchBox(cfg.force_limit, cfg.torque_limit),
-                                    FrictionPyramid(cfg.mu)] + list(extra_limits or [])
+                                    FrictionPyramid(cfg.mu)]
+        if opt.torque_limits:
+            self.limits.append(TorqueLimits(lim["tau_max"]))
+        self.limits += list(extra_limits or [])
         self.f_d_max = getattr(cfg, "f_d_max", 20.0)
         self.q_des: torch.Tensor | None = None  # q*, eq. 7 [N, 7]
         self.qd_des: torch.Tensor | None = None  # q̇*, eq. 6 [N, 7]
@@ -192,7 +198,7 @@ class A3CQPController:
 
     def build_context(self, q: torch.Tensor, qd: torch.Tensor, mass: torch.Tensor, weights: torch.Tensor,
                       f_d: torch.Tensor, pos_d: torch.Tensor, rot_d: torch.Tensor, f_ext: torch.Tensor,
-                      in_contact: torch.Tensor) -> ControlContext:
+                      in_contact: torch.Tensor, bias: torch.Tensor | None = None) -> ControlContext:
         """All per-step matrices the tasks and limits need (one kinematics pass, one Cholesky of B)."""
         opt, cfg, dt = self.options, self.config, self.dt
         kin = self.model.kinematics(q, qd)
@@ -216,7 +222,7 @@ class A3CQPController:
             pose_error=pose_error(pos_d, rot_d, kin.pos, kin.rot), f_ext=f_ext,
             f_d_local=f_d.clamp(0.0, self.f_d_max), in_contact=in_contact,
             qdd_pd0=_mv(pd, cfg.cv * dv0 + cfg.cp * dq0), pd_qdd_gain=(cfg.cv * dt + cfg.cp * dt * dt / 2) * pd,
-            nullspace=torch.eye(N_QDD, dtype=q.dtype, device=q.device) - jpinv @ J, pd_matrix=pd, dt=dt)
+            nullspace=torch.eye(N_QDD, dtype=q.dtype, device=q.device) - jpinv @ J, pd_matrix=pd, dt=dt, bias=bias)
         return ctx
 
     def wrench_feedforward(self, ctx: ControlContext, residuals: dict[str, Residual] | None = None) -> torch.Tensor:
@@ -325,7 +331,7 @@ class A3CQPController:
             weights, f_d, f_ext = keep(weights, 1.0 / 3.0), keep(f_d, 0.0), keep(f_ext, 0.0)
             pos_d, rot_d = keep(pos_d, 0.0), keep(rot_d, eye7[:, :3, :3])
 
-        ctx = self.build_context(q, qd, mass, weights, f_d, pos_d, rot_d, f_ext, in_contact)
+        ctx = self.build_context(q, qd, mass, weights, f_d, pos_d, rot_d, f_ext, in_contact, bias)
         P, c, G, h = self.build_qp(ctx)
         warm = self._warm if self._warm is not None and self._warm.z.shape == (n, G.shape[1]) else None
         try:

@@ -13,7 +13,8 @@ import torch
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import InvalidGainError
 
-__all__ = ["Inequality", "Limit", "JointLimitsViability", "WrenchBox", "FrictionPyramid", "joint_acceleration_bounds"]
+__all__ = ["Inequality", "Limit", "JointLimitsViability", "WrenchBox", "FrictionPyramid", "TorqueLimits",
+           "joint_acceleration_bounds"]
 
 _BIG = 1e10
 
@@ -221,3 +222,31 @@ class FrictionPyramid(Limit):
         G[:, :, N_QDD:N_QDD + 3] = active * (self.U.to(ctx.q) @ R.transpose(-1, -2))  # U Rᵀ f_world
         h = (1.0 - active.view(B, 1)).expand(B, 4).clone()
         return Inequality(G=G, h=h)
+
+
+class TorqueLimits(Limit):
+    """|τ| ≤ τ_max for the torque law τ = B(q̈* + q̈_pd) + Jᵀf + h + g (eq. 4), linear in x = (q̈*, f).
+
+    Not in the paper's QP: without it, fast random weight switching can command accelerations the motors cannot
+    deliver (87 / 12 N m); the clipped torque then brakes too little and a joint overshoots its velocity limit.
+    Rows: ±(B(I + ∂q̈_pd/∂q̈*) q̈* + Jᵀ f) ≤ τ_max ∓ (B q̈_pd0 + h + g).
+    """
+
+    name = "torque_limits"
+
+    def __init__(self, tau_max: torch.Tensor, scale: float = 0.98) -> None:
+        if not 0.0 < scale <= 1.0:
+            raise InvalidGainError(f"scale must be in (0, 1], got {scale!r}")
+        self.tau_max = scale * torch.as_tensor(tau_max, dtype=torch.float64)
+
+    def rows(self, ctx: ControlContext) -> Inequality:
+        B = ctx.batch
+        eye = torch.eye(N_QDD, dtype=ctx.q.dtype, device=ctx.q.device)
+        M = ctx.q.new_zeros(B, N_QDD, N_VARS)
+        M[:, :, :N_QDD] = ctx.mass @ (eye + ctx.pd_qdd_gain)
+        M[:, :, N_QDD:] = ctx.kin.jac.transpose(-1, -2)
+        offset = (ctx.mass @ ctx.qdd_pd0.unsqueeze(-1)).squeeze(-1)
+        if ctx.bias is not None:
+            offset = offset + ctx.bias
+        lim = self.tau_max.to(ctx.q).expand(B, N_QDD)
+        return Inequality(G=torch.cat([M, -M], dim=1), h=torch.cat([lim - offset, lim + offset], dim=1))
