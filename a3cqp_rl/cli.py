@@ -1,4 +1,4 @@
-"""`a3cqp` command line: train | plot | evaluate | demo | bench.
+"""`a3cqp` command line: train | plot | demo | bench.
 
 Each sub-command lazily imports its module so `a3cqp --help` stays fast.
 """

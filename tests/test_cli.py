@@ -1,0 +1,37 @@
+"""`a3cqp train` end to end: files, plots, resume, seed sweeps and clear errors."""
+
+from pathlib import Path
+
+from a3cqp_rl.cli import main
+
+CONFIG = str(Path(__file__).parents[1] / "configs" / "point_mass_a2c.yaml")
+
+
+def test_train_writes_results_and_plots_then_resumes(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["train", "--config", CONFIG, "--steps", "320", "--no-compile", "--quiet", "--out", str(out)]) == 0
+    for name in ("policy.pt", "checkpoint.pt", "metrics.csv", "policy_map.png", "loss_curves.png"):
+        assert (out / name).is_file(), name
+    assert str(out) in capsys.readouterr().out  # tells the user where results went
+    assert main(["train", "--config", CONFIG, "--steps", "640", "--no-compile", "--quiet", "--no-plots",
+                 "--out", str(out), "--resume"]) == 0
+    assert "640" in capsys.readouterr().out
+
+
+def test_seed_sweep_makes_one_folder_per_seed(tmp_path):
+    out = tmp_path / "sweep"
+    assert main(["train", "--config", CONFIG, "--steps", "160", "--no-compile", "--quiet", "--seeds", "0-1",
+                 "--out", str(out)]) == 0
+    assert (out / "seed_0" / "policy.pt").is_file() and (out / "seed_1" / "policy.pt").is_file()
+    assert (out / "loss_curves.png").is_file()
+
+
+def test_clear_errors(tmp_path, capsys):
+    assert main(["train", "--config", str(tmp_path / "missing.yaml")]) == 2
+    assert "not found" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("a2c: {learning_rate: -1}\n")
+    assert main(["train", "--config", str(bad)]) == 2
+    assert "a2c.learning_rate" in capsys.readouterr().err
+    assert main(["train", "--config", CONFIG, "--out", str(tmp_path / "none"), "--resume", "--no-compile"]) == 2
+    assert "checkpoint not found" in capsys.readouterr().err
