@@ -310,12 +310,17 @@ def train(
     compile_s = 0.0
     t_start = time.perf_counter()
     last: dict[str, float] = {}
+    if hp.compile and start < num_updates:
+        bar.set_description("A2C (compiling the step, one-time)")
     for u in range(start, num_updates):
         t0 = time.perf_counter()
         metric_sum += runner.iterate(flat, square_avg)
         metric_count += 1
         if u == start and hp.compile:  # the first iteration pays for torch.compile
             compile_s = time.perf_counter() - t0
+            bar.set_description("A2C")
+            bar.reset(total=num_updates * per_update)  # restart the rate estimate after compiling
+            bar.update(start * per_update)
         done_updates = u + 1
         boundary = done_updates % hp.log_every == 0
         if boundary or done_updates == num_updates:

@@ -81,8 +81,9 @@ def main(argv: list[str] | None = None) -> int:
             for d in run_dirs:
                 plot_policy_map(d / "policy.pt", d / "policy_map.png")
             plot_loss_curves(run_dirs, out / "loss_curves.png")
+        maps = f"{out}/policy_map.png" if args.seeds is None else f"{out}/seed_*/policy_map.png"
         print(f"results in {out}/: policy.pt (load with algorithms.a2c.load_policy), checkpoint.pt, metrics.csv"
-              + ("" if args.no_plots else f", plots {out}/loss_curves.png and <run>/policy_map.png"))
+              + ("" if args.no_plots else f"; plots {out}/loss_curves.png and {maps}"))
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
