@@ -306,6 +306,9 @@ class ExperimentConfig:
     def _check(self, err: _Errors) -> None:
         if self.env not in ("point_mass",):
             err.add("env", f"unknown environment {self.env!r}; choose from ['point_mass']")
+        if self.point_mass.episode_steps < self.a2c.n_steps:
+            # fused rollouts draw one pending episode per env per iteration
+            err.add("point_mass.episode_steps", f"must be >= a2c.n_steps ({self.a2c.n_steps}), got {self.point_mass.episode_steps}")
 
 
 # --------------------------------------------------------------------------------------------

@@ -102,16 +102,22 @@ def _sample_action(layout: ParamLayout, flat: Tensor, obs: Tensor, noise: Tensor
     return policy_mean(layout, flat, obs) + torch.exp(layout.views(flat)["log_std"]) * noise
 
 
+def rollout_step(layout: ParamLayout, env_step, flat: Tensor, state: dict, pending: dict, schedule: Tensor,
+                 obs: Tensor, noise: Tensor):
+    """Act and step once: (state, batch row (obs, action, r, term, trunc, final_obs), next obs)."""
+    action = _sample_action(layout, flat, obs, noise)
+    state, final_obs, next_obs, r, term, trunc = env_step(state, pending, schedule, action.clamp(-1.0, 1.0))
+    return state, (obs, action, r, term, trunc, final_obs), next_obs
+
+
 def fused_iteration(layout: ParamLayout, hp: A2CConfig, env_step, env_observe, flat: Tensor, square_avg: Tensor,
                     state: dict, pending: dict, schedule: Tensor, noise: Tensor):
     """n env steps (pure `env_step` with auto-reset) + one `a2c_update`, as ONE function to compile."""
     obs = env_observe(state)
     rows = []
     for t in range(noise.shape[0]):
-        action = _sample_action(layout, flat, obs, noise[t])
-        state, final_obs, next_obs, r, term, trunc = env_step(state, pending, schedule, action.clamp(-1.0, 1.0))
-        rows.append((obs, action, r, term, trunc, final_obs))
-        obs = next_obs
+        state, row, obs = rollout_step(layout, env_step, flat, state, pending, schedule, obs, noise[t])
+        rows.append(row)
     batch = Batch(*(torch.stack(c) for c in zip(*rows)))
     metrics = a2c_update(layout, flat, square_avg, batch, hp)
     return state, metrics, batch.rewards, batch.terminated | batch.truncated
@@ -122,18 +128,35 @@ class FusedRollout:
 
     Per iteration Python does: draw the policy noise, call the compiled graph, and — only when an
     episode ended — record its return and draw a new pending episode (`env.refill`).
+    Compile time grows faster than the graph (n steps × env sub-steps, unrolled), so for n_steps >
+    FUSE_MAX_STEPS the step and the update are compiled as two graphs and Python loops over n:
+    same numbers, a few more calls per iteration.
     """
 
-    def __init__(self, env, layout: ParamLayout, generator: torch.Generator, hp: A2CConfig) -> None:
+    FUSE_MAX_STEPS = 8
+
+    def __init__(self, env, layout: ParamLayout, generator: torch.Generator, hp: A2CConfig,
+                 fuse: bool | None = None) -> None:
         """Drive `env` with actions sampled from `layout` params; noise from `generator`."""
         self.env, self.layout, self.gen, self.hp = env, layout, generator, hp
         self.num_envs = env.num_envs
-        step_fn, observe_fn = env.fused_functions()
+        step_fn, self._observe = env.fused_functions()
+        self.fuse = hp.n_steps <= self.FUSE_MAX_STEPS if fuse is None else fuse
+        maybe_compile = _compile if hp.compile else (lambda f: f)
 
         def iteration(flat, square_avg, state, pending, schedule, noise):
-            return fused_iteration(layout, hp, step_fn, observe_fn, flat, square_avg, state, pending, schedule, noise)
+            return fused_iteration(layout, hp, step_fn, self._observe, flat, square_avg, state, pending, schedule, noise)
 
-        self._iteration = _compile(iteration) if hp.compile else iteration
+        def step(flat, state, pending, schedule, obs, noise):
+            return rollout_step(layout, step_fn, flat, state, pending, schedule, obs, noise)
+
+        def update(flat, square_avg, batch):
+            return a2c_update(layout, flat, square_avg, batch, hp)
+
+        if self.fuse:
+            self._iteration = maybe_compile(iteration)
+        else:
+            self._step, self._update = maybe_compile(step), maybe_compile(update)
         self.ep_return = torch.zeros(self.num_envs)
         self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
         self.finished: list[tuple[float, int]] = []
@@ -142,7 +165,16 @@ class FusedRollout:
         """Collect n steps in every env and update `flat`/`square_avg` in place; returns METRICS [5]."""
         noise = torch.randn(self.hp.n_steps, self.num_envs, self.layout.act_dim, generator=self.gen)
         state, pending, schedule = self.env.fused_inputs()
-        state, metrics, rewards, dones = self._iteration(flat, square_avg, state, pending, schedule, noise)
+        if self.fuse:
+            state, metrics, rewards, dones = self._iteration(flat, square_avg, state, pending, schedule, noise)
+        else:
+            obs, rows = self._observe(state), []
+            for t in range(self.hp.n_steps):
+                state, row, obs = self._step(flat, state, pending, schedule, obs, noise[t])
+                rows.append(row)
+            batch = Batch(*(torch.stack(c) for c in zip(*rows)))
+            metrics = self._update(flat, square_avg, batch)
+            rewards, dones = batch.rewards, batch.terminated | batch.truncated
         self.env.fused_commit(state)
         if bool(dones.any()):
             _count_episodes(self, rewards, dones)

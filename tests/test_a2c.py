@@ -148,3 +148,23 @@ def test_rollout_torchrl_option_uses_collector_on_batched_env():
     cfg = config_from_dict({"a2c": {"compile": False, "log_every": 5, "rollout": "torchrl"}, "point_mass": {"episode_steps": 8}})
     res = train(cfg, None, total_steps=16 * 5)
     assert res.updates == 5 and len(res.episode_returns) == 8  # 4 envs x 2 episodes of 8 steps in 20 steps
+
+
+def test_split_and_fused_rollouts_give_the_same_numbers():
+    from algorithms.a2c import FusedRollout
+    from envs.point_mass import PointMassEnv
+
+    cfg = config_from_dict({"a2c": {"compile": False, "n_steps": 5}, "point_mass": {"episode_steps": 12}})
+    flats = []
+    for fuse in (True, False):
+        env = PointMassEnv(3, cfg, seed=4)
+        env.reset()
+        layout = ParamLayout(3, 4, cfg.a2c.hidden, cfg.a2c.network)
+        gen = torch.Generator().manual_seed(0)
+        flat = layout.init(gen)
+        sq = torch.zeros_like(flat)
+        runner = FusedRollout(env, layout, gen, cfg.a2c, fuse=fuse)
+        metrics = [runner.iterate(flat, sq) for _ in range(6)]  # crosses two episode ends
+        flats.append((flat, torch.stack(metrics), runner.finished))
+    assert torch.equal(flats[0][0], flats[1][0]) and torch.equal(flats[0][1], flats[1][1])
+    assert flats[0][2] == flats[1][2] and len(flats[0][2]) == 6

@@ -62,6 +62,7 @@ def test_roundtrip_and_overrides(tmp_path):
         ("controller: {mu: yes}", "controller.mu"),
         ("ga: {num_parents_mating: 9}", "ga.num_parents_mating"),
         ("unknown_section: 1", "unknown_section"),
+        ("point_mass: {episode_steps: 3}", "point_mass.episode_steps"),
     ],
 )
 def test_bad_values_name_file_and_key(tmp_path, text, key):
