@@ -215,7 +215,6 @@ class TorchRLRollout:
         from torchrl.collectors import Collector
 
         self.layout, self.gen, self.flat, self.hp, self.n = layout, generator, layout.init(), hp, hp.n_steps
-        n = hp.n_steps
         self._update = _compile(a2c_update) if hp.compile else a2c_update
         self.num_envs = int(env.batch_size.numel())
 
@@ -226,7 +225,7 @@ class TorchRLRollout:
             return raw.clamp(-1.0, 1.0).to(env.action_spec.dtype), raw
 
         module = TensorDictModule(policy, in_keys=["observation"], out_keys=["action", "action_raw"])
-        self.collector = Collector(env, module, frames_per_batch=n * self.num_envs, total_frames=-1)
+        self.collector = Collector(env, module, frames_per_batch=self.n * self.num_envs, total_frames=-1)
         self._iter = iter(self.collector)
         self.ep_return = torch.zeros(self.num_envs)
         self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)

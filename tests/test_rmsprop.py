@@ -32,28 +32,27 @@ def test_tf_like_accumulator_starts_at_one():
     assert p.item() == pytest.approx(-2.0 / math.sqrt(0.99 + 0.01 * 4 + 1e-5), rel=1e-6)
 
 
-def test_differs_from_torch_rmsprop_only_by_eps_placement():
-    torch.manual_seed(0)
-    grads = [torch.randn(5, dtype=torch.float64) * 1e-3 for _ in range(3)]
+def _run_both(grads, ours_eps, torch_eps):
+    """Apply `grads` with eq. 32 and with torch.optim.RMSprop from the same start; return both params."""
     a = torch.nn.Parameter(torch.zeros(5, dtype=torch.float64))
     b = torch.nn.Parameter(torch.zeros(5, dtype=torch.float64))
-    ours = RMSpropEq32([a], lr=1e-2, alpha=0.99, eps=1e-4)
-    ref = torch.optim.RMSprop([b], lr=1e-2, alpha=0.99, eps=1e-4)
+    ours = RMSpropEq32([a], lr=1e-2, alpha=0.99, eps=ours_eps)
+    ref = torch.optim.RMSprop([b], lr=1e-2, alpha=0.99, eps=torch_eps)
     for g in grads:
         a.grad, b.grad = g.clone(), g.clone()
         ours.step()
         ref.step()
-    # eps = 1e-4 inside the root is 1e-2 outside it: tiny gradients make the two clearly different
+    return a.detach(), b.detach()
+
+
+def test_differs_from_torch_rmsprop_only_by_eps_placement():
+    torch.manual_seed(0)
+    grads = [torch.randn(5, dtype=torch.float64) * 1e-3 for _ in range(3)]
+    # eps = 1e-4 inside the root acts like 1e-2 outside it: with tiny gradients the two clearly differ
+    a, b = _run_both(grads, ours_eps=1e-4, torch_eps=1e-4)
     assert not torch.allclose(a, b, rtol=1e-2)
-    # with eps² outside the root? no: with a negligible eps both agree
-    c = torch.nn.Parameter(torch.zeros(5, dtype=torch.float64))
-    d = torch.nn.Parameter(torch.zeros(5, dtype=torch.float64))
-    ours = RMSpropEq32([c], lr=1e-2, alpha=0.99, eps=1e-30)
-    ref = torch.optim.RMSprop([d], lr=1e-2, alpha=0.99, eps=1e-15)
-    for g in grads:
-        c.grad, d.grad = g.clone(), g.clone()
-        ours.step()
-        ref.step()
+    # with a negligible eps (1e-30 inside ~ 1e-15 outside) both agree
+    c, d = _run_both(grads, ours_eps=1e-30, torch_eps=1e-15)
     assert torch.allclose(c, d, rtol=1e-8)
 
 
