@@ -122,6 +122,8 @@ class A2CConfig:
     """λγ: discount factor, in (0, 1]."""
     vf_coef: float = 0.5
     """λv: value loss weight (eq. 31c)."""
+    gae_lambda: float = 1.0
+    """GAE λ in [0, 1]: 1 = the paper's n-step returns; lower trades bias for variance (SB3's gae_lambda)."""
     rms_alpha: float = 0.99
     """λα: RMSProp decay factor."""
     rms_init: float = 0.0
@@ -134,6 +136,10 @@ class A2CConfig:
     """'separate': SB3-style policy and value MLPs; 'shared': one trunk, two heads (the paper)."""
     hidden: tuple[int, ...] = (64, 64)
     """Hidden layer sizes (tanh)."""
+    critic: Literal["policy", "privileged"] = "policy"
+    """Value-network input: 'policy' = the eq. 26 observation (the paper); 'privileged' = plus the
+    simulator state the return depends on (task weights, f_d, signed e and forces, velocity, scenario),
+    an asymmetric actor-critic; the policy's input is eq. 26's either way. Needs network 'separate'."""
     log_std_init: float = 0.0
     """Initial log standard deviation of the state-independent Gaussian policy."""
     normalize_advantage: bool = False
@@ -156,10 +162,14 @@ class A2CConfig:
                 err.add(name, f"must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.gamma <= 1.0:
             err.add("gamma", f"must be in (0, 1], got {self.gamma}")
+        if not 0.0 <= self.gae_lambda <= 1.0:
+            err.add("gae_lambda", f"must be in [0, 1], got {self.gae_lambda}")
         if not 0.0 <= self.rms_alpha < 1.0:
             err.add("rms_alpha", f"must be in [0, 1), got {self.rms_alpha}")
         if not self.hidden or any(h <= 0 for h in self.hidden):
             err.add("hidden", f"must be a non-empty list of positive sizes, got {self.hidden}")
+        if self.critic == "privileged" and self.network != "separate":
+            err.add("critic", "'privileged' needs network: separate (a shared trunk would pass the privileged state to the policy)")
 
 
 @dataclass

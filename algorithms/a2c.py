@@ -33,7 +33,7 @@ from a3cqp_rl.exceptions import CheckpointError
 from algorithms.networks import LOG_2PI, ParamLayout, backward, forward, policy_mean
 from algorithms.rmsprop import clip_grad_norm_, rmsprop_step_
 
-__all__ = ["Batch", "nstep_returns", "a2c_update", "train", "TrainResult", "load_policy", "METRICS"]
+__all__ = ["Batch", "nstep_returns", "gae_advantages", "a2c_update", "train", "TrainResult", "load_policy", "METRICS"]
 
 METRICS = ("policy_loss", "value_loss", "entropy", "grad_norm", "explained_variance")
 
@@ -64,6 +64,20 @@ def nstep_returns(rewards: Tensor, terminated: Tensor, truncated: Tensor, next_v
     return torch.stack(out[::-1])
 
 
+def gae_advantages(rewards: Tensor, terminated: Tensor, truncated: Tensor, values: Tensor, next_values: Tensor,
+                   gamma: float, lam: float) -> Tensor:
+    """GAE(λ) advantages [T, N] (Schulman et al. 2016), cut at episode ends, bootstrapping V(s') unless terminated.
+
+    λ = 1 gives the n-step advantage R_t − V(s_t) of `nstep_returns`; λ = 0 the one-step TD error.
+    """
+    delta = rewards + gamma * next_values * (~terminated) - values
+    cont = gamma * lam * (~(terminated | truncated))
+    out = [delta[-1]]
+    for t in range(rewards.shape[0] - 2, -1, -1):
+        out.append(delta[t] + cont[t] * out[-1])
+    return torch.stack(out[::-1])
+
+
 def a2c_update(layout: ParamLayout, flat: Tensor, square_avg: Tensor, batch: Batch, hp: A2CConfig) -> Tensor:
     """One A2C step in place on `flat` and the RMSProp accumulator; returns METRICS as a tensor [5]."""
     T, N = batch.rewards.shape
@@ -73,8 +87,13 @@ def a2c_update(layout: ParamLayout, flat: Tensor, square_avg: Tensor, batch: Bat
     mu, log_std, values, cache = forward(layout, flat, torch.cat([obs, batch.next_obs.reshape(B, -1)]))
     next_values = values[B:].reshape(T, N)
     mu, values, cache = mu[:B], values[:B], {k: [a[:B] for a in acts] for k, acts in cache.items()}
-    returns = nstep_returns(batch.rewards, batch.terminated, batch.truncated, next_values, hp.gamma).reshape(B)
-    adv = returns - values
+    if hp.gae_lambda == 1.0:  # the paper's n-step returns (eq. 31)
+        returns = nstep_returns(batch.rewards, batch.terminated, batch.truncated, next_values, hp.gamma).reshape(B)
+        adv = returns - values
+    else:
+        adv = gae_advantages(batch.rewards, batch.terminated, batch.truncated, values.detach().reshape(T, N),
+                             next_values, hp.gamma, hp.gae_lambda).reshape(B)
+        returns = adv + values
     if hp.normalize_advantage:
         adv = (adv - adv.mean()) / (adv.std() + 1e-8)
     inv_std = torch.exp(-log_std)
@@ -140,7 +159,7 @@ class FusedRollout:
         """Drive `env` with actions sampled from `layout` params; noise from `generator`."""
         self.env, self.layout, self.gen, self.hp = env, layout, generator, hp
         self.num_envs = env.num_envs
-        step_fn, self._observe = env.fused_functions()
+        step_fn, self._observe = env.fused_functions(privileged=hp.critic == "privileged")
         self.fuse = hp.n_steps <= self.FUSE_MAX_STEPS if fuse is None else fuse
         maybe_compile = _compile if hp.compile else (lambda f: f)
 
@@ -241,9 +260,10 @@ class TorchRLRollout:
         term = td["next", "terminated"].reshape(n, self.num_envs)
         trunc = td["next", "truncated"].reshape(n, self.num_envs) if ("next", "truncated") in td.keys(True) else torch.zeros_like(term)
         _count_episodes(self, r, term | trunc)
-        obs = td["observation"].reshape(n, self.num_envs, -1).float()
+        key = "critic_observation" if self.hp.critic == "privileged" else "observation"  # [obs; privileged]
+        obs = td[key].reshape(n, self.num_envs, -1).float()
         batch = Batch(obs, td["action_raw"].reshape(n, self.num_envs, -1).float(), r, term, trunc,
-                      td["next", "observation"].reshape(n, self.num_envs, -1).float())
+                      td["next", key].reshape(n, self.num_envs, -1).float())
         return self._update(self.layout, flat, square_avg, batch, self.hp)
 
     def state_dict(self) -> dict:
@@ -305,7 +325,9 @@ def train(
     fused = getattr(type(env), "fused_functions", None) is not None and hp.rollout == "auto"
     obs_dim = 3
     act_dim = 4
-    layout = ParamLayout(obs_dim, act_dim, hp.hidden, hp.network)
+    critic_dim = _critic_input_dim(env, hp, fused, obs_dim)
+    layout = ParamLayout(obs_dim, act_dim, hp.hidden, hp.network, critic_dim)
+    layout_key = [obs_dim, act_dim, list(hp.hidden), hp.network, critic_dim]
     flat = layout.init(gen, hp.log_std_init)
     square_avg = torch.full_like(flat, hp.rms_init)
     runner = FusedRollout(env, layout, gen, hp) if fused else TorchRLRollout(env, layout, gen, hp)
@@ -322,9 +344,8 @@ def train(
         if ckpt_path is None:
             raise CheckpointError("--resume needs an output directory holding checkpoint.pt")
         ck = load_checkpoint(ckpt_path, CKPT_KEYS)
-        if ck["layout"] != [obs_dim, act_dim, list(hp.hidden), hp.network] or ck["flat"].shape != flat.shape:
-            raise CheckpointError(f"{ckpt_path} was written for network {ck['layout']}, config asks for "
-                                  f"{[obs_dim, act_dim, list(hp.hidden), hp.network]}")
+        if _layout_key(ck["layout"]) != layout_key or ck["flat"].shape != flat.shape:
+            raise CheckpointError(f"{ckpt_path} was written for network {ck['layout']}, config asks for {layout_key}")
         flat.copy_(ck["flat"])
         square_avg.copy_(ck["square_avg"])
         gen.set_state(ck["gen"])
@@ -368,7 +389,7 @@ def train(
         if ckpt_path and (done_updates % hp.checkpoint_every == 0 or done_updates == num_updates):
             save_atomic({"format": 1, "update": done_updates, "flat": flat, "square_avg": square_avg,
                          "gen": gen.get_state(), "rollout": runner.state_dict(), "config": config_to_dict(cfg),
-                         "layout": [obs_dim, act_dim, list(hp.hidden), hp.network],
+                         "layout": layout_key,
                          "finished": [list(x) for x in runner.finished[-1000:]],
                          "metric_sum": metric_sum, "metric_count": metric_count}, ckpt_path)
     bar.close()
@@ -378,7 +399,7 @@ def train(
     steps_done = (num_updates - start) * per_update
     policy_path = None
     if out:
-        policy_path = save_atomic({"format": 1, "flat": flat.clone(), "layout": [obs_dim, act_dim, list(hp.hidden), hp.network],
+        policy_path = save_atomic({"format": 1, "flat": flat.clone(), "layout": layout_key,
                                    "config": config_to_dict(cfg)}, out / "policy.pt")
     return TrainResult(
         steps=num_updates * per_update, updates=num_updates, seconds=elapsed, compile_seconds=compile_s,
@@ -390,8 +411,8 @@ def train(
 def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
     """Load OUT/policy.pt (or a checkpoint.pt); return f(obs [..., 3]) -> mean action [..., 4] clipped to [-1, 1]."""
     data = load_checkpoint(path, ("flat", "layout"))
-    obs_dim, act_dim, hidden, network = data["layout"]
-    layout = ParamLayout(obs_dim, act_dim, hidden, network)
+    obs_dim, act_dim, hidden, network, critic_dim = _layout_key(data["layout"])
+    layout = ParamLayout(obs_dim, act_dim, hidden, network, critic_dim)
     flat = data["flat"].float()
     if flat.shape != (layout.size,):
         raise CheckpointError(f"{path}: parameter vector has {flat.shape[0]} entries, layout needs {layout.size}")
@@ -403,13 +424,32 @@ def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
         if not bool(torch.isfinite(obs).all()):
             raise ValueError("observations contain NaN or inf")
         lead = obs.shape[:-1]
-        mu = forward(layout, flat, obs.reshape(-1, obs_dim).float())[0]
+        mu = policy_mean(layout, flat, obs.reshape(-1, obs_dim).float())
         return mu.clamp(-1.0, 1.0).reshape(*lead, act_dim)
 
     return policy
 
 
 # ------------------------------------------------------------------------------ helpers
+
+
+def _layout_key(key: list) -> list:
+    """[obs, act, hidden, network, critic input]; files written before the critic option have 4 entries."""
+    key = list(key)
+    return key if len(key) == 5 else [*key, key[0]]
+
+
+def _critic_input_dim(env, hp: A2CConfig, fused: bool, obs_dim: int) -> int:
+    """Width of the value network's input: obs_dim, or that of the env's privileged observation."""
+    if hp.critic != "privileged":
+        return obs_dim
+    if fused:
+        return int(env.fused_functions(privileged=True)[1](env.fused_inputs()[0]).shape[-1])
+    spec = env.observation_spec
+    if "critic_observation" not in spec.keys():
+        raise ValueError("a2c.critic: privileged needs an env with a 'critic_observation' entry "
+                         "([obs; privileged state]); this env has none")
+    return int(spec["critic_observation"].shape[-1])
 
 
 def _compile(fn: Callable) -> Callable:

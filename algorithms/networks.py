@@ -11,6 +11,8 @@ Layouts (tanh hidden layers, like SB3's MlpPolicy):
   - ``separate`` (SB3): policy MLP obs → hidden → mean (4); value MLP obs → hidden → V (1).
   - ``shared`` (the paper's "partially shared" network): one trunk obs → hidden, two linear heads.
 The policy is a diagonal Gaussian with a state-independent log-std (SB3's default).
+With ``critic_obs_dim`` (separate layout only) the value MLP reads a wider input than the policy
+(asymmetric actor-critic): inputs are [B, critic_obs_dim], the policy reads the first obs_dim columns.
 """
 
 from __future__ import annotations
@@ -29,15 +31,27 @@ LOG_2PI = math.log(2.0 * math.pi)
 class ParamLayout:
     """Names, shapes and offsets of every tensor inside the flat parameter vector."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int], network: str) -> None:
-        """Build the layout for `network` in {'separate', 'shared'} with tanh `hidden` sizes."""
+    def __init__(
+        self, obs_dim: int, act_dim: int, hidden: Sequence[int], network: str, critic_obs_dim: int | None = None
+    ) -> None:
+        """Build the layout for `network` in {'separate', 'shared'} with tanh `hidden` sizes.
+
+        `critic_obs_dim` (>= obs_dim, separate only): the value MLP's input width; None = obs_dim.
+        """
         if network not in ("separate", "shared"):
             raise ValueError(f"network must be 'separate' or 'shared', got {network!r}")
+        critic_obs_dim = obs_dim if critic_obs_dim is None else critic_obs_dim
+        if critic_obs_dim < obs_dim:
+            raise ValueError(f"critic_obs_dim ({critic_obs_dim}) must be >= obs_dim ({obs_dim})")
+        if network == "shared" and critic_obs_dim != obs_dim:
+            raise ValueError("a wider critic input needs network 'separate' (a shared trunk would feed it to the policy)")
         self.obs_dim, self.act_dim, self.hidden, self.network = obs_dim, act_dim, tuple(hidden), network
+        self.critic_obs_dim = critic_obs_dim
+        self.in_dims = {"pi": obs_dim, "vf": critic_obs_dim, "trunk": obs_dim}
         self.stacks = ("pi", "vf") if network == "separate" else ("trunk",)
         shapes: list[tuple[str, tuple[int, ...]]] = []
         for stack in self.stacks:
-            fan_in = obs_dim
+            fan_in = self.in_dims[stack]
             for i, h in enumerate(self.hidden):
                 shapes += [(f"{stack}.{i}.w", (h, fan_in)), (f"{stack}.{i}.b", (h,))]
                 fan_in = h
@@ -89,9 +103,12 @@ def _stack_forward(p: dict[str, Tensor], stack: str, depth: int, x: Tensor) -> l
 
 
 def forward(layout: ParamLayout, flat: Tensor, obs: Tensor) -> tuple[Tensor, Tensor, Tensor, dict[str, list[Tensor]]]:
-    """Policy mean [B, act], log-std [act], value [B] and the activations cache for `backward`."""
+    """Policy mean [B, act], log-std [act], value [B] and the activations cache for `backward`.
+
+    `obs` [B, critic_obs_dim]: each stack reads its first `layout.in_dims[stack]` columns.
+    """
     p, d = layout.views(flat), len(layout.hidden)
-    cache = {s: _stack_forward(p, s, d, obs) for s in layout.stacks}
+    cache = {s: _stack_forward(p, s, d, obs[:, : layout.in_dims[s]]) for s in layout.stacks}
     h_pi = cache["pi" if layout.network == "separate" else "trunk"][-1]
     h_vf = cache["vf" if layout.network == "separate" else "trunk"][-1]
     mu = torch.addmm(p["pi.out.b"], h_pi, p["pi.out.w"].T)
@@ -100,10 +117,10 @@ def forward(layout: ParamLayout, flat: Tensor, obs: Tensor) -> tuple[Tensor, Ten
 
 
 def policy_mean(layout: ParamLayout, flat: Tensor, obs: Tensor) -> Tensor:
-    """Policy mean [B, act] only (no value head): what acting needs."""
+    """Policy mean [B, act] only (no value head): what acting needs; reads the first obs_dim columns of `obs`."""
     p = layout.views(flat)
     stack = "pi" if layout.network == "separate" else "trunk"
-    h = _stack_forward(p, stack, len(layout.hidden), obs)[-1]
+    h = _stack_forward(p, stack, len(layout.hidden), obs[:, : layout.obs_dim])[-1]
     return torch.addmm(p["pi.out.b"], h, p["pi.out.w"].T)
 
 

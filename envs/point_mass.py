@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -87,6 +88,8 @@ class PointMassEnv(EnvBase):
         info["scenario"] = Unbounded(shape=(*N,), dtype=torch.int64, device=self.device)
         self.observation_spec = Composite(
             observation=Bounded(0.0, 1.0, shape=(*N, 3), dtype=f32, device=self.device),
+            # [eq. 26 observation; privileged_state], for an asymmetric critic (a2c.critic: privileged)
+            critic_observation=Unbounded(shape=(*N, 3 + PRIVILEGED_DIM), dtype=f32, device=self.device),
             **info,
             shape=N,
         )
@@ -197,11 +200,12 @@ class PointMassEnv(EnvBase):
     def _observation_td(self, done: Tensor) -> TensorDictBase:
         s = self._state
         e = s["target"] - s["x"]
-        obs = observe_state(s, self.adapt)
+        critic_obs = observe_state(s, self.adapt, dtype=torch.float32, privileged=True)
         w = torch.softmax(s["w_logits"], dim=-1)
         return TensorDict(
             {
-                "observation": obs.to(torch.float32),
+                "observation": critic_obs[:, :3].contiguous(),
+                "critic_observation": critic_obs,
                 "e": e, "x": s["x"].clone(), "x_dot": s["x_dot"].clone(), "f_env": s["f_env"].clone(),
                 "f_ope": s["f_ope"].clone(), "w": w, "f_d": s["f_d"].clone(), "target": s["target"].clone(),
                 "scenario": s["scenario"].clone(),
@@ -224,15 +228,16 @@ class PointMassEnv(EnvBase):
         """(state, pending episode, schedule) to pass to the `fused_functions`."""
         return self._state, self._pending, self._schedule
 
-    def fused_functions(self):
+    def fused_functions(self, privileged: bool = False):
         """Pure functions (step_fn, observe_fn), free of this module so compiled graphs guard only on configs.
 
         step_fn(state, pending, schedule, action) -> (state, final_obs, next_obs, reward, terminated, truncated);
-        observe_fn(state) -> obs [N, 3] float32.
+        observe_fn(state) -> obs [N, 3] float32, or [N, 3 + PRIVILEGED_DIM] with `privileged` (the
+        eq. 26 observation first, then `privileged_state`, for an asymmetric critic).
         """
-        step_fn = functools.partial(fused_agent_step, cfg=self.cfg, adapt=self.adapt, rew=self.rew)
-        observe_fn = functools.partial(observe_state, adapt=self.adapt, dtype=torch.float32)
-        return step_fn, observe_fn
+        obs_fn = functools.partial(observe_state, adapt=self.adapt, dtype=torch.float32, privileged=privileged)
+        step_fn = functools.partial(fused_agent_step, cfg=self.cfg, adapt=self.adapt, rew=self.rew, observe_fn=obs_fn)
+        return step_fn, obs_fn
 
     def fused_commit(self, state: dict[str, Tensor]) -> None:
         """Adopt the state returned by the fused step function."""
@@ -282,21 +287,64 @@ def fused_agent_step(
     cfg: PointMassConfig,
     adapt: AdaptationConfig,
     rew: RewardConfig,
+    observe_fn: Callable[[dict[str, Tensor]], Tensor] | None = None,
 ) -> tuple[dict[str, Tensor], Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """`agent_step` + observation + auto-reset: (state, final_obs, next_obs, reward, terminated, truncated)."""
+    """`agent_step` + observation + auto-reset: (state, final_obs, next_obs, reward, terminated, truncated).
+
+    Observations come from `observe_fn(state)` (default: the eq. 26 observation, float32).
+    """
+    if observe_fn is None:
+        observe_fn = functools.partial(observe_state, adapt=adapt, dtype=torch.float32)
     state, r = agent_step(state, action.to(torch.float64), schedule, cfg, adapt, rew)
-    final_obs = observe_state(state, adapt).to(torch.float32)
+    final_obs = observe_fn(state)
     truncated = state["t"] >= cfg.episode_steps
     terminated = torch.zeros_like(truncated)  # eq. 35 has no terminal state
     state = auto_reset(state, pending, truncated | terminated)
-    next_obs = observe_state(state, adapt).to(torch.float32)
+    next_obs = observe_fn(state)
     return state, final_obs, next_obs, r.to(torch.float32), terminated, truncated
 
 
-def observe_state(state: dict[str, Tensor], adapt: AdaptationConfig, dtype: torch.dtype = torch.float64) -> Tensor:
-    """Eq. 26 observation [N, 3] from a point-mass state dict."""
+PRIVILEGED_DIM = 11
+"""Entries `privileged_state` adds after the eq. 26 observation."""
+
+
+def observe_state(
+    state: dict[str, Tensor], adapt: AdaptationConfig, dtype: torch.dtype = torch.float64, privileged: bool = False
+) -> Tensor:
+    """Eq. 26 observation [N, 3] from a point-mass state dict; with `privileged`, [N, 3 + PRIVILEGED_DIM]."""
     e = state["target"] - state["x"]
-    return observe(e, state["f_env"], state["f_ope"], adapt.e_max, adapt.f_env_max, adapt.f_ope_max, check=False).to(dtype)
+    obs = observe(e, state["f_env"], state["f_ope"], adapt.e_max, adapt.f_env_max, adapt.f_ope_max, check=False)
+    if privileged:
+        obs = torch.cat([obs, privileged_state(state, adapt)], dim=-1)
+    return obs.to(dtype)
+
+
+def privileged_state(state: dict[str, Tensor], adapt: AdaptationConfig) -> Tensor:
+    """What the agent cannot observe but its return depends on, normalised to about [-1, 1]: [N, PRIVILEGED_DIM].
+
+    Task weights w (3, eq. 29e) and f_d/f̄_d (they are integrated, so the eq. 26 observation
+    leaves them hidden), signed e/ē, signed forces f_env/f̄_env and f_ope/f̄_ope, tanh of the
+    velocity [m/s], whether a wall / an operator is in this episode, and the gap to the wall /ē.
+    Only a critic gets these (asymmetric actor-critic): the policy still maps eq. 26's s to a.
+    """
+    e = state["target"] - state["x"]
+    has_wall = state["has_wall"].to(e.dtype)
+    has_op = ((state["scenario"] == 1) | (state["scenario"] == 3)).to(e.dtype)
+    gap = has_wall * ((state["wall_pos"] - state["x"]) / adapt.e_max).clamp(-1.0, 1.0)
+    scalars = torch.stack(
+        [
+            state["f_d"] / adapt.f_d_max,
+            (e / adapt.e_max).clamp(-1.0, 1.0),
+            (state["f_env"] / adapt.f_env_max).clamp(-1.0, 1.0),
+            (state["f_ope"] / adapt.f_ope_max).clamp(-1.0, 1.0),
+            torch.tanh(state["x_dot"]),
+            has_wall,
+            has_op,
+            gap,
+        ],
+        dim=-1,
+    )
+    return torch.cat([torch.softmax(state["w_logits"], dim=-1), scalars], dim=-1)
 
 
 def agent_step(

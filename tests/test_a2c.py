@@ -7,16 +7,16 @@ import torch
 
 from a3cqp_rl.config import config_from_dict
 from a3cqp_rl.exceptions import CheckpointError
-from algorithms.a2c import Batch, a2c_update, load_policy, nstep_returns, train
+from algorithms.a2c import Batch, a2c_update, gae_advantages, load_policy, nstep_returns, train
 from algorithms.networks import LOG_2PI, ActorCritic, ParamLayout, backward, forward
 
 
-def random_batch(T=4, N=3, seed=0, dtype=torch.float64):
+def random_batch(T=4, N=3, seed=0, dtype=torch.float64, obs_dim=3):
     g = torch.Generator().manual_seed(seed)
     r = lambda *s: torch.rand(*s, generator=g, dtype=dtype)
     term = r(T, N) < 0.2
     trunc = (r(T, N) < 0.2) & ~term
-    return Batch(r(T, N, 3), 2 * r(T, N, 4) - 1, r(T, N) - 0.5, term, trunc, r(T, N, 3))
+    return Batch(r(T, N, obs_dim), 2 * r(T, N, 4) - 1, r(T, N) - 0.5, term, trunc, r(T, N, obs_dim))
 
 
 def test_nstep_returns_by_hand():
@@ -36,23 +36,48 @@ def test_nstep_returns_by_hand():
     assert torch.allclose(R[:, 0], torch.tensor([1 + g * (2 + g * 20), 2 + g * 20, 3 + g * 30]))
 
 
-@pytest.mark.parametrize("network", ["separate", "shared"])
+def test_gae_limits_and_hand_case():
+    b = random_batch(T=5, N=4, seed=3)
+    g = torch.Generator().manual_seed(4)
+    v, nv = torch.randn(5, 4, generator=g, dtype=torch.float64), torch.randn(5, 4, generator=g, dtype=torch.float64)
+    # consistent data: V(s_{t+1}) = V(s'_t) unless the episode ended at t
+    v[1:] = torch.where(b.terminated[:-1] | b.truncated[:-1], v[1:], nv[:-1])
+    # λ = 1 is the n-step advantage; λ = 0 the one-step TD error
+    assert torch.allclose(gae_advantages(b.rewards, b.terminated, b.truncated, v, nv, 0.9, 1.0),
+                          nstep_returns(b.rewards, b.terminated, b.truncated, nv, 0.9) - v, atol=1e-12)
+    td = b.rewards + 0.9 * nv * (~b.terminated) - v
+    assert torch.allclose(gae_advantages(b.rewards, b.terminated, b.truncated, v, nv, 0.9, 0.0), td, atol=1e-12)
+    # two steps, no episode end, λ = 0.5: A0 = δ0 + γλ δ1
+    r, f = torch.tensor([[1.0], [2.0]]), torch.zeros(2, 1, dtype=torch.bool)
+    A = gae_advantages(r, f, f, torch.tensor([[0.5], [1.0]]), torch.tensor([[1.0], [3.0]]), 0.9, 0.5)
+    d0, d1 = 1 + 0.9 * 1.0 - 0.5, 2 + 0.9 * 3.0 - 1.0
+    assert torch.allclose(A[:, 0], torch.tensor([d0 + 0.45 * d1, d1]))
+
+
+@pytest.mark.parametrize("network,critic_dim,lam", [("separate", None, 1.0), ("shared", None, 1.0),
+                                                    ("separate", 7, 1.0), ("separate", 7, 0.6)])
 @pytest.mark.parametrize("normalize", [False, True])
-def test_hand_gradients_equal_autograd(network, normalize):
+def test_hand_gradients_equal_autograd(network, critic_dim, lam, normalize):
     cfg = config_from_dict({"a2c": {"network": network, "normalize_advantage": normalize, "hidden": [8, 6],
+                                    "gae_lambda": lam,
                                     "max_grad_norm": 1e9, "learning_rate": 1.0, "rms_alpha": 0.0, "rms_eps": 1e-300}})
     hp = cfg.a2c
-    layout = ParamLayout(3, 4, hp.hidden, network)
+    layout = ParamLayout(3, 4, hp.hidden, network, critic_dim)
     flat = layout.init(torch.Generator().manual_seed(0)).double()
     flat += 0.1 * torch.randn(flat.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-    batch = random_batch()
+    batch = random_batch(obs_dim=critic_dim or 3)
     # autograd reference of the same loss (SB3's A2C loss)
     ac = ActorCritic(layout, flat)
     T, N = batch.rewards.shape
-    mu, log_std, v = ac(batch.obs.reshape(T * N, 3))
+    D = batch.obs.shape[-1]
+    mu, log_std, v = ac(batch.obs.reshape(T * N, D))
     with torch.no_grad():
-        nv = ac(batch.next_obs.reshape(T * N, 3))[2].reshape(T, N)
-    R = nstep_returns(batch.rewards, batch.terminated, batch.truncated, nv, hp.gamma).reshape(-1)
+        nv = ac(batch.next_obs.reshape(T * N, D))[2].reshape(T, N)
+    if lam == 1.0:  # the paper's n-step returns
+        R = nstep_returns(batch.rewards, batch.terminated, batch.truncated, nv, hp.gamma).reshape(-1)
+    else:
+        R = gae_advantages(batch.rewards, batch.terminated, batch.truncated, v.detach().reshape(T, N), nv,
+                           hp.gamma, lam).reshape(-1) + v.detach()
     adv = (R - v).detach()
     if normalize:
         adv = (adv - adv.mean()) / (adv.std() + 1e-8)
@@ -81,6 +106,31 @@ def test_backward_matches_autograd_for_arbitrary_output_gradients():
     (mu * gm).sum().add_((ls * gl).sum()).add_((v * gv).sum()).backward()
     ours = backward(layout, flat.detach(), cache, gm, gl, gv)
     assert torch.allclose(ours, flat.grad, atol=1e-12)
+
+
+def test_privileged_critic_layout_reads_more_but_policy_does_not():
+    layout = ParamLayout(3, 4, (5,), "separate", critic_obs_dim=9)
+    flat = layout.init(torch.Generator().manual_seed(0))
+    x = torch.rand(6, 9)
+    y = x.clone()
+    y[:, 3:] += 1.0  # privileged columns change: the value does, the policy mean does not
+    mu_x, _, v_x, _ = forward(layout, flat, x)
+    mu_y, _, v_y, _ = forward(layout, flat, y)
+    assert torch.equal(mu_x, mu_y) and not torch.allclose(v_x, v_y)
+    with pytest.raises(ValueError, match="separate"):
+        ParamLayout(3, 4, (5,), "shared", critic_obs_dim=9)
+    with pytest.raises(ValueError, match=">= obs_dim"):
+        ParamLayout(3, 4, (5,), "separate", critic_obs_dim=2)
+
+
+@pytest.mark.parametrize("rollout", ["auto", "torchrl"])
+def test_train_with_privileged_critic_and_gae(tmp_path, rollout):
+    cfg = config_from_dict({"a2c": {"compile": False, "critic": "privileged", "gae_lambda": 0.5, "rollout": rollout,
+                                    "log_every": 20}, "point_mass": {"episode_steps": 20}})
+    res = train(cfg, tmp_path / rollout, total_steps=16 * 40)
+    assert math.isfinite(res.final_metrics["value_loss"]) and res.episode_returns
+    policy = load_policy(res.policy_path)  # the saved policy still maps the 3-d eq. 26 observation
+    assert policy(torch.rand(5, 3)).shape == (5, 4)
 
 
 def test_train_short_run_writes_files_and_learns_something(tmp_path):

@@ -6,7 +6,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from a3cqp_rl.config import ExperimentConfig, config_from_dict
-from envs.point_mass import SCENARIOS, PointMassEnv
+from envs.point_mass import PRIVILEGED_DIM, SCENARIOS, PointMassEnv
 
 
 def scenario_env(n, scenario, seed=0, **pm):
@@ -147,3 +147,22 @@ def test_fused_step_with_auto_reset_equals_torchrl_step_then_reset():
         else:
             td = out
         assert torch.allclose(td["observation"], next_obs)
+
+
+def test_privileged_critic_observation_extends_the_eq26_observation():
+    env = PointMassEnv(6, seed=3)
+    td = env.rollout(40, break_when_any_done=False)
+    crit = td["next", "critic_observation"]
+    assert crit.shape == (6, 40, 3 + PRIVILEGED_DIM)
+    assert torch.equal(crit[..., :3], td["next", "observation"])
+    # the hidden integrator states ride along: softmax weights then f_d / f̄_d
+    assert torch.allclose(crit[..., 3:6], td["next", "w"].float(), atol=1e-6)
+    assert torch.allclose(crit[..., 6], (td["next", "f_d"] / env.adapt.f_d_max).float(), atol=1e-6)
+    assert crit.abs().max() <= 1.0 + 1e-6
+    # the fused path gives the same vector
+    env.reset()
+    step_fn, obs_fn = env.fused_functions(privileged=True)
+    state, pending, sched = env.fused_inputs()
+    assert obs_fn(state).shape == (6, 3 + PRIVILEGED_DIM)
+    out = step_fn(state, pending, sched, torch.zeros(6, 4))
+    assert out[1].shape == out[2].shape == (6, 3 + PRIVILEGED_DIM)
