@@ -44,11 +44,127 @@ def _kkt_solve(Kfull: np.ndarray, rhs_full: np.ndarray, idx: np.ndarray) -> tupl
     return sol, float(np.sqrt(e @ e))
 
 
+def _dual_active_set(
+    Kfull: np.ndarray, rhs_full: np.ndarray, n: int, p: int, G: np.ndarray, h: np.ndarray, W0: np.ndarray,
+    tol_p: float, tol_d: float, tol_r: float, max_steps: int,
+) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Goldfarb-Idnani on one instance; returns (solution of the final KKT system, its rows, outcome, solves)."""
+    m = G.shape[0]
+    head = np.arange(n + p)
+
+    def solve(rows: np.ndarray, rhs: np.ndarray = rhs_full) -> tuple[np.ndarray, float]:
+        return _kkt_solve(Kfull, rhs, np.concatenate([head, n + p + rows]))
+
+    # Warm start: the working set {z0 > 0} minus rows whose multipliers come out negative, so that
+    # the start is dual feasible (x minimises the QP with only those rows, as G-I requires).
+    rows = np.flatnonzero(W0)
+    sol, res = solve(rows)
+    solves = 1
+    while rows.size and res <= tol_r and not (sol[n + p :] > 0).all():
+        rows = rows[sol[n + p :] > 0]
+        sol, res = solve(rows)
+        solves += 1
+    if not res <= tol_r and rows.size:  # dependent warm rows: start cold
+        rows = rows[:0]
+        sol, res = solve(rows)
+        solves += 1
+    if not res <= tol_r:  # P singular on the equality null space, or dependent equalities
+        return sol, rows, SINGULAR, solves
+    v = G @ sol[:n] - h  # > 0: violated
+    if m == 0 or float(v.max()) <= tol_p:
+        # Feasible, multipliers > 0 and the KKT residual checked by the solve: certified.  The
+        # warm-started control loop ends here after one solve.
+        return sol, rows, CERTIFIED, solves
+    W = np.zeros(m, dtype=bool)
+    W[rows] = True
+    gnorm = np.sqrt((G * G).sum(1)) + 1e-300
+    scale = float(np.abs(np.diagonal(Kfull)[:n]).max()) + 1e-300  # curvature scale of P
+    rhs_dir = np.zeros_like(rhs_full)
+    x = nu = None  # the incremental G-I state, built only when a step needs it
+    steps = 0
+    while True:
+        j = int(np.argmax(v / gnorm))
+        vj = float(v[j])
+        if vj <= tol_p:
+            break
+        steps += 1
+        if steps > max_steps:
+            return sol, rows, EXHAUSTED, solves
+        if x is None:
+            # Optimistic full step: the G-I path ends at the KKT point of W + j exactly when no
+            # multiplier crosses zero on the way, i.e. when that point's multipliers are ≥ 0, so
+            # one solve does the step and leaves an exact (not incrementally updated) iterate.
+            W[j] = True
+            rows_j = np.flatnonzero(W)
+            sol_j, res = solve(rows_j)
+            solves += 1
+            if res <= tol_r and (sol_j[n + p :] >= 0).all():
+                rows, sol = rows_j, sol_j
+                v = G @ sol[:n] - h
+                continue
+            W[j] = False
+            # Multipliers over all rows (equalities first, zero off the working set), so that
+            # adding and dropping a row is a scalar write (np.append/np.delete cost ~5 µs each).
+            x = sol[:n].copy()
+            nu = np.zeros(p + m)
+            nu[:p], nu[p + rows] = sol[n : n + p], sol[n + p :]
+        # G-I step for row j: raise its multiplier from 0 along the direction that keeps the
+        # working rows tight and the point stationary, P dx + C_Wᵀ dν = −g_j, C_W dx = 0; a working
+        # row whose multiplier reaches zero first is dropped (partial step), until row j is tight.
+        gj = G[j]
+        rhs_dir[:n] = -gj
+        while True:
+            d, res = solve(rows, rhs_dir)
+            solves += 1
+            if not res <= 1e-9 * (1.0 + float(gnorm[j])):
+                return sol, rows, SINGULAR, solves
+            dx, dz = d[:n], d[n + p :]
+            t1, l = np.inf, -1
+            shrinking = np.flatnonzero(dz < 0)
+            if shrinking.size:
+                ratios = nu[p + rows[shrinking]] / -dz[shrinking]
+                k = int(np.argmin(ratios))
+                t1, l = max(float(ratios[k]), 0.0), int(rows[shrinking[k]])
+            curv = -float(gj @ dx)  # = dxᵀ P dx ≥ 0: how fast the violation of row j falls
+            t2 = vj / curv if curv > 1e-13 * float(gnorm[j]) ** 2 / scale else np.inf
+            if t1 == np.inf and t2 == np.inf:  # g_j in the span of the working rows: infeasible
+                return sol, rows, SINGULAR, solves
+            t = min(t1, t2)
+            x += t * dx
+            nu[:p] += t * d[n : n + p]
+            nu[p + rows] += t * dz
+            nu[p + j] += t
+            if t2 <= t1:  # row j is tight: it joins the working set
+                W[j] = True
+                rows = np.flatnonzero(W)
+                break
+            W[l] = False
+            nu[p + l] = 0.0
+            rows = np.flatnonzero(W)
+            steps += 1
+            if steps > max_steps:
+                return sol, rows, EXHAUSTED, solves
+            vj = float(gj @ x) - float(h[j])
+        v = G @ x - h
+    if x is None:  # only optimistic steps: `sol` is the exact KKT solution of `rows`
+        return sol, rows, CERTIFIED, solves
+    # Exact solution of the final working set: the certificate is checked on it, and it removes
+    # the rounding the incremental updates accumulated.
+    sol, res = solve(rows)
+    solves += 1
+    # Certificate, as in the batched stage: KKT residual of the working set, every row feasible,
+    # multipliers ≥ 0.
+    zW = sol[n + p :]
+    if not res <= tol_r or float((G @ sol[:n] - h).max()) > tol_p or (rows.size and float(zW.min()) < -tol_d):
+        return sol, rows, SINGULAR, solves
+    return sol, rows, CERTIFIED, solves
+
+
 def active_set_small(
     P: np.ndarray, q: np.ndarray, A: np.ndarray, b: np.ndarray, G: np.ndarray, h: np.ndarray,
-    z0: np.ndarray | None, tol: float, max_iter: int,
+    z0: np.ndarray | None, tol: float, max_steps: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Primal-dual active set per instance (float64 numpy, P symmetric); returns x, y, z, outcome, iterations.
+    """Dual active set per instance (float64 numpy, P symmetric); returns x, y, z, outcome, KKT solves.
 
     Shapes: P [B, n, n], q [B, n], A [B, p, n], b [B, p], G [B, m, n], h [B, m], z0 [B, m] or None
     (warm-start multipliers; the working set starts as {z0 > 0}).  `outcome` [B] holds CERTIFIED,
@@ -58,15 +174,15 @@ def active_set_small(
     p, m = A.shape[1], G.shape[1]
     r = n + p + m
     x_out, y_out, z_out = np.zeros((B, n)), np.zeros((B, p)), np.zeros((B, m))
-    outcome = np.full(B, EXHAUSTED, dtype=np.int64)
-    iters = np.full(B, max_iter, dtype=np.int64)
-    head = np.arange(n + p)  # x and the equality multipliers are always in the system
+    outcome = np.full(B, SINGULAR, dtype=np.int64)
+    iters = np.zeros(B, dtype=np.int64)
     # Tolerance scales as in `residual_scales`: 1 + |(b, h)|∞ (primal), 1 + |q|∞ (dual).
     sp = 1.0 + (np.abs(np.concatenate([b, h], 1)).max(1) if p + m else np.zeros(B))
     sd = 1.0 + np.abs(q).max(1)
+    no_warm = np.zeros(m, dtype=bool)
     for i in range(B):
         Pi, qi, Ai, bi, Gi, hi = P[i], q[i], A[i], b[i], G[i], h[i]
-        # Full KKT matrix [[P, Aᵀ, Gᵀ], [A, 0, 0], [G, 0, 0]] once per instance; each iteration
+        # Full KKT matrix [[P, Aᵀ, Gᵀ], [A, 0, 0], [G, 0, 0]] once per instance; each solve
         # gathers the working rows/columns from it (one fancy index instead of four block copies).
         Kfull = np.zeros((r, r))
         Kfull[:n, :n] = Pi
@@ -77,26 +193,11 @@ def active_set_small(
         rhs_full = np.concatenate([-qi, bi, hi])
         tol_p, tol_d = tol * float(sp[i]), tol * float(sd[i])
         tol_r = min(tol_p, tol_d) if p + m else tol_d
-        W = z0[i] > 0 if z0 is not None else np.zeros(m, dtype=bool)
-        for k in range(max_iter):
-            rows = np.flatnonzero(W)
-            sol, res = _kkt_solve(Kfull, rhs_full, np.concatenate([head, n + p + rows]))
-            if not res <= tol_r:  # also catches NaN
-                outcome[i] = SINGULAR
-                break
-            x = sol[:n]
-            vG = Gi @ x - hi  # > 0: violated
-            zW = sol[n + p :]
-            if (m == 0 or vG.max() <= tol_p) and (rows.size == 0 or zW.min() >= -tol_d):
-                x_out[i], y_out[i] = x, sol[n : n + p]
-                z_out[i, rows] = zW
-                outcome[i], iters[i] = CERTIFIED, k + 1
-                break
-            # Semismooth Newton step on min(z, h − Gx) = 0: keep working rows with positive
-            # multipliers, add the violated rows.
-            keep = np.zeros(m, dtype=bool)
-            keep[rows[zW > 0]] = True
-            W = keep | (~W & (vG > tol_p))
+        W0 = z0[i] > 0 if z0 is not None else no_warm
+        sol, rows, outcome[i], iters[i] = _dual_active_set(Kfull, rhs_full, n, p, Gi, hi, W0, tol_p, tol_d, tol_r, max_steps)
+        if outcome[i] == CERTIFIED:
+            x_out[i], y_out[i] = sol[:n], sol[n : n + p]
+            z_out[i, rows] = sol[n + p :]
     return x_out, y_out, z_out, outcome, iters
 
 
@@ -112,24 +213,27 @@ def adjoint_small(
     """
     B, n = gx.shape
     p, m = A.shape[1], G.shape[1]
-    r = n + p + m
     wx, wy, wz = np.zeros((B, n)), np.zeros((B, p)), np.zeros((B, m))
-    active = z > np.maximum(h - (G @ x[:, :, None])[..., 0], 0.0)
-    head = np.arange(n + p)
+    active = np.zeros((B, m), dtype=bool)
     for i in range(B):
-        Kfull = np.zeros((r, r))
-        Kfull[:n, :n] = P[i]
-        Kfull[:n, n : n + p] = A[i].T
-        Kfull[n : n + p, :n] = A[i]
-        Kfull[:n, n + p :] = G[i].T
-        Kfull[n + p :, :n] = G[i]
-        rhs_full = np.zeros(r)
-        rhs_full[:n] = gx[i]
-        rows = np.flatnonzero(active[i])
-        sol, res = _kkt_solve(Kfull, rhs_full, np.concatenate([head, n + p + rows]))
-        # Same acceptance test as the torch backward.
+        Gi = G[i]
+        act = z[i] > np.maximum(h[i] - Gi @ x[i], 0.0)
+        active[i] = act
+        rows = np.flatnonzero(act)
+        # Only the working rows: [[P, Aᵀ, G_Wᵀ], [A, 0, 0], [G_W, 0, 0]].
+        C = np.concatenate([A[i], Gi[rows]]) if p else Gi[rows]
+        r = n + C.shape[0]
+        K = np.zeros((r, r))
+        K[:n, :n] = P[i]
+        K[:n, n:] = C.T
+        K[n:, :n] = C
+        rhs = np.zeros(r)
+        rhs[:n] = gx[i]
+        _, _, sol, info = lapack.dgesv(K, rhs)
+        e = K @ sol - rhs
+        # Same acceptance test as the torch backward (2-norm of the residual: stricter).
         tol_w = 1e-12 * (1.0 + float(np.abs(gx[i]).max()))
-        if not res <= tol_w * (1.0 + (float(np.abs(sol[n:]).max()) if sol.size > n else 0.0)):
+        if info != 0 or not float(np.sqrt(e @ e)) <= tol_w * (1.0 + (float(np.abs(sol[n:]).max()) if r > n else 0.0)):
             return None
         wx[i], wy[i] = sol[:n], sol[n : n + p]
         wz[i, rows] = sol[n + p :]

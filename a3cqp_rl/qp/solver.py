@@ -68,10 +68,10 @@ __all__ = ["QPStatus", "QPSolution", "solve_qp", "SMALL_BATCH_MAX"]
 
 SMALL_BATCH_MAX = 16
 """Largest CPU batch solved by the numpy per-instance path (`small_batch.py`); see the module docstring."""
-SMALL_ACTIVE_SET_ITER = 30
-"""Active-set iterations of the numpy path before the interior point (~20 µs each, so more than
-the batched path's 15 pay off: heavily constrained instances certify in 5-20 instead of paying
-for an interior point)."""
+SMALL_MAX_STEPS = 100
+"""Step budget of the numpy dual active set (one KKT solve per step) before the interior point.
+Goldfarb-Idnani is finite (each step adds or drops a row); heavily constrained controller-sized
+instances need 10-30, so the budget only stops numerical cycling."""
 
 
 @dataclass
@@ -198,7 +198,7 @@ def _ipm_polished(
 
 def _solve_canonical(
     P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
-    tol: float, max_iter: int, active_set_iter: int,
+    tol: float, max_iter: int, active_set_iter: int | None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Solve the canonical batch (no autograd); returns x, y, z, status, iterations."""
     if _use_small_path(q):
@@ -225,14 +225,14 @@ def _from_np(v: np.ndarray, dtype: torch.dtype) -> Tensor:
 
 def _solve_small(
     P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
-    tol: float, max_iter: int, active_set_iter: int,
+    tol: float, max_iter: int, active_set_iter: int | None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Small-batch route: numpy active set per instance, the batched torch path for what it leaves."""
     B = q.shape[0]
     Pn = _np64(P)
     xn, yn, zn, outcome, itn = active_set_small(
         0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(q), _np64(A), _np64(b), _np64(G), _np64(h),
-        _np64(z_warm) if z_warm is not None else None, tol, SMALL_ACTIVE_SET_ITER,
+        _np64(z_warm) if z_warm is not None else None, tol, SMALL_MAX_STEPS if active_set_iter is None else active_set_iter,
     )
     x, y, z = (_from_np(v, q.dtype) for v in (xn, yn, zn))
     iters = torch.from_numpy(itn)
@@ -256,10 +256,12 @@ def _solve_small(
 
 def _solve_batched(
     P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
-    tol: float, max_iter: int, active_set_iter: int,
+    tol: float, max_iter: int, active_set_iter: int | None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Batched torch route: active-set stage on the whole batch, interior point for what it leaves."""
     B, n = q.shape
+    if active_set_iter is None:
+        active_set_iter = 15 if B <= LU_MAX_BATCH else 10
     p, m = A.shape[1], G.shape[1]
     P = 0.5 * (P + P.mT)
     sp, sd = residual_scales(q, b, h)
@@ -300,11 +302,14 @@ def _adjoint_direct(P: Tensor, gx: Tensor, C: Tensor, zr: Tensor, mask: Tensor) 
 
 
 def _backward_small(
-    need: tuple[bool, ...], P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Tensor, z: Tensor, gx: Tensor,
+    need: tuple[bool, ...], P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Tensor, z: Tensor,
+    status: Tensor, gx: Tensor,
 ) -> tuple[Tensor | None, ...] | None:
     """Gradients (P, q, A, b, G, h) by the numpy adjoint (small CPU batches); None if a system is singular."""
     Pn, xn, yn, zn = _np64(P), _np64(x), _np64(y), _np64(z)
-    adj = adjoint_small(0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(A), _np64(G), _np64(h), xn, zn, _np64(gx))
+    # Gradients only flow through x of solved instances (as in the torch backward).
+    gxn = _np64(gx) * (status.numpy() == 0)[:, None]  # SOLVED; an IntEnum operand would take numpy's object path
+    adj = adjoint_small(0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(A), _np64(G), _np64(h), xn, zn, gxn)
     if adj is None:
         return None
     wx, wy, wz, active = adj
@@ -341,13 +346,13 @@ class _QPFunction(torch.autograd.Function):
         p, m = A.shape[1], G.shape[1]
         if gx is None:
             gx = torch.zeros_like(x)
+        if _use_small_path(x):
+            grads = _backward_small(ctx.needs_input_grad, P, A, G, h, x, y, z, status, gx)
+            if grads is not None:
+                return (*grads, None, None, None, None)
         # Gradients only flow through x (duals are outputs for information and warm starts).
         ok = (status == QPStatus.SOLVED).unsqueeze(-1)
         gx = torch.where(ok, gx, torch.zeros((), dtype=gx.dtype))
-        if _use_small_path(x):
-            grads = _backward_small(ctx.needs_input_grad, P, A, G, h, x, y, z, gx)
-            if grads is not None:
-                return (*grads, None, None, None, None)
         Ps = 0.5 * (P + P.mT)
         slack = (h - mv(G, x)).clamp_min(0.0)
         active = z > slack  # strictly complementary part of the active set
@@ -451,9 +456,7 @@ def solve_qp(
             if z_warm.shape != h_all.shape:
                 raise QPShapeError(f"warm_start duals have shape {tuple(z_warm.shape)}, expected {tuple(h_all.shape)}")
 
-    if active_set_iter is None:
-        active_set_iter = 15 if batch <= LU_MAX_BATCH else 10
-    solver_args = (z_warm, float(tol), int(max_iter), int(active_set_iter))
+    solver_args = (z_warm, float(tol), int(max_iter), None if active_set_iter is None else int(active_set_iter))
     if torch.is_grad_enabled() and any(t.requires_grad for t in (P, q, A, b, G_all, h_all)):
         x, y, z_all, status, iters = _QPFunction.apply(P, q, A, b, G_all, h_all, *solver_args)
     else:
