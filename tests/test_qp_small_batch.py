@@ -1,0 +1,128 @@
+"""Tests of the small-batch CPU path of solve_qp (numpy dual active set): same answers, statuses and gradients as the batched path."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import a3cqp_rl.qp.solver as solver
+from a3cqp_rl.qp import QPStatus, solve_qp
+from a3cqp_rl.qp.random_qp import clarabel_reference, random_qp_batch
+
+DT = torch.float64
+
+
+@pytest.fixture
+def batched_only(monkeypatch):
+    """Context in which every batch takes the batched torch path (the reference for the small path)."""
+
+    def use(flag: bool) -> None:
+        monkeypatch.setattr(solver, "SMALL_BATCH_MAX", -1 if flag else 16)
+
+    return use
+
+
+def test_dispatch_is_by_batch_size_and_device() -> None:
+    q = torch.zeros(solver.SMALL_BATCH_MAX, 3, dtype=DT)
+    assert solver._use_small_path(q) and solver._use_small_path(q[:1])
+    assert not solver._use_small_path(torch.zeros(solver.SMALL_BATCH_MAX + 1, 3, dtype=DT))
+
+
+# Easy (default spread) and heavily constrained families, with equalities and bounds.
+FAMILIES = [
+    dict(m=30),
+    dict(m=30, p=3, bounds=True),
+    dict(m=30, spread=0.35),
+    dict(m=40, p=3, bounds=True, spread=0.35),
+    dict(n=20, m=50, p=4, spread=0.5),
+]
+
+
+@pytest.mark.parametrize("family", range(len(FAMILIES)))
+def test_small_batches_match_clarabel_and_the_batched_path(family: int, batched_only) -> None:
+    qp = random_qp_batch(16, seed=200 + family, **FAMILIES[family])
+    sol = solve_qp(*qp.args())
+    x_ref, statuses = clarabel_reference(qp)
+    assert set(statuses) == {"optimal"}
+    assert bool(sol.solved.all())
+    assert (sol.x - x_ref).abs().max().item() <= 1e-6
+    # Dual feasibility and complementarity of the returned multipliers.
+    assert (sol.z >= 0).all() and (sol.z_lb >= 0).all() and (sol.z_ub >= 0).all()
+    slack = qp.h - (qp.G @ sol.x.unsqueeze(-1)).squeeze(-1)
+    assert (sol.z * slack).abs().max() < 1e-8 and slack.min() > -1e-8
+    batched_only(True)
+    ref = solve_qp(*qp.args())
+    assert (sol.x - ref.x).abs().max() < 1e-8 and (sol.z - ref.z).abs().max() < 1e-7
+
+
+def test_warm_start_solves_the_next_control_step_in_about_one_kkt_solve() -> None:
+    qp = random_qp_batch(8, spread=0.3, seed=3)
+    first = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h)
+    assert (first.z > 0).any(-1).all()  # every instance has active rows, so warm-starting matters
+    q2 = qp.q + 1e-4 * torch.randn(qp.q.shape, generator=torch.Generator().manual_seed(0), dtype=DT)
+    warm = solve_qp(qp.P, q2, G=qp.G, h=qp.h, warm_start=first)
+    cold = solve_qp(qp.P, q2, G=qp.G, h=qp.h)
+    assert bool(warm.solved.all())
+    # Mostly one solve; an instance whose active set changes pays one more per changed row.
+    assert warm.iterations.float().mean() <= 1.25 and (warm.iterations <= cold.iterations).all()
+    assert (warm.x - cold.x).abs().max() < 1e-9
+
+
+def test_gradients_match_the_batched_path(batched_only) -> None:
+    qp = random_qp_batch(6, n=8, m=12, p=1, bounds=True, spread=0.1, seed=21)
+    w = torch.randn(6, 8, generator=torch.Generator().manual_seed(3), dtype=DT)
+
+    def grads():
+        leaves = [t.clone().requires_grad_() for t in qp.args()]
+        sol = solve_qp(*leaves)
+        (sol.x * w).sum().backward()
+        return sol, [t.grad for t in leaves]
+
+    sol, g_small = grads()
+    assert ((sol.z > 0).any(-1) | (sol.z_lb > 0).any(-1) | (sol.z_ub > 0).any(-1)).any()
+    batched_only(True)
+    _, g_ref = grads()
+    for a, b in zip(g_small, g_ref):
+        assert (a - b).abs().max() < 1e-7
+
+
+def test_degenerate_instances_fall_back_and_stay_exact(batched_only) -> None:
+    # Duplicated rows (dependent active constraints): the dual active set never works with both
+    # copies; the warm start from the batched solution's multipliers (both copies positive) is
+    # singular and must restart cold.
+    qp = random_qp_batch(8, n=6, m=10, p=1, spread=0.2, seed=11)
+    G = torch.cat([qp.G, qp.G, torch.zeros_like(qp.G[:, :1])], 1)
+    h = torch.cat([qp.h, qp.h, torch.ones_like(qp.h[:, :1])], 1)
+    base = solve_qp(qp.P, qp.q, qp.A, qp.b, qp.G, qp.h)
+    dup = solve_qp(qp.P, qp.q, qp.A, qp.b, G, h)
+    assert bool(dup.solved.all()) and (dup.x - base.x).abs().max() < 1e-8
+    batched_only(True)
+    dup_ref = solve_qp(qp.P, qp.q, qp.A, qp.b, G, h)
+    batched_only(False)
+    warm = solve_qp(qp.P, qp.q, qp.A, qp.b, G, h, warm_start=dup_ref)
+    assert bool(warm.solved.all()) and (warm.x - base.x).abs().max() < 1e-8
+    # Linear program (P = 0: no Cholesky, handed to the batched path) and float32.
+    lp = solve_qp(torch.zeros(2, 3, 3, dtype=DT), torch.tensor([[1.0, -2.0, 0.5]] * 2, dtype=DT), lb=-torch.ones(2, 3, dtype=DT), ub=torch.ones(2, 3, dtype=DT))
+    assert bool(lp.solved.all()) and torch.allclose(lp.x, torch.tensor([[-1.0, 1.0, -1.0]] * 2, dtype=DT), atol=1e-8)
+    qp32 = random_qp_batch(8, p=2, bounds=True, spread=0.35, seed=9)
+    sol32 = solve_qp(*[t.float() for t in qp32.args()])
+    sol64 = solve_qp(*qp32.args())
+    assert sol32.x.dtype == torch.float32 and sol32.z.dtype == torch.float32 and bool(sol32.solved.all())
+    assert (sol32.x.double() - sol64.x).abs().max() < 1e-3
+
+
+def test_infeasible_unbounded_and_nan_instances_get_their_status() -> None:
+    qp = random_qp_batch(4, n=5, m=8, spread=0.2, seed=4)
+    G, h, q = qp.G.clone(), qp.h.clone(), qp.q.clone()
+    G[1, 0], h[1, 0] = torch.eye(5, dtype=DT)[0], -1.0  # x0 ≤ −1 and x0 ≥ 1
+    G[1, 1], h[1, 1] = -torch.eye(5, dtype=DT)[0], -1.0
+    q[2, 0] = torch.nan
+    sol = solve_qp(qp.P, q, G=G, h=h)
+    ref = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h)
+    assert sol.status[1] == QPStatus.PRIMAL_INFEASIBLE and sol.status[2] != QPStatus.SOLVED
+    assert (sol.status[[0, 3]] == QPStatus.SOLVED).all() and (sol.x[[0, 3]] - ref.x[[0, 3]]).abs().max() < 1e-10
+    assert torch.isfinite(sol.x).all() and torch.isfinite(sol.z).all()
+    # Unbounded: P = diag(1, 0), x1 free with cost −x1 and only bounded below.
+    P = torch.diag(torch.tensor([1.0, 0.0], dtype=DT)).expand(2, 2, 2)
+    unb = solve_qp(P, torch.tensor([[1.0, 1.0], [1.0, -1.0]], dtype=DT), G=torch.tensor([[0.0, -1.0]], dtype=DT).expand(2, 1, 2), h=torch.zeros(2, 1, dtype=DT))
+    assert unb.status.tolist() == [QPStatus.SOLVED, QPStatus.DUAL_INFEASIBLE]
