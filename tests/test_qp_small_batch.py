@@ -16,8 +16,11 @@ DT = torch.float64
 def batched_only(monkeypatch):
     """Context in which every batch takes the batched torch path (the reference for the small path)."""
 
+    limits = (solver.SMALL_BATCH_MAX, solver.SMALL_BATCH_MAX_WARM)
+
     def use(flag: bool) -> None:
-        monkeypatch.setattr(solver, "SMALL_BATCH_MAX", -1 if flag else 16)
+        monkeypatch.setattr(solver, "SMALL_BATCH_MAX", -1 if flag else limits[0])
+        monkeypatch.setattr(solver, "SMALL_BATCH_MAX_WARM", -1 if flag else limits[1])
 
     return use
 
@@ -26,6 +29,7 @@ def test_dispatch_is_by_batch_size_and_device() -> None:
     q = torch.zeros(solver.SMALL_BATCH_MAX, 3, dtype=DT)
     assert solver._use_small_path(q) and solver._use_small_path(q[:1])
     assert not solver._use_small_path(torch.zeros(solver.SMALL_BATCH_MAX + 1, 3, dtype=DT))
+    assert not solver._use_small_path(q, solver.SMALL_BATCH_MAX_WARM) and solver.SMALL_BATCH_MAX_WARM < solver.SMALL_BATCH_MAX
 
 
 # Easy (default spread) and heavily constrained families, with equalities and bounds.
@@ -56,7 +60,7 @@ def test_small_batches_match_clarabel_and_the_batched_path(family: int, batched_
 
 
 def test_warm_start_solves_the_next_control_step_in_about_one_kkt_solve() -> None:
-    qp = random_qp_batch(8, spread=0.3, seed=3)
+    qp = random_qp_batch(solver.SMALL_BATCH_MAX_WARM, spread=0.3, seed=3)
     first = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h)
     assert (first.z > 0).any(-1).all()  # every instance has active rows, so warm-starting matters
     q2 = qp.q + 1e-4 * torch.randn(qp.q.shape, generator=torch.Generator().manual_seed(0), dtype=DT)

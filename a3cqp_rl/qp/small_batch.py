@@ -1,21 +1,35 @@
-"""Small-batch CPU fast path: the active-set stage and the adjoint solve, one instance at a time in numpy.
+"""Small-batch CPU fast path: a dual active set (Goldfarb-Idnani) and the adjoint solve, per instance in numpy.
 
-Why: at B = 1 eager torch costs ~4-7 µs per op whatever the size, and a warm-started solve through
-the batched torch code is ~60 ops (180-400 µs).  The same primal-dual active-set iteration on
-numpy views of the data costs ~1 µs per call (a LAPACK `dgesv` on the 13-18 × 13-18 working-set
-KKT matrix is ~2 µs), so a warm-started QP is ~20 µs of arithmetic plus the torch wrapper.  A
-Python loop over instances grows linearly with B while the batched torch path is nearly flat, so
-`solver.py` uses this path only up to `SMALL_BATCH_MAX` instances on CPU (crossover measured
-there).
+Why numpy: at B = 1 eager torch costs ~4-7 µs per op whatever the size, and a warm-started solve
+through the batched torch code is ~60 ops (180-400 µs).  numpy calls on views of the same data
+cost ~1 µs (LAPACK `dgesv` on the 13-18 × 13-18 working-set KKT matrix ~2-3 µs), so a
+warm-started QP is ~30 calls.  A Python loop over instances grows linearly with B while the
+batched torch path is nearly flat, so `solver.py` uses this path only for small CPU batches
+(`SMALL_BATCH_MAX`, crossover measured there).
 
-Same algorithm and the same certificate as `active_set.py` (KKT residual of the working set,
-primal feasibility of every row, multipliers ≥ 0, all within tol), so a certified answer is as
-exact as the batched one; only the working-set solve differs (exactly the working rows, one
-`dgesv`).  Anything this path does not certify — a singular working-set system (dependent rows,
-P singular on their null space), NaN data, or no certificate within the iteration budget — is
-reported back and handed to the batched torch path, which has the augmented-Lagrangian fallback
-and the interior point.  Always computes in float64 (float32 inputs are upcast; it is exact
-enough either way and the cast is free at this size).
+Why Goldfarb-Idnani rather than the batched path's primal-dual active set: one instance at a
+time there is no batch to keep in lockstep, and the dual method is finite: from a dual-feasible
+start (the minimiser on a working set whose multipliers are ≥ 0) it adds the most violated row
+(relative to its norm), dropping a working row whenever its multiplier would cross zero, so the
+working rows stay linearly independent and every KKT system stays nonsingular.  The semismooth
+Newton iteration adds all violated rows at once, which on heavily constrained instances (8-10
+active rows of 13 variables) gives singular systems or cycles; measured on 200 such instances
+per family (m = 30-50, spread 0.35-1.0) it certified 1-77 %, this method 100 % (10-18 solves
+on average).
+Each add is first tried as a full step (one solve on W + j; accepted iff its multipliers are
+≥ 0, which is exactly when G-I takes the full step), which leaves exact iterates; only when a
+row must be dropped does it take the incremental G-I steps, then re-solves the final working set.
+Warm start: the previous working set {z0 > 0}, less the rows whose multipliers come out
+negative; in the control loop that is one KKT solve.
+
+The answer is certified exactly as in `active_set.py` (KKT residual of the working set, primal
+feasibility of every row, multipliers ≥ 0, all within tol).  Anything not certified — P singular
+(LPs: G-I needs P ≻ 0 on the working set's null space), dependent equalities, an infeasible
+instance (a row in the span of the working rows with no multiplier to drop), NaN data, or the
+step budget spent — is reported back and handed to the batched torch path, which has the
+augmented-Lagrangian fallback, the interior point and its infeasibility certificates, so statuses
+are the batched path's.  Always computes in float64 (float32 inputs are upcast; the cast is free
+at this size).
 """
 
 from __future__ import annotations

@@ -37,8 +37,30 @@ solver works in two stages, each vectorised over the batch:
    from the working batch, and its strictly complementary active set (z > s) seeds a final PDAS
    "polish" that returns the exact solution of that active set.
 
+Small CPU batches (dispatch)
+----------------------------
+At B = 1 the stages above are op-bound: a warm-started solve is ~60 torch calls (180-400 µs),
+slower than proxsuite.torch, and a cold heavily constrained one pays for IPM iterations of ~150
+calls each.  So small CPU batches go through `small_batch.py` instead: per instance in numpy
+(~1 µs per call on these sizes instead of ~4-7 µs per torch op), a Goldfarb-Idnani dual active
+set warm-started from the previous working set (one KKT solve in the control loop, 10-18 on
+heavily constrained instances, no IPM), with the same certificate; what it does not certify
+(singular P or rows, infeasible, unbounded, NaN) goes to the batched stages above, so answers and
+statuses are the batched path's.  The backward of those batches solves the adjoint system per
+instance in numpy too (same equations; the torch adjoint if a system is singular).  The Python
+loop grows with B while the batched torch path is nearly flat, so the route is chosen by batch
+size (CPU only; a CUDA batch always takes the batched path):
+
+- B ≤ `SMALL_BATCH_MAX_WARM` (8) with a warm start, B ≤ `SMALL_BATCH_MAX` (16) without: numpy.
+- Measured crossovers (µs per QP, numpy / batched torch, 13 variables, 30 rows, 1 thread, the
+  shared box under load, so ratios matter more than values): warm forward B = 8: 128 / 130,
+  B = 16: 109 / 88; cold forward B = 16: 187 / 251, B = 32: 171 / 195, B = 64: 158 / 89 (spread
+  0.35, where the batched path needs its IPM: numpy wins up to B ≈ 64); backward alone B = 16:
+  76 / 123.  At B = 1: warm 407 / 736, cold 712 / 1318, cold heavily constrained 1209 / 3639.
+
 Code: `kkt.py` (the three working-set solves), `active_set.py` (stage 1), `interior_point.py`
-(stage 2), this file (assembly, polish, autograd, `solve_qp`).
+(stage 2), `small_batch.py` (the small-batch route), this file (assembly, polish, autograd,
+dispatch, `solve_qp`).
 
 Infinite bounds and right-hand sides become inert rows (0·x ≤ 1), and a failed instance never
 produces NaN: x is the last finite iterate and `status` says what happened.
@@ -64,10 +86,14 @@ from a3cqp_rl.qp.kkt import LU_MAX_BATCH, eq_solve_alm, kkt_lu, kkt_schur, mv
 from a3cqp_rl.qp.small_batch import EXHAUSTED, SINGULAR, active_set_small, adjoint_small
 from a3cqp_rl.qp.status import QPStatus
 
-__all__ = ["QPStatus", "QPSolution", "solve_qp", "SMALL_BATCH_MAX"]
+__all__ = ["QPStatus", "QPSolution", "solve_qp", "SMALL_BATCH_MAX", "SMALL_BATCH_MAX_WARM"]
 
 SMALL_BATCH_MAX = 16
-"""Largest CPU batch solved by the numpy per-instance path (`small_batch.py`); see the module docstring."""
+"""Largest CPU batch solved (and differentiated) by the numpy per-instance path, `small_batch.py`
+(measured crossover: see the module docstring)."""
+SMALL_BATCH_MAX_WARM = 8
+"""Same, for warm-started solves: both paths then certify in one iteration, which the batched
+path amortises over the batch sooner."""
 SMALL_MAX_STEPS = 100
 """Step budget of the numpy dual active set (one KKT solve per step) before the interior point.
 Goldfarb-Idnani is finite (each step adds or drops a row); heavily constrained controller-sized
@@ -147,8 +173,9 @@ def _stack_inequalities(
     h_all = torch.cat(rows_h, 1) if len(rows_h) > 1 else rows_h[0]
     # An infinite right-hand side is no constraint: replace it by 0·x ≤ 1, which is always
     # satisfied with slack 1 and a zero multiplier, so every instance keeps the same row count.
-    finite = torch.isfinite(h_all)
-    if not bool(finite.all()):
+    # (Tested in numpy for small CPU batches: three torch calls are ~10 µs of the B = 1 budget.)
+    if not (np.isfinite(_np64(h_all)).all() if _use_small_path(h_all) else bool(torch.isfinite(h_all).all())):
+        finite = torch.isfinite(h_all)
         G_all = torch.where(finite.unsqueeze(-1), G_all, torch.zeros((), dtype=like.dtype))
         h_all = torch.where(finite, h_all, torch.ones((), dtype=like.dtype))
     return G_all, h_all, m, has_lb, has_ub
@@ -201,14 +228,14 @@ def _solve_canonical(
     tol: float, max_iter: int, active_set_iter: int | None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Solve the canonical batch (no autograd); returns x, y, z, status, iterations."""
-    if _use_small_path(q):
+    if _use_small_path(q, SMALL_BATCH_MAX_WARM if z_warm is not None else SMALL_BATCH_MAX):
         return _solve_small(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
     return _solve_batched(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
 
 
-def _use_small_path(q: Tensor) -> bool:
-    """Whether this batch goes through the numpy per-instance path (small batch on CPU)."""
-    return q.shape[0] <= SMALL_BATCH_MAX and q.device.type == "cpu"
+def _use_small_path(q: Tensor, limit: int | None = None) -> bool:
+    """Whether this batch goes through the numpy per-instance path (at most `limit` instances, on CPU)."""
+    return q.shape[0] <= (SMALL_BATCH_MAX if limit is None else limit) and q.device.type == "cpu"
 
 
 def _np64(t: Tensor) -> np.ndarray:
@@ -308,7 +335,9 @@ def _backward_small(
     """Gradients (P, q, A, b, G, h) by the numpy adjoint (small CPU batches); None if a system is singular."""
     Pn, xn, yn, zn = _np64(P), _np64(x), _np64(y), _np64(z)
     # Gradients only flow through x of solved instances (as in the torch backward).
-    gxn = _np64(gx) * (status.numpy() == 0)[:, None]  # SOLVED; an IntEnum operand would take numpy's object path
+    gxn, st = _np64(gx), status.numpy()
+    if st.any():  # some instance not SOLVED (= 0; an IntEnum operand would take numpy's object path)
+        gxn = gxn * (st == 0)[:, None]
     adj = adjoint_small(0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(A), _np64(G), _np64(h), xn, zn, gxn)
     if adj is None:
         return None
