@@ -91,9 +91,7 @@ def _dual_active_set(
         return sol, rows, CERTIFIED, solves
     W = np.zeros(m, dtype=bool)
     W[rows] = True
-    gnorm = np.sqrt((G * G).sum(1)) + 1e-300
-    scale = float(np.abs(np.diagonal(Kfull)[:n]).max()) + 1e-300  # curvature scale of P
-    rhs_dir = np.zeros_like(rhs_full)
+    gnorm = np.sqrt(np.einsum("ij,ij->i", G, G)) + 1e-300
     x = nu = None  # the incremental G-I state, built only when a step needs it
     steps = 0
     while True:
@@ -122,6 +120,8 @@ def _dual_active_set(
             x = sol[:n].copy()
             nu = np.zeros(p + m)
             nu[:p], nu[p + rows] = sol[n : n + p], sol[n + p :]
+            scale = float(np.abs(np.diagonal(Kfull)[:n]).max()) + 1e-300  # curvature scale of P
+            rhs_dir = np.zeros_like(rhs_full)
         # G-I step for row j: raise its multiplier from 0 along the direction that keeps the
         # working rows tight and the point stationary, P dx + C_Wᵀ dν = −g_j, C_W dx = 0; a working
         # row whose multiplier reaches zero first is dropped (partial step), until row j is tight.
