@@ -142,6 +142,8 @@ class A2CConfig:
     an asymmetric actor-critic; the policy's input is eq. 26's either way. Needs network 'separate'."""
     log_std_init: float = 0.0
     """Initial log standard deviation of the state-independent Gaussian policy."""
+    noise_hold: int = 1
+    """Agent steps each exploration-noise draw is held (1 = white noise, SB3/paper; k > 1 like gSDE's sde_sample_freq)."""
     normalize_advantage: bool = False
     """Normalise advantages per batch (SB3 default: off)."""
     checkpoint_every: int = 5000
@@ -155,7 +157,7 @@ class A2CConfig:
 
     def _check(self, err: _Errors) -> None:
         for name in ("learning_rate", "rms_eps", "max_grad_norm", "n_steps", "num_envs", "total_steps",
-                     "checkpoint_every", "log_every"):
+                     "checkpoint_every", "log_every", "noise_hold"):
             err.positive(self, name)
         for name in ("ent_coef", "vf_coef", "rms_init"):
             if getattr(self, name) < 0:

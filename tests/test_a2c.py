@@ -7,7 +7,7 @@ import torch
 
 from a3cqp_rl.config import config_from_dict
 from a3cqp_rl.exceptions import CheckpointError
-from algorithms.a2c import Batch, a2c_update, gae_advantages, load_policy, nstep_returns, train
+from algorithms.a2c import Batch, HeldNoise, a2c_update, gae_advantages, load_policy, nstep_returns, train
 from algorithms.networks import LOG_2PI, ActorCritic, ParamLayout, backward, forward
 
 
@@ -133,6 +133,25 @@ def test_train_with_privileged_critic_and_gae(tmp_path, rollout):
     assert policy(torch.rand(5, 3)).shape == (5, 4)
 
 
+def test_held_noise_redraws_every_k_steps_and_resumes():
+    white = HeldNoise(torch.Generator().manual_seed(0), 3, 4, hold=1).draw(5)
+    assert torch.equal(white, torch.randn(5, 3, 4, generator=torch.Generator().manual_seed(0)))  # paper/SB3 default
+    h = HeldNoise(torch.Generator().manual_seed(0), 3, 4, hold=3)
+    a = torch.cat([h.draw(4), h.draw(4)])  # steps 0..7: draws at 0, 3, 6 across the call boundary
+    assert torch.equal(a[0], a[1]) and torch.equal(a[1], a[2]) and not torch.equal(a[2], a[3])
+    assert torch.equal(a[3], a[5]) and not torch.equal(a[5], a[6]) and torch.equal(a[6], a[7])
+    gen = torch.Generator().manual_seed(1)
+    h1 = HeldNoise(gen, 2, 4, hold=5)
+    h1.draw(7)
+    snap, gstate = h1.state_dict(), gen.get_state()
+    later = h1.draw(6)
+    gen2 = torch.Generator()
+    gen2.set_state(gstate)
+    h2 = HeldNoise(gen2, 2, 4, hold=5)
+    h2.load_state_dict(snap)
+    assert torch.equal(h2.draw(6), later)
+
+
 def test_train_short_run_writes_files_and_learns_something(tmp_path):
     cfg = config_from_dict({"a2c": {"compile": False, "log_every": 50, "checkpoint_every": 100}})
     res = train(cfg, tmp_path / "run", total_steps=16 * 200)
@@ -150,8 +169,10 @@ def test_train_short_run_writes_files_and_learns_something(tmp_path):
         policy(torch.full((2, 3), float("nan")))
 
 
-def test_same_seed_same_numbers_and_resume_is_exact(tmp_path):
-    base = {"a2c": {"compile": False, "log_every": 10, "checkpoint_every": 25}, "point_mass": {"episode_steps": 30}}
+@pytest.mark.parametrize("hold", [1, 7])
+def test_same_seed_same_numbers_and_resume_is_exact(tmp_path, hold):
+    base = {"a2c": {"compile": False, "log_every": 10, "checkpoint_every": 25, "noise_hold": hold},
+            "point_mass": {"episode_steps": 30}}
     cfg = config_from_dict(base)
     full = train(cfg, tmp_path / "full", total_steps=16 * 50)
     again = train(cfg, tmp_path / "again", total_steps=16 * 50)
