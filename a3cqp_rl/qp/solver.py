@@ -438,7 +438,9 @@ def solve_qp(
         max_iter: interior-point iteration budget for instances the active-set stage leaves.
         active_set_iter: primal-dual active-set iterations tried before the interior point; default
             15 for B ≤ 32 (an active-set iteration costs ~1/3 of an interior-point one there) and
-            10 above (measured best on heavily constrained batches).
+            10 above (measured best on heavily constrained batches).  On the small-batch CPU path
+            (see the module docstring) it is the dual active set's budget of KKT solves instead,
+            default `SMALL_MAX_STEPS` (100).
 
     Any argument may also be given unbatched (without the leading B) to share it across the batch.
     Gradients flow to every tensor argument through x (implicit differentiation of the KKT system).
