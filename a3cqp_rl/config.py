@@ -142,6 +142,8 @@ class A2CConfig:
     an asymmetric actor-critic; the policy's input is eq. 26's either way. Needs network 'separate'."""
     log_std_init: float = 0.0
     """Initial log standard deviation of the state-independent Gaussian policy."""
+    bound_coef: float = 0.0
+    """Weight of a penalty on policy means outside [-1, 1] (0 = off, the paper; rl_games' bounds_loss_coef)."""
     noise_hold: int = 1
     """Agent steps each exploration-noise draw is held (1 = white noise, SB3/paper; k > 1 like gSDE's sde_sample_freq)."""
     normalize_advantage: bool = False
@@ -159,7 +161,7 @@ class A2CConfig:
         for name in ("learning_rate", "rms_eps", "max_grad_norm", "n_steps", "num_envs", "total_steps",
                      "checkpoint_every", "log_every", "noise_hold"):
             err.positive(self, name)
-        for name in ("ent_coef", "vf_coef", "rms_init"):
+        for name in ("ent_coef", "vf_coef", "rms_init", "bound_coef"):
             if getattr(self, name) < 0:
                 err.add(name, f"must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.gamma <= 1.0:

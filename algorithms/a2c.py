@@ -10,6 +10,11 @@ Conventions (those of Stable-Baselines3's A2C, the paper's library; defaults = T
     A3C (Mnih et al. 2016) and SB3 the entropy is a bonus, so it enters with a minus sign.
   * n-step returns bootstrap from V(s') at the end of a rollout and at truncation (time limit),
     and not at termination.
+  * Options beyond the paper (all off by default): GAE(λ) advantages, a privileged (asymmetric)
+    critic, held exploration noise (`HeldNoise`), and a bound loss on the policy mean outside
+    [-1, 1] (rl_games' `bounds_loss_coef`): with weak per-sample signal, RMSProp's ~lr-sized steps
+    random-walk weakly-rewarded action means far past the clip, where every clipped sample is the
+    same action and the policy gradient can no longer pull them back.
 Data comes from either (a) the env's fused API (`fused_functions`: a pure step with auto-reset, PointMassEnv), rollout
 and update compiled together into one graph, or
 (b) any TorchRL EnvBase through a TorchRL `Collector` (ParallelEnv/SerialEnv, MuJoCo Panda).
@@ -102,9 +107,11 @@ def a2c_update(layout: ParamLayout, flat: Tensor, square_avg: Tensor, batch: Bat
     entropy = (log_std + 0.5 * (1.0 + LOG_2PI)).sum()  # state-independent std
     policy_loss = -(adv * log_prob).mean()  # eq. 31b
     value_loss = (returns - values).pow(2).mean()  # eq. 31c (without λv)
-    # ∂L/∂(mean, log-std, value) of L = policy_loss + λv·value_loss − λβ·entropy, by hand:
+    # ∂L/∂(mean, log-std, value) of L = policy_loss + λv·value_loss − λβ·entropy (+ bound loss), by hand:
     w = (adv / B).unsqueeze(-1)
     g_mu = -w * z * inv_std
+    if hp.bound_coef > 0:  # λb·mean(Σ relu(|μ| − 1)²): keeps the mean where clipped actions still differ
+        g_mu = g_mu + (2.0 * hp.bound_coef / B) * (mu.abs() - 1.0).clamp(min=0.0) * torch.sign(mu)
     g_log_std = -(w * (z * z - 1.0)).sum(0) - hp.ent_coef
     g_value = (2.0 * hp.vf_coef / B) * (values - returns)
     grad = backward(layout, flat, cache, g_mu, g_log_std, g_value)

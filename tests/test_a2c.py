@@ -54,17 +54,17 @@ def test_gae_limits_and_hand_case():
     assert torch.allclose(A[:, 0], torch.tensor([d0 + 0.45 * d1, d1]))
 
 
-@pytest.mark.parametrize("network,critic_dim,lam", [("separate", None, 1.0), ("shared", None, 1.0),
-                                                    ("separate", 7, 1.0), ("separate", 7, 0.6)])
+@pytest.mark.parametrize("network,critic_dim,lam,bound", [("separate", None, 1.0, 0.0), ("shared", None, 1.0, 0.0),
+                                                          ("separate", 7, 1.0, 0.0), ("separate", 7, 0.6, 0.7)])
 @pytest.mark.parametrize("normalize", [False, True])
-def test_hand_gradients_equal_autograd(network, critic_dim, lam, normalize):
+def test_hand_gradients_equal_autograd(network, critic_dim, lam, bound, normalize):
     cfg = config_from_dict({"a2c": {"network": network, "normalize_advantage": normalize, "hidden": [8, 6],
-                                    "gae_lambda": lam,
+                                    "gae_lambda": lam, "bound_coef": bound,
                                     "max_grad_norm": 1e9, "learning_rate": 1.0, "rms_alpha": 0.0, "rms_eps": 1e-300}})
     hp = cfg.a2c
     layout = ParamLayout(3, 4, hp.hidden, network, critic_dim)
     flat = layout.init(torch.Generator().manual_seed(0)).double()
-    flat += 0.1 * torch.randn(flat.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    flat += (0.1 + 2 * bound) * torch.randn(flat.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
     batch = random_batch(obs_dim=critic_dim or 3)
     # autograd reference of the same loss (SB3's A2C loss)
     ac = ActorCritic(layout, flat)
@@ -84,6 +84,7 @@ def test_hand_gradients_equal_autograd(network, critic_dim, lam, normalize):
     logp = ac.log_prob(mu, log_std, batch.actions.reshape(T * N, 4))
     ent = (log_std + 0.5 * (1 + LOG_2PI)).sum()
     loss = -(adv * logp).mean() + hp.vf_coef * ((R - v) ** 2).mean() - hp.ent_coef * ent
+    loss = loss + bound * (mu.abs() - 1.0).clamp(min=0.0).pow(2).sum(-1).mean()
     loss.backward()
     ref = ac.flat.grad
     # with alpha=0, eps≈0, lr=1 the RMSProp step is -grad/|grad| per element: recover grad direction and norm

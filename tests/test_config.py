@@ -54,6 +54,7 @@ def test_roundtrip_and_overrides(tmp_path):
         ("a2c: {network: transformer}", "a2c.network"),
         ("a2c: {gae_lambda: 1.5}", "a2c.gae_lambda"),
         ("a2c: {noise_hold: 0}", "a2c.noise_hold"),
+        ("a2c: {bound_coef: -1}", "a2c.bound_coef"),
         ("a2c: {critic: oracle}", "a2c.critic"),
         ("a2c: {critic: privileged, network: shared}", "a2c.critic"),
         ("point_mass: {mass: -10}", "point_mass.mass"),
