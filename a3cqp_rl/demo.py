@@ -69,9 +69,9 @@ def controller_demo(seconds: float = 6.0, png: Path | None = None, tool: str = "
         weights = torch.softmax(logits, dim=-1).unsqueeze(0)
         f_d = torch.zeros(1, 6, dtype=torch.float64)
         f_d[0, 2] = f_d_z * float(weights[0, 2, 2])  # ramp the desired force with the FC weight
-        kin = model.kinematics(s.q, s.qd)
+        kin = s.kin  # the tool tip's kinematics from MuJoCo's step (same as model.kinematics(s.q, s.qd) to 1e-8)
         f_ext = wrench_from_joint_torques(s.tau_ext, kin.jac, s.mass)
-        out = ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, target, rot_d, f_ext=f_ext, f_env=s.f_env)
+        out = ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, target, rot_d, f_ext=f_ext, f_env=s.f_env, kin=kin)
         if np.any(push):
             sim.push(push[None], site="handle")
         sim.step(out.tau)

@@ -4,13 +4,14 @@ aggregate real-time factor of the simulated arms (controller + MuJoCo) on this m
 Closed loop at 1 kHz: every arm gets random softmax task weights switching every 50 ms, a random Cartesian target
 and desired forces (no contact). Reported per N (medians over the timed steps):
   ctrl   µs per step for all N arms (kinematics + QP build + a3cqp_rl.qp solve + torque law), and per arm
-  qp     the part spent in solve_qp
-  sim    MuJoCo (mj_step1 + B(q) + mj_step2 for N MjData, a Python loop)
+  split  of ctrl: kin (torch kinematics; 0 with --kin mujoco, where MuJoCo's own kinematics come with `sim`),
+         asm (context, task residuals, limit rows, stacking), qp (solve_qp), rest (input checks, torque law eq. 4-7)
+  sim    MuJoCo (mj_step1 + B(q) + site Jacobian/J̇ + mj_step2 for N MjData, a Python loop)
   RTF    aggregate real-time factor N · Δt / (ctrl + sim)
 Peer measured in the same run: the same QPs solved one by one by Clarabel (direct API, no cvxpy) -> "qp speed-up".
 Targets (issue 6): N = 1 under 1000 µs per step; N = 64 at least 20x real time in aggregate.
 
-    python bench/controller.py [--quick] [--threads T] [--sizes 1 64]
+    python bench/controller.py [--quick] [--threads T] [--sizes 1 64] [--kin mujoco|torch] [--repeats R]
 """
 
 from __future__ import annotations
@@ -40,10 +41,11 @@ def clarabel_solve(P: np.ndarray, c: np.ndarray, G: np.ndarray, h: np.ndarray) -
     return np.asarray(solver.solve().x)
 
 
-def run(n: int, steps: int, warmup: int, seed: int = 0) -> dict[str, float]:
+def run(n: int, steps: int, warmup: int, seed: int = 0, kin_source: str = "mujoco") -> dict[str, float]:
     """Closed-loop run of n arms; returns median timings (µs) and the QP peer's time."""
     gen = torch.Generator().manual_seed(seed)
-    sim, ctrl = PandaSim(n), A3CQPController(n)
+    sim = PandaSim(n, control_site="tcp" if kin_source == "mujoco" else None)
+    ctrl = A3CQPController(n)
     s = sim.observe()
     pos0, rot0 = ctrl.model.fk(s.q.clone())
     pos_d = pos0 + 0.2 * (torch.rand(n, 3, generator=gen, dtype=torch.float64) - 0.5)
@@ -61,14 +63,29 @@ def run(n: int, steps: int, warmup: int, seed: int = 0) -> dict[str, float]:
         return out
 
     controller_module.solve_qp = timed_solve
-    ctrl_t, sim_t = [], []
+    # time the assembly (build_context + build_qp) and the torch kinematics inside step() by wrapping them
+    parts: dict[str, float] = {"asm": 0.0, "kin": 0.0}
+
+    def timed(name: str, fn):  # noqa: ANN001, ANN202
+        def wrapper(*a, **kw):  # noqa: ANN002, ANN003, ANN202
+            t = time.perf_counter()
+            out = fn(*a, **kw)
+            parts[name] += time.perf_counter() - t
+            return out
+        return wrapper
+
+    ctrl.build_context = timed("asm", ctrl.build_context)
+    ctrl.build_qp = timed("asm", ctrl.build_qp)
+    ctrl.model.kinematics = timed("kin", ctrl.model.kinematics)
+    ctrl_t, sim_t, asm_t, kin_t = [], [], [], []
     try:
         for k in range(warmup + steps):
             if k % 50 == 0:
                 w = torch.softmax(6.0 * (torch.rand(n, 6, 3, generator=gen, dtype=torch.float64) - 0.5), -1)
                 f_d = 10.0 * torch.rand(n, 6, generator=gen, dtype=torch.float64)
+            parts["asm"] = parts["kin"] = 0.0
             t0 = time.perf_counter()
-            out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, f_d, pos_d, rot0, f_env=s.f_env)
+            out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, f_d, pos_d, rot0, f_env=s.f_env, kin=s.kin)
             t1 = time.perf_counter()
             sim.step(out.tau)
             s = sim.observe()
@@ -76,6 +93,8 @@ def run(n: int, steps: int, warmup: int, seed: int = 0) -> dict[str, float]:
             if k >= warmup:
                 ctrl_t.append(t1 - t0)
                 sim_t.append(t2 - t1)
+                asm_t.append(parts["asm"] - parts["kin"])  # kinematics run inside build_context
+                kin_t.append(parts["kin"])
     finally:
         controller_module.solve_qp = real_solve
     peer = []
@@ -84,7 +103,9 @@ def run(n: int, steps: int, warmup: int, seed: int = 0) -> dict[str, float]:
         clarabel_solve(*prob)
         peer.append(time.perf_counter() - t)
     med = lambda v: 1e6 * statistics.median(v)  # noqa: E731
-    return {"ctrl": med(ctrl_t), "qp": med(qp_times[warmup:]), "sim": med(sim_t),
+    rest = [c - a - k - q for c, a, k, q in zip(ctrl_t, asm_t, kin_t, qp_times[warmup:])]
+    return {"ctrl": med(ctrl_t), "qp": med(qp_times[warmup:]), "sim": med(sim_t), "asm": med(asm_t),
+            "kin": med(kin_t), "rest": med(rest),
             "peer_qp_per_arm": med(peer), "fallbacks": ctrl.fallback_count, "dt": sim.dt}
 
 
@@ -94,21 +115,28 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="few steps (smoke test)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64], help="numbers of arms N")
+    parser.add_argument("--kin", choices=["mujoco", "torch"], default="mujoco",
+                        help="site kinematics from PandaSim's MuJoCo step (default) or PandaModel (torch)")
+    parser.add_argument("--repeats", type=int, default=1, help="runs per N; the row shows the median run")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(args.threads)
     steps, warmup = (60, 20) if args.quick else (1000, 100)
-    print(f"A3CQP controller benchmark: torch {torch.__version__}, {args.threads} thread(s), {steps} timed steps")
-    print(f"{'N':>4} {'ctrl µs/step':>13} {'µs/arm':>8} {'qp µs':>8} {'sim µs':>8} {'RTF':>7} "
-          f"{'Clarabel µs/arm':>16} {'qp speed-up':>12} {'target':>22}")
+    print(f"A3CQP controller benchmark: torch {torch.__version__}, {args.threads} thread(s), {steps} timed steps, "
+          f"kinematics from {args.kin}, median of {args.repeats} run(s)")
+    print(f"{'N':>4} {'ctrl µs/step':>13} {'µs/arm':>8} {'kin':>6} {'asm':>6} {'qp µs':>7} {'rest':>6} {'sim µs':>8} "
+          f"{'RTF':>7} {'Clarabel µs/arm':>16} {'qp speed-up':>12} {'target':>22}")
     for n in args.sizes:
-        r = run(n, steps, warmup)
+        runs = sorted((run(n, steps, warmup, kin_source=args.kin) for _ in range(args.repeats)),
+                      key=lambda r: r["ctrl"] + r["sim"])
+        r = runs[len(runs) // 2]
         rtf = n * r["dt"] * 1e6 / (r["ctrl"] + r["sim"])
         speedup = r["peer_qp_per_arm"] * n / r["qp"]
         if n == 1:
             target = f"<1000 µs: {'met' if r['ctrl'] < 1000 else 'NOT met'}"
         else:
             target = f">=20x RT: {'met' if rtf >= 20 else 'NOT met'}"
-        print(f"{n:>4} {r['ctrl']:>13.0f} {r['ctrl'] / n:>8.1f} {r['qp']:>8.0f} {r['sim']:>8.0f} {rtf:>6.2f}x "
+        print(f"{n:>4} {r['ctrl']:>13.0f} {r['ctrl'] / n:>8.1f} {r['kin']:>6.0f} {r['asm']:>6.0f} {r['qp']:>7.0f} "
+              f"{r['rest']:>6.0f} {r['sim']:>8.0f} {rtf:>6.2f}x "
               f"{r['peer_qp_per_arm']:>16.0f} {speedup:>11.2f}x {target:>22}"
               + (f"  ({r['fallbacks']} fallbacks)" if r["fallbacks"] else ""))
     return 0

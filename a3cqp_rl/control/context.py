@@ -66,6 +66,10 @@ class ControlContext:
     """Control period Δt [s]."""
     bias: torch.Tensor | None = None
     """h + g [B, 7] (N m), for the torque limits (None when the caller did not provide it)."""
+    qdd_map: torch.Tensor | None = None
+    """I + ∂q̈_pd/∂q̈* [B, 7, 7]: the commanded joint acceleration per unit q̈* (None: limits compute it)."""
+    jt_w1_j: torch.Tensor | None = None
+    """Jᵀ W1 J [B, 7, 7] (the IK weight pulled back to joint space; None: tasks compute it)."""
     wrench_feedforward: torch.Tensor | None = None
     """Wrench the AC/FC tasks are expected to command [B, 6] (N, N m) (set by the controller; None = 0): the IK task
     can subtract its acceleration Λ⁻¹ f so that AC/FC on some axes do not drag the IK axes (Λ⁻¹ couples them)."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 from dataclasses import dataclass, field
 from typing import Literal
@@ -18,7 +19,7 @@ from a3cqp_rl.control.limits import (FrictionPyramid, Inequality, JointLimitsVia
 from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer, CartesianIK, ForceControl,
                                     JointCentering, Residual, Task)
 from a3cqp_rl.qp import QPSolution, solve_qp
-from a3cqp_rl.robot.kinematics import PandaModel
+from a3cqp_rl.robot.kinematics import Kinematics, PandaModel
 from a3cqp_rl.robot.specs import PANDA_HOME, PANDA_LIMITS, PandaLimits
 
 __all__ = ["ControllerOptions", "ControlOutput", "A3CQPController", "wrench_from_joint_torques", "INVALID_INPUT",
@@ -119,7 +120,9 @@ def wrench_from_joint_torques(tau_ext: torch.Tensor, jac: torch.Tensor, mass: to
 
 
 def _mv(M: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    return (M @ v.unsqueeze(-1)).squeeze(-1)
+    """M v for a batch: M [B, m, k], v [B, k] -> [B, m]."""
+    # torch.bmm, not @: on [B, m, k] tensors matmul's broadcasting logic costs ~6 µs per call, more than the product
+    return torch.bmm(M, v.unsqueeze(-1)).squeeze(-1)
 
 
 class A3CQPController:
@@ -174,6 +177,8 @@ class A3CQPController:
         self.q_des: torch.Tensor | None = None  # q*, eq. 7 [N, 7]
         self.qd_des: torch.Tensor | None = None  # q̇*, eq. 6 [N, 7]
         self._warm: QPSolution | None = None
+        self._const_key: tuple | None = None
+        self._const: dict[str, torch.Tensor] = {}
         self.residuals: dict[str, Residual] = {}
         """Task residuals of the last step, by task name (their b are the references f_adm, f_ctc, ...)."""
         self.fallback_count = 0
@@ -198,32 +203,53 @@ class A3CQPController:
 
     def build_context(self, q: torch.Tensor, qd: torch.Tensor, mass: torch.Tensor, weights: torch.Tensor,
                       f_d: torch.Tensor, pos_d: torch.Tensor, rot_d: torch.Tensor, f_ext: torch.Tensor,
-                      in_contact: torch.Tensor, bias: torch.Tensor | None = None) -> ControlContext:
-        """All per-step matrices the tasks and limits need (one kinematics pass, one Cholesky of B)."""
+                      in_contact: torch.Tensor, bias: torch.Tensor | None = None,
+                      kin: Kinematics | None = None) -> ControlContext:
+        """All per-step matrices the tasks and limits need (one kinematics pass, one Cholesky of B).
+
+        `kin`: the control site's kinematics when the caller already has them (e.g. PandaSim's `SimState.kin`,
+        from MuJoCo's own step); default one pass of `self.model.kinematics(q, qd)`.
+        """
         opt, cfg, dt = self.options, self.config, self.dt
-        kin = self.model.kinematics(q, qd)
+        if kin is None:
+            kin = self.model.kinematics(q, qd)
+        c = self._constants(q)
         J = kin.jac
         Jt = J.transpose(-1, -2)
-        eye6 = torch.eye(6, dtype=q.dtype, device=q.device)
         L, _ = torch.linalg.cholesky_ex(mass)
         binv_jt = torch.cholesky_solve(Jt, L)  # B⁻¹Jᵀ (B, 7, 6)
-        lam_inv = J @ binv_jt + opt.pinv_damping * eye6
-        lam = torch.linalg.inv(lam_inv)  # Λ, eq. 12
+        lam_inv = torch.baddbmm(c["pinv_damping"], J, binv_jt)  # J B⁻¹ Jᵀ + λ² I
+        lam = torch.linalg.inv_ex(lam_inv)[0]  # Λ, eq. 12 (inv_ex: no per-call error check)
         lam = 0.5 * (lam + lam.transpose(-1, -2))
         D = block_rotation(kin.rot)  # eq. 3
-        W1, W2, W3 = weights_to_world(D.unsqueeze(1), weights.transpose(1, 2)).unbind(1)  # eq. 8, (B, 6, 6) each
-        jpinv = Jt @ torch.linalg.inv(J @ Jt + opt.nullspace_damping * eye6)  # J⁺ (B, 7, 6)
-        pd = (jpinv if opt.pd_projection == "pinv" else Jt) @ W1 @ J  # Jᵀ W1 J (eq. 5) or J⁺ W1 J
-        dq0 = self.q_des + dt * self.qd_des - q  # q* − q with q̈* = 0 (eq. 7)
-        dv0 = self.qd_des - qd  # q̇* − q̇ with q̈* = 0 (eq. 6)
-        ctx = ControlContext(
+        # eq. 8 for the three weights at once: W_i = D diag(w_i) Dᵀ, (B, 3, 6, 6)
+        W1, W2, W3 = weights_to_world(D.unsqueeze(1), weights.transpose(1, 2)).unbind(1)
+        jpinv = torch.bmm(Jt, torch.linalg.inv_ex(torch.baddbmm(c["nullspace_damping"], J, Jt))[0])  # J⁺ (B, 7, 6)
+        W1J = torch.bmm(W1, J)
+        pd = torch.bmm(jpinv if opt.pd_projection == "pinv" else Jt, W1J)  # Jᵀ W1 J (eq. 5) or J⁺ W1 J
+        # q̈_pd with q̈* = 0 (eq. 5-7): q* − q = q*_prev + Δt q̇*_prev − q, q̇* − q̇ = q̇*_prev − q̇
+        err = torch.add(cfg.cv * (self.qd_des - qd), self.q_des + dt * self.qd_des - q, alpha=cfg.cp)
+        pd_qdd_gain = (cfg.cv * dt + cfg.cp * dt * dt / 2) * pd
+        return ControlContext(
             q=q, qd=qd, kin=kin, mass=mass, mass_inv_jt=binv_jt, cart_inertia=lam, cart_inertia_inv=lam_inv,
             D=D, weights_local=weights, W1=W1, W2=W2, W3=W3,
             pose_error=pose_error(pos_d, rot_d, kin.pos, kin.rot), f_ext=f_ext,
             f_d_local=f_d.clamp(0.0, self.f_d_max), in_contact=in_contact,
-            qdd_pd0=_mv(pd, cfg.cv * dv0 + cfg.cp * dq0), pd_qdd_gain=(cfg.cv * dt + cfg.cp * dt * dt / 2) * pd,
-            nullspace=torch.eye(N_QDD, dtype=q.dtype, device=q.device) - jpinv @ J, pd_matrix=pd, dt=dt, bias=bias)
-        return ctx
+            qdd_pd0=_mv(pd, err), pd_qdd_gain=pd_qdd_gain, nullspace=c["eye7"] - torch.bmm(jpinv, J),
+            pd_matrix=pd, dt=dt, bias=bias, qdd_map=c["eye7"] + pd_qdd_gain, jt_w1_j=torch.bmm(Jt, W1J))
+
+    def _constants(self, like: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Per-step constants (identities, damping terms), made once per dtype/device: read-only."""
+        key = (like.dtype, like.device)
+        if self._const_key != key:
+            opt = self.options
+            eye6 = torch.eye(6, dtype=like.dtype, device=like.device)
+            self._const = {"eye7": torch.eye(N_QDD, dtype=like.dtype, device=like.device),
+                           "pinv_damping": opt.pinv_damping * eye6, "nullspace_damping": opt.nullspace_damping * eye6,
+                           "P0": opt.regularization * torch.eye(N_VARS, dtype=like.dtype, device=like.device),
+                           "tau_max": self.tau_max.to(like)}
+            self._const_key = key
+        return self._const
 
     def wrench_feedforward(self, ctx: ControlContext, residuals: dict[str, Residual] | None = None) -> torch.Tensor:
         """Unconstrained optimum of the wrench sub-problem (eq. 24b): (W2 + W3 + r I)⁻¹(W2 f_adm + W3 f_ctc) [B, 6].
@@ -232,14 +258,16 @@ class A3CQPController:
         """
         if residuals is None:
             residuals = {t.name: t.residual(ctx) for t in self.tasks if isinstance(t, (Admittance, ForceControl))}
-        Dt = ctx.D.transpose(-1, -2)
-        num = ctx.q.new_zeros(ctx.batch, 6)
-        den = ctx.q.new_full((ctx.batch, 6), self.options.regularization)
-        for task_type, k in ((Admittance, 1), (ForceControl, 2)):
-            for res in (residuals.get(t.name) for t in self.tasks if isinstance(t, task_type)):
-                if res is not None:
-                    w = ctx.weights_local[..., k]
-                    num, den = num + w * _mv(Dt, res.b), den + w
+        refs = [(res.b, k) for task_type, k in ((Admittance, 1), (ForceControl, 2)) for t in self.tasks
+                if isinstance(t, task_type) and (res := residuals.get(t.name)) is not None]
+        if not refs:
+            return ctx.q.new_zeros(ctx.batch, 6)
+        # local frame: f^𝓛 = Dᵀ f, all references in one product
+        local = torch.bmm(torch.stack([b for b, _ in refs], dim=1), ctx.D).transpose(-1, -2)  # (B, 6, R)
+        cols = [k for _, k in refs]
+        w = ctx.weights_local[..., 1:3] if cols == [1, 2] else ctx.weights_local[..., cols]  # (B, 6, R)
+        num = (w * local).sum(-1)
+        den = w.sum(-1) + self.options.regularization
         return _mv(ctx.D, num / den)
 
     def build_qp(self, ctx: ControlContext) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -248,9 +276,6 @@ class A3CQPController:
         The wrench tasks are evaluated first so that IK can feed their wrench forward (ik_wrench_feedforward);
         the residuals of this call are kept in `self.residuals` (their b are the references f_adm, f_ctc, ...).
         """
-        B = ctx.batch
-        P = self.options.regularization * torch.eye(N_VARS, dtype=ctx.q.dtype, device=ctx.q.device).repeat(B, 1, 1)
-        c = ctx.q.new_zeros(B, N_VARS)
         residuals = {t.name: t.residual(ctx) for t in self.tasks if isinstance(t, (Admittance, ForceControl))}
         if self.options.ik_wrench_feedforward and residuals:
             f_ff = self.wrench_feedforward(ctx, residuals) * (~ctx.in_contact).to(ctx.q.dtype).unsqueeze(-1)
@@ -263,29 +288,51 @@ class A3CQPController:
         groups: dict[tuple[int, int], list[Residual]] = {}
         for res in residuals.values():
             groups.setdefault((id(res.A), res.col), []).append(res)
+        # blocks of P on the diagonal, summed per block (col, size); assembled once below
+        blocks: dict[tuple[int, int], list[torch.Tensor]] = {}
         for members in groups.values():
             first = members[0]
-            W = first.W if len(members) == 1 else sum(r.W for r in members)
-            Wb = sum(_mv(r.W, r.b) for r in members)
+            W = functools.reduce(torch.add, [r.W for r in members])
+            Wb = functools.reduce(torch.add, [_mv(r.W, r.b) for r in members])
             if first.A is None:
                 H, g = W, -Wb
             else:
                 At = first.A.transpose(-1, -2)
-                H, g = At @ W @ first.A, -_mv(At, Wb)
-            sl = slice(first.col, first.col + first.size)
-            P[:, sl, sl] += H
-            c[:, sl] += g
+                H, g = torch.bmm(At, torch.bmm(W, first.A)), -_mv(At, Wb)
+            blk = blocks.setdefault((first.col, first.size), [H, g])
+            if blk[0] is not H:
+                blk[0], blk[1] = blk[0] + H, blk[1] + g
         self.residuals = residuals
+        P, c = self._assemble(ctx, blocks)
         rows: list[Inequality] = [lim.rows(ctx) for lim in self.limits]
         G = torch.cat([r.G for r in rows], dim=1)
         h = torch.cat([r.h for r in rows], dim=1)
-        return 0.5 * (P + P.transpose(-1, -2)), c, G, h
+        return P, c, G, h
+
+    def _assemble(self, ctx: ControlContext, blocks: dict[tuple[int, int], list[torch.Tensor]]
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        """P = r I + Σ blocks (symmetrised), c = Σ blocks, on x = (q̈, f)."""
+        B, like = ctx.batch, ctx.q
+        P0 = self._constants(like)["P0"]
+        qq, ff = blocks.get((0, N_QDD)), blocks.get((N_QDD, N_VARS - N_QDD))
+        if qq is not None and ff is not None and len(blocks) == 2:
+            # the usual case (the default tasks): block-diagonal, built with two cats instead of zeros + slice adds
+            H = torch.cat([torch.cat([qq[0], like.new_zeros(B, N_QDD, N_VARS - N_QDD)], dim=2),
+                           torch.cat([like.new_zeros(B, N_VARS - N_QDD, N_QDD), ff[0]], dim=2)], dim=1)
+            P, c = H + P0, torch.cat([qq[1], ff[1]], dim=1)
+        else:
+            P, c = P0.repeat(B, 1, 1), like.new_zeros(B, N_VARS)
+            for (col, size), (H, g) in blocks.items():
+                P[:, col:col + size, col:col + size] += H
+                c[:, col:col + size] += g
+        return 0.5 * (P + P.transpose(-1, -2)), c
 
     # ------------------------------------------------------------------ step
     @torch.no_grad()
     def step(self, q: torch.Tensor, qd: torch.Tensor, mass: torch.Tensor, bias: torch.Tensor, weights: torch.Tensor,
              f_d: torch.Tensor, pos_d: torch.Tensor, rot_d: torch.Tensor, f_ext: torch.Tensor | None = None,
-             in_contact: torch.Tensor | None = None, f_env: torch.Tensor | None = None) -> ControlOutput:
+             in_contact: torch.Tensor | None = None, f_env: torch.Tensor | None = None,
+             kin: Kinematics | None = None) -> ControlOutput:
         """One 1 kHz control step for N robots: QP (eq. 24) then computed torque (eq. 4-7).
 
         Args:
@@ -297,6 +344,8 @@ class A3CQPController:
             f_ext: measured external wrench at the control site [N, 6], world frame (default 0).
             in_contact: bool [N] activating the friction pyramid; default |f_env force| > threshold, else False.
             f_env: measured environment (F/T) wrench [N, 6], world frame, only used to infer `in_contact`.
+            kin: kinematics of the control site at (q, q̇) if the caller has them (PandaSim's `SimState.kin`, from
+                MuJoCo's step: same values as `self.model.kinematics` to ~1e-8); default computed by `self.model`.
         """
         n = self.n
         q = self._check("q", q, (n, 7))
@@ -318,8 +367,9 @@ class A3CQPController:
         def finite(t: torch.Tensor) -> torch.Tensor:
             return torch.isfinite(t.flatten(1)).all(-1)
 
+        # (a caller's kin is not checked: non-finite kinematics make x non-finite, which falls back below)
         inputs = [q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext]
-        valid = torch.isfinite(torch.cat([t.flatten(1) for t in inputs], dim=1)).all(-1)  # (N,)
+        valid = torch.isfinite(torch.cat([t.reshape(n, -1) for t in inputs], dim=1)).all(-1)  # (N,)
         if not bool(valid.all()):
             def keep(t: torch.Tensor, default: torch.Tensor | float) -> torch.Tensor:
                 ok = finite(t).view(-1, *([1] * (t.dim() - 1)))
@@ -330,8 +380,9 @@ class A3CQPController:
             mass, bias = keep(mass, eye7), keep(bias, 0.0)
             weights, f_d, f_ext = keep(weights, 1.0 / 3.0), keep(f_d, 0.0), keep(f_ext, 0.0)
             pos_d, rot_d = keep(pos_d, 0.0), keep(rot_d, eye7[:, :3, :3])
+            kin = None  # recomputed from the stand-in q, q̇
 
-        ctx = self.build_context(q, qd, mass, weights, f_d, pos_d, rot_d, f_ext, in_contact, bias)
+        ctx = self.build_context(q, qd, mass, weights, f_d, pos_d, rot_d, f_ext, in_contact, bias, kin=kin)
         P, c, G, h = self.build_qp(ctx)
         warm = self._warm if self._warm is not None and self._warm.z.shape == (n, G.shape[1]) else None
         try:
@@ -349,11 +400,11 @@ class A3CQPController:
 
         # eq. 6-7: integrate the desired joint state; eq. 5: feedback acceleration; eq. 4: torque
         dt, cfg = self.dt, self.config
-        qd_des = self.qd_des + dt * qdd
-        q_des = self.q_des + dt * self.qd_des + 0.5 * dt * dt * qdd
-        J = ctx.kin.jac
-        qdd_pd = _mv(ctx.pd_matrix, cfg.cv * (qd_des - qd) + cfg.cp * (q_des - q))
-        tau = _mv(mass, qdd + qdd_pd) + _mv(J.transpose(-1, -2), f) + bias
+        qd_des = torch.add(self.qd_des, qdd, alpha=dt)
+        q_des = torch.add(torch.add(self.q_des, self.qd_des, alpha=dt), qdd, alpha=0.5 * dt * dt)
+        qdd_pd = _mv(ctx.pd_matrix, torch.add(cfg.cv * (qd_des - qd), q_des - q, alpha=cfg.cp))
+        # τ = B(q̈* + q̈_pd) + Jᵀf + h + g as one product: [B | Jᵀ] (q̈* + q̈_pd, f)
+        tau = _mv(torch.cat([mass, ctx.kin.jac.transpose(-1, -2)], dim=2), torch.cat([qdd + qdd_pd, f], dim=1)) + bias
 
         # safe fallback for failed QPs / invalid inputs: brake within the viable bounds, zero wrench, hold gravity
         if not bool(ok.all()):
@@ -372,14 +423,14 @@ class A3CQPController:
             self._warm = None
 
         # relax q*, q̇* toward the measured state where IK is off (ControllerOptions.desired_state_leak)
-        w1_min = weights[..., 0].min(dim=-1).values.clamp(0.0, 1.0)
+        w1_min = weights[..., 0].amin(dim=-1).clamp(0.0, 1.0)
         rate = (self.options.desired_state_leak * dt * (1.0 - w1_min)).clamp(0.0, 1.0).view(n, 1)
         self.q_des = q_des - rate * (q_des - q)
         self.qd_des = qd_des - rate * (qd_des - qd)
 
-        tau_max = self.tau_max.to(tau)
+        tau_max = self._constants(tau)["tau_max"]
         saturated = (tau.abs() > tau_max).any(-1)
-        tau = torch.nan_to_num(torch.maximum(torch.minimum(tau, tau_max), -tau_max), nan=0.0)
+        tau = torch.nan_to_num(torch.clamp(tau, -tau_max, tau_max), nan=0.0)
         status = torch.where(valid, qp_status, torch.full_like(qp_status, INVALID_INPUT))
         f_adm = self.residuals["ac"].b if "ac" in self.residuals else torch.zeros_like(f)
         f_ctc = self.residuals["fc"].b if "fc" in self.residuals else torch.zeros_like(f)

@@ -18,6 +18,25 @@ __all__ = ["Inequality", "Limit", "JointLimitsViability", "WrenchBox", "Friction
 
 _BIG = 1e10
 
+_CONSTANTS: dict[tuple, torch.Tensor] = {}
+
+
+def _cached(key: tuple, make) -> torch.Tensor:  # noqa: ANN001
+    """Constant tensors (identities, zero blocks, fixed rows) made once per shape/dtype/device: read-only."""
+    t = _CONSTANTS.get(key)
+    if t is None:
+        t = _CONSTANTS[key] = make()
+    return t
+
+
+def _eye(n: int, like: torch.Tensor) -> torch.Tensor:
+    return _cached(("eye", n, like.dtype, like.device), lambda: torch.eye(n, dtype=like.dtype, device=like.device))
+
+
+def _zeros(b: int, m: int, k: int, like: torch.Tensor) -> torch.Tensor:
+    return _cached(("zeros", b, m, k, like.dtype, like.device),
+                   lambda: torch.zeros(b, m, k, dtype=like.dtype, device=like.device))
+
 
 @dataclass(frozen=True)
 class Inequality:
@@ -98,12 +117,19 @@ def joint_acceleration_bounds(q: torch.Tensor, dq: torch.Tensor, q_min: torch.Te
     bounds are dropped first, then viability, then only the position bounds are kept.
     CPU tensors without gradients are evaluated with numpy (≈40 elementwise ops, ~5x less overhead than torch).
     """
-    args = (q, dq, q_min.expand_as(q), q_max.expand_as(q), dq_max.expand_as(q), ddq_max.expand_as(q))
+    args = (q, dq, q_min, q_max, dq_max, ddq_max)
     if q.device.type == "cpu" and not any(t.requires_grad for t in args):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lb, ub = _acc_bounds(*(t.detach().numpy() for t in args), dt, np)
-        return torch.from_numpy(np.asarray(lb)).to(q.dtype), torch.from_numpy(np.asarray(ub)).to(q.dtype)
-    return _acc_bounds(*args, dt, _TorchOps)
+        return _numpy_bounds(q, dq, *(t.numpy() for t in args[2:]), dt)
+    return _acc_bounds(q, dq, *(t.expand_as(q) for t in args[2:]), dt, _TorchOps)
+
+
+def _numpy_bounds(q: torch.Tensor, dq: torch.Tensor, q_min: np.ndarray, q_max: np.ndarray, dq_max: np.ndarray,
+                  ddq_max: np.ndarray, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """`_acc_bounds` in numpy for CPU tensors without gradients; the [7] limits broadcast over the batch."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lb, ub = _acc_bounds(q.numpy(), dq.numpy(), q_min, q_max, dq_max, ddq_max, dt, np)
+    lb, ub = torch.from_numpy(np.asarray(lb)), torch.from_numpy(np.asarray(ub))
+    return (lb, ub) if lb.dtype == q.dtype else (lb.to(q.dtype), ub.to(q.dtype))
 
 
 class _TorchOps:
@@ -154,30 +180,32 @@ class JointLimitsViability(Limit):
         self.dq_max = torch.as_tensor(dq_max, dtype=f64) - dq_margin
         self.ddq_max = torch.as_tensor(ddq_max, dtype=f64)
         self.dt, self.horizon, self.target, self.include_f_ext = dt, horizon_steps * dt, target, include_f_ext
+        self._np_limits = tuple(t.numpy() for t in (self.q_min, self.q_max, self.dq_max, self.ddq_max))
 
     def bounds(self, q: torch.Tensor, qd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Viable acceleration bounds (lb, ub) [B, 7] (rad/s²) at state (q, q̇)."""
+        if q.device.type == "cpu" and q.dtype == torch.float64 and not (q.requires_grad or qd.requires_grad):
+            return _numpy_bounds(q, qd.to(q.dtype), *self._np_limits, self.horizon)  # the 1 kHz loop's path
         return joint_acceleration_bounds(q, qd, self.q_min.to(q), self.q_max.to(q), self.dq_max.to(q),
                                          self.ddq_max.to(q), self.horizon)
 
     def rows(self, ctx: ControlContext) -> Inequality:
         lb, ub = self.bounds(ctx.q, ctx.qd)
         B = ctx.batch
-        eye = torch.eye(N_QDD, dtype=ctx.q.dtype, device=ctx.q.device).expand(B, N_QDD, N_QDD)
         # motion part: q̈* + q̈_pd = (I + ∂q̈_pd/∂q̈*) q̈* + q̈_pd0 ∈ [lb, ub] (eq. 5-7 are linear in q̈*)
-        motion = ctx.q.new_zeros(B, N_QDD, N_VARS)
-        motion[:, :, :N_QDD] = eye + ctx.pd_qdd_gain
-        G, h = [motion, -motion], [ub - ctx.qdd_pd0, ctx.qdd_pd0 - lb]
-        if self.target == "total":
-            # total commanded acceleration, adding the wrench's B⁻¹Jᵀ(f + f_ext). Both row sets are kept: with the
-            # total alone, an unweighted f could cancel an over-limit q̈* inside the sum and fake IK success.
-            total = motion.clone()
-            total[:, :, N_QDD:] = ctx.mass_inv_jt
-            offset = ctx.qdd_pd0
-            if self.include_f_ext:
-                offset = offset + (ctx.mass_inv_jt @ ctx.f_ext.unsqueeze(-1)).squeeze(-1)
-            G, h = G + [total, -total], h + [ub - offset, offset - lb]
-        return Inequality(G=torch.cat(G, dim=1), h=torch.cat(h, dim=1))
+        gain = ctx.qdd_map if ctx.qdd_map is not None else _eye(N_QDD, ctx.q) + ctx.pd_qdd_gain
+        motion = torch.cat([gain, _zeros(B, N_QDD, N_VARS - N_QDD, ctx.q)], dim=2)
+        if self.target == "qdd":
+            return Inequality(G=torch.cat([motion, -motion], dim=1),
+                              h=torch.cat([ub - ctx.qdd_pd0, ctx.qdd_pd0 - lb], dim=1))
+        # total commanded acceleration, adding the wrench's B⁻¹Jᵀ(f + f_ext). Both row sets are kept: with the
+        # total alone, an unweighted f could cancel an over-limit q̈* inside the sum and fake IK success.
+        total = torch.cat([gain, ctx.mass_inv_jt], dim=2)
+        offset = ctx.qdd_pd0
+        if self.include_f_ext:
+            offset = offset + (ctx.mass_inv_jt @ ctx.f_ext.unsqueeze(-1)).squeeze(-1)
+        return Inequality(G=torch.cat([motion, -motion, total, -total], dim=1),
+                          h=torch.cat([ub - ctx.qdd_pd0, ctx.qdd_pd0 - lb, ub - offset, offset - lb], dim=1))
 
 
 class WrenchBox(Limit):
@@ -189,13 +217,22 @@ class WrenchBox(Limit):
         if not (force_limit > 0 and torque_limit > 0 and math.isfinite(force_limit + torque_limit)):
             raise InvalidGainError(f"wrench limits must be finite and > 0, got {force_limit}, {torque_limit}")
         self.limit = torch.tensor([force_limit] * 3 + [torque_limit] * 3, dtype=torch.float64)
+        self._rows: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
 
     def rows(self, ctx: ControlContext) -> Inequality:
-        B = ctx.batch
-        S = ctx.q.new_zeros(B, 6, N_VARS)
-        S[:, :, N_QDD:] = torch.eye(6, dtype=ctx.q.dtype, device=ctx.q.device)
-        lim = self.limit.to(ctx.q).expand(B, 6)
-        return Inequality(G=torch.cat([S, -S], dim=1), h=torch.cat([lim, lim], dim=1))
+        B, like = ctx.batch, ctx.q
+
+        def make() -> tuple[torch.Tensor, torch.Tensor]:  # constant rows: built once per batch size
+            S = like.new_zeros(B, 6, N_VARS)
+            S[:, :, N_QDD:] = torch.eye(6, dtype=like.dtype, device=like.device)
+            lim = self.limit.to(like).expand(B, 6)
+            return torch.cat([S, -S], dim=1), torch.cat([lim, lim], dim=1)
+
+        key = ("wrench_box", id(self), B, like.dtype, like.device)
+        if key not in self._rows:
+            self._rows = {key: make()}
+        G, h = self._rows[key]
+        return Inequality(G=G, h=h)
 
 
 class FrictionPyramid(Limit):
@@ -215,12 +252,15 @@ class FrictionPyramid(Limit):
                               dtype=torch.float64)  # (4, 3) on the local force
 
     def rows(self, ctx: ControlContext) -> Inequality:
-        B = ctx.batch
+        B, like = ctx.batch, ctx.q
+        if not bool(ctx.in_contact.any()):  # nobody in contact (free motion): the constant rows 0 ≤ 1
+            return Inequality(G=_zeros(B, 4, N_VARS, like),
+                              h=_cached(("ones", B, 4, like.dtype, like.device), lambda: like.new_ones(B, 4)))
         R = ctx.D[:, :3, :3]  # world <- local
-        G = ctx.q.new_zeros(B, 4, N_VARS)
-        active = ctx.in_contact.to(ctx.q.dtype).view(B, 1, 1)
-        G[:, :, N_QDD:N_QDD + 3] = active * (self.U.to(ctx.q) @ R.transpose(-1, -2))  # U Rᵀ f_world
-        h = (1.0 - active.view(B, 1)).expand(B, 4).clone()
+        active = ctx.in_contact.to(like.dtype).view(B, 1, 1)
+        URt = active * (self.U.to(like) @ R.transpose(-1, -2))  # U Rᵀ f_world
+        G = torch.cat([_zeros(B, 4, N_QDD, like), URt, _zeros(B, 4, N_VARS - N_QDD - 3, like)], dim=2)
+        h = (1.0 - active.view(B, 1)).expand(B, 4).contiguous()
         return Inequality(G=G, h=h)
 
 
@@ -241,11 +281,9 @@ class TorqueLimits(Limit):
 
     def rows(self, ctx: ControlContext) -> Inequality:
         B = ctx.batch
-        eye = torch.eye(N_QDD, dtype=ctx.q.dtype, device=ctx.q.device)
-        M = ctx.q.new_zeros(B, N_QDD, N_VARS)
-        M[:, :, :N_QDD] = ctx.mass @ (eye + ctx.pd_qdd_gain)
-        M[:, :, N_QDD:] = ctx.kin.jac.transpose(-1, -2)
-        offset = (ctx.mass @ ctx.qdd_pd0.unsqueeze(-1)).squeeze(-1)
+        gain = ctx.qdd_map if ctx.qdd_map is not None else _eye(N_QDD, ctx.q) + ctx.pd_qdd_gain
+        M = torch.cat([torch.bmm(ctx.mass, gain), ctx.kin.jac.transpose(-1, -2)], dim=2)
+        offset = torch.bmm(ctx.mass, ctx.qdd_pd0.unsqueeze(-1)).squeeze(-1)
         if ctx.bias is not None:
             offset = offset + ctx.bias
         lim = self.tau_max.to(ctx.q).expand(B, N_QDD)

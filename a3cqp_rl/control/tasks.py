@@ -95,21 +95,25 @@ class CartesianIK(Task):
     def __init__(self, kp: float = 150.0, k_theta: float = 20.0) -> None:
         _check_positive(kp=kp, k_theta=k_theta)
         self.kp, self.k_theta = kp, k_theta
+        kp_diag = torch.tensor([kp] * 3 + [k_theta] * 3, dtype=torch.float64)
+        self._gains = (kp_diag, 2.0 * kp_diag.sqrt())  # made once: building them costs as much as using them
 
     def gains(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Diagonals of K_p and K_v [6] (eq. 11)."""
-        kp = like.new_tensor([self.kp] * 3 + [self.k_theta] * 3)
-        return kp, 2.0 * kp.sqrt()
+        kp, kv = self._gains
+        if kp.dtype != like.dtype or kp.device != like.device:
+            kp, kv = kp.to(like), kv.to(like)
+        return kp, kv
 
     def desired_acceleration(self, ctx: ControlContext) -> torch.Tensor:
         """ẍ_d = K_p e_x − K_v ẋ [B, 6] (eq. 10), world frame (m/s², rad/s²)."""
         kp, kv = self.gains(ctx.q)
-        return kp * ctx.pose_error - kv * ctx.kin.twist
+        return torch.addcmul(kp * ctx.pose_error, kv, ctx.kin.twist, value=-1.0)
 
     def residual(self, ctx: ControlContext) -> Residual:
         b = self.desired_acceleration(ctx) - ctx.kin.jdot_qdot
         if ctx.wrench_feedforward is not None:  # J q̈ + Λ⁻¹ f_ff + J̇q̇ = ẍ_d on the IK axes
-            b = b - (ctx.cart_inertia_inv @ ctx.wrench_feedforward.unsqueeze(-1)).squeeze(-1)
+            b = b - torch.bmm(ctx.cart_inertia_inv, ctx.wrench_feedforward.unsqueeze(-1)).squeeze(-1)
         return Residual(A=ctx.kin.jac, b=b, W=ctx.W1, col=0)
 
 
@@ -138,12 +142,14 @@ class Admittance(Task):
     def admittance_wrench(self, ctx: ControlContext) -> torch.Tensor:
         """f_adm [B, 6] (N, N m), world frame (eq. 18)."""
         lam = ctx.cart_inertia  # Λ (B, 6, 6)
-        lam_ratio = lam / self.lambda_d  # Λ Λd⁻¹ (Λd = Λd I)
-        mv = lambda M, v: (M @ v.unsqueeze(-1)).squeeze(-1)  # noqa: E731
-        damping = self.c_d * ctx.kin.twist  # Cd J q̇
+        twist, jdq = ctx.kin.twist, ctx.kin.jdot_qdot
         if self.form == "consistent":
-            damping = mv(lam_ratio, damping)
-        return mv(lam_ratio, ctx.f_ext) - ctx.f_ext - damping - mv(lam, ctx.kin.jdot_qdot)
+            # Λ Λd⁻¹ (f_ext − Cd ẋ) − f_ext − Λ J̇q̇ = Λ (Λd⁻¹ (f_ext − Cd ẋ) − J̇q̇) − f_ext: one product with Λ
+            v = (ctx.f_ext - self.c_d * twist) / self.lambda_d - jdq
+            return torch.bmm(lam, v.unsqueeze(-1)).squeeze(-1) - ctx.f_ext
+        # eq. 18 as printed: Λ (Λd⁻¹ f_ext − J̇q̇) − f_ext − Cd J q̇
+        v = ctx.f_ext / self.lambda_d - jdq
+        return torch.bmm(lam, v.unsqueeze(-1)).squeeze(-1) - ctx.f_ext - self.c_d * twist
 
     def residual(self, ctx: ControlContext) -> Residual:
         return Residual(A=None, b=self.admittance_wrench(ctx), W=ctx.W2, col=N_QDD)
@@ -156,7 +162,7 @@ class ForceControl(Task):
 
     def contact_wrench(self, ctx: ControlContext) -> torch.Tensor:
         """f_ctc = D f_d^𝓛 [B, 6] (N, N m), world frame (eq. 20)."""
-        return (ctx.D @ ctx.f_d_local.unsqueeze(-1)).squeeze(-1)
+        return torch.bmm(ctx.D, ctx.f_d_local.unsqueeze(-1)).squeeze(-1)
 
     def residual(self, ctx: ControlContext) -> Residual:
         return Residual(A=None, b=self.contact_wrench(ctx), W=ctx.W3, col=N_QDD)
@@ -188,11 +194,12 @@ class JointCentering(Task):
     def desired_acceleration(self, ctx: ControlContext) -> torch.Tensor:
         """q̈_d [B, 7] (rad/s²), eq. 23."""
         e_q = self.q_center.to(ctx.q) - ctx.q
-        return self.kq * e_q - 2.0 * math.sqrt(self.kq) * ctx.qd
+        return torch.add(self.kq * e_q, ctx.qd, alpha=-2.0 * math.sqrt(self.kq))
 
     def residual(self, ctx: ControlContext) -> Residual:
         J = ctx.kin.jac
-        W = self.epsilon * (J.transpose(-1, -2) @ ctx.W1 @ J) + self.nullspace_weight * ctx.nullspace
+        jt_w1_j = ctx.jt_w1_j if ctx.jt_w1_j is not None else J.transpose(-1, -2) @ ctx.W1 @ J
+        W = torch.add(self.epsilon * jt_w1_j, ctx.nullspace, alpha=self.nullspace_weight)
         return Residual(A=None, b=self.desired_acceleration(ctx), W=W, col=0)
 
 
@@ -209,7 +216,8 @@ class CartesianAccelerationRegularizer(Task):
     def __init__(self, gamma: float = 1e-2) -> None:
         _check_positive(gamma=gamma)
         self.gamma = gamma
+        self._gamma_eye = gamma * torch.eye(6, dtype=torch.float64)
 
     def residual(self, ctx: ControlContext) -> Residual:
-        eye = torch.eye(6, dtype=ctx.q.dtype, device=ctx.q.device)
-        return Residual(A=ctx.kin.jac, b=ctx.q.new_zeros(ctx.batch, 6), W=self.gamma * (eye - ctx.W1), col=0)
+        return Residual(A=ctx.kin.jac, b=ctx.q.new_zeros(ctx.batch, 6),
+                        W=torch.add(self._gamma_eye.to(ctx.q), ctx.W1, alpha=-self.gamma), col=0)
