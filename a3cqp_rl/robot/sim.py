@@ -123,17 +123,18 @@ class PandaSim:
         self._jdot_qdot, self._twist = np.zeros((n, 6)), np.zeros((n, 6))
         # Views into each MjData's buffers, made once: gathering them with one np.stack per field costs ~10 µs for
         # 64 arms, where per-arm slicing and copying cost ~1 µs per field and arm (most of the old observe()).
-        fa, ta = self._sensor_adr
-        b, r, fs, cs = self._ft_body, self._root_body, self._ft_site, max(self._cs, 0)
+        # Whole small arrays are gathered (sensordata, site_xpos, ...) and indexed afterwards: fewer stacks.
+        b, cs = self._ft_body, max(self._cs, 0)
         self._views = {name: [get(d) for d in self.datas] for name, get in (
             ("q", lambda d: d.qpos[:7]), ("qd", lambda d: d.qvel[:7]), ("bias", lambda d: d.qfrc_bias[:7]),
-            ("force", lambda d: d.sensordata[fa:fa + 3]), ("torque", lambda d: d.sensordata[ta:ta + 3]),
-            ("R", lambda d: d.site_xmat[fs].reshape(3, 3)), ("site_pos", lambda d: d.site_xpos[fs]),
-            ("com", lambda d: d.subtree_com[b]), ("root_com", lambda d: d.subtree_com[r]),
-            ("cacc", lambda d: d.cacc[b]), ("cvel", lambda d: d.cvel[b]),
-            ("cs_pos", lambda d: d.site_xpos[cs]), ("cs_rot", lambda d: d.site_xmat[cs].reshape(3, 3)),
+            ("sensordata", lambda d: d.sensordata), ("site_xpos", lambda d: d.site_xpos),
+            ("site_xmat", lambda d: d.site_xmat), ("subtree_com", lambda d: d.subtree_com),
+            ("cacc", lambda d: d.cacc[b]), ("cvel", lambda d: d.cvel[b]), ("cs_pos", lambda d: d.site_xpos[cs]),
             ("ctrl", lambda d: d.ctrl[:7]), ("qfrc_constraint", lambda d: d.qfrc_constraint[:7]),
             ("qfrc_applied", lambda d: d.qfrc_applied[:7]))}
+        m = self.model
+        self._gathered = {"sensordata": np.zeros((n, m.nsensordata)), "site_xpos": np.zeros((n, m.nsite, 3)),
+                          "site_xmat": np.zeros((n, m.nsite, 9)), "subtree_com": np.zeros((n, m.nbody, 3))}
         self.reset(np.broadcast_to(np.asarray(q0, dtype=np.float64), (n, 7)))
 
     @property
@@ -178,23 +179,25 @@ class PandaSim:
             if cs >= 0:
                 mujoco.mj_jacSite(m, d, self._jac[i, :3], self._jac[i, 3:], cs)
                 mujoco.mj_jacDot(m, d, self._jac_dot[i, :3], self._jac_dot[i, 3:], v["cs_pos"][i], cs_body)
-        stack = np.stack
-        stack(v["q"], out=self._q)
-        stack(v["qd"], out=self._qd)
-        stack(v["bias"], out=self._bias)
-        stack(v["force"], out=self._ft[:, :3])
-        stack(v["torque"], out=self._ft[:, 3:])
-        stack(v["R"], out=self._R)
-        stack(v["site_pos"], out=self._site_pos)
-        stack(v["com"], out=self._com)
-        stack(v["root_com"], out=self._root_com)
+        stack, g = np.stack, self._gathered
+        for name in ("q", "qd", "bias"):
+            stack(v[name], out=getattr(self, "_" + name))
+        for name, buf in g.items():
+            stack(v[name], out=buf)
         stack(v["cacc"], out=self._cacc)
         stack(v["cvel"], out=self._cvel)
+        fa, ta = self._sensor_adr
+        self._ft[:, :3] = g["sensordata"][:, fa:fa + 3]
+        self._ft[:, 3:] = g["sensordata"][:, ta:ta + 3]
+        self._R[:] = g["site_xmat"][:, self._ft_site].reshape(-1, 3, 3)
+        self._site_pos[:] = g["site_xpos"][:, self._ft_site]
+        self._com[:] = g["subtree_com"][:, self._ft_body]
+        self._root_com[:] = g["subtree_com"][:, self._root_body]
         self._update_f_env()
         kin = None
         if cs >= 0:
-            stack(v["cs_pos"], out=self._cs_pos)
-            stack(v["cs_rot"], out=self._cs_rot)
+            self._cs_pos[:] = g["site_xpos"][:, cs]
+            self._cs_rot[:] = g["site_xmat"][:, cs].reshape(-1, 3, 3)
             jac, qd = self._jac[:, :, :7], self._qd[:, :, None]
             np.matmul(jac, qd, out=self._twist[:, :, None])  # ẋ = J q̇
             np.matmul(self._jac_dot[:, :, :7], qd, out=self._jdot_qdot[:, :, None])  # J̇q̇
