@@ -53,9 +53,9 @@ def run(sim: PandaSim, ctrl: A3CQPController, steps: int, weights, f_d, pos_d, r
     for k in range(steps):
         w = weights(k) if callable(weights) else weights
         fd = f_d(k) if callable(f_d) else f_d
-        kin = s.kin  # the control site's kinematics from MuJoCo's step (= ctrl.model.kinematics(s.q, s.qd) to 1e-8)
+        kin = ctrl.model.kinematics(s.q, s.qd)
         f_ext = wrench_from_joint_torques(s.tau_ext, kin.jac, s.mass)  # J^{T†} τ_ext
-        out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, fd, pos_d, rot_d, f_ext=f_ext, f_env=s.f_env, kin=kin)
+        out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, fd, pos_d, rot_d, f_ext=f_ext, f_env=s.f_env)
         if push is not None:
             sim.push(push(k))
         sim.step(out.tau)

@@ -125,8 +125,8 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return (t.detach() if t.requires_grad else t).numpy()
 
 
-def _torque_law(xp, x, q, qd, mass, bias, jac, pd, q_des, qd_des, dt: float, cv: float, cp: float):  # noqa: ANN001, ANN202
-    """Eq. 4-7 for a batch, with xp = numpy or torch (the same code runs on both).
+def _torque_law(x, q, qd, mass, bias, jac, pd, q_des, qd_des, dt: float, cv: float, cp: float):  # noqa: ANN001, ANN202
+    """Eq. 4-7 for a batch of numpy arrays or torch tensors (operators only: the same code runs on both).
 
     From x = (q̈*, f) [N, 13]: q̇* ← q̇* + Δt q̈* (eq. 6), q* ← q* + Δt q̇* + Δt²/2 q̈* (eq. 7),
     q̈_pd = P W1 J (c_v (q̇* − q̇) + c_p (q* − q)) (eq. 5, P W1 J = `pd`), τ = B (q̈* + q̈_pd) + Jᵀ f + h + g (eq. 4).
@@ -150,7 +150,8 @@ def _finish(xp, tau, qdd, f, qdd_pd, q_des, qd_des, q, qd, weights, tau_max, lea
     q_des = q_des - rate * (q_des - q)
     qd_des = qd_des - rate * (qd_des - qd)
     saturated = (xp.abs(tau) > tau_max).any(-1)
-    tau = xp.nan_to_num(xp.clip(tau, -tau_max, tau_max), nan=0.0)
+    tau = xp.clip(tau, -tau_max, tau_max)
+    tau[tau != tau] = 0.0  # NaN -> 0 (cheaper than nan_to_num in numpy)
     return tau, qdd, f, qdd_pd, q_des, qd_des, saturated
 
 
@@ -393,8 +394,13 @@ class A3CQPController:
         rot_d = self._check("rot_d", rot_d, (n, 3, 3))
         f_ext = q.new_zeros(n, 6) if f_ext is None else self._check("f_ext", f_ext, (n, 6))
         if in_contact is None:
-            in_contact = (torch.zeros(n, dtype=torch.bool) if f_env is None
-                          else f_env[:, :3].norm(dim=-1) > self.options.contact_force_threshold)
+            thr = self.options.contact_force_threshold
+            if f_env is None:
+                in_contact = torch.zeros(n, dtype=torch.bool)
+            elif f_env.device.type == "cpu":  # |f| > thr as a squared norm in numpy (two µs instead of ~20)
+                in_contact = torch.from_numpy(np.square(_np(f_env)[:, :3]).sum(axis=1) > thr * thr)
+            else:
+                in_contact = f_env[:, :3].norm(dim=-1) > thr
         if self.q_des is None:
             self.reset(q, qd)
 
@@ -436,19 +442,24 @@ class A3CQPController:
             qp_status = torch.full((n,), SOLVER_ERROR, dtype=torch.long)
             iterations = torch.zeros(n, dtype=torch.long)
             self._warm = None
-        ok = (qp_status == 0) & valid & torch.isfinite(x).all(-1)
         dt, cfg, opt = self.dt, self.config, self.options
         tau_max = self._constants(q)["tau_max"]
-        if on_cpu and bool(ok.all()):  # the usual step: eq. 4-7 in numpy (same code, ~4x less overhead)
-            out = _torque_law(np, _np(x), _np(q), _np(qd), _np(mass), _np(bias), _np(ctx.kin.jac), _np(ctx.pd_matrix),
+        if on_cpu and x.device.type == "cpu":
+            ok_np = (_np(qp_status) == 0) & valid_np & np.isfinite(_np(x)).all(axis=1)
+            ok, all_ok = torch.from_numpy(ok_np), bool(ok_np.all())
+        else:
+            ok = (qp_status == 0) & valid & torch.isfinite(x).all(-1)
+            all_ok = bool(ok.all())
+        if on_cpu and all_ok:  # the usual step: eq. 4-7 in numpy (same code, ~4x less overhead)
+            out = _torque_law(_np(x), _np(q), _np(qd), _np(mass), _np(bias), _np(ctx.kin.jac), _np(ctx.pd_matrix),
                               _np(self.q_des), _np(self.qd_des), dt, cfg.cv, cfg.cp)
             out = _finish(np, *out, _np(q), _np(qd), _np(weights), _np(tau_max), dt * opt.desired_state_leak)
             tau, qdd, f, qdd_pd, q_des, qd_des, saturated = (torch.from_numpy(np.ascontiguousarray(a)) for a in out)
         else:
-            tau, qdd, f, qdd_pd, q_des, qd_des = _torque_law(torch, x, q, qd, mass, bias, ctx.kin.jac, ctx.pd_matrix,
+            tau, qdd, f, qdd_pd, q_des, qd_des = _torque_law(x, q, qd, mass, bias, ctx.kin.jac, ctx.pd_matrix,
                                                              self.q_des, self.qd_des, dt, cfg.cv, cfg.cp)
             # safe fallback for failed QPs / invalid inputs: brake within the viable bounds, zero wrench, hold gravity
-            if not bool(ok.all()):
+            if not all_ok:
                 lb, ub = self.joint_limits.bounds(q, qd)
                 qdd_fb = torch.minimum(torch.maximum(-opt.brake_gain * qd, lb), ub)
                 tau_fb = _mv(mass, qdd_fb) + bias
