@@ -1,4 +1,4 @@
-"""Slow: a full 1e6-step training learns the paper's Fig. 5 regions (run with `pytest -m slow`)."""
+"""Slow: full trainings checked against the paper's Fig. 5 regions (run with `pytest -m slow`)."""
 
 from pathlib import Path
 
@@ -11,11 +11,34 @@ from algorithms.a2c import load_policy, train
 CONFIGS = Path(__file__).parents[1] / "configs"
 
 
+@pytest.fixture(scope="module")
+def fig5_regions(tmp_path_factory):
+    """Train configs/point_mass_a2c_fig5.yaml for its 2e7 steps (~4 min on 2 cores) once; region results by name."""
+    cfg = load_config(CONFIGS / "point_mass_a2c_fig5.yaml")
+    res = train(cfg, tmp_path_factory.mktemp("fig5"))
+    return {r.name: r for r in check_fig5_regions(load_policy(res.policy_path))}
+
+
 @pytest.mark.slow
-@pytest.mark.xfail(reason="not reproduced yet: no setting found passes all 4 Fig. 5 region checks in 1e6 steps "
-                          "(see configs/point_mass_a2c_tuned.yaml and the README); the check stays so it reports when it does",
-                   strict=False)
-def test_tuned_config_learns_fig5_regions(tmp_path):
+@pytest.mark.parametrize("region", ["w1_ik_when_free_with_error", "w2_admittance_when_operator_pushes",
+                                    "w3_force_control_in_contact"])
+def test_fig5_config_learns_task_weight_regions(fig5_regions, region):
+    r = fig5_regions[region]
+    assert r.ok, r
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(reason="eq. 30 pays pressing only 1/60 per N per step; f_d stays low in contact "
+                          "(see configs/point_mass_a2c_fig5.yaml)", strict=False)
+def test_fig5_config_learns_desired_force_region(fig5_regions):
+    r = fig5_regions["fd_desired_force_in_contact"]
+    assert r.ok, r
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(reason="not reproduced: within the paper's 1e6 steps no setting found passes all 4 Fig. 5 checks "
+                          "(see configs/point_mass_a2c_tuned.yaml and the README)", strict=False)
+def test_tuned_config_learns_fig5_regions_in_1e6_steps(tmp_path):
     cfg = load_config(CONFIGS / "point_mass_a2c_tuned.yaml")
     res = train(cfg, tmp_path, total_steps=1_000_000)
     results = check_fig5_regions(load_policy(res.policy_path))
