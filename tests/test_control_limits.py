@@ -52,12 +52,13 @@ def reference_bounds(q, dq, q_min, q_max, dq_max, ddq_max, dt):  # noqa: ANN001,
         lb = (-b - math.sqrt(d)) / a if d >= 0 else stop
         return min(lb, stop), max(ub, stop)
 
-    bounds = [from_pos(), ((-dq_max - dq) / dt, (dq_max - dq) / dt), from_viability(), (-ddq_max, ddq_max)]
-    for keep in (4, 3, 2, 1):  # on conflict drop acceleration, then viability, then velocity bounds
+    bounds = [from_pos(), ((-dq_max - dq) / dt, (dq_max - dq) / dt), from_viability()]
+    for keep in (3, 2, 1):  # on conflict drop viability, then velocity bounds
         lb, ub = max(b[0] for b in bounds[:keep]), min(b[1] for b in bounds[:keep])
         if ub >= lb:
-            return lb, ub
-    return bounds[0]
+            break
+    # then saturate into the acceleration limits, which always hold
+    return min(max(lb, -ddq_max), ddq_max), min(max(ub, -ddq_max), ddq_max)
 
 
 def test_viability_bounds_match_scalar_reference() -> None:

@@ -203,11 +203,13 @@ class A3CQPController:
         self.joint_limits = JointLimitsViability(lim["q_min"], lim["q_max"], lim["dq_max"], lim["ddq_max"], self.dt,
                                                  q_margin=opt.q_margin, dq_margin=opt.dq_margin,
                                                  horizon_steps=opt.limit_horizon_steps, target=opt.joint_limit_target,
-                                                 include_f_ext=opt.joint_limits_include_f_ext)
+                                                 include_f_ext=opt.joint_limits_include_f_ext,
+                                                 brake_gain=opt.brake_gain)
         self.limits: list[Limit] = [self.joint_limits, WrenchBox(cfg.force_limit, cfg.torque_limit),
                                     FrictionPyramid(cfg.mu)]
         if opt.torque_limits:
-            self.limits.append(TorqueLimits(lim["tau_max"]))
+            # anchored to the viable brake: torque limits give way before joint-limit safety (always feasible QP)
+            self.limits.append(TorqueLimits(lim["tau_max"], safe=self.joint_limits))
         self.limits += list(extra_limits or [])
         self.f_d_max = getattr(cfg, "f_d_max", 20.0)
         self.q_des: torch.Tensor | None = None  # q*, eq. 7 [N, 7]
@@ -460,8 +462,9 @@ class A3CQPController:
                                                              self.q_des, self.qd_des, dt, cfg.cv, cfg.cp)
             # safe fallback for failed QPs / invalid inputs: brake within the viable bounds, zero wrench, hold gravity
             if not all_ok:
-                lb, ub = self.joint_limits.bounds(q, qd)
-                qdd_fb = torch.minimum(torch.maximum(-opt.brake_gain * qd, lb), ub)
+                # damped joint-space brake inside the viable bounds, which always respect the acceleration limits
+                # (Del Prete 2017; limits._acc_bounds), so that with gravity compensation it is torque-realisable
+                qdd_fb = self.joint_limits.safe_acceleration(ctx)
                 tau_fb = _mv(mass, qdd_fb) + bias
                 o1 = ok.view(n, 1)
                 tau = torch.where(o1, tau, tau_fb)

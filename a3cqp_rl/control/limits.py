@@ -96,15 +96,20 @@ def _acc_bounds(q, dq, q_min, q_max, dq_max, ddq_max, dt, xp):  # noqa: ANN001, 
     lb_v, ub_v = (-dq_max - dq) / dt, (dq_max - dq) / dt
     lb_s, ub_s = _acc_bounds_from_viability(q, dq, q_min, q_max, ddq_max, dt, xp)
     lb_pv, ub_pv = xp.maximum(lb_p, lb_v), xp.minimum(ub_p, ub_v)
-    lb_pvs, ub_pvs = xp.maximum(lb_pv, lb_s), xp.minimum(ub_pv, ub_s)
-    lb, ub = xp.maximum(lb_pvs, -ddq_max), xp.minimum(ub_pvs, ddq_max)
-    # on conflict drop the acceleration limits, then viability, then keep only the position bounds
-    c1 = ub < lb
-    lb, ub = xp.where(c1, lb_pvs, lb), xp.where(c1, ub_pvs, ub)
+    lb, ub = xp.maximum(lb_pv, lb_s), xp.minimum(ub_pv, ub_s)
+    # conflicts among position, velocity and viability (a state outside the viable set): drop viability, then
+    # velocity, keeping the position bounds
     c2 = ub < lb
     lb, ub = xp.where(c2, lb_pv, lb), xp.where(c2, ub_pv, ub)
     c3 = ub < lb
-    return xp.where(c3, lb_p, lb), xp.where(c3, ub_p, ub)
+    lb, ub = xp.where(c3, lb_p, lb), xp.where(c3, ub_p, ub)
+    # the acceleration limits always hold: a demand beyond them is saturated (monotone clip, so lb ≤ ub stays).
+    # Inside the viable set Del Prete's bounds never ask for more than ddq_max; they do only after the state has
+    # left it (model mismatch, torque saturation), e.g. 0.1 mm past q_max with the 2Δt horizon the position bound
+    # asks for ~20 rad/s² back, which with gravity needs more than τ_max: braking/returning at ddq_max instead keeps
+    # the joint within the q_margin band while staying torque-feasible (see TorqueLimits and the fallback).
+    neg = -ddq_max
+    return xp.minimum(xp.maximum(lb, neg), ddq_max), xp.minimum(xp.maximum(ub, neg), ddq_max)
 
 
 def joint_acceleration_bounds(q: torch.Tensor, dq: torch.Tensor, q_min: torch.Tensor, q_max: torch.Tensor,
@@ -113,8 +118,10 @@ def joint_acceleration_bounds(q: torch.Tensor, dq: torch.Tensor, q_min: torch.Te
 
     Del Prete, "Joint position and velocity bounds in discrete-time acceleration/torque control of robot
     manipulators", RA-L 2018 (as in OpenSoT JointLimitsViability / TSID TaskJointPosVelAccBounds): the most
-    conservative of the position, velocity, viability and acceleration bounds; on conflict the acceleration
-    bounds are dropped first, then viability, then only the position bounds are kept.
+    conservative of the position, velocity, viability and acceleration bounds. On conflict (a state outside the
+    viable set) viability is dropped first, then the velocity bounds, and what remains is saturated into the
+    acceleration limits, which always hold (so the bounds stay realisable with the motors' torque; dropping them
+    instead made the QP infeasible together with TorqueLimits).
     CPU tensors without gradients are evaluated with numpy (≈40 elementwise ops, ~5x less overhead than torch).
     """
     args = (q, dq, q_min, q_max, dq_max, ddq_max)
@@ -162,16 +169,18 @@ class JointLimitsViability(Limit):
         include_f_ext: also count the measured external wrench in the total (q̈ = ... + B⁻¹Jᵀ(f + f_ext)). Off by
             default: then x = (q̈ inside the bounds, f = 0) satisfies every row, so the QP is always feasible;
             with it, an external wrench larger than the wrench box can make the QP infeasible (-> fallback).
+        brake_gain: k [1/s] of `safe_acceleration` (the fallback brake q̈ = −k q̇ inside the bounds).
     """
 
     name = "joint_limits"
 
     def __init__(self, q_min: torch.Tensor, q_max: torch.Tensor, dq_max: torch.Tensor, ddq_max: torch.Tensor,
                  dt: float, q_margin: float = 0.01, dq_margin: float = 0.02, horizon_steps: float = 2.0,
-                 target: Literal["total", "qdd"] = "total", include_f_ext: bool = False) -> None:
+                 target: Literal["total", "qdd"] = "total", include_f_ext: bool = False,
+                 brake_gain: float = 20.0) -> None:
         if target not in ("total", "qdd"):
             raise InvalidGainError(f"target must be 'total' or 'qdd', got {target!r}")
-        if not (dt > 0 and horizon_steps >= 1 and q_margin >= 0 and dq_margin >= 0):
+        if not (dt > 0 and horizon_steps >= 1 and q_margin >= 0 and dq_margin >= 0 and brake_gain >= 0):
             raise InvalidGainError(f"need dt > 0, horizon_steps >= 1, margins >= 0; got {dt}, {horizon_steps}, "
                                    f"{q_margin}, {dq_margin}")
         f64 = torch.float64
@@ -180,6 +189,7 @@ class JointLimitsViability(Limit):
         self.dq_max = torch.as_tensor(dq_max, dtype=f64) - dq_margin
         self.ddq_max = torch.as_tensor(ddq_max, dtype=f64)
         self.dt, self.horizon, self.target, self.include_f_ext = dt, horizon_steps * dt, target, include_f_ext
+        self.brake_gain = brake_gain
         self._np_limits = tuple(t.numpy() for t in (self.q_min, self.q_max, self.dq_max, self.ddq_max))
 
     def bounds(self, q: torch.Tensor, qd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -189,8 +199,27 @@ class JointLimitsViability(Limit):
         return joint_acceleration_bounds(q, qd, self.q_min.to(q), self.q_max.to(q), self.dq_max.to(q),
                                          self.ddq_max.to(q), self.horizon)
 
+    def bounds_for(self, ctx: ControlContext) -> tuple[torch.Tensor, torch.Tensor]:
+        """`bounds(ctx.q, ctx.qd)`, computed once per context (shared with TorqueLimits and the fallback)."""
+        key = ("viable_bounds", id(self))
+        out = ctx.cache.get(key)
+        if out is None:
+            out = ctx.cache[key] = self.bounds(ctx.q, ctx.qd)
+        return out
+
+    def safe_acceleration(self, ctx: ControlContext) -> torch.Tensor:
+        """The damped brake q̈ = clamp(−k q̇, lb, ub) [B, 7] (rad/s²), k = `brake_gain`: inside the viable bounds, so
+        inside the position, velocity and acceleration limits (Del Prete 2017). It is the controller's fallback
+        acceleration and the point (q̈ total = this, f = 0) that TorqueLimits keeps feasible, so the QP always is."""
+        key = ("safe_acceleration", id(self))
+        out = ctx.cache.get(key)
+        if out is None:
+            lb, ub = self.bounds_for(ctx)
+            out = ctx.cache[key] = torch.minimum(torch.maximum(-self.brake_gain * ctx.qd, lb), ub)
+        return out
+
     def rows(self, ctx: ControlContext) -> Inequality:
-        lb, ub = self.bounds(ctx.q, ctx.qd)
+        lb, ub = self.bounds_for(ctx)
         B = ctx.batch
         # motion part: q̈* + q̈_pd = (I + ∂q̈_pd/∂q̈*) q̈* + q̈_pd0 ∈ [lb, ub] (eq. 5-7 are linear in q̈*)
         gain = ctx.qdd_map if ctx.qdd_map is not None else _eye(N_QDD, ctx.q) + ctx.pd_qdd_gain
@@ -269,15 +298,24 @@ class TorqueLimits(Limit):
 
     Not in the paper's QP: without it, fast random weight switching can command accelerations the motors cannot
     deliver (87 / 12 N m); the clipped torque then brakes too little and a joint overshoots its velocity limit.
-    Rows: ±(B(I + ∂q̈_pd/∂q̈*) q̈* + Jᵀ f) ≤ τ_max ∓ (B q̈_pd0 + h + g).
+    Rows: ±(B(I + ∂q̈_pd/∂q̈*) q̈* + Jᵀ f) ≤ τ̄ ∓ (B q̈_pd0 + h + g).
+
+    Safety first (`safe`): joint-limit viability must hold, torque limits may give. Near a limit the viable
+    acceleration with gravity can need more than τ_max, and the two row sets are then jointly infeasible (seen with
+    random weight switching: joint 2 resting on q_max − margin under −51 N m of gravity). With `safe` given, the
+    limit per joint is τ̄ = max(scale τ_max, |τ_safe|), τ_safe = B q̈_safe + h + g the torque of the viable brake
+    q̈_safe = `safe.safe_acceleration(ctx)` (with f = 0, inside the wrench box and the friction pyramid): that point
+    always satisfies every row, so the QP is always feasible, and τ_max gives way only as much as the brake needs
+    (the applied torque is still clipped to the motors' ±τ_max afterwards).
     """
 
     name = "torque_limits"
 
-    def __init__(self, tau_max: torch.Tensor, scale: float = 0.98) -> None:
+    def __init__(self, tau_max: torch.Tensor, scale: float = 0.98, safe: "JointLimitsViability | None" = None) -> None:
         if not 0.0 < scale <= 1.0:
             raise InvalidGainError(f"scale must be in (0, 1], got {scale!r}")
         self.tau_max = scale * torch.as_tensor(tau_max, dtype=torch.float64)
+        self.safe = safe
 
     def rows(self, ctx: ControlContext) -> Inequality:
         B = ctx.batch
@@ -287,4 +325,9 @@ class TorqueLimits(Limit):
         if ctx.bias is not None:
             offset = offset + ctx.bias
         lim = self.tau_max.to(ctx.q).expand(B, N_QDD)
+        if self.safe is not None:
+            tau_safe = torch.bmm(ctx.mass, self.safe.safe_acceleration(ctx).unsqueeze(-1)).squeeze(-1)
+            if ctx.bias is not None:
+                tau_safe = tau_safe + ctx.bias
+            lim = torch.maximum(lim, tau_safe.abs())
         return Inequality(G=torch.cat([M, -M], dim=1), h=torch.cat([lim - offset, lim + offset], dim=1))
