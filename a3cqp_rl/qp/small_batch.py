@@ -208,9 +208,13 @@ def _range_space(
     if info != 0:
         return None
     x0 = -(Li.T @ (Li @ q))
+    v0 = C @ x0 - d
+    if p == 0 and W0 is None and not float(v0.max(initial=-1.0)) > tol_p:
+        # The unconstrained minimiser is feasible (the easy cold case): certify it, skip S.
+        e_d = P @ x0 + q
+        return (x0, np.zeros(r), 1) if float(np.sqrt(e_d @ e_d)) <= tol_r else None
     M = Li @ C.T
     S = M.T @ M
-    v0 = C @ x0 - d
     lam = np.zeros(r)
 
     def solve(rows: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
@@ -223,7 +227,7 @@ def _range_space(
         W = W0.copy()
     else:
         W = np.zeros(r, dtype=bool)
-        if r > p:
+        if r > p and float(v0[p:].max()) > tol_p:
             # Cold: guess the rows the unconstrained minimiser violates (at most n − p, the most
             # violated relative to their norms); the loop below trims it to a dual-feasible start.
             rel = v0[p:] / (np.sqrt(np.einsum("ij,ij->i", C[p:], C[p:])) + 1e-300)
@@ -328,8 +332,7 @@ def _range_space(
     # working set, every row feasible, multipliers ≥ 0.
     if rows.size:
         lw = lam[rows]
-        CW = C[rows]
-        g = CW.T @ lw
+        g = lam @ C  # = C_Wᵀ λ_W (λ is zero off the working set)
         x = x0 - Li.T @ (Li @ g)
         e_d = P @ x + q + g
         vfin = C @ x - d
@@ -337,12 +340,11 @@ def _range_space(
         res = float(np.sqrt(e_d @ e_d + e_p @ e_p))
         if not res <= tol_r or float(lw[p:].min(initial=0.0)) < -tol_d:
             return None
-    else:
-        x = x0
+    else:  # x₀ itself (v0 holds its row values)
+        x, vfin = x0, v0
         e_d = P @ x + q
         if not float(np.sqrt(e_d @ e_d)) <= tol_r:
             return None
-        vfin = C @ x - d
     if r > p and float(vfin[p:].max()) > tol_p:
         return None
     return x, lam, solves
@@ -368,16 +370,17 @@ def active_set_small(
     sp = 1.0 + (np.abs(np.concatenate([b, h], 1)).max(1) if p + m else np.zeros(B))
     sd = 1.0 + np.abs(q).max(1)
     no_warm = np.zeros(m, dtype=bool)
-    Wr = np.zeros(p + m, dtype=bool)
     for i in range(B):
         Pi, qi, Ai, bi, Gi, hi = P[i], q[i], A[i], b[i], G[i], h[i]
         tol_p, tol_d = tol * float(sp[i]), tol * float(sd[i])
         tol_r = min(tol_p, tol_d) if p + m else tol_d
-        # Fast path (P ≻ 0): G-I in the range space of P, k × k solves on the working rows.
-        C, dC = (np.concatenate([Ai, Gi]), np.concatenate([bi, hi])) if p else (Gi, hi)
-        if z0 is not None:
-            Wr[p:] = z0[i] > 0
-        fast = _range_space(Pi, qi, C, dC, p, Wr if z0 is not None else None, tol_p, tol_d, tol_r, max_steps)
+        # Cold (P ≻ 0): G-I in the range space of P, k × k solves on the working rows.  Warm
+        # starts keep the LU method: it certifies the control loop's QP in one solve, with less
+        # set-up than the range space (Cholesky, L⁻¹, S) needs.
+        fast = None
+        if z0 is None:
+            C, dC = (np.concatenate([Ai, Gi]), np.concatenate([bi, hi])) if p else (Gi, hi)
+            fast = _range_space(Pi, qi, C, dC, p, None, tol_p, tol_d, tol_r, max_steps)
         if fast is not None:
             x_out[i], lam, iters[i] = fast
             y_out[i], z_out[i] = lam[:p], lam[p:]
