@@ -226,21 +226,23 @@ def _ipm_polished(
 def _solve_canonical(
     P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
     tol: float, max_iter: int, active_set_iter: int | None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Solve the canonical batch (no autograd); returns x, y, z, status, iterations."""
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, tuple[np.ndarray, ...] | None]:
+    """Solve the canonical batch (no autograd); returns x, y, z, status, iterations and, on the
+    small-batch path, the float64 numpy (P symmetrised, A, G, h) for the backward (else None)."""
     if _use_small_path(q, SMALL_BATCH_MAX_WARM if z_warm is not None else SMALL_BATCH_MAX):
         return _solve_small(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
-    return _solve_batched(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
+    return (*_solve_batched(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter), None)
 
 
 def _use_small_path(q: Tensor, limit: int | None = None) -> bool:
     """Whether this batch goes through the numpy per-instance path (at most `limit` instances, on CPU)."""
-    return q.shape[0] <= (SMALL_BATCH_MAX if limit is None else limit) and q.device.type == "cpu"
+    return q.shape[0] <= (SMALL_BATCH_MAX if limit is None else limit) and q.is_cpu
 
 
 def _np64(t: Tensor) -> np.ndarray:
     """Float64 numpy view (zero-copy for float64 CPU tensors, expanded ones included) of a tensor."""
-    t = t.detach()
+    if t.requires_grad:  # (detach costs ~2 µs: only when needed)
+        t = t.detach()
     return (t if t.dtype == torch.float64 else t.double()).numpy()
 
 
@@ -253,19 +255,21 @@ def _from_np(v: np.ndarray, dtype: torch.dtype) -> Tensor:
 def _solve_small(
     P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
     tol: float, max_iter: int, active_set_iter: int | None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, tuple[np.ndarray, ...]]:
     """Small-batch route: numpy active set per instance, the batched torch path for what it leaves."""
     B = q.shape[0]
     Pn = _np64(P)
+    Ps, An, Gn, hn = 0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(A), _np64(G), _np64(h)
+    cache = (Ps, An, Gn, hn)
     xn, yn, zn, outcome, itn = active_set_small(
-        0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(q), _np64(A), _np64(b), _np64(G), _np64(h),
+        Ps, _np64(q), An, _np64(b), Gn, hn,
         _np64(z_warm) if z_warm is not None else None, tol, SMALL_MAX_STEPS if active_set_iter is None else active_set_iter,
     )
     x, y, z = (_from_np(v, q.dtype) for v in (xn, yn, zn))
     iters = torch.from_numpy(itn)
     status = torch.from_numpy(np.zeros(B, dtype=np.int64))  # QPStatus.SOLVED; from numpy: ~3x cheaper
     if not outcome.any():  # every instance CERTIFIED (= 0)
-        return x, y, z, status, iters
+        return x, y, z, status, iters, cache
     # Singular working-set systems get the torch active set (its augmented Lagrangian copes with
     # dependent rows); instances that used up the iterations go straight to the interior point.
     for code, as_iter in ((SINGULAR, active_set_iter), (EXHAUSTED, 0)):
@@ -278,7 +282,7 @@ def _solve_small(
         xs, ys, zs, ss, its = _solve_batched(*sub, zw, tol, max_iter, as_iter)
         x[idx], y[idx], z[idx], status[idx] = xs, ys, zs, ss
         iters[idx] = its + (iters[idx] if code == EXHAUSTED else 0)
-    return x, y, z, status, iters
+    return x, y, z, status, iters, cache
 
 
 def _solve_batched(
@@ -330,15 +334,20 @@ def _adjoint_direct(P: Tensor, gx: Tensor, C: Tensor, zr: Tensor, mask: Tensor) 
 
 def _backward_small(
     need: tuple[bool, ...], P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Tensor, z: Tensor,
-    status: Tensor, gx: Tensor,
+    status: Tensor, gx: Tensor, cache: tuple[np.ndarray, ...] | None = None,
 ) -> tuple[Tensor | None, ...] | None:
-    """Gradients (P, q, A, b, G, h) by the numpy adjoint (small CPU batches); None if a system is singular."""
-    Pn, xn, yn, zn = _np64(P), _np64(x), _np64(y), _np64(z)
+    """Gradients (P, q, A, b, G, h) by the numpy adjoint (small CPU batches); None if a system is singular.
+
+    `cache`: the forward's float64 numpy (P symmetrised, A, G, h), saving their conversions."""
+    if cache is None:
+        Pn = _np64(P)
+        cache = (0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(A), _np64(G), _np64(h))
+    xn, yn, zn = _np64(x), _np64(y), _np64(z)
     # Gradients only flow through x of solved instances (as in the torch backward).
     gxn, st = _np64(gx), status.numpy()
     if st.any():  # some instance not SOLVED (= 0; an IntEnum operand would take numpy's object path)
         gxn = gxn * (st == 0)[:, None]
-    adj = adjoint_small(0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(A), _np64(G), _np64(h), xn, zn, gxn)
+    adj = adjoint_small(*cache, xn, zn, gxn)
     if adj is None:
         return None
     wx, wy, wz, active = adj
@@ -364,7 +373,7 @@ class _QPFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter):  # type: ignore[override]
-        x, y, z, status, iters = _solve_canonical(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
+        x, y, z, status, iters, ctx.np_cache = _solve_canonical(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
         ctx.save_for_backward(P, A, G, h, x, y, z, status)
         ctx.mark_non_differentiable(status, iters)
         return x, y, z, status, iters
@@ -376,7 +385,7 @@ class _QPFunction(torch.autograd.Function):
         if gx is None:
             gx = torch.zeros_like(x)
         if _use_small_path(x):
-            grads = _backward_small(ctx.needs_input_grad, P, A, G, h, x, y, z, status, gx)
+            grads = _backward_small(ctx.needs_input_grad, P, A, G, h, x, y, z, status, gx, ctx.np_cache)
             if grads is not None:
                 return (*grads, None, None, None, None)
         # Gradients only flow through x (duals are outputs for information and warm starts).
@@ -491,7 +500,7 @@ def solve_qp(
     if torch.is_grad_enabled() and any(t.requires_grad for t in (P, q, A, b, G_all, h_all)):
         x, y, z_all, status, iters = _QPFunction.apply(P, q, A, b, G_all, h_all, *solver_args)
     else:
-        x, y, z_all, status, iters = _solve_canonical(P, q, A, b, G_all, h_all, *solver_args)
+        x, y, z_all, status, iters, _ = _solve_canonical(P, q, A, b, G_all, h_all, *solver_args)
     zero = q.new_zeros(batch, n)
     z = z_all if not (has_lb or has_ub) else z_all[:, :m]  # a slice is ~5 µs of the B = 1 budget
     z_lb = z_all[:, m : m + n] if has_lb else zero
