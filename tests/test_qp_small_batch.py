@@ -130,3 +130,20 @@ def test_infeasible_unbounded_and_nan_instances_get_their_status() -> None:
     P = torch.diag(torch.tensor([1.0, 0.0], dtype=DT)).expand(2, 2, 2)
     unb = solve_qp(P, torch.tensor([[1.0, 1.0], [1.0, -1.0]], dtype=DT), G=torch.tensor([[0.0, -1.0]], dtype=DT).expand(2, 1, 2), h=torch.zeros(2, 1, dtype=DT))
     assert unb.status.tolist() == [QPStatus.SOLVED, QPStatus.DUAL_INFEASIBLE]
+
+
+@pytest.mark.parametrize("family", range(len(FAMILIES)))
+def test_cold_solves_with_definite_p_stay_on_the_range_space_path(family: int, monkeypatch) -> None:
+    # The LU method is only the fallback of the range-space path (P ≻ 0): these families must not need it.
+    import a3cqp_rl.qp.small_batch as small
+
+    def fail(*args, **kwargs):
+        raise AssertionError("fell back to the LU method")
+
+    monkeypatch.setattr(small, "_dual_active_set", fail)
+    qp = random_qp_batch(16, seed=300 + family, **FAMILIES[family])
+    sol = solve_qp(*qp.args())
+    x_ref, _ = clarabel_reference(qp)
+    assert bool(sol.solved.all()) and (sol.x - x_ref).abs().max().item() <= 1e-6
+    sol32 = solve_qp(*(t.float() if t is not None else None for t in qp.args()))
+    assert bool(sol32.solved.all()) and (sol32.x.double() - x_ref).abs().max().item() <= 1e-4

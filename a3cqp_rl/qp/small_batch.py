@@ -45,6 +45,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import lapack
 
+COLD_ROUNDS = 2
+"""Cold-start rounds of "add the violated rows, trim to positive multipliers" before the G-I steps
+(measured on 300 instances: 1.07 / 6.60 / 12.07 solves at spread 0.015 / 0.35 / 1.0 with 2 rounds,
+1.07 / 7.73 / 12.98 with 1, 9.6 / 14.6 for the LU method from W = ∅)."""
 __all__ = ["SINGULAR", "CERTIFIED", "EXHAUSTED", "active_set_small", "adjoint_small"]
 
 CERTIFIED, SINGULAR, EXHAUSTED = 0, 1, 2
@@ -223,42 +227,49 @@ def _range_space(
 
     # Warm start: the working rows of z0 (and the equalities), less those whose multipliers come
     # out ≤ 0, so that the start is dual feasible.
-    if W0 is not None:
-        W = W0.copy()
-    else:
-        W = np.zeros(r, dtype=bool)
-        if r > p and float(v0[p:].max()) > tol_p:
-            # Cold: guess the rows the unconstrained minimiser violates (at most n − p, the most
-            # violated relative to their norms); the loop below trims it to a dual-feasible start.
-            rel = v0[p:] / (np.sqrt(np.einsum("ij,ij->i", C[p:], C[p:])) + 1e-300)
-            k = min(int((rel > tol_p).sum()), len(q) - p)
+    gnorm = np.sqrt(np.einsum("ij,ij->i", C[p:], C[p:])) + 1e-300
+    W = W0.copy() if W0 is not None else np.zeros(r, dtype=bool)
+    W[:p] = True
+    v = v0
+    solves = 0
+    for rnd in range(1 if W0 is not None else COLD_ROUNDS):
+        if W0 is None and r > p:
+            # Cold: add the rows the current point violates (the most violated relative to their
+            # norms, up to n − p working rows); the loop below trims the set to positive
+            # multipliers, so the start stays dual feasible, as G-I requires.
+            rel = v[p:] / gnorm
+            room = len(q) - p - int(W[p:].sum())
+            k = min(int((rel > tol_p).sum()), room)
+            if k == 0 and rnd:
+                break
             if k:
                 W[p + np.argsort(-rel)[:k]] = True
-    W[:p] = True
-    rows = np.flatnonzero(W)
-    solves = 1
-    while rows.size:
-        lw = solve(rows, v0[rows])
-        if lw is None:
-            if rows.size == p:  # dependent equalities (or ill-conditioned): LU path
-                return None
-            W[p:] = False
-            rows = np.flatnonzero(W)
-            solves += 1
-            continue
-        keep = lw > 0
-        keep[:p] = True
-        if keep.all():
-            break
-        W[rows[~keep]] = False
-        rows = rows[keep]
+        rows = np.flatnonzero(W)
         solves += 1
-    if rows.size:
-        lam[rows] = lw
-    v = v0 - S[:, rows] @ lam[rows] if rows.size else v0.copy()
+        while rows.size:
+            lw = solve(rows, v0[rows])
+            if lw is None:
+                if rows.size == p:  # dependent equalities (or ill-conditioned): LU path
+                    return None
+                W[p:] = False
+                rows = np.flatnonzero(W)
+                solves += 1
+                continue
+            keep = lw > 0
+            keep[:p] = True
+            if keep.all():
+                break
+            W[rows[~keep]] = False
+            rows = rows[keep]
+            solves += 1
+        lam[:] = 0.0
+        if rows.size:
+            lam[rows] = lw
+        v = v0 - S[:, rows] @ lam[rows] if rows.size else v0.copy()
+    rows = np.flatnonzero(W)
+    solves = max(solves, 1)
     exact = True  # lam holds the exact multipliers of `rows` (no incremental update since)
     if r > p and float(v[p:].max()) > tol_p:
-        gnorm = np.sqrt(np.einsum("ij,ij->i", C[p:], C[p:])) + 1e-300
         steps = 0
         while True:
             j = p + int(np.argmax(v[p:] / gnorm))
