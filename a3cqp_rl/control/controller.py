@@ -204,7 +204,7 @@ class A3CQPController:
                                                  q_margin=opt.q_margin, dq_margin=opt.dq_margin,
                                                  horizon_steps=opt.limit_horizon_steps, target=opt.joint_limit_target,
                                                  include_f_ext=opt.joint_limits_include_f_ext,
-                                                 brake_gain=opt.brake_gain)
+                                                 brake_gain=opt.brake_gain, tau_max=lim["tau_max"])
         self.limits: list[Limit] = [self.joint_limits, WrenchBox(cfg.force_limit, cfg.torque_limit),
                                     FrictionPyramid(cfg.mu)]
         if opt.torque_limits:

@@ -91,10 +91,10 @@ def _acc_bounds_from_viability(q, dq, q_min, q_max, ddq_stop, dt, xp):  # noqa: 
     return xp.minimum(lb, stop), xp.maximum(ub, stop)
 
 
-def _acc_bounds(q, dq, q_min, q_max, dq_max, ddq_max, dt, xp):  # noqa: ANN001, ANN202
+def _acc_bounds(q, dq, q_min, q_max, dq_max, ddq_max, dt, xp, ddq_stop=None):  # noqa: ANN001, ANN202
     lb_p, ub_p = _acc_bounds_from_position(q, dq, q_min, q_max, dt, xp)
     lb_v, ub_v = (-dq_max - dq) / dt, (dq_max - dq) / dt
-    lb_s, ub_s = _acc_bounds_from_viability(q, dq, q_min, q_max, ddq_max, dt, xp)
+    lb_s, ub_s = _acc_bounds_from_viability(q, dq, q_min, q_max, ddq_max if ddq_stop is None else ddq_stop, dt, xp)
     lb_pv, ub_pv = xp.maximum(lb_p, lb_v), xp.minimum(ub_p, ub_v)
     lb, ub = xp.maximum(lb_pv, lb_s), xp.minimum(ub_pv, ub_s)
     # conflicts among position, velocity and viability (a state outside the viable set): drop viability, then
@@ -131,10 +131,10 @@ def joint_acceleration_bounds(q: torch.Tensor, dq: torch.Tensor, q_min: torch.Te
 
 
 def _numpy_bounds(q: torch.Tensor, dq: torch.Tensor, q_min: np.ndarray, q_max: np.ndarray, dq_max: np.ndarray,
-                  ddq_max: np.ndarray, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+                  ddq_max: np.ndarray, dt: float, ddq_stop: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """`_acc_bounds` in numpy for CPU tensors without gradients; the [7] limits broadcast over the batch."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        lb, ub = _acc_bounds(q.numpy(), dq.numpy(), q_min, q_max, dq_max, ddq_max, dt, np)
+        lb, ub = _acc_bounds(q.numpy(), dq.numpy(), q_min, q_max, dq_max, ddq_max, dt, np, ddq_stop)
     lb, ub = torch.from_numpy(np.asarray(lb)), torch.from_numpy(np.asarray(ub))
     return (lb, ub) if lb.dtype == q.dtype else (lb.to(q.dtype), ub.to(q.dtype))
 
@@ -170,6 +170,8 @@ class JointLimitsViability(Limit):
             default: then x = (q̈ inside the bounds, f = 0) satisfies every row, so the QP is always feasible;
             with it, an external wrench larger than the wrench box can make the QP infeasible (-> fallback).
         brake_gain: k [1/s] of `safe_acceleration` (the fallback brake q̈ = −k q̇ inside the bounds).
+        tau_max, torque_share, min_stop_fraction: torque-consistent stopping deceleration of the viability bound
+            (`stopping_deceleration`; tau_max None = Del Prete's ddq_max).
     """
 
     name = "joint_limits"
@@ -177,7 +179,8 @@ class JointLimitsViability(Limit):
     def __init__(self, q_min: torch.Tensor, q_max: torch.Tensor, dq_max: torch.Tensor, ddq_max: torch.Tensor,
                  dt: float, q_margin: float = 0.01, dq_margin: float = 0.02, horizon_steps: float = 2.0,
                  target: Literal["total", "qdd"] = "total", include_f_ext: bool = False,
-                 brake_gain: float = 20.0) -> None:
+                 brake_gain: float = 20.0, tau_max: torch.Tensor | None = None, torque_share: float = 0.5,
+                 min_stop_fraction: float = 0.2) -> None:
         if target not in ("total", "qdd"):
             raise InvalidGainError(f"target must be 'total' or 'qdd', got {target!r}")
         if not (dt > 0 and horizon_steps >= 1 and q_margin >= 0 and dq_margin >= 0 and brake_gain >= 0):
@@ -190,21 +193,50 @@ class JointLimitsViability(Limit):
         self.ddq_max = torch.as_tensor(ddq_max, dtype=f64)
         self.dt, self.horizon, self.target, self.include_f_ext = dt, horizon_steps * dt, target, include_f_ext
         self.brake_gain = brake_gain
+        self.tau_max = None if tau_max is None else torch.as_tensor(tau_max, dtype=f64)
+        self.torque_share, self.min_stop_fraction = torque_share, min_stop_fraction
         self._np_limits = tuple(t.numpy() for t in (self.q_min, self.q_max, self.dq_max, self.ddq_max))
 
-    def bounds(self, q: torch.Tensor, qd: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Viable acceleration bounds (lb, ub) [B, 7] (rad/s²) at state (q, q̇)."""
+    def bounds(self, q: torch.Tensor, qd: torch.Tensor, ddq_stop: torch.Tensor | None = None
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Viable acceleration bounds (lb, ub) [B, 7] (rad/s²) at state (q, q̇).
+
+        `ddq_stop` [B, 7]: the deceleration the viability bound may count on to stop before a position limit
+        (default ddq_max); see `stopping_deceleration`.
+        """
         if q.device.type == "cpu" and q.dtype == torch.float64 and not (q.requires_grad or qd.requires_grad):
-            return _numpy_bounds(q, qd.to(q.dtype), *self._np_limits, self.horizon)  # the 1 kHz loop's path
-        return joint_acceleration_bounds(q, qd, self.q_min.to(q), self.q_max.to(q), self.dq_max.to(q),
-                                         self.ddq_max.to(q), self.horizon)
+            stop = None if ddq_stop is None else ddq_stop.numpy()
+            return _numpy_bounds(q, qd.to(q.dtype), *self._np_limits, self.horizon, stop)  # the 1 kHz loop's path
+        lb, ub = (joint_acceleration_bounds(q, qd, self.q_min.to(q), self.q_max.to(q), self.dq_max.to(q),
+                                            self.ddq_max.to(q), self.horizon) if ddq_stop is None else
+                  _acc_bounds(q, qd, *(t.to(q).expand_as(q) for t in (self.q_min, self.q_max, self.dq_max,
+                                                                      self.ddq_max)), self.horizon, _TorchOps,
+                              ddq_stop))
+        return lb, ub
+
+    def stopping_deceleration(self, ctx: ControlContext) -> torch.Tensor | None:
+        """Torque-consistent stopping deceleration [B, 7] for the viability bound (None: ddq_max, no torque model).
+
+        Del Prete's viability assumes a joint can always brake at ddq_max; with gravity and the other joints'
+        inertial coupling the Panda's shoulder cannot (random switching: joint 2 braking with τ saturated at
+        −87 N m under −44 N m of gravity reached −3 rad/s², not −7.5, and overshot q_max). As in OpenSoT, where the
+        acceleration limits are chosen consistent with the torque limits, the deceleration counted on is
+        min(ddq_max, `torque_share` (τ_max − |h + g|) / B_ii), at least `min_stop_fraction` ddq_max.
+        """
+        if ctx.bias is None or self.tau_max is None:
+            return None
+        diag = torch.diagonal(ctx.mass, dim1=-2, dim2=-1)
+        room = (self.tau_max.to(ctx.q) - ctx.bias.abs()).clamp_min(0.0)
+        ddq_max = self.ddq_max.to(ctx.q)
+        return torch.minimum(self.torque_share * room / diag, ddq_max).clamp_min(0.0).maximum(
+            self.min_stop_fraction * ddq_max)
 
     def bounds_for(self, ctx: ControlContext) -> tuple[torch.Tensor, torch.Tensor]:
         """`bounds(ctx.q, ctx.qd)`, computed once per context (shared with TorqueLimits and the fallback)."""
         key = ("viable_bounds", id(self))
         out = ctx.cache.get(key)
         if out is None:
-            out = ctx.cache[key] = self.bounds(ctx.q, ctx.qd)
+            out = ctx.cache[key] = self.bounds(ctx.q, ctx.qd, self.stopping_deceleration(ctx))
         return out
 
     def safe_acceleration(self, ctx: ControlContext) -> torch.Tensor:
