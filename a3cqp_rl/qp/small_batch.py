@@ -233,6 +233,8 @@ def _range_space(
     v = v0
     solves = 0
     for rnd in range(1 if W0 is not None else COLD_ROUNDS):
+        if rnd and not float(v[p:].max()) > tol_p:  # the previous round's point is feasible
+            break
         if W0 is None and r > p:
             # Cold: add the rows the current point violates (the most violated relative to their
             # norms, up to n − p working rows); the loop below trims the set to positive
