@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
             run_dirs.append(run_dir)
             print(f"trained {res.steps:,} steps in {res.seconds:.1f} s ({res.steps_per_second:,.0f} steps/s"
                   f"{f', plus {res.compile_seconds:.0f} s compiling' if res.compile_seconds else ''}); "
-                  f"last mean episode reward {res.final_metrics.get('episode_reward', float('nan')):.2f}")
+                  + _reward_text(res.final_metrics.get("episode_reward", float("nan"))))
         if not args.no_plots:
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
             from a3cqp_rl.plotting.policy_map import plot_policy_map
@@ -92,3 +92,10 @@ def main(argv: list[str] | None = None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def _reward_text(r: float) -> str:
+    """The final message's episode-reward part; says so when no episode has ended yet (short runs)."""
+    if r != r:  # NaN
+        return "no episode finished yet (episodes are longer than this run per env)"
+    return f"last mean episode reward {r:.2f}"

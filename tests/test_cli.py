@@ -35,3 +35,10 @@ def test_clear_errors(tmp_path, capsys):
     assert "a2c.learning_rate" in capsys.readouterr().err
     assert main(["train", "--config", CONFIG, "--out", str(tmp_path / "none"), "--resume", "--no-compile"]) == 2
     assert "checkpoint not found" in capsys.readouterr().err
+
+
+def test_final_message_says_when_no_episode_ended():
+    from algorithms.train import _reward_text
+
+    assert "no episode finished" in _reward_text(float("nan"))
+    assert _reward_text(-12.345) == "last mean episode reward -12.35"

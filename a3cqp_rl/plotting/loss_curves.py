@@ -4,6 +4,7 @@ band (25th-75th percentile) over several runs (seeds), read from each run's metr
 from __future__ import annotations
 
 import csv
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -39,8 +40,10 @@ def plot_loss_curves(
     for ax, m in zip(np.atleast_1d(axes), metrics):
         # runs of different lengths are compared on the common step grid of the first run
         ys = np.stack([np.interp(steps, r["step"], r[m], right=np.nan) for r in runs])
-        mean = np.nanmean(ys, axis=0)
-        q25, q75 = np.nanpercentile(ys, 25, axis=0), np.nanpercentile(ys, 75, axis=0)
+        with warnings.catch_warnings():  # all-NaN columns (e.g. no episode ended yet) stay NaN, quietly
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mean = np.nanmean(ys, axis=0)
+            q25, q75 = np.nanpercentile(ys, 25, axis=0), np.nanpercentile(ys, 75, axis=0)
         ax.plot(steps, mean, lw=1.5, label=f"mean of {len(runs)} run(s)")
         ax.fill_between(steps, q25, q75, alpha=0.3, label="25-75 %")
         ax.set_xlabel("steps")
