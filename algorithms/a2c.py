@@ -178,14 +178,19 @@ def rollout_step(layout: ParamLayout, env_step, flat: Tensor, state: dict, pendi
 def fused_iteration(layout: ParamLayout, hp: A2CConfig, env_step, env_observe, flat: Tensor, square_avg: Tensor,
                     state: dict, pending: dict, schedule: Tensor, noise: Tensor):
     """n env steps (pure `env_step` with auto-reset) + one `a2c_update`, as ONE function to compile."""
-    obs = env_observe(state)
-    rows = []
-    for t in range(noise.shape[0]):
-        state, row, obs = rollout_step(layout, env_step, flat, state, pending, schedule, obs, noise[t])
-        rows.append(row)
-    batch = Batch(*(torch.stack(c) for c in zip(*rows)))
+    state, batch = collect(lambda s, o, z: rollout_step(layout, env_step, flat, s, pending, schedule, o, z),
+                           state, env_observe(state), noise)
     metrics = a2c_update(layout, flat, square_avg, batch, hp)
     return state, metrics, batch.rewards, batch.terminated | batch.truncated
+
+
+def collect(step: Callable, state: dict, obs: Tensor, noise: Tensor) -> tuple[dict, Batch]:
+    """Run `step(state, obs, noise_t) -> (state, row, next_obs)` for each of noise's n rows; (state, Batch [n, N])."""
+    rows = []
+    for t in range(noise.shape[0]):
+        state, row, obs = step(state, obs, noise[t])
+        rows.append(row)
+    return state, Batch(*(torch.stack(c) for c in zip(*rows)))
 
 
 class FusedRollout:
@@ -234,11 +239,8 @@ class FusedRollout:
         if self.fuse:
             state, metrics, rewards, dones = self._iteration(flat, square_avg, state, pending, schedule, noise)
         else:
-            obs, rows = self._observe(state), []
-            for t in range(self.hp.n_steps):
-                state, row, obs = self._step(flat, state, pending, schedule, obs, noise[t])
-                rows.append(row)
-            batch = Batch(*(torch.stack(c) for c in zip(*rows)))
+            state, batch = collect(lambda s, o, z: self._step(flat, s, pending, schedule, o, z),
+                                   state, self._observe(state), noise)
             metrics = self._update(flat, square_avg, batch)
             rewards, dones = batch.rewards, batch.terminated | batch.truncated
         self.env.fused_commit(state)

@@ -12,6 +12,7 @@ repeated steps.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -96,6 +97,6 @@ if __name__ == "__main__":
 
 def _reward_text(r: float) -> str:
     """The final message's episode-reward part; says so when no episode has ended yet (short runs)."""
-    if r != r:  # NaN
+    if math.isnan(r):
         return "no episode finished yet (episodes are longer than this run per env)"
     return f"last mean episode reward {r:.2f}"
