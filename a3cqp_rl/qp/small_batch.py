@@ -42,6 +42,8 @@ at this size).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.linalg import lapack
 
@@ -187,10 +189,10 @@ def _dual_active_set(
 
 
 def _range_space(
-    P: np.ndarray, q: np.ndarray, C: np.ndarray, d: np.ndarray, p: int, W0: np.ndarray,
+    P: np.ndarray, q: np.ndarray, C: np.ndarray, d: np.ndarray, p: int,
     tol_p: float, tol_d: float, tol_r: float, max_steps: int,
-) -> tuple[np.ndarray, np.ndarray, int] | None:
-    """Goldfarb-Idnani in the range space of P ≻ 0 (the fast path); returns (x, multipliers of all rows, solves) or None.
+) -> tuple[np.ndarray, np.ndarray, int, tuple[np.ndarray, np.ndarray] | None] | None:
+    """Cold Goldfarb-Idnani in the range space of P ≻ 0 (the fast path); returns (x, multipliers of all rows, solves, factors) or None.
 
     Rows C x ≤ d (the first p of them equalities, always working).  With P = L Lᵀ factored once,
     x₀ = −P⁻¹q and S = C P⁻¹ Cᵀ = (L⁻¹Cᵀ)ᵀ(L⁻¹Cᵀ) (one triangular solve, one product), the KKT
@@ -200,6 +202,13 @@ def _range_space(
     The answer is certified on the original KKT system (residual, feasibility, multipliers ≥ 0);
     None (not P ≻ 0, dependent working rows, infeasible, step budget, or no certificate) hands
     the instance to the LU-based `_dual_active_set`, which decides its outcome as before.
+    `factors` (L⁻¹ and L⁻¹Cᵀ, None when S was not needed) let `adjoint_small` reuse them.
+
+    Per call this costs ~1-3 µs of numpy overhead whatever the size, so the bookkeeping is
+    arranged for few calls: the working set is an unordered index buffer with its multipliers
+    alongside (adding or dropping a row is a scalar write, no flatnonzero/append), rows of the
+    symmetric S are gathered once per step and serve both the k × k solve and the new row values,
+    and max/min/all are argmax/argmin plus an index (numpy's reductions cost ~3 µs, argmax ~0.5).
     """
     r = C.shape[0]
     L, info = lapack.dpotrf(P, lower=1)
@@ -211,156 +220,173 @@ def _range_space(
     Li, info = lapack.dtrtri(L, lower=1)
     if info != 0:
         return None
-    x0 = -(Li.T @ (Li @ q))
+    x0 = (Li @ -q) @ Li  # −L⁻ᵀL⁻¹q
+    if r == 0:
+        e_d = P @ x0 + q
+        return (x0, np.zeros(0), 1, None) if math.sqrt(e_d @ e_d) <= tol_r else None
     v0 = C @ x0 - d
-    if p == 0 and W0 is None and not float(v0.max(initial=-1.0)) > tol_p:
+    if p == 0 and not v0[v0.argmax()] > tol_p:
         # The unconstrained minimiser is feasible (the easy cold case): certify it, skip S.
         e_d = P @ x0 + q
-        return (x0, np.zeros(r), 1) if float(np.sqrt(e_d @ e_d)) <= tol_r else None
+        return (x0, np.zeros(r), 1, None) if math.sqrt(e_d @ e_d) <= tol_r else None
     M = Li @ C.T
     S = M.T @ M
-    lam = np.zeros(r)
 
     def solve(rows: np.ndarray, rhs: np.ndarray) -> np.ndarray | None:
-        _, sol, inf = lapack.dposv(S[rows[:, None], rows], rhs, lower=1)
+        _, sol, inf = lapack.dposv(S.take(rows, 0).take(rows, 1), rhs, lower=1)
         return None if inf != 0 else sol
 
-    # Warm start: the working rows of z0 (and the equalities), less those whose multipliers come
-    # out ≤ 0, so that the start is dual feasible.
-    gnorm = np.sqrt(np.einsum("ij,ij->i", C[p:], C[p:])) + 1e-300
-    W = W0.copy() if W0 is not None else np.zeros(r, dtype=bool)
+    # Working set: buf[:k] (equalities first, the rest unordered; buf[k] holds a row on trial),
+    # lw its multipliers, W membership.
+    buf = np.arange(r)
+    k = p
+    W = np.zeros(r, dtype=bool)
     W[:p] = True
-    v = v0
+    ginv = 1.0 / (np.sqrt(np.einsum("ij,ij->i", C[p:], C[p:])) + 1e-300)  # violation relative to the row norm
+    v, lw = v0, v0[:0]
     solves = 0
-    for rnd in range(1 if W0 is not None else COLD_ROUNDS):
-        if rnd and not float(v[p:].max()) > tol_p:  # the previous round's point is feasible
-            break
-        if W0 is None and r > p:
-            # Cold: add the rows the current point violates (the most violated relative to their
-            # norms, up to n − p working rows); the loop below trims the set to positive
-            # multipliers, so the start stays dual feasible, as G-I requires.
-            rel = v[p:] / gnorm
-            room = len(q) - p - int(W[p:].sum())
-            k = min(int((rel > tol_p).sum()), room)
-            if k == 0 and rnd:
+    # Cold start: add the rows the current point violates (the most violated relative to their
+    # norms, up to n − p working rows), then trim the set to positive multipliers, so that the
+    # start is dual feasible, as G-I requires; repeated COLD_ROUNDS times from the new point.
+    for rnd in range(COLD_ROUNDS):
+        if rnd:
+            vp = v[p:]
+            if not vp[vp.argmax()] > tol_p:  # the previous round's point is feasible
                 break
-            if k:
-                W[p + np.argsort(-rel)[:k]] = True
-        rows = np.flatnonzero(W)
+        rel = v[p:] * ginv
+        room = len(q) - k
+        viol = ((rel > tol_p) & ~W[p:]).nonzero()[0] if rnd else (rel > tol_p).nonzero()[0]
+        add = viol if viol.size <= room else rel.argsort()[::-1][:room]  # argsort(−rel) up to ties
+        if add.size == 0 and rnd:
+            break
+        if add.size:
+            buf[k : k + add.size] = p + add
+            W[p + add] = True
+            k += add.size
         solves += 1
-        while rows.size:
-            lw = solve(rows, v0[rows])
+        while k:
+            rows = buf[:k]
+            lw = solve(rows, v0.take(rows))
             if lw is None:
-                if rows.size == p:  # dependent equalities (or ill-conditioned): LU path
+                if k == p:  # dependent equalities (or ill-conditioned): LU path
                     return None
-                W[p:] = False
-                rows = np.flatnonzero(W)
+                W[buf[p:k]] = False
+                k = p
                 solves += 1
                 continue
+            if k == p or lw[p + lw[p:].argmin()] > 0:
+                break
             keep = lw > 0
             keep[:p] = True
-            if keep.all():
-                break
             W[rows[~keep]] = False
-            rows = rows[keep]
+            kept = rows[keep]
+            k = kept.size
+            buf[:k] = kept
             solves += 1
-        lam[:] = 0.0
-        if rows.size:
-            lam[rows] = lw
-        v = v0 - S[:, rows] @ lam[rows] if rows.size else v0.copy()
-    rows = np.flatnonzero(W)
+        if k:
+            v = v0 - lw @ S.take(buf[:k], 0)
+        else:
+            v, lw = v0, v0[:0]
     solves = max(solves, 1)
-    exact = True  # lam holds the exact multipliers of `rows` (no incremental update since)
-    if r > p and float(v[p:].max()) > tol_p:
-        steps = 0
+    exact = True  # lw holds the exact multipliers of buf[:k] (no incremental update since)
+    steps = 0
+    while r > p:
+        rel = v[p:] * ginv
+        j = p + int(rel.argmax())
+        vj = float(v[j])
+        if not vj > tol_p:
+            break
+        steps += 1
+        if steps > max_steps:
+            return None
+        # Optimistic full step: the G-I path ends at the KKT point of W + j exactly when no
+        # multiplier crosses zero on the way, i.e. when its multipliers are ≥ 0.  Its rows of S
+        # (gathered once) give both the solve and, if accepted, the new row values.
+        buf[k] = j
+        rows_j = buf[: k + 1]
+        S_j = S.take(rows_j, 0)
+        _, lw_j, inf = lapack.dposv(S_j.take(rows_j, 1), v0.take(rows_j), lower=1)
+        solves += 1
+        if inf == 0 and lw_j[p + lw_j[p:].argmin()] >= 0:
+            k += 1
+            W[j] = True
+            lw, exact = lw_j, True
+            v = v0 - lw @ S_j
+            continue
+        exact = False
+        # G-I steps for row j: raise λ_j, keeping the working rows tight (dλ_W = −S_WW⁻¹ S_Wj
+        # per unit); a working inequality whose multiplier reaches zero first is dropped.
+        Sjj = float(S[j, j])
+        lam_j = 0.0
         while True:
-            j = p + int(np.argmax(v[p:] / gnorm))
-            vj = float(v[j])
-            if vj <= tol_p:
+            if k:
+                rows = buf[:k]
+                S_W = S.take(rows, 0)
+                sWj = S_W[:, j]
+                _, dl, inf = lapack.dposv(S_W.take(rows, 1), sWj, lower=1)
+                solves += 1
+                if inf != 0:
+                    return None
+                curv = Sjj - float(sWj @ dl)
+                # Ratio test on the shrinking inequality multipliers (k ≤ n: scalar Python).
+                t1, i_l = math.inf, -1
+                for i, (lam_i, dl_i) in enumerate(zip(lw[p:].tolist(), dl[p:].tolist()), p):
+                    if dl_i > 0 and lam_i / dl_i < t1:
+                        t1, i_l = lam_i / dl_i, i
+                t1 = max(t1, 0.0)
+            else:
+                curv, t1, i_l = Sjj, math.inf, -1
+            t2 = vj / curv if curv > 1e-12 * Sjj else math.inf
+            if t1 == math.inf and t2 == math.inf:  # row j in the span of the working rows: infeasible
+                return None
+            t = min(t1, t2)
+            if k:
+                lw -= t * dl
+            lam_j += t
+            if t2 <= t1:  # row j is tight: it joins (it sits at buf[k] already)
+                W[j] = True
+                lw = np.append(lw, lam_j)
+                k += 1
                 break
+            # Drop the working row at position i_l: the last working row takes its place, and
+            # j (on trial at buf[k]) moves down with it.
+            W[buf[i_l]] = False
+            last = k - 1
+            buf[i_l], buf[last] = buf[last], j
+            lw[i_l] = lw[last]
+            lw = lw[:last]
+            k = last
+            vj -= t * curv
             steps += 1
             if steps > max_steps:
                 return None
-            # Optimistic full step: the G-I path ends at the KKT point of W + j exactly when no
-            # multiplier crosses zero on the way, i.e. when its multipliers are ≥ 0.
-            W[j] = True
-            rows_j = np.flatnonzero(W)
-            lw = solve(rows_j, v0[rows_j])
-            solves += 1
-            if lw is not None and (lw[p:] >= 0).all():
-                rows = rows_j
-                lam[:] = 0.0
-                lam[rows] = lw
-                exact = True
-                v = v0 - S[:, rows] @ lw
-                continue
-            W[j] = False
-            exact = False
-            # G-I steps for row j: raise λ_j, keeping the working rows tight (dλ_W = −S_WW⁻¹ S_Wj
-            # per unit); a working inequality whose multiplier reaches zero first is dropped.
-            Sjj = float(S[j, j])
-            while True:
-                if rows.size:
-                    sWj = S[rows, j]
-                    dl = solve(rows, sWj)
-                    solves += 1
-                    if dl is None:
-                        return None
-                    curv = Sjj - float(sWj @ dl)
-                else:
-                    dl, curv = lam[:0], Sjj
-                t1, l = np.inf, -1
-                shrinking = np.flatnonzero(dl[p:] > 0) + p
-                if shrinking.size:
-                    ratios = lam[rows[shrinking]] / dl[shrinking]
-                    k = int(np.argmin(ratios))
-                    t1, l = max(float(ratios[k]), 0.0), int(rows[shrinking[k]])
-                t2 = vj / curv if curv > 1e-12 * Sjj else np.inf
-                if t1 == np.inf and t2 == np.inf:  # row j in the span of the working rows: infeasible
-                    return None
-                t = min(t1, t2)
-                if rows.size:
-                    lam[rows] -= t * dl
-                lam[j] += t
-                if t2 <= t1:  # row j is tight: it joins
-                    W[j] = True
-                    rows = np.flatnonzero(W)
-                    break
-                W[l] = False
-                lam[l] = 0.0
-                rows = np.flatnonzero(W)
-                vj -= t * curv
-                steps += 1
-                if steps > max_steps:
-                    return None
-            v = v0 - S[:, rows] @ lam[rows]
+        v = v0 - lw @ S.take(buf[:k], 0)
+    rows = buf[:k]
     if not exact:  # exact multipliers of the final working set (drops the incremental rounding)
-        lw = solve(rows, v0[rows])
+        lw = solve(rows, v0.take(rows))
         solves += 1
         if lw is None:
             return None
-        lam[:] = 0.0
-        lam[rows] = lw
     # x from the multipliers, then the certificate on the original KKT system: residual of the
     # working set, every row feasible, multipliers ≥ 0.
-    if rows.size:
-        lw = lam[rows]
-        g = lam @ C  # = C_Wᵀ λ_W (λ is zero off the working set)
-        x = x0 - Li.T @ (Li @ g)
+    lam = np.zeros(r)
+    if k:
+        lam[rows] = lw
+        g = lw @ C.take(rows, 0)  # C_Wᵀ λ_W
+        x = x0 - (Li @ g) @ Li
         e_d = P @ x + q + g
         vfin = C @ x - d
-        e_p = vfin[rows]
-        res = float(np.sqrt(e_d @ e_d + e_p @ e_p))
-        if not res <= tol_r or float(lw[p:].min(initial=0.0)) < -tol_d:
+        e_p = vfin.take(rows)
+        if not math.sqrt(e_d @ e_d + e_p @ e_p) <= tol_r or (k > p and lw[p + lw[p:].argmin()] < -tol_d):
             return None
     else:  # x₀ itself (v0 holds its row values)
         x, vfin = x0, v0
         e_d = P @ x + q
-        if not float(np.sqrt(e_d @ e_d)) <= tol_r:
+        if not math.sqrt(e_d @ e_d) <= tol_r:
             return None
-    if r > p and float(vfin[p:].max()) > tol_p:
+    if r > p and vfin[p + vfin[p:].argmax()] > tol_p:
         return None
-    return x, lam, solves
+    return x, lam, solves, (Li, M)
 
 
 def active_set_small(
@@ -393,9 +419,9 @@ def active_set_small(
         fast = None
         if z0 is None:
             C, dC = (np.concatenate([Ai, Gi]), np.concatenate([bi, hi])) if p else (Gi, hi)
-            fast = _range_space(Pi, qi, C, dC, p, None, tol_p, tol_d, tol_r, max_steps)
+            fast = _range_space(Pi, qi, C, dC, p, tol_p, tol_d, tol_r, max_steps)
         if fast is not None:
-            x_out[i], lam, iters[i] = fast
+            x_out[i], lam, iters[i], _ = fast
             y_out[i], z_out[i] = lam[:p], lam[p:]
             outcome[i] = CERTIFIED
             continue
