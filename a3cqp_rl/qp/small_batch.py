@@ -458,11 +458,12 @@ def adjoint_small(
     active = np.zeros((B, m), dtype=bool)
     for i in range(B):
         Gi = G[i]
-        act = z[i] > np.maximum(h[i] - Gi @ x[i], 0.0)
+        slack = h[i] - Gi @ x[i]
+        act = z[i] > np.maximum(slack, 0.0, out=slack)
         active[i] = act
-        rows = np.flatnonzero(act)
+        rows = act.nonzero()[0]
         # Only the working rows: [[P, Aᵀ, G_Wᵀ], [A, 0, 0], [G_W, 0, 0]].
-        C = np.concatenate([A[i], Gi[rows]]) if p else Gi[rows]
+        C = np.concatenate([A[i], Gi.take(rows, 0)]) if p else Gi.take(rows, 0)
         r = n + C.shape[0]
         K = np.zeros((r, r))
         K[:n, :n] = P[i]
@@ -472,9 +473,12 @@ def adjoint_small(
         rhs[:n] = gx[i]
         _, _, sol, info = lapack.dgesv(K, rhs)
         e = K @ sol - rhs
-        # Same acceptance test as the torch backward (2-norm of the residual: stricter).
-        tol_w = 1e-12 * (1.0 + float(np.abs(gx[i]).max()))
-        if info != 0 or not float(np.sqrt(e @ e)) <= tol_w * (1.0 + (float(np.abs(sol[n:]).max()) if r > n else 0.0)):
+        # Same acceptance test as the torch backward (2-norm of the residual: stricter); max |·|
+        # by argmax + index (a numpy max reduction costs ~5x more at this size).
+        ag = np.abs(gx[i])
+        tol_w = 1e-12 * (1.0 + float(ag[ag.argmax()]))
+        anu = np.abs(sol[n:])
+        if info != 0 or not math.sqrt(e @ e) <= tol_w * (1.0 + (float(anu[anu.argmax()]) if r > n else 0.0)):
             return None
         wx[i], wy[i] = sol[:n], sol[n : n + p]
         wz[i, rows] = sol[n + p :]

@@ -259,7 +259,10 @@ def _solve_small(
     P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
     tol: float, max_iter: int, active_set_iter: int | None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, tuple[np.ndarray, ...]]:
-    """Small-batch route: numpy active set per instance, the batched torch path for what it leaves."""
+    """Small-batch route: numpy active set per instance, the batched torch path for what it leaves.
+
+    The returned cache is (P symmetrised, A, G, h) in float64 numpy, plus (x, y, z) when every
+    instance was certified here (all SOLVED)."""
     B = q.shape[0]
     Pn = _np64(P)
     Ps, An, Gn, hn = 0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(A), _np64(G), _np64(h)
@@ -271,8 +274,9 @@ def _solve_small(
     x, y, z = (_from_np(v, q.dtype) for v in (xn, yn, zn))
     iters = torch.from_numpy(itn)
     status = torch.from_numpy(np.zeros(B, dtype=np.int64))  # QPStatus.SOLVED; from numpy: ~3x cheaper
-    if not outcome.any():  # every instance CERTIFIED (= 0)
-        return x, y, z, status, iters, cache
+    if not outcome[outcome.argmax()]:  # every instance CERTIFIED (= 0); argmax + index ~5x cheaper than any()
+        # All solved by numpy: the backward can use these float64 results as they are.
+        return x, y, z, status, iters, (*cache, xn, yn, zn)
     # Singular working-set systems get the torch active set (its augmented Lagrangian copes with
     # dependent rows); instances that used up the iterations go straight to the interior point.
     for code, as_iter in ((SINGULAR, active_set_iter), (EXHAUSTED, 0)):
@@ -341,16 +345,20 @@ def _backward_small(
 ) -> tuple[Tensor | None, ...] | None:
     """Gradients (P, q, A, b, G, h) by the numpy adjoint (small CPU batches); None if a system is singular.
 
-    `cache`: the forward's float64 numpy (P symmetrised, A, G, h), saving their conversions."""
+    `cache`: the forward's float64 numpy (P symmetrised, A, G, h[, x, y, z]), saving their conversions."""
     if cache is None:
         Pn = _np64(P)
         cache = (0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(A), _np64(G), _np64(h))
-    xn, yn, zn = _np64(x), _np64(y), _np64(z)
-    # Gradients only flow through x of solved instances (as in the torch backward).
-    gxn, st = _np64(gx), status.numpy()
-    if st.any():  # some instance not SOLVED (= 0; an IntEnum operand would take numpy's object path)
-        gxn = gxn * (st == 0)[:, None]
-    adj = adjoint_small(*cache, xn, zn, gxn)
+    gxn = _np64(gx)
+    if len(cache) == 7:  # every instance SOLVED in numpy: its float64 results
+        Ps, An, Gn, hn, xn, yn, zn = cache
+    else:
+        (Ps, An, Gn, hn), (xn, yn, zn) = cache[:4], (_np64(x), _np64(y), _np64(z))
+        # Gradients only flow through x of solved instances (as in the torch backward).
+        st = status.numpy()
+        if st.any():  # some instance not SOLVED (= 0; an IntEnum operand would take numpy's object path)
+            gxn = gxn * (st == 0)[:, None]
+    adj = adjoint_small(Ps, An, Gn, hn, xn, zn, gxn)
     if adj is None:
         return None
     wx, wy, wz, active = adj
@@ -363,12 +371,17 @@ def _backward_small(
     gP = gA = gG = None
     if need[0]:
         xw = xn[:, :, None] * wx[:, None, :]
-        gP = out(-0.5 * (xw + xw.transpose(0, 2, 1)))
+        xw += xw.transpose(0, 2, 1)
+        xw *= -0.5
+        gP = out(xw)
     if need[2]:
         gA = out(-(yn[:, :, None] * wx[:, None, :] + wy[:, :, None] * xn[:, None, :]))
     if need[4]:
-        gG = out(-((zn * active)[:, :, None] * wx[:, None, :] + wz[:, :, None] * xn[:, None, :]))
-    return gP, out(-wx), gA, out(wy), gG, out(wz)
+        gGn = (zn * active)[:, :, None] * wx[:, None, :]
+        gGn += wz[:, :, None] * xn[:, None, :]
+        gG = out(np.negative(gGn, out=gGn))
+    wx = np.negative(wx, out=wx)
+    return gP, out(wx), gA, out(wy), gG, out(wz)
 
 
 class _QPFunction(torch.autograd.Function):
@@ -376,6 +389,9 @@ class _QPFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter):  # type: ignore[override]
+        # Gradients of y, z, status, iterations are never used: without materialisation autograd
+        # passes None for them instead of allocating zeros (~10 µs at B = 1).
+        ctx.set_materialize_grads(False)
         x, y, z, status, iters, ctx.np_cache = _solve_canonical(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
         ctx.save_for_backward(P, A, G, h, x, y, z, status)
         ctx.mark_non_differentiable(status, iters)
