@@ -191,8 +191,8 @@ def _dual_active_set(
 def _range_space(
     P: np.ndarray, q: np.ndarray, C: np.ndarray, d: np.ndarray, p: int,
     tol_p: float, tol_d: float, tol_r: float, max_steps: int,
-) -> tuple[np.ndarray, np.ndarray, int, tuple[np.ndarray, np.ndarray] | None] | None:
-    """Cold Goldfarb-Idnani in the range space of P ≻ 0 (the fast path); returns (x, multipliers of all rows, solves, factors) or None.
+) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """Cold Goldfarb-Idnani in the range space of P ≻ 0 (the fast path); returns (x, multipliers of all rows, solves) or None.
 
     Rows C x ≤ d (the first p of them equalities, always working).  With P = L Lᵀ factored once,
     x₀ = −P⁻¹q and S = C P⁻¹ Cᵀ = (L⁻¹Cᵀ)ᵀ(L⁻¹Cᵀ) (one triangular solve, one product), the KKT
@@ -202,7 +202,6 @@ def _range_space(
     The answer is certified on the original KKT system (residual, feasibility, multipliers ≥ 0);
     None (not P ≻ 0, dependent working rows, infeasible, step budget, or no certificate) hands
     the instance to the LU-based `_dual_active_set`, which decides its outcome as before.
-    `factors` (L⁻¹ and L⁻¹Cᵀ, None when S was not needed) let `adjoint_small` reuse them.
 
     Per call this costs ~1-3 µs of numpy overhead whatever the size, so the bookkeeping is
     arranged for few calls: the working set is an unordered index buffer with its multipliers
@@ -223,12 +222,12 @@ def _range_space(
     x0 = (Li @ -q) @ Li  # −L⁻ᵀL⁻¹q
     if r == 0:
         e_d = P @ x0 + q
-        return (x0, np.zeros(0), 1, None) if math.sqrt(e_d @ e_d) <= tol_r else None
+        return (x0, np.zeros(0), 1) if math.sqrt(e_d @ e_d) <= tol_r else None
     v0 = C @ x0 - d
     if p == 0 and not v0[v0.argmax()] > tol_p:
         # The unconstrained minimiser is feasible (the easy cold case): certify it, skip S.
         e_d = P @ x0 + q
-        return (x0, np.zeros(r), 1, None) if math.sqrt(e_d @ e_d) <= tol_r else None
+        return (x0, np.zeros(r), 1) if math.sqrt(e_d @ e_d) <= tol_r else None
     M = Li @ C.T
     S = M.T @ M
 
@@ -386,7 +385,46 @@ def _range_space(
             return None
     if r > p and vfin[p + vfin[p:].argmax()] > tol_p:
         return None
-    return x, lam, solves, (Li, M)
+    return x, lam, solves
+
+
+def _warm_one_solve(
+    P: np.ndarray, q: np.ndarray, A: np.ndarray, b: np.ndarray, G: np.ndarray, h: np.ndarray, rows: np.ndarray,
+    tol_p: float, tol_r: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The control loop's case: the warm working set `rows` is still the optimal one; returns (x, y, z) or None.
+
+    Exactly the first solve and the certificate of `_dual_active_set` (KKT system of the working
+    rows, residual ≤ tol, multipliers > 0, every row feasible), but with the KKT matrix built for
+    these rows only: the full matrix and its gather are only worth building when more solves follow.
+    None: `_dual_active_set` takes the instance from the start.
+    """
+    n, p = q.shape[0], A.shape[0]
+    GW = G.take(rows, 0)
+    C = np.concatenate([A, GW]) if p else GW
+    r = n + C.shape[0]
+    K = np.zeros((r, r))
+    K[:n, :n] = P
+    K[:n, n:] = C.T
+    K[n:, :n] = C
+    rhs = np.concatenate([-q, b, h.take(rows)] if p else [-q, h.take(rows)])
+    _, _, sol, info = lapack.dgesv(K, rhs)
+    if info != 0:
+        return None
+    e = K @ sol - rhs
+    if not math.sqrt(e @ e) <= tol_r:
+        return None
+    zW = sol[n + p :]
+    if rows.size and not zW[zW.argmin()] > 0:
+        return None
+    x = sol[:n]
+    if G.shape[0]:
+        v = G @ x - h
+        if v[v.argmax()] > tol_p:
+            return None
+    z = np.zeros(G.shape[0])
+    z[rows] = zW
+    return x, sol[n : n + p], z
 
 
 def active_set_small(
@@ -421,10 +459,18 @@ def active_set_small(
             C, dC = (np.concatenate([Ai, Gi]), np.concatenate([bi, hi])) if p else (Gi, hi)
             fast = _range_space(Pi, qi, C, dC, p, tol_p, tol_d, tol_r, max_steps)
         if fast is not None:
-            x_out[i], lam, iters[i], _ = fast
+            x_out[i], lam, iters[i] = fast
             y_out[i], z_out[i] = lam[:p], lam[p:]
             outcome[i] = CERTIFIED
             continue
+        extra = 0
+        if z0 is not None:
+            sol = _warm_one_solve(Pi, qi, Ai, bi, Gi, hi, (z0[i] > 0).nonzero()[0], tol_p, tol_r)
+            if sol is not None:
+                x_out[i], y_out[i], z_out[i] = sol
+                outcome[i], iters[i] = CERTIFIED, 1
+                continue
+            extra = 1
         # Full KKT matrix [[P, Aᵀ, Gᵀ], [A, 0, 0], [G, 0, 0]] once per instance; each solve
         # gathers the working rows/columns from it (one fancy index instead of four block copies).
         Kfull = np.zeros((r, r))
@@ -436,6 +482,7 @@ def active_set_small(
         rhs_full = np.concatenate([-qi, bi, hi])
         W0 = z0[i] > 0 if z0 is not None else no_warm
         sol, rows, outcome[i], iters[i] = _dual_active_set(Kfull, rhs_full, n, p, Gi, hi, W0, tol_p, tol_d, tol_r, max_steps)
+        iters[i] += extra
         if outcome[i] == CERTIFIED:
             x_out[i], y_out[i] = sol[:n], sol[n : n + p]
             z_out[i, rows] = sol[n + p :]
