@@ -7,7 +7,7 @@ import torch
 
 import a3cqp_rl.qp.solver as solver
 from a3cqp_rl.qp import QPStatus, solve_qp
-from a3cqp_rl.qp.random_qp import clarabel_reference, random_qp_batch
+from a3cqp_rl.qp.random_qp import RandomQP, clarabel_reference, random_qp_batch
 
 DT = torch.float64
 
@@ -147,3 +147,61 @@ def test_cold_solves_with_definite_p_stay_on_the_range_space_path(family: int, m
     assert bool(sol.solved.all()) and (sol.x - x_ref).abs().max().item() <= 1e-6
     sol32 = solve_qp(*(t.float() if t is not None else None for t in qp.args()))
     assert bool(sol32.solved.all()) and (sol32.x.double() - x_ref).abs().max().item() <= 1e-4
+
+
+@pytest.mark.parametrize("spread", [0.015, 0.35])
+def test_single_controller_qp_cold_and_warm_take_the_fast_paths_and_match_clarabel(spread: float, monkeypatch) -> None:
+    # B = 1 as the controller solves it: cold on the range-space path, warm certified by the
+    # one-solve check on the previous working set; neither falls back to the LU method.
+    import a3cqp_rl.qp.small_batch as small
+
+    qp = random_qp_batch(1, spread=spread, seed=1001)  # the instance bench/qp.py times at B = 1
+    x_ref, _ = clarabel_reference(qp)
+
+    def fail(*args, **kwargs):
+        raise AssertionError("fell back to the LU method")
+
+    monkeypatch.setattr(small, "_dual_active_set", fail)
+    cold = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h)
+    assert bool(cold.solved.all()) and (cold.x - x_ref).abs().max().item() <= 1e-9
+    warm = solve_qp(qp.P, qp.q + 1e-6, G=qp.G, h=qp.h, warm_start=cold)
+    assert bool(warm.solved.all()) and warm.iterations.tolist() == [1]
+    x_ref2, _ = clarabel_reference(RandomQP(qp.P, qp.q + 1e-6, None, None, qp.G, qp.h, None, None, qp.x_feasible))
+    assert (warm.x - x_ref2).abs().max().item() <= 1e-9
+    # Same answer and multipliers as the batched path; gradients too.
+    monkeypatch.undo()
+    ref_limits = (solver.SMALL_BATCH_MAX, solver.SMALL_BATCH_MAX_WARM)
+    monkeypatch.setattr(solver, "SMALL_BATCH_MAX", -1)
+    monkeypatch.setattr(solver, "SMALL_BATCH_MAX_WARM", -1)
+    ref = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h)
+    assert (cold.x - ref.x).abs().max() < 1e-9 and (cold.z - ref.z).abs().max() < 1e-8
+    w = torch.linspace(-1.0, 1.0, qp.q.shape[1], dtype=DT)
+
+    def grads():
+        leaves = [t.clone().requires_grad_() for t in (qp.P, qp.q, qp.G, qp.h)]
+        (solve_qp(leaves[0], leaves[1], G=leaves[2], h=leaves[3]).x * w).sum().backward()
+        return [t.grad for t in leaves]
+
+    g_ref = grads()
+    monkeypatch.setattr(solver, "SMALL_BATCH_MAX", ref_limits[0])
+    monkeypatch.setattr(solver, "SMALL_BATCH_MAX_WARM", ref_limits[1])
+    for a, b in zip(grads(), g_ref):
+        assert (a - b).abs().max() < 1e-8
+
+
+def test_warm_start_whose_working_set_changed_falls_back_and_counts_the_failed_check() -> None:
+    qp = random_qp_batch(1, spread=0.35, seed=1001)
+    cold = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h)
+    q2 = qp.q + 0.3 * torch.randn(qp.q.shape, generator=torch.Generator().manual_seed(1), dtype=DT)
+    warm = solve_qp(qp.P, q2, G=qp.G, h=qp.h, warm_start=cold)
+    ref = solve_qp(qp.P, q2, G=qp.G, h=qp.h)
+    assert bool(warm.solved.all()) and (warm.x - ref.x).abs().max() < 1e-9 and warm.iterations.item() >= 2
+
+
+def test_infinite_right_hand_sides_on_the_small_path_become_inert_rows() -> None:
+    qp = random_qp_batch(1, spread=0.35, seed=5)
+    h = qp.h.clone()
+    h[0, :10] = torch.inf
+    sol = solve_qp(qp.P, qp.q, G=qp.G, h=h)
+    sub = solve_qp(qp.P, qp.q, G=qp.G[:, 10:], h=qp.h[:, 10:])
+    assert bool(sol.solved.all()) and (sol.x - sub.x).abs().max() < 1e-10 and (sol.z[:, :10] == 0).all()
