@@ -57,9 +57,10 @@ size (CPU only; a CUDA batch always takes the batched path):
   B = 16: 109 / 88; cold forward B = 16: 187 / 251, B = 32: 171 / 195, B = 64: 158 / 89 (spread
   0.35, where the batched path needs its IPM: numpy wins up to B ≈ 64); backward alone B = 16:
   76 / 123.  At B = 1: warm 407 / 736, cold 712 / 1318, cold heavily constrained 1209 / 3639.
-  (Those numbers predate the range-space cold start of `small_batch.py`; with it, B = 1 against
-  proxsuite.torch in the same run: default instances cold 1.00-1.04×, warm 1.2-1.7×; heavily
-  constrained cold 0.76-0.87×, warm 1.5-2.1×.)
+  (Those numbers predate the range-space cold start of `small_batch.py`; with it and the leaner
+  wrapper, B = 1 against proxsuite.torch, medians of 3 `bench/qp.py` runs: default instances
+  cold 1.24× forward / 1.16× forward+backward, warm 2.24× / 1.45×; heavily constrained (spread
+  0.35) cold 0.97× / 1.00×, warm 2.80× / 1.66×.)
 
 Code: `kkt.py` (the three working-set solves), `active_set.py` (stage 1), `interior_point.py`
 (stage 2), `small_batch.py` (the small-batch route), this file (assembly, polish, autograd,
