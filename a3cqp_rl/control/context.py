@@ -1,9 +1,14 @@
-"""Per-step quantities shared by the tasks and limits of the A3CQP QP (built once per control step)."""
+"""Per-step quantities shared by the tasks and limits of the A3CQP QP (built once per control step).
+
+The arrays are torch tensors, or numpy arrays on the controller's CPU path (see arrays.py); the field docs say
+"tensor" for either.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 
 from a3cqp_rl.robot.kinematics import Kinematics
@@ -81,3 +86,8 @@ class ControlContext:
     def batch(self) -> int:
         """Batch size B."""
         return self.q.shape[0]
+
+    @property
+    def xp(self):  # noqa: ANN201
+        """The array module of this context's arrays: numpy or torch."""
+        return np if isinstance(self.q, np.ndarray) else torch

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import operator
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -12,6 +13,7 @@ import numpy as np
 import torch
 
 from a3cqp_rl.config import ControllerConfig
+from a3cqp_rl.control.arrays import Array, cat, const, inv, mm, mv, solve_spd, zeros
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import ControlShapeError, InvalidGainError
 from a3cqp_rl.control.frames import block_rotation, pose_error, weights_to_world
@@ -155,10 +157,10 @@ def _finish(xp, tau, qdd, f, qdd_pd, q_des, qd_des, q, qd, weights, tau_max, lea
     return tau, qdd, f, qdd_pd, q_des, qd_des, saturated
 
 
-def _mv(M: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    """M v for a batch: M [B, m, k], v [B, k] -> [B, m]."""
-    # torch.bmm, not @: on [B, m, k] tensors matmul's broadcasting logic costs ~6 µs per call, more than the product
-    return torch.bmm(M, v.unsqueeze(-1)).squeeze(-1)
+def _kin_numpy(kin: Kinematics) -> Kinematics:
+    """The same kinematics as numpy views (the controller's CPU path)."""
+    return Kinematics(pos=_np(kin.pos), rot=_np(kin.rot), jac=_np(kin.jac), jdot_qdot=_np(kin.jdot_qdot),
+                      twist=_np(kin.twist))
 
 
 class A3CQPController:
@@ -215,10 +217,12 @@ class A3CQPController:
         self.q_des: torch.Tensor | None = None  # q*, eq. 7 [N, 7]
         self.qd_des: torch.Tensor | None = None  # q̇*, eq. 6 [N, 7]
         self._warm: QPSolution | None = None
-        self._const_key: tuple | None = None
-        self._const: dict[str, torch.Tensor] = {}
+        self._const: dict[tuple, dict[str, Array]] = {}
+        # numpy steps need every task and limit to accept numpy contexts (a user's torch-only one keeps torch)
+        self._numpy_ok = all(getattr(p, "numpy_capable", False) for p in [*self.tasks, *self.limits])
         self.residuals: dict[str, Residual] = {}
-        """Task residuals of the last step, by task name (their b are the references f_adm, f_ctc, ...)."""
+        """Task residuals of the last step, by task name (their b are the references f_adm, f_ctc, ...); numpy arrays
+        when the step ran on the CPU path (see arrays.py)."""
         self.fallback_count = 0
         """Number of (robot, step) pairs that used the fallback since construction."""
 
@@ -239,57 +243,62 @@ class A3CQPController:
             raise ControlShapeError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
         return t if t.dtype == torch.float64 else t.to(dtype=torch.float64)
 
-    def build_context(self, q: torch.Tensor, qd: torch.Tensor, mass: torch.Tensor, weights: torch.Tensor,
-                      f_d: torch.Tensor, pos_d: torch.Tensor, rot_d: torch.Tensor, f_ext: torch.Tensor,
-                      in_contact: torch.Tensor, bias: torch.Tensor | None = None,
+    def build_context(self, q: Array, qd: Array, mass: Array, weights: Array, f_d: Array, pos_d: Array,
+                      rot_d: Array, f_ext: Array, in_contact: Array, bias: Array | None = None,
                       kin: Kinematics | None = None) -> ControlContext:
-        """All per-step matrices the tasks and limits need (one kinematics pass, one Cholesky of B).
+        """All per-step matrices the tasks and limits need (one kinematics pass, one factorisation of B).
 
+        Takes torch tensors, or numpy arrays (the CPU path of `step`); the context holds the same kind.
         `kin`: the control site's kinematics when the caller already has them (e.g. PandaSim's `SimState.kin`,
         from MuJoCo's own step); default one pass of `self.model.kinematics(q, qd)`.
         """
         opt, cfg, dt = self.options, self.config, self.dt
         if kin is None:
-            kin = self.model.kinematics(q, qd)
+            if isinstance(q, np.ndarray):
+                kin = _kin_numpy(self.model.kinematics(torch.from_numpy(q), torch.from_numpy(qd)))
+            else:
+                kin = self.model.kinematics(q, qd)
         c = self._constants(q)
         J = kin.jac
-        Jt = J.transpose(-1, -2)
-        L, _ = torch.linalg.cholesky_ex(mass)
-        binv_jt = torch.cholesky_solve(Jt, L)  # B⁻¹Jᵀ (B, 7, 6)
-        lam_inv = torch.baddbmm(c["pinv_damping"], J, binv_jt)  # J B⁻¹ Jᵀ + λ² I
-        lam = torch.linalg.inv_ex(lam_inv)[0]  # Λ, eq. 12 (inv_ex: no per-call error check)
-        lam = 0.5 * (lam + lam.transpose(-1, -2))
+        Jt = J.mT
+        binv_jt = solve_spd(mass, Jt)  # B⁻¹Jᵀ (B, 7, 6)
+        lam_inv = mm(J, binv_jt) + c["pinv_damping"]  # J B⁻¹ Jᵀ + λ² I
+        lam = inv(lam_inv)  # Λ, eq. 12
+        lam = 0.5 * (lam + lam.mT)
         D = block_rotation(kin.rot)  # eq. 3
         # eq. 8 for the three weights at once: W_i = D diag(w_i) Dᵀ, (B, 3, 6, 6)
-        W1, W2, W3 = weights_to_world(D.unsqueeze(1), weights.transpose(1, 2)).unbind(1)
-        jpinv = torch.bmm(Jt, torch.linalg.inv_ex(torch.baddbmm(c["nullspace_damping"], J, Jt))[0])  # J⁺ (B, 7, 6)
-        W1J = torch.bmm(W1, J)
-        pd = torch.bmm(jpinv if opt.pd_projection == "pinv" else Jt, W1J)  # Jᵀ W1 J (eq. 5) or J⁺ W1 J
+        W = weights_to_world(D[:, None], weights.mT)
+        W1 = W[:, 0]
+        jpinv = mm(Jt, inv(mm(J, Jt) + c["nullspace_damping"]))  # J⁺ (B, 7, 6)
+        W1J = mm(W1, J)
+        pd = mm(jpinv if opt.pd_projection == "pinv" else Jt, W1J)  # Jᵀ W1 J (eq. 5) or J⁺ W1 J
         # q̈_pd with q̈* = 0 (eq. 5-7): q* − q = q*_prev + Δt q̇*_prev − q, q̇* − q̇ = q̇*_prev − q̇
-        err = torch.add(cfg.cv * (self.qd_des - qd), self.q_des + dt * self.qd_des - q, alpha=cfg.cp)
+        q_des, qd_des = const(self.q_des, q), const(self.qd_des, q)
+        err = cfg.cv * (qd_des - qd) + cfg.cp * (q_des + dt * qd_des - q)
         pd_qdd_gain = (cfg.cv * dt + cfg.cp * dt * dt / 2) * pd
         return ControlContext(
             q=q, qd=qd, kin=kin, mass=mass, mass_inv_jt=binv_jt, cart_inertia=lam, cart_inertia_inv=lam_inv,
-            D=D, weights_local=weights, W1=W1, W2=W2, W3=W3,
+            D=D, weights_local=weights, W1=W1, W2=W[:, 1], W3=W[:, 2],
             pose_error=pose_error(pos_d, rot_d, kin.pos, kin.rot), f_ext=f_ext,
-            f_d_local=f_d.clamp(0.0, self.f_d_max), in_contact=in_contact,
-            qdd_pd0=_mv(pd, err), pd_qdd_gain=pd_qdd_gain, nullspace=c["eye7"] - torch.bmm(jpinv, J),
-            pd_matrix=pd, dt=dt, bias=bias, qdd_map=c["eye7"] + pd_qdd_gain, jt_w1_j=torch.bmm(Jt, W1J))
+            f_d_local=f_d.clip(0.0, self.f_d_max), in_contact=in_contact,
+            qdd_pd0=mv(pd, err), pd_qdd_gain=pd_qdd_gain, nullspace=c["eye7"] - mm(jpinv, J),
+            pd_matrix=pd, dt=dt, bias=bias, qdd_map=c["eye7"] + pd_qdd_gain, jt_w1_j=mm(Jt, W1J))
 
-    def _constants(self, like: torch.Tensor) -> dict[str, torch.Tensor]:
-        """Per-step constants (identities, damping terms), made once per dtype/device: read-only."""
-        key = (like.dtype, like.device)
-        if self._const_key != key:
-            opt = self.options
-            eye6 = torch.eye(6, dtype=like.dtype, device=like.device)
-            self._const = {"eye7": torch.eye(N_QDD, dtype=like.dtype, device=like.device),
-                           "pinv_damping": opt.pinv_damping * eye6, "nullspace_damping": opt.nullspace_damping * eye6,
-                           "P0": opt.regularization * torch.eye(N_VARS, dtype=like.dtype, device=like.device),
-                           "tau_max": self.tau_max.to(like)}
-            self._const_key = key
-        return self._const
+    def _constants(self, like: Array) -> dict[str, Array]:
+        """Per-step constants (identities, damping terms, zero blocks), made once per array kind: read-only."""
+        key = ("numpy",) if isinstance(like, np.ndarray) else (like.dtype, like.device)
+        if key not in self._const:
+            opt, f64 = self.options, torch.float64
+            eye6 = torch.eye(6, dtype=f64)
+            made = {"eye7": torch.eye(N_QDD, dtype=f64), "pinv_damping": opt.pinv_damping * eye6,
+                    "nullspace_damping": opt.nullspace_damping * eye6,
+                    "P0": opt.regularization * torch.eye(N_VARS, dtype=f64), "tau_max": self.tau_max.to(f64),
+                    "zeros_qf": torch.zeros(self.n, N_QDD, N_VARS - N_QDD, dtype=f64),
+                    "zeros_fq": torch.zeros(self.n, N_VARS - N_QDD, N_QDD, dtype=f64)}
+            self._const[key] = {k: const(v, like) for k, v in made.items()}
+        return self._const[key]
 
-    def wrench_feedforward(self, ctx: ControlContext, residuals: dict[str, Residual] | None = None) -> torch.Tensor:
+    def wrench_feedforward(self, ctx: ControlContext, residuals: dict[str, Residual] | None = None) -> Array:
         """Unconstrained optimum of the wrench sub-problem (eq. 24b): (W2 + W3 + r I)⁻¹(W2 f_adm + W3 f_ctc) [B, 6].
 
         With W_i = D diag(w_i) Dᵀ (eq. 8) the inverse is D diag(1 / (w2 + w3 + r)) Dᵀ, computed per local axis.
@@ -299,16 +308,16 @@ class A3CQPController:
         refs = [(res.b, k) for task_type, k in ((Admittance, 1), (ForceControl, 2)) for t in self.tasks
                 if isinstance(t, task_type) and (res := residuals.get(t.name)) is not None]
         if not refs:
-            return ctx.q.new_zeros(ctx.batch, 6)
+            return zeros((ctx.batch, 6), ctx.q)
         # local frame: f^𝓛 = Dᵀ f, all references in one product
-        local = torch.bmm(torch.stack([b for b, _ in refs], dim=1), ctx.D).transpose(-1, -2)  # (B, 6, R)
+        local = mm(cat([b[:, None] for b, _ in refs], 1), ctx.D).mT  # (B, 6, R)
         cols = [k for _, k in refs]
         w = ctx.weights_local[..., 1:3] if cols == [1, 2] else ctx.weights_local[..., cols]  # (B, 6, R)
         num = (w * local).sum(-1)
         den = w.sum(-1) + self.options.regularization
-        return _mv(ctx.D, num / den)
+        return mv(ctx.D, num / den)
 
-    def build_qp(self, ctx: ControlContext) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def build_qp(self, ctx: ControlContext) -> tuple[Array, Array, Array, Array]:
         """Stack the task costs and limit rows: (P [B, 13, 13], c [B, 13], G [B, m, 13], h [B, m]) (eq. 1, 24).
 
         The wrench tasks are evaluated first so that IK can feed their wrench forward (ik_wrench_feedforward);
@@ -316,7 +325,7 @@ class A3CQPController:
         """
         residuals = {t.name: t.residual(ctx) for t in self.tasks if isinstance(t, (Admittance, ForceControl))}
         if self.options.ik_wrench_feedforward and residuals:
-            f_ff = self.wrench_feedforward(ctx, residuals) * (~ctx.in_contact).to(ctx.q.dtype).unsqueeze(-1)
+            f_ff = self.wrench_feedforward(ctx, residuals) * (~ctx.in_contact)[:, None]
             ctx = dataclasses.replace(ctx, wrench_feedforward=f_ff)
         for task in self.tasks:
             if task.name not in residuals:
@@ -327,43 +336,39 @@ class A3CQPController:
         for res in residuals.values():
             groups.setdefault((id(res.A), res.col), []).append(res)
         # blocks of P on the diagonal, summed per block (col, size); assembled once below
-        blocks: dict[tuple[int, int], list[torch.Tensor]] = {}
+        blocks: dict[tuple[int, int], list[Array]] = {}
         for members in groups.values():
             first = members[0]
-            W = functools.reduce(torch.add, [r.W for r in members])
-            Wb = functools.reduce(torch.add, [_mv(r.W, r.b) for r in members])
+            W = functools.reduce(operator.add, [r.W for r in members])
+            Wb = functools.reduce(operator.add, [mv(r.W, r.b) for r in members])
             if first.A is None:
                 H, g = W, -Wb
             else:
-                At = first.A.transpose(-1, -2)
-                H, g = torch.bmm(At, torch.bmm(W, first.A)), -_mv(At, Wb)
+                At = first.A.mT
+                H, g = mm(At, mm(W, first.A)), -mv(At, Wb)
             blk = blocks.setdefault((first.col, first.size), [H, g])
             if blk[0] is not H:
                 blk[0], blk[1] = blk[0] + H, blk[1] + g
         self.residuals = residuals
         P, c = self._assemble(ctx, blocks)
         rows: list[Inequality] = [lim.rows(ctx) for lim in self.limits]
-        G = torch.cat([r.G for r in rows], dim=1)
-        h = torch.cat([r.h for r in rows], dim=1)
-        return P, c, G, h
+        return P, c, cat([r.G for r in rows], 1), cat([r.h for r in rows], 1)
 
-    def _assemble(self, ctx: ControlContext, blocks: dict[tuple[int, int], list[torch.Tensor]]
-                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _assemble(self, ctx: ControlContext, blocks: dict[tuple[int, int], list[Array]]) -> tuple[Array, Array]:
         """P = r I + Σ blocks (symmetrised), c = Σ blocks, on x = (q̈, f)."""
         B, like = ctx.batch, ctx.q
-        P0 = self._constants(like)["P0"]
+        k = self._constants(like)
         qq, ff = blocks.get((0, N_QDD)), blocks.get((N_QDD, N_VARS - N_QDD))
-        if qq is not None and ff is not None and len(blocks) == 2:
-            # the usual case (the default tasks): block-diagonal, built with two cats instead of zeros + slice adds
-            H = torch.cat([torch.cat([qq[0], like.new_zeros(B, N_QDD, N_VARS - N_QDD)], dim=2),
-                           torch.cat([like.new_zeros(B, N_VARS - N_QDD, N_QDD), ff[0]], dim=2)], dim=1)
-            P, c = H + P0, torch.cat([qq[1], ff[1]], dim=1)
+        if qq is not None and ff is not None and len(blocks) == 2 and B == self.n:
+            # the usual case (the default tasks): block-diagonal, built with cats instead of zeros + slice adds
+            H = cat([cat([qq[0], k["zeros_qf"]], 2), cat([k["zeros_fq"], ff[0]], 2)], 1)
+            P, c = H + k["P0"], cat([qq[1], ff[1]], 1)
         else:
-            P, c = P0.repeat(B, 1, 1), like.new_zeros(B, N_VARS)
+            P, c = k["P0"] + zeros((B, N_VARS, N_VARS), like), zeros((B, N_VARS), like)
             for (col, size), (H, g) in blocks.items():
                 P[:, col:col + size, col:col + size] += H
                 c[:, col:col + size] += g
-        return 0.5 * (P + P.transpose(-1, -2)), c
+        return 0.5 * (P + P.mT), c
 
     # ------------------------------------------------------------------ step
     @torch.no_grad()
@@ -431,8 +436,19 @@ class A3CQPController:
             pos_d, rot_d = keep(pos_d, 0.0), keep(rot_d, eye7[:, :3, :3])
             kin = None  # recomputed from the stand-in q, q̇
 
+        # the CPU path: everything below on numpy views (same code; ~3x less overhead per op, see arrays.py)
+        use_np = on_cpu and self._numpy_ok
+        if use_np:
+            q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext = (_np(t) for t in (q, qd, mass, bias, weights, f_d,
+                                                                                     pos_d, rot_d, f_ext))
+            in_contact = _np(in_contact)
+            if kin is not None:
+                kin = _kin_numpy(kin)
+        xp = np if use_np else torch
         ctx = self.build_context(q, qd, mass, weights, f_d, pos_d, rot_d, f_ext, in_contact, bias, kin=kin)
         P, c, G, h = self.build_qp(ctx)
+        if use_np:
+            P, c, G, h = (torch.from_numpy(a) for a in (P, c, G, h))
         warm = self._warm if self._warm is not None and self._warm.z.shape == (n, G.shape[1]) else None
         try:
             sol = solve_qp(P, c, G=G, h=h, warm_start=warm, max_iter=self.options.qp_max_iter)
@@ -446,42 +462,44 @@ class A3CQPController:
             self._warm = None
         dt, cfg, opt = self.dt, self.config, self.options
         tau_max = self._constants(q)["tau_max"]
-        if on_cpu and x.device.type == "cpu":
-            ok_np = (_np(qp_status) == 0) & valid_np & np.isfinite(_np(x)).all(axis=1)
-            ok, all_ok = torch.from_numpy(ok_np), bool(ok_np.all())
+        if use_np:
+            x = _np(x)
+            ok = (_np(qp_status) == 0) & valid_np & np.isfinite(x).all(axis=1)
         else:
             ok = (qp_status == 0) & valid & torch.isfinite(x).all(-1)
-            all_ok = bool(ok.all())
-        if on_cpu and all_ok:  # the usual step: eq. 4-7 in numpy (same code, ~4x less overhead)
-            out = _torque_law(_np(x), _np(q), _np(qd), _np(mass), _np(bias), _np(ctx.kin.jac), _np(ctx.pd_matrix),
-                              _np(self.q_des), _np(self.qd_des), dt, cfg.cv, cfg.cp)
-            out = _finish(np, *out, _np(q), _np(qd), _np(weights), _np(tau_max), dt * opt.desired_state_leak)
-            tau, qdd, f, qdd_pd, q_des, qd_des, saturated = (torch.from_numpy(np.ascontiguousarray(a)) for a in out)
-        else:
-            tau, qdd, f, qdd_pd, q_des, qd_des = _torque_law(x, q, qd, mass, bias, ctx.kin.jac, ctx.pd_matrix,
-                                                             self.q_des, self.qd_des, dt, cfg.cv, cfg.cp)
-            # safe fallback for failed QPs / invalid inputs: brake within the viable bounds, zero wrench, hold gravity
-            if not all_ok:
-                # damped joint-space brake inside the viable bounds, which always respect the acceleration limits
-                # (Del Prete 2017; limits._acc_bounds), so that with gravity compensation it is torque-realisable
-                qdd_fb = self.joint_limits.safe_acceleration(ctx)
-                tau_fb = _mv(mass, qdd_fb) + bias
-                o1 = ok.view(n, 1)
-                tau = torch.where(o1, tau, tau_fb)
-                qdd, f = torch.where(o1, qdd, qdd_fb), torch.where(o1, f, 0.0)
-                qdd_pd = torch.where(o1, qdd_pd, 0.0)
-                q_des, qd_des = torch.where(o1, q_des, q), torch.where(o1, qd_des, qd)
-                bad = (~ok).nonzero().flatten().tolist()
-                self.fallback_count += len(bad)
-                logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s, valid input "
-                               "%s", bad, qp_status[~ok].tolist(), valid[~ok].tolist())
-                self._warm = None
-            tau, qdd, f, qdd_pd, q_des, qd_des, saturated = _finish(torch, tau, qdd, f, qdd_pd, q_des, qd_des, q, qd,
-                                                                   weights, tau_max, dt * opt.desired_state_leak)
+        all_ok = bool(ok.all())
+        q_des, qd_des = const(self.q_des, q), const(self.qd_des, q)
+        tau, qdd, f, qdd_pd, q_des, qd_des = _torque_law(x, q, qd, mass, bias, ctx.kin.jac, ctx.pd_matrix, q_des,
+                                                         qd_des, dt, cfg.cv, cfg.cp)
+        if not all_ok:
+            # safe fallback for failed QPs / invalid inputs: a damped joint-space brake inside the viable bounds,
+            # which always respect the acceleration limits (Del Prete 2017; limits._acc_bounds), so that with
+            # gravity compensation it is torque-realisable; zero wrench
+            qdd_fb = self.joint_limits.safe_acceleration(ctx)
+            tau_fb = mv(mass, qdd_fb) + bias
+            o1 = ok[:, None]
+            tau = xp.where(o1, tau, tau_fb)
+            qdd, f = xp.where(o1, qdd, qdd_fb), xp.where(o1, f, 0.0)
+            qdd_pd = xp.where(o1, qdd_pd, 0.0)
+            q_des, qd_des = xp.where(o1, q_des, q), xp.where(o1, qd_des, qd)
+            bad = [i for i in range(n) if not bool(ok[i])]
+            self.fallback_count += len(bad)
+            logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s, valid input "
+                           "%s", bad, qp_status[bad].tolist(), valid[bad].tolist())
+            self._warm = None
+        out = _finish(xp, tau, qdd, f, qdd_pd, q_des, qd_des, q, qd, weights, tau_max, dt * opt.desired_state_leak)
+        if use_np:
+            out = tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in out)
+        tau, qdd, f, qdd_pd, q_des, qd_des, saturated = out
         self.q_des, self.qd_des = q_des, qd_des
         status = qp_status if all_valid else torch.where(valid, qp_status, torch.full_like(qp_status, INVALID_INPUT))
-        f_adm = self.residuals["ac"].b if "ac" in self.residuals else torch.zeros_like(f)
-        f_ctc = self.residuals["fc"].b if "fc" in self.residuals else torch.zeros_like(f)
-        return ControlOutput(tau=tau, qdd=qdd, wrench=f, qdd_pd=qdd_pd, pose_error=ctx.pose_error, f_adm=f_adm,
+        f_adm = self.residuals["ac"].b if "ac" in self.residuals else None
+        f_ctc = self.residuals["fc"].b if "fc" in self.residuals else None
+        pose_err, ok = ctx.pose_error, torch.as_tensor(ok)
+        if use_np:
+            f_adm, f_ctc, pose_err = (None if a is None else torch.from_numpy(a) for a in (f_adm, f_ctc, pose_err))
+        f_adm = torch.zeros_like(f) if f_adm is None else f_adm
+        f_ctc = torch.zeros_like(f) if f_ctc is None else f_ctc
+        return ControlOutput(tau=tau, qdd=qdd, wrench=f, qdd_pd=qdd_pd, pose_error=pose_err, f_adm=f_adm,
                              f_ctc=f_ctc, status=status, fallback=~ok, saturated=saturated,
                              iterations=iterations)

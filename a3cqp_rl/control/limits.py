@@ -1,4 +1,7 @@
-"""QP limits of the A3CQP controller: each returns inequality rows G x ≤ h on x = (q̈, f) (section III-B)."""
+"""QP limits of the A3CQP controller: each returns inequality rows G x ≤ h on x = (q̈, f) (section III-B).
+
+Rows are numpy arrays or torch tensors, the kind of the context (see arrays.py).
+"""
 
 from __future__ import annotations
 
@@ -10,6 +13,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from a3cqp_rl.control.arrays import Array, cat, const, mm, mv
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import InvalidGainError
 
@@ -29,22 +33,29 @@ def _cached(key: tuple, make) -> torch.Tensor:  # noqa: ANN001
     return t
 
 
-def _eye(n: int, like: torch.Tensor) -> torch.Tensor:
-    return _cached(("eye", n, like.dtype, like.device), lambda: torch.eye(n, dtype=like.dtype, device=like.device))
+def _key(like: Array) -> tuple:
+    return ("numpy",) if isinstance(like, np.ndarray) else (like.dtype, like.device)
 
 
-def _zeros(b: int, m: int, k: int, like: torch.Tensor) -> torch.Tensor:
-    return _cached(("zeros", b, m, k, like.dtype, like.device),
-                   lambda: torch.zeros(b, m, k, dtype=like.dtype, device=like.device))
+def _eye(n: int, like: Array) -> Array:
+    return _cached(("eye", n, *_key(like)), lambda: const(torch.eye(n, dtype=torch.float64), like))
+
+
+def _zeros(b: int, m: int, k: int, like: Array) -> Array:
+    return _cached(("zeros", b, m, k, *_key(like)), lambda: const(torch.zeros(b, m, k, dtype=torch.float64), like))
+
+
+def _ones(b: int, m: int, like: Array) -> Array:
+    return _cached(("ones", b, m, *_key(like)), lambda: const(torch.ones(b, m, dtype=torch.float64), like))
 
 
 @dataclass(frozen=True)
 class Inequality:
     """Rows G x ≤ h for a batch."""
 
-    G: torch.Tensor
+    G: Array
     """[B, m, 13]."""
-    h: torch.Tensor
+    h: Array
     """[B, m]."""
 
 
@@ -52,6 +63,8 @@ class Limit(ABC):
     """A QP limit: inequality rows from the step's context."""
 
     name: str = "limit"
+    numpy_capable: bool = False
+    """True when `rows` also runs on a context of numpy arrays (see Task.numpy_capable)."""
 
     @abstractmethod
     def rows(self, ctx: ControlContext) -> Inequality:
@@ -175,6 +188,7 @@ class JointLimitsViability(Limit):
     """
 
     name = "joint_limits"
+    numpy_capable = True
 
     def __init__(self, q_min: torch.Tensor, q_max: torch.Tensor, dq_max: torch.Tensor, ddq_max: torch.Tensor,
                  dt: float, q_margin: float = 0.01, dq_margin: float = 0.02, horizon_steps: float = 2.0,
@@ -197,13 +211,15 @@ class JointLimitsViability(Limit):
         self.torque_share, self.min_stop_fraction = torque_share, min_stop_fraction
         self._np_limits = tuple(t.numpy() for t in (self.q_min, self.q_max, self.dq_max, self.ddq_max))
 
-    def bounds(self, q: torch.Tensor, qd: torch.Tensor, ddq_stop: torch.Tensor | None = None
-               ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Viable acceleration bounds (lb, ub) [B, 7] (rad/s²) at state (q, q̇).
+    def bounds(self, q: Array, qd: Array, ddq_stop: Array | None = None) -> tuple[Array, Array]:
+        """Viable acceleration bounds (lb, ub) [B, 7] (rad/s²) at state (q, q̇), arrays of q's kind.
 
         `ddq_stop` [B, 7]: the deceleration the viability bound may count on to stop before a position limit
         (default ddq_max); see `stopping_deceleration`.
         """
+        if isinstance(q, np.ndarray):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return _acc_bounds(q, qd, *self._np_limits, self.horizon, np, ddq_stop)
         if q.device.type == "cpu" and q.dtype == torch.float64 and not (q.requires_grad or qd.requires_grad):
             stop = None if ddq_stop is None else ddq_stop.numpy()
             return _numpy_bounds(q, qd.to(q.dtype), *self._np_limits, self.horizon, stop)  # the 1 kHz loop's path
@@ -214,7 +230,7 @@ class JointLimitsViability(Limit):
                               ddq_stop))
         return lb, ub
 
-    def stopping_deceleration(self, ctx: ControlContext) -> torch.Tensor | None:
+    def stopping_deceleration(self, ctx: ControlContext) -> Array | None:
         """Torque-consistent stopping deceleration [B, 7] for the viability bound (None: ddq_max, no torque model).
 
         Del Prete's viability assumes a joint can always brake at ddq_max; with gravity and the other joints'
@@ -225,13 +241,14 @@ class JointLimitsViability(Limit):
         """
         if ctx.bias is None or self.tau_max is None:
             return None
-        diag = torch.diagonal(ctx.mass, dim1=-2, dim2=-1)
-        room = (self.tau_max.to(ctx.q) - ctx.bias.abs()).clamp_min(0.0)
-        ddq_max = self.ddq_max.to(ctx.q)
-        return torch.minimum(self.torque_share * room / diag, ddq_max).clamp_min(0.0).maximum(
-            self.min_stop_fraction * ddq_max)
+        xp, n = ctx.xp, ctx.mass.shape[-1]
+        diag = ctx.mass.reshape(-1, n * n)[:, ::n + 1]  # B_ii (a strided view; diagonal() is spelled differently)
+        room = xp.clip(const(self.tau_max, ctx.q) - xp.abs(ctx.bias), min=0.0)
+        ddq_max = const(self.ddq_max, ctx.q)
+        # (the lower bound min_stop_fraction · ddq_max > 0 also clips negative values)
+        return xp.maximum(xp.minimum(self.torque_share * room / diag, ddq_max), self.min_stop_fraction * ddq_max)
 
-    def bounds_for(self, ctx: ControlContext) -> tuple[torch.Tensor, torch.Tensor]:
+    def bounds_for(self, ctx: ControlContext) -> tuple[Array, Array]:
         """`bounds(ctx.q, ctx.qd)`, computed once per context (shared with TorqueLimits and the fallback)."""
         key = ("viable_bounds", id(self))
         out = ctx.cache.get(key)
@@ -239,7 +256,7 @@ class JointLimitsViability(Limit):
             out = ctx.cache[key] = self.bounds(ctx.q, ctx.qd, self.stopping_deceleration(ctx))
         return out
 
-    def safe_acceleration(self, ctx: ControlContext) -> torch.Tensor:
+    def safe_acceleration(self, ctx: ControlContext) -> Array:
         """The damped brake q̈ = clamp(−k q̇, lb, ub) [B, 7] (rad/s²), k = `brake_gain`: inside the viable bounds, so
         inside the position, velocity and acceleration limits (Del Prete 2017). It is the controller's fallback
         acceleration and the point (q̈ total = this, f = 0) that TorqueLimits keeps feasible, so the QP always is."""
@@ -247,7 +264,7 @@ class JointLimitsViability(Limit):
         out = ctx.cache.get(key)
         if out is None:
             lb, ub = self.bounds_for(ctx)
-            out = ctx.cache[key] = torch.minimum(torch.maximum(-self.brake_gain * ctx.qd, lb), ub)
+            out = ctx.cache[key] = ctx.xp.minimum(ctx.xp.maximum(-self.brake_gain * ctx.qd, lb), ub)
         return out
 
     def rows(self, ctx: ControlContext) -> Inequality:
@@ -255,41 +272,41 @@ class JointLimitsViability(Limit):
         B = ctx.batch
         # motion part: q̈* + q̈_pd = (I + ∂q̈_pd/∂q̈*) q̈* + q̈_pd0 ∈ [lb, ub] (eq. 5-7 are linear in q̈*)
         gain = ctx.qdd_map if ctx.qdd_map is not None else _eye(N_QDD, ctx.q) + ctx.pd_qdd_gain
-        motion = torch.cat([gain, _zeros(B, N_QDD, N_VARS - N_QDD, ctx.q)], dim=2)
+        motion = cat([gain, _zeros(B, N_QDD, N_VARS - N_QDD, ctx.q)], 2)
         if self.target == "qdd":
-            return Inequality(G=torch.cat([motion, -motion], dim=1),
-                              h=torch.cat([ub - ctx.qdd_pd0, ctx.qdd_pd0 - lb], dim=1))
+            return Inequality(G=cat([motion, -motion], 1), h=cat([ub - ctx.qdd_pd0, ctx.qdd_pd0 - lb], 1))
         # total commanded acceleration, adding the wrench's B⁻¹Jᵀ(f + f_ext). Both row sets are kept: with the
         # total alone, an unweighted f could cancel an over-limit q̈* inside the sum and fake IK success.
-        total = torch.cat([gain, ctx.mass_inv_jt], dim=2)
+        total = cat([gain, ctx.mass_inv_jt], 2)
         offset = ctx.qdd_pd0
         if self.include_f_ext:
-            offset = offset + (ctx.mass_inv_jt @ ctx.f_ext.unsqueeze(-1)).squeeze(-1)
-        return Inequality(G=torch.cat([motion, -motion, total, -total], dim=1),
-                          h=torch.cat([ub - ctx.qdd_pd0, ctx.qdd_pd0 - lb, ub - offset, offset - lb], dim=1))
+            offset = offset + mv(ctx.mass_inv_jt, ctx.f_ext)
+        return Inequality(G=cat([motion, -motion, total, -total], 1),
+                          h=cat([ub - ctx.qdd_pd0, ctx.qdd_pd0 - lb, ub - offset, offset - lb], 1))
 
 
 class WrenchBox(Limit):
     """Wrench limits |f_i| ≤ f_max (forces, N) and ≤ tau_max (torques, N m), world frame (section V-B: 20 N, 5 N m)."""
 
     name = "wrench_box"
+    numpy_capable = True
 
     def __init__(self, force_limit: float = 20.0, torque_limit: float = 5.0) -> None:
         if not (force_limit > 0 and torque_limit > 0 and math.isfinite(force_limit + torque_limit)):
             raise InvalidGainError(f"wrench limits must be finite and > 0, got {force_limit}, {torque_limit}")
         self.limit = torch.tensor([force_limit] * 3 + [torque_limit] * 3, dtype=torch.float64)
-        self._rows: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._rows: dict[tuple, tuple[Array, Array]] = {}
 
     def rows(self, ctx: ControlContext) -> Inequality:
         B, like = ctx.batch, ctx.q
 
-        def make() -> tuple[torch.Tensor, torch.Tensor]:  # constant rows: built once per batch size
-            S = like.new_zeros(B, 6, N_VARS)
-            S[:, :, N_QDD:] = torch.eye(6, dtype=like.dtype, device=like.device)
-            lim = self.limit.to(like).expand(B, 6)
-            return torch.cat([S, -S], dim=1), torch.cat([lim, lim], dim=1)
+        def make() -> tuple[Array, Array]:  # constant rows: built once per batch size
+            S = torch.zeros(B, 6, N_VARS, dtype=torch.float64)
+            S[:, :, N_QDD:] = torch.eye(6, dtype=torch.float64)
+            lim = self.limit.expand(B, 6)
+            return const(torch.cat([S, -S], dim=1), like), const(torch.cat([lim, lim], dim=1), like)
 
-        key = ("wrench_box", id(self), B, like.dtype, like.device)
+        key = ("wrench_box", id(self), B, *_key(like))
         if key not in self._rows:
             self._rows = {key: make()}
         G, h = self._rows[key]
@@ -304,6 +321,7 @@ class FrictionPyramid(Limit):
     """
 
     name = "friction"
+    numpy_capable = True
 
     def __init__(self, mu: float = 0.4) -> None:
         if not (mu > 0 and math.isfinite(mu)):
@@ -315,13 +333,13 @@ class FrictionPyramid(Limit):
     def rows(self, ctx: ControlContext) -> Inequality:
         B, like = ctx.batch, ctx.q
         if not bool(ctx.in_contact.any()):  # nobody in contact (free motion): the constant rows 0 ≤ 1
-            return Inequality(G=_zeros(B, 4, N_VARS, like),
-                              h=_cached(("ones", B, 4, like.dtype, like.device), lambda: like.new_ones(B, 4)))
+            return Inequality(G=_zeros(B, 4, N_VARS, like), h=_ones(B, 4, like))
         R = ctx.D[:, :3, :3]  # world <- local
-        active = ctx.in_contact.to(like.dtype).view(B, 1, 1)
-        URt = active * (self.U.to(like) @ R.transpose(-1, -2))  # U Rᵀ f_world
-        G = torch.cat([_zeros(B, 4, N_QDD, like), URt, _zeros(B, 4, N_VARS - N_QDD - 3, like)], dim=2)
-        h = (1.0 - active.view(B, 1)).expand(B, 4).contiguous()
+        contact = ctx.in_contact
+        active = (contact.astype(like.dtype) if isinstance(contact, np.ndarray) else contact.to(like.dtype))
+        URt = active.reshape(B, 1, 1) * (const(self.U, like) @ R.mT)  # U Rᵀ f_world
+        G = cat([_zeros(B, 4, N_QDD, like), URt, _zeros(B, 4, N_VARS - N_QDD - 3, like)], 2)
+        h = _ones(B, 4, like) - active.reshape(B, 1)
         return Inequality(G=G, h=h)
 
 
@@ -342,6 +360,7 @@ class TorqueLimits(Limit):
     """
 
     name = "torque_limits"
+    numpy_capable = True
 
     def __init__(self, tau_max: torch.Tensor, scale: float = 0.98, safe: "JointLimitsViability | None" = None) -> None:
         if not 0.0 < scale <= 1.0:
@@ -350,16 +369,16 @@ class TorqueLimits(Limit):
         self.safe = safe
 
     def rows(self, ctx: ControlContext) -> Inequality:
-        B = ctx.batch
+        xp = ctx.xp
         gain = ctx.qdd_map if ctx.qdd_map is not None else _eye(N_QDD, ctx.q) + ctx.pd_qdd_gain
-        M = torch.cat([torch.bmm(ctx.mass, gain), ctx.kin.jac.transpose(-1, -2)], dim=2)
-        offset = torch.bmm(ctx.mass, ctx.qdd_pd0.unsqueeze(-1)).squeeze(-1)
+        M = cat([mm(ctx.mass, gain), ctx.kin.jac.mT], 2)
+        offset = mv(ctx.mass, ctx.qdd_pd0)
         if ctx.bias is not None:
             offset = offset + ctx.bias
-        lim = self.tau_max.to(ctx.q).expand(B, N_QDD)
+        lim = const(self.tau_max, ctx.q)  # [7], broadcast over the batch
         if self.safe is not None:
-            tau_safe = torch.bmm(ctx.mass, self.safe.safe_acceleration(ctx).unsqueeze(-1)).squeeze(-1)
+            tau_safe = mv(ctx.mass, self.safe.safe_acceleration(ctx))
             if ctx.bias is not None:
                 tau_safe = tau_safe + ctx.bias
-            lim = torch.maximum(lim, tau_safe.abs())
-        return Inequality(G=torch.cat([M, -M], dim=1), h=torch.cat([lim - offset, lim + offset], dim=1))
+            lim = xp.maximum(lim, xp.abs(tau_safe))
+        return Inequality(G=cat([M, -M], 1), h=cat([lim - offset, lim + offset], 1))

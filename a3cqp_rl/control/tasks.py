@@ -2,7 +2,7 @@
 
 The variable is x = (q̈ [7], f [6]) (see context.py). A task only builds its residual (A, b) and its weight W;
 `Residual.objective` turns it into the quadratic cost ½ xᵀ H x + cᵀ x with H = AᵀWA, c = −AᵀWb, and the controller
-sums the costs (mink-style).
+sums the costs (mink-style). Residuals are numpy arrays or torch tensors, the kind of the context (see arrays.py).
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from typing import Literal
 
 import torch
 
+from a3cqp_rl.control.arrays import Array, const, mm, mv, zeros
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import InvalidGainError
 
@@ -25,11 +26,11 @@ __all__ = ["Residual", "Task", "CartesianIK", "Admittance", "ForceControl", "Joi
 class Residual:
     """Weighted residual of one task for a batch: cost ‖A x_blk − b‖²_W on the block x_blk = x[col:col + m]."""
 
-    A: torch.Tensor | None
+    A: Array | None
     """[B, k, m] rows on the block (None: the identity, k = m)."""
-    b: torch.Tensor
+    b: Array
     """[B, k] target."""
-    W: torch.Tensor
+    W: Array
     """[B, k, k] symmetric positive semi-definite weight."""
     col: int = 0
     """First variable of the block: 0 for q̈ (m = 7), 7 for f (m = 6)."""
@@ -39,16 +40,16 @@ class Residual:
         """Block width m."""
         return self.b.shape[-1] if self.A is None else self.A.shape[-1]
 
-    def block_objective(self) -> tuple[torch.Tensor, torch.Tensor]:
+    def block_objective(self) -> tuple[Array, Array]:
         """(H [B, m, m], c [B, m]) of the block cost ½ x_blkᵀ H x_blk + cᵀ x_blk (= ½‖A x_blk − b‖²_W + const)."""
-        Wb = (self.W @ self.b.unsqueeze(-1)).squeeze(-1)
+        Wb = mv(self.W, self.b)
         if self.A is None:
             return self.W, -Wb
-        At = self.A.transpose(-1, -2)
-        return At @ self.W @ self.A, -(At @ Wb.unsqueeze(-1)).squeeze(-1)
+        At = self.A.mT
+        return mm(At, mm(self.W, self.A)), -mv(At, Wb)
 
     def objective(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(H [B, 13, 13], c [B, 13]) on the whole x = (q̈, f)."""
+        """(H [B, 13, 13], c [B, 13]) on the whole x = (q̈, f) (torch residuals)."""
         Hb, cb = self.block_objective()
         H = Hb.new_zeros(Hb.shape[0], N_VARS, N_VARS)
         c = cb.new_zeros(cb.shape[0], N_VARS)
@@ -58,7 +59,7 @@ class Residual:
         return H, c
 
     def rows(self) -> torch.Tensor:
-        """A as [B, k, 13] rows on the whole x."""
+        """A as [B, k, 13] rows on the whole x (torch residuals)."""
         B, k = self.b.shape
         A = self.b.new_zeros(B, k, N_VARS)
         A[:, :, self.col:self.col + self.size] = (torch.eye(k, dtype=self.b.dtype, device=self.b.device)
@@ -76,6 +77,9 @@ class Task(ABC):
     """A QP task: its residual and weight from the step's context."""
 
     name: str = "task"
+    numpy_capable: bool = False
+    """True when `residual` also runs on a context of numpy arrays (arrays.py); the controller's CPU step uses numpy
+    only when every task and limit is (a task written with torch calls keeps working: that step runs on torch)."""
 
     @abstractmethod
     def residual(self, ctx: ControlContext) -> Residual:
@@ -91,6 +95,7 @@ class CartesianIK(Task):
     """
 
     name = "ik"
+    numpy_capable = True
 
     def __init__(self, kp: float = 150.0, k_theta: float = 20.0) -> None:
         _check_positive(kp=kp, k_theta=k_theta)
@@ -98,22 +103,20 @@ class CartesianIK(Task):
         kp_diag = torch.tensor([kp] * 3 + [k_theta] * 3, dtype=torch.float64)
         self._gains = (kp_diag, 2.0 * kp_diag.sqrt())  # made once: building them costs as much as using them
 
-    def gains(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def gains(self, like: Array) -> tuple[Array, Array]:
         """Diagonals of K_p and K_v [6] (eq. 11)."""
         kp, kv = self._gains
-        if kp.dtype != like.dtype or kp.device != like.device:
-            kp, kv = kp.to(like), kv.to(like)
-        return kp, kv
+        return const(kp, like), const(kv, like)
 
-    def desired_acceleration(self, ctx: ControlContext) -> torch.Tensor:
+    def desired_acceleration(self, ctx: ControlContext) -> Array:
         """ẍ_d = K_p e_x − K_v ẋ [B, 6] (eq. 10), world frame (m/s², rad/s²)."""
         kp, kv = self.gains(ctx.q)
-        return torch.addcmul(kp * ctx.pose_error, kv, ctx.kin.twist, value=-1.0)
+        return kp * ctx.pose_error - kv * ctx.kin.twist
 
     def residual(self, ctx: ControlContext) -> Residual:
         b = self.desired_acceleration(ctx) - ctx.kin.jdot_qdot
         if ctx.wrench_feedforward is not None:  # J q̈ + Λ⁻¹ f_ff + J̇q̇ = ẍ_d on the IK axes
-            b = b - torch.bmm(ctx.cart_inertia_inv, ctx.wrench_feedforward.unsqueeze(-1)).squeeze(-1)
+            b = b - mv(ctx.cart_inertia_inv, ctx.wrench_feedforward)
         return Residual(A=ctx.kin.jac, b=b, W=ctx.W1, col=0)
 
 
@@ -129,6 +132,7 @@ class Admittance(Task):
     """
 
     name = "ac"
+    numpy_capable = True
 
     def __init__(self, lambda_d: float = 5.0, c_d: float = 5.0,
                  form: Literal["consistent", "paper"] = "consistent") -> None:
@@ -139,17 +143,17 @@ class Admittance(Task):
             raise InvalidGainError(f"form must be 'consistent' or 'paper', got {form!r}")
         self.lambda_d, self.c_d, self.form = lambda_d, c_d, form
 
-    def admittance_wrench(self, ctx: ControlContext) -> torch.Tensor:
+    def admittance_wrench(self, ctx: ControlContext) -> Array:
         """f_adm [B, 6] (N, N m), world frame (eq. 18)."""
         lam = ctx.cart_inertia  # Λ (B, 6, 6)
         twist, jdq = ctx.kin.twist, ctx.kin.jdot_qdot
         if self.form == "consistent":
             # Λ Λd⁻¹ (f_ext − Cd ẋ) − f_ext − Λ J̇q̇ = Λ (Λd⁻¹ (f_ext − Cd ẋ) − J̇q̇) − f_ext: one product with Λ
             v = (ctx.f_ext - self.c_d * twist) / self.lambda_d - jdq
-            return torch.bmm(lam, v.unsqueeze(-1)).squeeze(-1) - ctx.f_ext
+            return mv(lam, v) - ctx.f_ext
         # eq. 18 as printed: Λ (Λd⁻¹ f_ext − J̇q̇) − f_ext − Cd J q̇
         v = ctx.f_ext / self.lambda_d - jdq
-        return torch.bmm(lam, v.unsqueeze(-1)).squeeze(-1) - ctx.f_ext - self.c_d * twist
+        return mv(lam, v) - ctx.f_ext - self.c_d * twist
 
     def residual(self, ctx: ControlContext) -> Residual:
         return Residual(A=None, b=self.admittance_wrench(ctx), W=ctx.W2, col=N_QDD)
@@ -159,10 +163,11 @@ class ForceControl(Task):
     """FC task (eq. 20-21): f = D f_d^𝓛 with 0 ≤ f_d^𝓛 ≤ f̄_d (clipped when the context is built), weight W3."""
 
     name = "fc"
+    numpy_capable = True
 
-    def contact_wrench(self, ctx: ControlContext) -> torch.Tensor:
+    def contact_wrench(self, ctx: ControlContext) -> Array:
         """f_ctc = D f_d^𝓛 [B, 6] (N, N m), world frame (eq. 20)."""
-        return torch.bmm(ctx.D, ctx.f_d_local.unsqueeze(-1)).squeeze(-1)
+        return mv(ctx.D, ctx.f_d_local)
 
     def residual(self, ctx: ControlContext) -> Residual:
         return Residual(A=None, b=self.contact_wrench(ctx), W=ctx.W3, col=N_QDD)
@@ -184,6 +189,7 @@ class JointCentering(Task):
     """
 
     name = "jc"
+    numpy_capable = True
 
     def __init__(self, q_center: torch.Tensor, kq: float = 10.0, epsilon: float = 1e-4,
                  nullspace_weight: float = 1e-3) -> None:
@@ -191,15 +197,15 @@ class JointCentering(Task):
         self.q_center = torch.as_tensor(q_center, dtype=torch.float64)
         self.kq, self.epsilon, self.nullspace_weight = kq, epsilon, nullspace_weight
 
-    def desired_acceleration(self, ctx: ControlContext) -> torch.Tensor:
+    def desired_acceleration(self, ctx: ControlContext) -> Array:
         """q̈_d [B, 7] (rad/s²), eq. 23."""
-        e_q = self.q_center.to(ctx.q) - ctx.q
-        return torch.add(self.kq * e_q, ctx.qd, alpha=-2.0 * math.sqrt(self.kq))
+        e_q = const(self.q_center, ctx.q) - ctx.q
+        return self.kq * e_q - (2.0 * math.sqrt(self.kq)) * ctx.qd
 
     def residual(self, ctx: ControlContext) -> Residual:
         J = ctx.kin.jac
-        jt_w1_j = ctx.jt_w1_j if ctx.jt_w1_j is not None else J.transpose(-1, -2) @ ctx.W1 @ J
-        W = torch.add(self.epsilon * jt_w1_j, ctx.nullspace, alpha=self.nullspace_weight)
+        jt_w1_j = ctx.jt_w1_j if ctx.jt_w1_j is not None else mm(J.mT, mm(ctx.W1, J))
+        W = self.epsilon * jt_w1_j + self.nullspace_weight * ctx.nullspace
         return Residual(A=None, b=self.desired_acceleration(ctx), W=W, col=0)
 
 
@@ -212,6 +218,7 @@ class CartesianAccelerationRegularizer(Task):
     """
 
     name = "cartesian_regularizer"
+    numpy_capable = True
 
     def __init__(self, gamma: float = 1e-2) -> None:
         _check_positive(gamma=gamma)
@@ -219,5 +226,5 @@ class CartesianAccelerationRegularizer(Task):
         self._gamma_eye = gamma * torch.eye(6, dtype=torch.float64)
 
     def residual(self, ctx: ControlContext) -> Residual:
-        return Residual(A=ctx.kin.jac, b=ctx.q.new_zeros(ctx.batch, 6),
-                        W=torch.add(self._gamma_eye.to(ctx.q), ctx.W1, alpha=-self.gamma), col=0)
+        return Residual(A=ctx.kin.jac, b=zeros((ctx.batch, 6), ctx.q),
+                        W=const(self._gamma_eye, ctx.q) - self.gamma * ctx.W1, col=0)
