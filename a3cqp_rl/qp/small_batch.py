@@ -47,10 +47,15 @@ import math
 import numpy as np
 from scipy.linalg import lapack
 
+from a3cqp_rl.qp import native
+
 COLD_ROUNDS = 2
 """Cold-start rounds of "add the violated rows, trim to positive multipliers" before the G-I steps
 (measured on 300 instances: 1.07 / 6.60 / 12.07 solves at spread 0.015 / 0.35 / 1.0 with 2 rounds,
 1.07 / 7.73 / 12.98 with 1, 9.6 / 14.6 for the LU method from W = ∅)."""
+NATIVE = True
+"""Use the C version of the cold/warm range-space solve (`native/gi_qp.c`) when it can be built;
+False (or env A3CQP_NATIVE_QP=0) runs the numpy code only."""
 __all__ = ["SINGULAR", "CERTIFIED", "EXHAUSTED", "active_set_small", "adjoint_small"]
 
 CERTIFIED, SINGULAR, EXHAUSTED = 0, 1, 2
@@ -440,14 +445,27 @@ def active_set_small(
     B, n = q.shape
     p, m = A.shape[1], G.shape[1]
     r = n + p + m
-    x_out, y_out, z_out = np.zeros((B, n)), np.zeros((B, p)), np.zeros((B, m))
-    outcome = np.full(B, SINGULAR, dtype=np.int64)
-    iters = np.zeros(B, dtype=np.int64)
+    solve_native = native.load() if NATIVE else None
+    if solve_native is not None:
+        # The same range-space G-I (cold, or warm from {z0 > 0}) and certificate in one C call for
+        # the whole batch; only what it does not certify runs the numpy code below, from scratch,
+        # so outcomes are the numpy code's.
+        x_out, y_out, z_out, outcome, iters = solve_native(P, q, A, b, G, h, z0, tol, max_steps)
+        if not outcome[outcome.argmax()]:  # all certified (= 0): argmax + index, cheaper than any()
+            return x_out, y_out, z_out, outcome, iters
+        todo = outcome.nonzero()[0]
+        x_out[todo], y_out[todo], z_out[todo] = 0.0, 0.0, 0.0
+        outcome[todo] = SINGULAR
+    else:
+        x_out, y_out, z_out = np.zeros((B, n)), np.zeros((B, p)), np.zeros((B, m))
+        outcome = np.full(B, SINGULAR, dtype=np.int64)
+        iters = np.zeros(B, dtype=np.int64)
+        todo = range(B)
     # Tolerance scales as in `residual_scales`: 1 + |(b, h)|∞ (primal), 1 + |q|∞ (dual).
     sp = 1.0 + (np.abs(np.concatenate([b, h], 1)).max(1) if p + m else np.zeros(B))
     sd = 1.0 + np.abs(q).max(1)
     no_warm = np.zeros(m, dtype=bool)
-    for i in range(B):
+    for i in todo:
         Pi, qi, Ai, bi, Gi, hi = P[i], q[i], A[i], b[i], G[i], h[i]
         tol_p, tol_d = tol * float(sp[i]), tol * float(sd[i])
         tol_r = min(tol_p, tol_d) if p + m else tol_d

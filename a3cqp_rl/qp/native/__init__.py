@@ -1,0 +1,146 @@
+"""The small-batch dual active set in C (`gi_qp.c`), built on first use and called through ctypes.
+
+Why native: at B = 1 the numpy range-space Goldfarb-Idnani of `small_batch.py` spends its time in
+call overhead, ~12 active-set steps × ~10 numpy/LAPACK calls at 0.5-3 µs each, while the
+arithmetic of a whole controller-sized solve (n = 13, m = 30) is a few µs.  One C call per batch
+does the same steps with the same decisions and certificate (see `gi_qp.c`); the numpy code stays
+as the fallback (no compiler, failed build, `A3CQP_NATIVE_QP=0`) and as the reference in tests.
+
+Build: the system C compiler (`A3CQP_CC`, else `CC`, else `cc`/`gcc` on PATH), plain
+`-O2 -fPIC -shared` (no -march=native: results must not depend on the machine that built them),
+into a per-user cache (`A3CQP_CACHE_DIR`, else `$XDG_CACHE_HOME/a3cqp_rl` or `~/.cache/a3cqp_rl`)
+under a name keyed by a hash of the source, compiler and flags.  The library is written to a
+temporary file in that directory and moved into place with `os.replace`, so concurrent processes
+(pytest-xdist workers, two trainers) never load half a file; at worst both compile.  A failure
+logs one warning and `load()` returns None for the rest of the process.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import logging
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["load", "SOURCE", "CFLAGS", "CERTIFIED"]
+
+SOURCE = Path(__file__).with_name("gi_qp.c")
+CFLAGS = ["-std=c99", "-O2", "-fPIC", "-shared"]
+CERTIFIED = 0
+"""Status code of a certified instance (any other code: solve it on the numpy path)."""
+
+_log = logging.getLogger(__name__)
+_lock = threading.Lock()
+_loaded: tuple[bool, Callable | None] = (False, None)
+
+
+def _cache_dir() -> Path:
+    env = os.environ.get("A3CQP_CACHE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "a3cqp_rl"
+
+
+def _compiler() -> str | None:
+    """The compiler to use: an explicit A3CQP_CC / CC must exist (no silent substitute)."""
+    for var in ("A3CQP_CC", "CC"):
+        cc = os.environ.get(var)
+        if cc:
+            return shutil.which(cc)
+    return shutil.which("cc") or shutil.which("gcc")
+
+
+def _build() -> Path:
+    """Path of the compiled library, compiling it if this source/compiler/flags has not been built."""
+    cc = _compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found (set A3CQP_CC or CC, or install cc/gcc)")
+    src = SOURCE.read_bytes()
+    key = hashlib.sha256(b"\0".join([src, cc.encode(), " ".join(CFLAGS).encode(), platform.machine().encode(), sys.platform.encode()])).hexdigest()[:16]
+    cache = _cache_dir()
+    lib = cache / f"gi_qp-{key}.so"
+    if lib.exists():
+        return lib
+    cache.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".gi_qp-", suffix=".so", dir=cache)
+    os.close(fd)
+    try:
+        proc = subprocess.run([cc, *CFLAGS, "-o", tmp, str(SOURCE), "-lm"], capture_output=True, text=True, timeout=120)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{cc} failed ({proc.returncode}): {proc.stderr.strip()[:500]}")
+        os.replace(tmp, lib)  # atomic: readers see the old name absent or the whole file
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return lib
+
+
+def _bind(path: Path) -> Callable:
+    """ctypes binding of gi_qp_solve wrapped as a function of numpy arrays."""
+    fn = ctypes.CDLL(str(path)).gi_qp_solve
+    i64, dbl, ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+    fn.argtypes = [i64, i64, i64, i64, ptr, ptr, ptr, ptr, ptr, ptr, ptr, dbl, i64, ptr, ptr, ptr, ptr, ptr]
+    fn.restype = ctypes.c_int
+    f64 = np.float64
+
+    def addr(a: np.ndarray) -> int:
+        return a.__array_interface__["data"][0]
+
+    def solve(
+        P: np.ndarray, q: np.ndarray, A: np.ndarray, b: np.ndarray, G: np.ndarray, h: np.ndarray,
+        z0: np.ndarray | None, tol: float, max_steps: int,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Range-space G-I on a batch (shapes as `small_batch.active_set_small`); returns x, y, z, status, solves.
+
+        Inputs are made float64 C-contiguous (a no-op for the usual arrays); x, y, z are valid
+        where status == CERTIFIED (0)."""
+        B, n = q.shape
+        p, m = A.shape[1], G.shape[1]
+        P, q, A, b, G, h = (np.ascontiguousarray(t, dtype=f64) for t in (P, q, A, b, G, h))
+        if z0 is not None:
+            z0 = np.ascontiguousarray(z0, dtype=f64)
+        x, y, z = np.empty((B, n)), np.empty((B, p)), np.empty((B, m))
+        status, solves = np.empty(B, dtype=np.int64), np.empty(B, dtype=np.int64)
+        fn(B, n, p, m, addr(P), addr(q), addr(A), addr(b), addr(G), addr(h), None if z0 is None else addr(z0),
+           tol, max_steps, addr(x), addr(y), addr(z), addr(status), addr(solves))
+        return x, y, z, status, solves
+
+    return solve
+
+
+def load() -> Callable | None:
+    """The native batch solver, or None (disabled by A3CQP_NATIVE_QP=0, or no compiler / build failed: one warning)."""
+    global _loaded
+    done, fn = _loaded
+    if done:
+        return fn
+    with _lock:
+        if _loaded[0]:
+            return _loaded[1]
+        fn = None
+        if os.environ.get("A3CQP_NATIVE_QP", "1").strip().lower() not in ("0", "false", "no", "off"):
+            try:
+                fn = _bind(_build())
+            except Exception as exc:  # no compiler, build error, unwritable cache, load error
+                _log.warning("a3cqp_rl.qp: native QP routine unavailable (%s); using the numpy path", exc)
+                fn = None
+        _loaded = (True, fn)
+    return fn
+
+
+def _reset() -> None:
+    """Forget the loaded routine (tests: re-read the environment on the next `load()`)."""
+    global _loaded
+    with _lock:
+        _loaded = (False, None)

@@ -1,0 +1,469 @@
+/*
+ * Dense Goldfarb-Idnani dual active set for small strictly convex QPs, one batch per call.
+ *
+ *     minimise ½ xᵀPx + qᵀx   subject to   A x = b (p rows),   G x ≤ h (m rows),   P ≻ 0.
+ *
+ * This is the range-space method of a3cqp_rl/qp/small_batch.py (`_range_space`, plus a warm start
+ * from a previous working set) written out in C, because at the controller's size (n ≈ 13,
+ * m ≈ 30) the numpy version spends its time in ~10 numpy/LAPACK calls per active-set step at
+ * 0.5-3 µs each while the arithmetic of a whole solve is a few µs.  The decisions (which row
+ * enters, which leaves, the cold-start rounds, the tolerances and the certificate) are the numpy
+ * code's, so both give the same working set and the same answer; see small_batch.py for the
+ * reasoning behind each of them.
+ *
+ * Method (Goldfarb & Idnani, "A numerically stable dual method for solving strictly convex
+ * quadratic programs", Math. Programming 27, 1983), in the range space of P: with P = L Lᵀ,
+ * x₀ = −P⁻¹q, the rows C = [A; G], d = [b; h] and S = C P⁻¹ Cᵀ = MᵀM (M = L⁻¹Cᵀ), the KKT point of
+ * a working set W has multipliers S_WW λ_W = C_W x₀ − d_W and row values
+ * C x − d = (C x₀ − d) − S_{:W} λ_W.  From a dual-feasible start (λ_W ≥ 0) each step adds the most
+ * violated row j (relative to its norm): first tried as a full step (the KKT point of W + j, taken
+ * when its multipliers are ≥ 0, which is exactly when G-I takes the full step), otherwise by the
+ * G-I partial steps that raise λ_j and drop a working row whose multiplier reaches zero first.
+ * Every k × k system is solved by a fresh Cholesky factorisation (k ≤ n ≤ ~50: k³/6 flops, less
+ * than the bookkeeping of an incremental update would save at this size).
+ *
+ * Nothing is returned unless certified on the original KKT system, exactly as in the numpy code:
+ * ‖(P x + q + C_Wᵀλ_W, C_W x − d_W)‖₂ ≤ tol_r, every inequality row ≤ tol_p, inequality
+ * multipliers ≥ −tol_d.  Any other outcome (P not numerically positive definite, non-finite data,
+ * dependent working rows, an infeasible row, the step budget, a failed certificate) is reported as
+ * a non-zero status and the caller solves that instance by its numpy path, so outcomes are those
+ * of the numpy code.
+ *
+ * Plain C99 + libm; row-major float64 arrays; no allocation visible to the caller (one malloc of
+ * workspace per call).
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* Status per instance (only GI_CERTIFIED means the outputs are valid). */
+enum {
+    GI_CERTIFIED = 0,
+    GI_NOT_DEFINITE = 1,  /* P not numerically positive definite (Cholesky pivot ≤ 0) */
+    GI_NONFINITE = 2,     /* NaN or inf in the data */
+    GI_DEPENDENT = 3,     /* working rows (numerically) dependent: S_WW not definite */
+    GI_INFEASIBLE = 4,    /* a violated row in the span of the working rows */
+    GI_BUDGET = 5,        /* step budget spent */
+    GI_UNCERTIFIED = 6,   /* final KKT / feasibility / dual-sign check failed */
+    GI_NO_MEMORY = 7
+};
+
+/* Cold-start rounds of "add the violated rows, trim to positive multipliers" (small_batch.COLD_ROUNDS). */
+#define COLD_ROUNDS 2
+/* A Cholesky pivot of S_WW below this fraction of its diagonal entry means dependent working rows
+ * (rows at an angle below ~3e-7 rad); dposv in the numpy code only rejects pivots ≤ 0, which lets
+ * exactly dependent rows through with garbage multipliers for the certificate to catch. */
+#define DEP_REL 1e-13
+
+typedef struct {
+    int n, p, m, r;
+    const double *P, *q, *A, *b, *G, *h;
+    double *L;           /* n × n Cholesky factor of P (lower) */
+    double *M;           /* r × n: row i = L⁻¹ C_iᵀ */
+    double *S;           /* r × r, rows (and the matching columns) filled on demand */
+    unsigned char *have; /* have[i]: row i of S computed */
+    unsigned char *W;    /* working-set membership */
+    int *buf;            /* working rows buf[0..k) (equalities first), buf[k] = row on trial */
+    double *x0, *v0, *v, *ginv, *lw, *lwj, *dl, *rhs, *K, *x, *g, *t;
+} gi_ws;
+
+static const double *crow(const gi_ws *w, int i) { return i < w->p ? w->A + (size_t)i * w->n : w->G + (size_t)(i - w->p) * w->n; }
+static double cval(const gi_ws *w, int i) { return i < w->p ? w->b[i] : w->h[i - w->p]; }
+
+static double dot(const double *a, const double *b, int n) {
+    double s = 0.0;
+    for (int i = 0; i < n; ++i) s += a[i] * b[i];
+    return s;
+}
+
+/* L y = b (L lower, row-major n × n). */
+static void fwd_sub(const double *L, int n, const double *b, double *y) {
+    for (int i = 0; i < n; ++i) y[i] = (b[i] - dot(L + (size_t)i * n, y, i)) / L[(size_t)i * n + i];
+}
+
+/* Lᵀ y = b. */
+static void bwd_sub_t(const double *L, int n, const double *b, double *y) {
+    for (int i = n - 1; i >= 0; --i) {
+        double s = b[i];
+        for (int k = i + 1; k < n; ++k) s -= L[(size_t)k * n + i] * y[k];
+        y[i] = s / L[(size_t)i * n + i];
+    }
+}
+
+/* In-place lower Cholesky of the k × k row-major K; pivots must exceed rel × the original
+ * diagonal (rel = 0: only positivity, as LAPACK dpotrf).  Returns 0, or -1 if not definite. */
+static int cholesky(double *K, int k, double rel) {
+    for (int j = 0; j < k; ++j) {
+        double *Kj = K + (size_t)j * k;
+        double d = Kj[j] - dot(Kj, Kj, j);
+        if (!(d > rel * Kj[j])) return -1; /* also catches NaN */
+        double ljj = sqrt(d);
+        Kj[j] = ljj;
+        for (int i = j + 1; i < k; ++i) {
+            double *Ki = K + (size_t)i * k;
+            Ki[j] = (Ki[j] - dot(Ki, Kj, j)) / ljj;
+        }
+    }
+    return 0;
+}
+
+/* Row i of S = M Mᵀ (and its column, by symmetry), computed once. */
+static void ensure_row(gi_ws *w, int i) {
+    if (w->have[i]) return;
+    const int r = w->r, n = w->n;
+    const double *Mi = w->M + (size_t)i * n;
+    for (int c = 0; c < r; ++c) {
+        double s = dot(Mi, w->M + (size_t)c * n, n);
+        w->S[(size_t)i * r + c] = s;
+        w->S[(size_t)c * r + i] = s;
+    }
+    w->have[i] = 1;
+}
+
+/* Solve S_RR y = rhs for the k rows R (their rows of S ensured); -1 if S_RR is not definite. */
+static int solve_rows(gi_ws *w, const int *R, int k, const double *rhs, double *y) {
+    const int r = w->r;
+    for (int a = 0; a < k; ++a) {
+        const double *Sa = w->S + (size_t)R[a] * r;
+        for (int c = 0; c <= a; ++c) w->K[(size_t)a * k + c] = Sa[R[c]];
+    }
+    if (cholesky(w->K, k, DEP_REL)) return -1;
+    fwd_sub(w->K, k, rhs, w->t);
+    bwd_sub_t(w->K, k, w->t, y);
+    return 0;
+}
+
+/* Multipliers of the working set buf[0..k) (into lw): S_WW λ = v0_W. */
+static int solve_working(gi_ws *w, int k, double *lw) {
+    for (int a = 0; a < k; ++a) {
+        ensure_row(w, w->buf[a]);
+        w->rhs[a] = w->v0[w->buf[a]];
+    }
+    return solve_rows(w, w->buf, k, w->rhs, lw);
+}
+
+/* Row values at the KKT point of buf[0..k): v = v0 − Σ λ_a S[buf_a, :]. */
+static void row_values(gi_ws *w, int k, const double *lw) {
+    const int r = w->r;
+    memcpy(w->v, w->v0, (size_t)r * sizeof(double));
+    for (int a = 0; a < k; ++a) {
+        const double *Sa = w->S + (size_t)w->buf[a] * r, la = lw[a];
+        for (int c = 0; c < r; ++c) w->v[c] -= la * Sa[c];
+    }
+}
+
+/* min over the inequality multipliers lw[p..k) (+inf when there are none). */
+static double min_ineq(const double *lw, int p, int k) {
+    double mn = INFINITY;
+    for (int a = p; a < k; ++a)
+        if (!(lw[a] >= mn)) mn = lw[a];
+    return mn;
+}
+
+/* Most violated inequality row relative to its norm (first on ties, as numpy argmax); -1 if none. */
+static int most_violated(const gi_ws *w) {
+    int j = -1;
+    double best = -INFINITY;
+    for (int i = w->p; i < w->r; ++i) {
+        double rel = w->v[i] * w->ginv[i];
+        if (rel > best) best = rel, j = i;
+    }
+    return j;
+}
+
+/* Certificate on the original KKT system and the outputs (x, y, z) of working set buf[0..k). */
+static int certify(gi_ws *w, int k, const double *lw, double tol_p, double tol_d, double tol_r,
+                   double *x_out, double *y_out, double *z_out) {
+    const int n = w->n, p = w->p, r = w->r;
+    /* x = x₀ − P⁻¹ C_Wᵀ λ_W */
+    memset(w->g, 0, (size_t)n * sizeof(double));
+    for (int a = 0; a < k; ++a) {
+        const double *Ca = crow(w, w->buf[a]);
+        for (int c = 0; c < n; ++c) w->g[c] += lw[a] * Ca[c];
+    }
+    fwd_sub(w->L, n, w->g, w->t);
+    bwd_sub_t(w->L, n, w->t, w->x);
+    for (int c = 0; c < n; ++c) w->x[c] = w->x0[c] - w->x[c];
+    double e2 = 0.0;
+    for (int i = 0; i < n; ++i) {
+        double e = dot(w->P + (size_t)i * n, w->x, n) + w->q[i] + w->g[i];
+        e2 += e * e;
+    }
+    /* Row values at x: working rows enter the residual, inequality rows the feasibility test. */
+    double vmax = -INFINITY;
+    memset(w->t, 0, (size_t)r * sizeof(double));
+    for (int i = 0; i < r; ++i) w->t[i] = dot(crow(w, i), w->x, n) - cval(w, i);
+    for (int a = 0; a < k; ++a) e2 += w->t[w->buf[a]] * w->t[w->buf[a]];
+    for (int i = p; i < r; ++i)
+        if (!(w->t[i] <= vmax)) vmax = w->t[i];
+    if (!(sqrt(e2) <= tol_r)) return GI_UNCERTIFIED;
+    if (k > p && !(min_ineq(lw, p, k) >= -tol_d)) return GI_UNCERTIFIED;
+    if (r > p && !(vmax <= tol_p)) return GI_UNCERTIFIED;
+    memcpy(x_out, w->x, (size_t)n * sizeof(double));
+    memset(y_out, 0, (size_t)p * sizeof(double));
+    memset(z_out, 0, (size_t)w->m * sizeof(double));
+    for (int a = 0; a < k; ++a) {
+        int i = w->buf[a];
+        if (i < p) y_out[i] = lw[a];
+        else z_out[i - p] = lw[a];
+    }
+    return GI_CERTIFIED;
+}
+
+/* One instance.  z0: warm-start multipliers (working set {z0 > 0}) or NULL. */
+static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps,
+                     double *x_out, double *y_out, double *z_out, int64_t *solves_out) {
+    const int n = w->n, p = w->p, m = w->m, r = w->r;
+    *solves_out = 0;
+    /* Tolerance scales as in active_set.residual_scales: 1 + |(b, h)|∞ primal, 1 + |q|∞ dual. */
+    double sp = 0.0, sd = 0.0, fin = 0.0;
+    for (int i = 0; i < n * n; ++i) fin += w->P[i] * 0.0;
+    for (int i = 0; i < p * n; ++i) fin += w->A[i] * 0.0;
+    for (int i = 0; i < m * n; ++i) fin += w->G[i] * 0.0;
+    for (int i = 0; i < n; ++i) { fin += w->q[i] * 0.0; sd = fmax(sd, fabs(w->q[i])); }
+    for (int i = 0; i < p; ++i) { fin += w->b[i] * 0.0; sp = fmax(sp, fabs(w->b[i])); }
+    for (int i = 0; i < m; ++i) { fin += w->h[i] * 0.0; sp = fmax(sp, fabs(w->h[i])); }
+    if (z0)
+        for (int i = 0; i < m; ++i) fin += z0[i] * 0.0;
+    if (fin != 0.0) return GI_NONFINITE; /* x·0 is NaN exactly when x is NaN or ±inf */
+    const double tol_p = tol * (1.0 + sp), tol_d = tol * (1.0 + sd);
+    const double tol_r = r ? fmin(tol_p, tol_d) : tol_d;
+
+    memcpy(w->L, w->P, (size_t)n * n * sizeof(double));
+    if (cholesky(w->L, n, 0.0)) return GI_NOT_DEFINITE;
+    /* x₀ = −P⁻¹q */
+    for (int c = 0; c < n; ++c) w->g[c] = -w->q[c];
+    fwd_sub(w->L, n, w->g, w->t);
+    bwd_sub_t(w->L, n, w->t, w->x0);
+    memset(w->have, 0, (size_t)r);
+    memset(w->W, 0, (size_t)r);
+    double vmax = -INFINITY;
+    for (int i = 0; i < r; ++i) {
+        w->v0[i] = dot(crow(w, i), w->x0, n) - cval(w, i);
+        if (i >= p && !(w->v0[i] <= vmax)) vmax = w->v0[i];
+    }
+    int k = p;
+    for (int i = 0; i < p; ++i) w->buf[i] = i, w->W[i] = 1;
+    int nwarm = 0;
+    if (z0)
+        for (int i = 0; i < m; ++i) nwarm += z0[i] > 0.0;
+    if (p == 0 && nwarm == 0 && !(vmax > tol_p)) {
+        /* The unconstrained minimiser is feasible (the easy cold case): certify it, skip S. */
+        *solves_out = 1;
+        return certify(w, 0, w->lw, tol_p, tol_d, tol_r, x_out, y_out, z_out);
+    }
+    for (int i = 0; i < r; ++i) fwd_sub(w->L, n, crow(w, i), w->M + (size_t)i * n);
+    for (int i = p; i < r; ++i) w->ginv[i] = 1.0 / (sqrt(dot(crow(w, i), crow(w, i), n)) + 1e-300);
+
+    int64_t solves = 0;
+    double *lw = w->lw;
+    int warm_done = 0;
+    if (nwarm && p + nwarm <= n) {
+        /* Warm start: the previous working set, less the rows whose multipliers come out ≤ 0
+         * (re-solved until all are positive), so the start is dual feasible as G-I requires.
+         * In the control loop the set is still optimal and this is the only solve. */
+        for (int i = 0; i < m; ++i)
+            if (z0[i] > 0.0) w->buf[k++] = p + i, w->W[p + i] = 1;
+        for (;;) {
+            ++solves;
+            if (solve_working(w, k, lw)) { /* dependent warm rows: start cold */
+                for (int a = p; a < k; ++a) w->W[w->buf[a]] = 0;
+                k = p;
+                break;
+            }
+            if (k == p || min_ineq(lw, p, k) > 0.0) { warm_done = 1; break; }
+            int kk = p;
+            for (int a = p; a < k; ++a) {
+                if (lw[a] > 0.0) w->buf[kk++] = w->buf[a];
+                else w->W[w->buf[a]] = 0;
+            }
+            k = kk;
+        }
+        if (warm_done) {
+            if (k) row_values(w, k, lw);
+            else memcpy(w->v, w->v0, (size_t)r * sizeof(double));
+        }
+    }
+    if (!warm_done) {
+        /* Cold start (small_batch._range_space): add the rows the current point violates (the
+         * most violated relative to their norms, up to n − k working rows), then trim the set to
+         * positive multipliers, so the start is dual feasible; COLD_ROUNDS times from the new point. */
+        memcpy(w->v, w->v0, (size_t)r * sizeof(double));
+        int have_lw = 0;
+        for (int rnd = 0; rnd < COLD_ROUNDS; ++rnd) {
+            if (rnd) {
+                double mx = -INFINITY;
+                for (int i = p; i < r; ++i)
+                    if (w->v[i] > mx) mx = w->v[i];
+                if (!(mx > tol_p)) break;
+            }
+            /* Candidates (violated relative to their norm, not working) into buf[k..); when more
+             * than `room` = n − k of them, the `room` most violated first (selection sort: m is small). */
+            int room = n - k, nadd = 0;
+            for (int i = p; i < r; ++i)
+                if (w->v[i] * w->ginv[i] > tol_p && !w->W[i]) w->buf[k + nadd++] = i;
+            if (nadd > room) {
+                for (int a = 0; a < room; ++a) {
+                    int best = a;
+                    for (int c = a + 1; c < nadd; ++c) {
+                        int bi = w->buf[k + best], ci = w->buf[k + c];
+                        if (w->v[ci] * w->ginv[ci] > w->v[bi] * w->ginv[bi]) best = c;
+                    }
+                    int tmp = w->buf[k + a];
+                    w->buf[k + a] = w->buf[k + best];
+                    w->buf[k + best] = tmp;
+                }
+                nadd = room;
+            }
+            if (nadd == 0 && rnd) break;
+            for (int a = k; a < k + nadd; ++a) w->W[w->buf[a]] = 1;
+            k += nadd;
+            ++solves;
+            have_lw = 0;
+            while (k) {
+                if (solve_working(w, k, lw)) {
+                    if (k == p) return GI_DEPENDENT; /* dependent equalities */
+                    for (int a = p; a < k; ++a) w->W[w->buf[a]] = 0;
+                    k = p;
+                    ++solves;
+                    continue;
+                }
+                have_lw = 1;
+                if (k == p || min_ineq(lw, p, k) > 0.0) break;
+                int kk = p;
+                for (int a = p; a < k; ++a) {
+                    if (lw[a] > 0.0) w->buf[kk++] = w->buf[a];
+                    else w->W[w->buf[a]] = 0;
+                }
+                k = kk;
+                ++solves;
+                have_lw = 0;
+            }
+            if (k && have_lw) row_values(w, k, lw);
+            else memcpy(w->v, w->v0, (size_t)r * sizeof(double));
+        }
+        if (solves < 1) solves = 1;
+    }
+
+    /* G-I steps. */
+    int exact = 1; /* lw holds the exact multipliers of buf[0..k) (no incremental update since) */
+    int steps = 0;
+    while (r > p) {
+        int j = most_violated(w);
+        if (j < 0) return GI_UNCERTIFIED; /* non-finite row values */
+        double vj = w->v[j];
+        if (!(vj > tol_p)) break;
+        if (++steps > max_steps) return GI_BUDGET;
+        ensure_row(w, j);
+        /* Optimistic full step: the G-I path ends at the KKT point of W + j exactly when no
+         * multiplier crosses zero on the way, i.e. when its multipliers are ≥ 0.  (Skipped at
+         * k = n: k + 1 rows in n variables are dependent.) */
+        w->buf[k] = j;
+        if (k < n) {
+            ++solves;
+            if (solve_working(w, k + 1, w->lwj) == 0 && min_ineq(w->lwj, p, k + 1) >= 0.0) {
+                ++k;
+                w->W[j] = 1;
+                memcpy(lw, w->lwj, (size_t)k * sizeof(double));
+                exact = 1;
+                row_values(w, k, lw);
+                continue;
+            }
+        }
+        exact = 0;
+        /* G-I steps for row j: raise λ_j, keeping the working rows tight (dλ_W = −S_WW⁻¹ S_Wj per
+         * unit); a working inequality whose multiplier reaches zero first is dropped. */
+        const double Sjj = w->S[(size_t)j * r + j];
+        double lam_j = 0.0;
+        for (;;) {
+            double curv, t1 = INFINITY;
+            int il = -1;
+            if (k) {
+                for (int a = 0; a < k; ++a) w->rhs[a] = w->S[(size_t)j * r + w->buf[a]];
+                ++solves;
+                if (solve_rows(w, w->buf, k, w->rhs, w->dl)) return GI_DEPENDENT;
+                curv = Sjj - dot(w->rhs, w->dl, k);
+                for (int a = p; a < k; ++a)
+                    if (w->dl[a] > 0.0 && lw[a] / w->dl[a] < t1) t1 = lw[a] / w->dl[a], il = a;
+                if (t1 < 0.0) t1 = 0.0;
+            } else {
+                curv = Sjj;
+            }
+            double t2 = curv > 1e-12 * Sjj ? vj / curv : INFINITY;
+            if (t1 == INFINITY && t2 == INFINITY) return GI_INFEASIBLE;
+            double t = t1 < t2 ? t1 : t2;
+            for (int a = 0; a < k; ++a) lw[a] -= t * w->dl[a];
+            lam_j += t;
+            if (t2 <= t1) { /* row j is tight: it joins (it sits at buf[k] already) */
+                w->W[j] = 1;
+                lw[k++] = lam_j;
+                break;
+            }
+            /* Drop the working row at il: the last working row takes its place, j moves down. */
+            w->W[w->buf[il]] = 0;
+            int last = k - 1;
+            w->buf[il] = w->buf[last];
+            w->buf[last] = j;
+            lw[il] = lw[last];
+            k = last;
+            vj -= t * curv;
+            if (++steps > max_steps) return GI_BUDGET;
+        }
+        row_values(w, k, lw);
+    }
+    if (!exact) { /* exact multipliers of the final working set (drops the incremental rounding) */
+        ++solves;
+        if (solve_working(w, k, lw)) return GI_DEPENDENT;
+    }
+    *solves_out = solves;
+    return certify(w, k, lw, tol_p, tol_d, tol_r, x_out, y_out, z_out);
+}
+
+/*
+ * Batch entry point.  Row-major float64 arrays: P [B, n, n] (symmetric), q [B, n], A [B, p, n],
+ * b [B, p], G [B, m, n], h [B, m], z0 [B, m] or NULL; outputs x [B, n], y [B, p], z [B, m],
+ * status [B] (GI_* codes), solves [B] (k × k factorisations, the numpy code's iteration count).
+ * Returns 0, or -1 if the workspace could not be allocated (statuses then say GI_NO_MEMORY).
+ */
+int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
+                const double *P, const double *q, const double *A, const double *b,
+                const double *G, const double *h, const double *z0, double tol, int64_t max_steps,
+                double *x, double *y, double *z, int64_t *status, int64_t *solves) {
+    const int64_t r = p + m;
+    const size_t nd = (size_t)(n * n + r * n + r * r + 4 * r + 3 * (r + 1) + (r + 1) + (r + 1) * (r + 1) + 3 * n + (r > n ? r : n) + 8);
+    double *mem = (double *)malloc(nd * sizeof(double) + (size_t)(2 * r + 8) + (size_t)(r + 2) * sizeof(int));
+    if (!mem) {
+        for (int64_t i = 0; i < B; ++i) status[i] = GI_NO_MEMORY, solves[i] = 0;
+        return -1;
+    }
+    gi_ws w;
+    w.n = (int)n, w.p = (int)p, w.m = (int)m, w.r = (int)r;
+    double *cur = mem;
+    w.L = cur, cur += n * n;
+    w.M = cur, cur += r * n;
+    w.S = cur, cur += r * r;
+    w.x0 = cur, cur += n;
+    w.v0 = cur, cur += r;
+    w.v = cur, cur += r;
+    w.ginv = cur, cur += r;
+    w.rhs = cur, cur += r + 1;
+    w.lw = cur, cur += r + 1;
+    w.lwj = cur, cur += r + 1;
+    w.dl = cur, cur += r + 1;
+    w.K = cur, cur += (r + 1) * (r + 1);
+    w.x = cur, cur += n;
+    w.g = cur, cur += n;
+    w.t = cur, cur += (r > n ? r : n) + 1;
+    w.buf = (int *)(mem + nd);
+    w.have = (unsigned char *)(w.buf + r + 2);
+    w.W = w.have + r + 1;
+    for (int64_t i = 0; i < B; ++i) {
+        w.P = P + i * n * n, w.q = q + i * n, w.A = A + i * p * n, w.b = b + i * p;
+        w.G = G + i * m * n, w.h = h + i * m;
+        status[i] = solve_one(&w, z0 ? z0 + i * m : NULL, tol, (int)max_steps,
+                              x + i * n, y + i * p, z + i * m, solves + i);
+    }
+    free(mem);
+    return 0;
+}
