@@ -51,7 +51,7 @@ def rotation_log(rot: Array) -> Array:
     s = xp.sqrt((v * v).sum(-1))[..., None]
     c = 0.5 * (rot[..., 0, 0] + rot[..., 1, 1] + rot[..., 2, 2] - 1.0)[..., None]
     theta = xp.arctan2(s, c)
-    scale = xp.where(s > 1e-9, theta / xp.clip(s, min=1e-12), 1.0 + theta * theta / 6.0)  # θ / sin θ
+    scale = xp.where(s > 1e-9, theta / s.clip(1e-12), 1.0 + theta * theta / 6.0)  # θ / sin θ
     return scale * v
 
 

@@ -243,7 +243,7 @@ class JointLimitsViability(Limit):
             return None
         xp, n = ctx.xp, ctx.mass.shape[-1]
         diag = ctx.mass.reshape(-1, n * n)[:, ::n + 1]  # B_ii (a strided view; diagonal() is spelled differently)
-        room = xp.clip(const(self.tau_max, ctx.q) - xp.abs(ctx.bias), min=0.0)
+        room = (const(self.tau_max, ctx.q) - xp.abs(ctx.bias)).clip(0.0)
         ddq_max = const(self.ddq_max, ctx.q)
         # (the lower bound min_stop_fraction · ddq_max > 0 also clips negative values)
         return xp.maximum(xp.minimum(self.torque_share * room / diag, ddq_max), self.min_stop_fraction * ddq_max)
