@@ -135,6 +135,12 @@ class PandaSim:
         m = self.model
         self._gathered = {"sensordata": np.zeros((n, m.nsensordata)), "site_xpos": np.zeros((n, m.nsite, 3)),
                           "site_xmat": np.zeros((n, m.nsite, 9)), "subtree_com": np.zeros((n, m.nbody, 3))}
+        # the per-arm arguments of the MuJoCo calls in observe()/step(), made once: at N = 64 building the views
+        # (self._jac[i, :3], ...) each step cost as much as the calls themselves
+        self._fullM = (lambda d, dst: mujoco.mj_fullM(m, dst, d.qM)) if hasattr(self.datas[0], "qM") else (
+            lambda d, dst: mujoco.mj_fullM(m, d, dst))  # MuJoCo 3.x / >= 4 signatures (see full_mass_matrix)
+        self._observe_args = [(d, self._mass[i], self._jac[i, :3], self._jac[i, 3:], self._jac_dot[i, :3],
+                               self._jac_dot[i, 3:], self._views["cs_pos"][i]) for i, d in enumerate(self.datas)]
         self.reset(np.broadcast_to(np.asarray(q0, dtype=np.float64), (n, 7)))
 
     @property
@@ -173,12 +179,13 @@ class PandaSim:
                 d.xfrc_applied[:] = 0.0
             self._tau_push[:] = 0.0
             self._pushed = False
-        for i, d in enumerate(self.datas):
-            mujoco.mj_step1(m, d)  # kinematics, B(q), h + g, sensors at the current state
-            full_mass_matrix(m, d, self._mass[i])
+        step1, full_m, jac_site, jac_dot = mujoco.mj_step1, self._fullM, mujoco.mj_jacSite, mujoco.mj_jacDot
+        for d, mass, jacp, jacr, jdp, jdr, cs_pos in self._observe_args:
+            step1(m, d)  # kinematics, B(q), h + g, sensors at the current state
+            full_m(d, mass)
             if cs >= 0:
-                mujoco.mj_jacSite(m, d, self._jac[i, :3], self._jac[i, 3:], cs)
-                mujoco.mj_jacDot(m, d, self._jac_dot[i, :3], self._jac_dot[i, 3:], v["cs_pos"][i], cs_body)
+                jac_site(m, d, jacp, jacr, cs)
+                jac_dot(m, d, jdp, jdr, cs_pos, cs_body)
         stack, g = np.stack, self._gathered
         for name in ("q", "qd", "bias"):
             stack(v[name], out=getattr(self, "_" + name))
@@ -241,10 +248,10 @@ class PandaSim:
     def step(self, tau: torch.Tensor | np.ndarray) -> None:
         """Apply joint torques [N, 7] (N m, clipped by the motors' ranges) and run mj_step2 on every arm."""
         tau = tau.detach().cpu().numpy() if isinstance(tau, torch.Tensor) else np.asarray(tau, dtype=np.float64)
-        m = self.model
+        m, step2 = self.model, mujoco.mj_step2
         for d, ctrl, t in zip(self.datas, self._views["ctrl"], tau):
             ctrl[:] = t
-            mujoco.mj_step2(m, d)
+            step2(m, d)
         np.add(np.stack(self._views["qfrc_constraint"]), np.stack(self._views["qfrc_applied"]), out=self._tau_ext)
         if self._pushed:
             self._tau_ext += self._tau_push[:, :7]
