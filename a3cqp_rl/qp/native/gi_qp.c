@@ -59,13 +59,14 @@ enum {
 typedef struct {
     int n, p, m, r;
     const double *P, *q, *A, *b, *G, *h;
-    double *L;           /* n × n Cholesky factor of P (lower) */
-    double *M;           /* r × n: row i = L⁻¹ C_iᵀ */
+    double *L, *Linv;    /* n × n Cholesky factor of P (lower), 1 / its diagonal */
+    double *Ct;          /* n × r: Cᵀ (row-value products C x in axpy form: no reduction chains) */
+    double *Mt;          /* n × r: M = L⁻¹Cᵀ */
     double *S;           /* r × r, rows (and the matching columns) filled on demand */
     unsigned char *have; /* have[i]: row i of S computed */
     unsigned char *W;    /* working-set membership */
     int *buf;            /* working rows buf[0..k) (equalities first), buf[k] = row on trial */
-    double *x0, *v0, *v, *ginv, *lw, *lwj, *dl, *rhs, *K, *x, *g, *t;
+    double *x0, *v0, *v, *ginv, *lw, *lwj, *dl, *rhs, *K, *Kinv, *x, *g, *t;
 } gi_ws;
 
 static const double *crow(const gi_ws *w, int i) { return i < w->p ? w->A + (size_t)i * w->n : w->G + (size_t)(i - w->p) * w->n; }
@@ -77,48 +78,71 @@ static double dot(const double *a, const double *b, int n) {
     return s;
 }
 
-/* L y = b (L lower, row-major n × n). */
-static void fwd_sub(const double *L, int n, const double *b, double *y) {
-    for (int i = 0; i < n; ++i) y[i] = (b[i] - dot(L + (size_t)i * n, y, i)) / L[(size_t)i * n + i];
+/* L y = b (L lower, row-major n × n, dinv = 1 / its diagonal: multiplications, not divisions,
+ * on the dependency chain). */
+static void fwd_sub(const double *L, const double *dinv, int n, const double *b, double *y) {
+    for (int i = 0; i < n; ++i) y[i] = (b[i] - dot(L + (size_t)i * n, y, i)) * dinv[i];
 }
 
-/* Lᵀ y = b. */
-static void bwd_sub_t(const double *L, int n, const double *b, double *y) {
+/* Lᵀ y = b, column-oriented: once y_i is known it is eliminated from all earlier equations. */
+static void bwd_sub_t(const double *L, const double *dinv, int n, const double *b, double *y) {
+    if (y != b) memcpy(y, b, (size_t)n * sizeof(double));
     for (int i = n - 1; i >= 0; --i) {
-        double s = b[i];
-        for (int k = i + 1; k < n; ++k) s -= L[(size_t)k * n + i] * y[k];
-        y[i] = s / L[(size_t)i * n + i];
+        y[i] *= dinv[i];
+        const double *Li = L + (size_t)i * n, yi = y[i];
+        for (int k = 0; k < i; ++k) y[k] -= Li[k] * yi;
     }
 }
 
-/* In-place lower Cholesky of the k × k row-major K; pivots must exceed rel × the original
- * diagonal (rel = 0: only positivity, as LAPACK dpotrf).  Returns 0, or -1 if not definite. */
-static int cholesky(double *K, int k, double rel) {
+/* In-place lower Cholesky of the k × k row-major K (1 / diagonal into dinv); pivots must exceed
+ * rel × the original diagonal (rel = 0: only positivity, as LAPACK dpotrf).  0, or -1 if not definite. */
+static int cholesky(double *K, double *dinv, int k, double rel) {
     for (int j = 0; j < k; ++j) {
         double *Kj = K + (size_t)j * k;
         double d = Kj[j] - dot(Kj, Kj, j);
         if (!(d > rel * Kj[j])) return -1; /* also catches NaN */
-        double ljj = sqrt(d);
+        double ljj = sqrt(d), inv = 1.0 / ljj;
         Kj[j] = ljj;
+        dinv[j] = inv;
         for (int i = j + 1; i < k; ++i) {
             double *Ki = K + (size_t)i * k;
-            Ki[j] = (Ki[j] - dot(Ki, Kj, j)) / ljj;
+            Ki[j] = (Ki[j] - dot(Ki, Kj, j)) * inv;
         }
     }
     return 0;
 }
 
-/* Row i of S = M Mᵀ (and its column, by symmetry), computed once. */
+/* y = Xᵀ u for X n × r row-major (y has r entries): axpy form, independent across y. */
+static void mtv(const double *X, int n, int r, const double *u, double *y) {
+    memset(y, 0, (size_t)r * sizeof(double));
+    for (int k = 0; k < n; ++k) {
+        const double *Xk = X + (size_t)k * r, uk = u[k];
+        for (int c = 0; c < r; ++c) y[c] += uk * Xk[c];
+    }
+}
+
+/* Row i of S = MᵀM (and its column, by symmetry), computed once. */
 static void ensure_row(gi_ws *w, int i) {
     if (w->have[i]) return;
     const int r = w->r, n = w->n;
-    const double *Mi = w->M + (size_t)i * n;
-    for (int c = 0; c < r; ++c) {
-        double s = dot(Mi, w->M + (size_t)c * n, n);
-        w->S[(size_t)i * r + c] = s;
-        w->S[(size_t)c * r + i] = s;
+    double *Si = w->S + (size_t)i * r;
+    memset(Si, 0, (size_t)r * sizeof(double));
+    for (int k = 0; k < n; ++k) {
+        const double *Mk = w->Mt + (size_t)k * r, a = Mk[i];
+        for (int c = 0; c < r; ++c) Si[c] += a * Mk[c];
     }
+    for (int c = 0; c < r; ++c) w->S[(size_t)c * r + i] = Si[c];
     w->have[i] = 1;
+}
+
+/* Whether all of a[0..len) are finite: x·0 is 0 for finite x and NaN for NaN or ±inf (four
+ * independent sums: no long addition chain). */
+static int finite_all(const double *a, int len) {
+    double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0;
+    int i = 0;
+    for (; i + 4 <= len; i += 4) s0 += a[i] * 0.0, s1 += a[i + 1] * 0.0, s2 += a[i + 2] * 0.0, s3 += a[i + 3] * 0.0;
+    for (; i < len; ++i) s0 += a[i] * 0.0;
+    return (s0 + s1) + (s2 + s3) == 0.0;
 }
 
 /* Solve S_RR y = rhs for the k rows R (their rows of S ensured); -1 if S_RR is not definite. */
@@ -128,9 +152,9 @@ static int solve_rows(gi_ws *w, const int *R, int k, const double *rhs, double *
         const double *Sa = w->S + (size_t)R[a] * r;
         for (int c = 0; c <= a; ++c) w->K[(size_t)a * k + c] = Sa[R[c]];
     }
-    if (cholesky(w->K, k, DEP_REL)) return -1;
-    fwd_sub(w->K, k, rhs, w->t);
-    bwd_sub_t(w->K, k, w->t, y);
+    if (cholesky(w->K, w->Kinv, k, DEP_REL)) return -1;
+    fwd_sub(w->K, w->Kinv, k, rhs, w->t);
+    bwd_sub_t(w->K, w->Kinv, k, w->t, y);
     return 0;
 }
 
@@ -182,18 +206,19 @@ static int certify(gi_ws *w, int k, const double *lw, double tol_p, double tol_d
         const double *Ca = crow(w, w->buf[a]);
         for (int c = 0; c < n; ++c) w->g[c] += lw[a] * Ca[c];
     }
-    fwd_sub(w->L, n, w->g, w->t);
-    bwd_sub_t(w->L, n, w->t, w->x);
+    fwd_sub(w->L, w->Linv, n, w->g, w->t);
+    bwd_sub_t(w->L, w->Linv, n, w->t, w->x);
     for (int c = 0; c < n; ++c) w->x[c] = w->x0[c] - w->x[c];
     double e2 = 0.0;
+    mtv(w->P, n, n, w->x, w->t); /* P x (P symmetric) */
     for (int i = 0; i < n; ++i) {
-        double e = dot(w->P + (size_t)i * n, w->x, n) + w->q[i] + w->g[i];
+        double e = w->t[i] + w->q[i] + w->g[i];
         e2 += e * e;
     }
     /* Row values at x: working rows enter the residual, inequality rows the feasibility test. */
     double vmax = -INFINITY;
-    memset(w->t, 0, (size_t)r * sizeof(double));
-    for (int i = 0; i < r; ++i) w->t[i] = dot(crow(w, i), w->x, n) - cval(w, i);
+    mtv(w->Ct, n, r, w->x, w->t);
+    for (int i = 0; i < r; ++i) w->t[i] -= cval(w, i);
     for (int a = 0; a < k; ++a) e2 += w->t[w->buf[a]] * w->t[w->buf[a]];
     for (int i = p; i < r; ++i)
         if (!(w->t[i] <= vmax)) vmax = w->t[i];
@@ -217,30 +242,32 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps,
     const int n = w->n, p = w->p, m = w->m, r = w->r;
     *solves_out = 0;
     /* Tolerance scales as in active_set.residual_scales: 1 + |(b, h)|∞ primal, 1 + |q|∞ dual. */
-    double sp = 0.0, sd = 0.0, fin = 0.0;
-    for (int i = 0; i < n * n; ++i) fin += w->P[i] * 0.0;
-    for (int i = 0; i < p * n; ++i) fin += w->A[i] * 0.0;
-    for (int i = 0; i < m * n; ++i) fin += w->G[i] * 0.0;
-    for (int i = 0; i < n; ++i) { fin += w->q[i] * 0.0; sd = fmax(sd, fabs(w->q[i])); }
-    for (int i = 0; i < p; ++i) { fin += w->b[i] * 0.0; sp = fmax(sp, fabs(w->b[i])); }
-    for (int i = 0; i < m; ++i) { fin += w->h[i] * 0.0; sp = fmax(sp, fabs(w->h[i])); }
-    if (z0)
-        for (int i = 0; i < m; ++i) fin += z0[i] * 0.0;
-    if (fin != 0.0) return GI_NONFINITE; /* x·0 is NaN exactly when x is NaN or ±inf */
+    double sp = 0.0, sd = 0.0;
+    for (int i = 0; i < n; ++i) sd = fmax(sd, fabs(w->q[i]));
+    for (int i = 0; i < p; ++i) sp = fmax(sp, fabs(w->b[i]));
+    for (int i = 0; i < m; ++i) sp = fmax(sp, fabs(w->h[i]));
+    if (!finite_all(w->P, n * n) || !finite_all(w->A, p * n) || !finite_all(w->G, m * n) || !finite_all(w->q, n)
+        || !finite_all(w->b, p) || !finite_all(w->h, m) || (z0 && !finite_all(z0, m)))
+        return GI_NONFINITE;
     const double tol_p = tol * (1.0 + sp), tol_d = tol * (1.0 + sd);
     const double tol_r = r ? fmin(tol_p, tol_d) : tol_d;
 
     memcpy(w->L, w->P, (size_t)n * n * sizeof(double));
-    if (cholesky(w->L, n, 0.0)) return GI_NOT_DEFINITE;
+    if (cholesky(w->L, w->Linv, n, 0.0)) return GI_NOT_DEFINITE;
     /* x₀ = −P⁻¹q */
     for (int c = 0; c < n; ++c) w->g[c] = -w->q[c];
-    fwd_sub(w->L, n, w->g, w->t);
-    bwd_sub_t(w->L, n, w->t, w->x0);
+    fwd_sub(w->L, w->Linv, n, w->g, w->t);
+    bwd_sub_t(w->L, w->Linv, n, w->t, w->x0);
     memset(w->have, 0, (size_t)r);
     memset(w->W, 0, (size_t)r);
+    for (int i = 0; i < r; ++i) {
+        const double *Ci = crow(w, i);
+        for (int c = 0; c < n; ++c) w->Ct[(size_t)c * r + i] = Ci[c];
+    }
+    mtv(w->Ct, n, r, w->x0, w->v0);
     double vmax = -INFINITY;
     for (int i = 0; i < r; ++i) {
-        w->v0[i] = dot(crow(w, i), w->x0, n) - cval(w, i);
+        w->v0[i] -= cval(w, i);
         if (i >= p && !(w->v0[i] <= vmax)) vmax = w->v0[i];
     }
     int k = p;
@@ -253,7 +280,19 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps,
         *solves_out = 1;
         return certify(w, 0, w->lw, tol_p, tol_d, tol_r, x_out, y_out, z_out);
     }
-    for (int i = 0; i < r; ++i) fwd_sub(w->L, n, crow(w, i), w->M + (size_t)i * n);
+    /* Mt = L⁻¹ Cᵀ, forward substitution on all r right-hand sides at once (row a of Mt is an
+     * axpy combination of the rows above it). */
+    for (int a = 0; a < n; ++a) {
+        double *Ma = w->Mt + (size_t)a * r;
+        const double *La = w->L + (size_t)a * n;
+        memcpy(Ma, w->Ct + (size_t)a * r, (size_t)r * sizeof(double));
+        for (int b2 = 0; b2 < a; ++b2) {
+            const double *Mb = w->Mt + (size_t)b2 * r, lab = La[b2];
+            for (int c = 0; c < r; ++c) Ma[c] -= lab * Mb[c];
+        }
+        const double inv = w->Linv[a];
+        for (int c = 0; c < r; ++c) Ma[c] *= inv;
+    }
     for (int i = p; i < r; ++i) w->ginv[i] = 1.0 / (sqrt(dot(crow(w, i), crow(w, i), n)) + 1e-300);
 
     int64_t solves = 0;
@@ -431,7 +470,7 @@ int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
                 const double *G, const double *h, const double *z0, double tol, int64_t max_steps,
                 double *x, double *y, double *z, int64_t *status, int64_t *solves) {
     const int64_t r = p + m;
-    const size_t nd = (size_t)(n * n + r * n + r * r + 4 * r + 3 * (r + 1) + (r + 1) + (r + 1) * (r + 1) + 3 * n + (r > n ? r : n) + 8);
+    const size_t nd = (size_t)(2 * n * n + 2 * r * n + r * r + 4 * r + (r + 1) + 3 * (r + 1) + (r + 1) + (r + 1) * (r + 1) + 3 * n + (r > n ? r : n) + 8);
     double *mem = (double *)malloc(nd * sizeof(double) + (size_t)(2 * r + 8) + (size_t)(r + 2) * sizeof(int));
     if (!mem) {
         for (int64_t i = 0; i < B; ++i) status[i] = GI_NO_MEMORY, solves[i] = 0;
@@ -441,7 +480,10 @@ int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
     w.n = (int)n, w.p = (int)p, w.m = (int)m, w.r = (int)r;
     double *cur = mem;
     w.L = cur, cur += n * n;
-    w.M = cur, cur += r * n;
+    w.Linv = cur, cur += n;
+    w.Kinv = cur, cur += r + 1;
+    w.Ct = cur, cur += r * n;
+    w.Mt = cur, cur += r * n;
     w.S = cur, cur += r * r;
     w.x0 = cur, cur += n;
     w.v0 = cur, cur += r;
