@@ -1,0 +1,243 @@
+"""Tests of the C dual active set (a3cqp_rl/qp/native): same answers, multipliers and statuses as the numpy path and Clarabel, and its fallbacks."""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import a3cqp_rl.qp.small_batch as small
+from a3cqp_rl.qp import QPStatus, native, solve_qp
+from a3cqp_rl.qp.random_qp import RandomQP, clarabel_reference, random_qp_batch
+
+DT = torch.float64
+HAVE_CC = any(shutil.which(c) for c in ("cc", "gcc")) or bool(os.environ.get("CC"))
+needs_cc = pytest.mark.skipif(not HAVE_CC, reason="no C compiler: the native routine cannot be built")
+
+
+@pytest.fixture
+def numpy_only(monkeypatch):
+    """Context in which the small-batch path runs its numpy code (the reference)."""
+
+    def use(flag: bool) -> None:
+        monkeypatch.setattr(small, "NATIVE", not flag)
+
+    return use
+
+
+@pytest.fixture
+def fresh_native(monkeypatch, tmp_path):
+    """A forgotten native routine, a fresh cache dir; restored (forgotten again) afterwards."""
+    monkeypatch.setenv("A3CQP_CACHE_DIR", str(tmp_path / "cache"))
+    native._reset()
+    yield tmp_path / "cache"
+    monkeypatch.undo()
+    native._reset()
+
+
+def stacked(qp: RandomQP) -> tuple[np.ndarray, ...]:
+    """(P, q, A, b, G, h) float64 numpy with bounds stacked under G, as solve_qp hands them to active_set_small."""
+    B, n = qp.q.shape
+    A = qp.A.numpy() if qp.A is not None else np.zeros((B, 0, n))
+    b = qp.b.numpy() if qp.b is not None else np.zeros((B, 0))
+    G, h = qp.G.numpy(), qp.h.numpy()
+    if qp.lb is not None:
+        eye = np.broadcast_to(np.eye(n), (B, n, n))
+        G = np.concatenate([G, -eye, eye], 1)
+        h = np.concatenate([h, -qp.lb.numpy(), qp.ub.numpy()], 1)
+    return qp.P.numpy(), qp.q.numpy(), A, b, np.ascontiguousarray(G), np.ascontiguousarray(h)
+
+
+# Controller-sized families: easy, heavily constrained, equality-constrained (with bounds), larger.
+FAMILIES = [
+    (dict(m=30), 100),
+    (dict(m=30, spread=0.35), 100),
+    (dict(m=30, spread=1.0), 100),
+    (dict(m=40, p=3, bounds=True, spread=0.35), 100),
+    (dict(m=30, p=5, spread=1.0), 60),
+    (dict(n=20, m=50, p=4, spread=0.5), 60),
+]
+
+
+@needs_cc
+def test_native_routine_is_built_and_taken(monkeypatch) -> None:
+    assert native.load() is not None and small.NATIVE
+
+    def fail(*args, **kwargs):
+        raise AssertionError("numpy path taken")
+
+    for name in ("_range_space", "_warm_one_solve", "_dual_active_set"):
+        monkeypatch.setattr(small, name, fail)
+    qp = random_qp_batch(1, spread=0.35, seed=1001)  # the instance bench/qp.py times at B = 1
+    cold = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h)
+    warm = solve_qp(qp.P, qp.q + 1e-6, G=qp.G, h=qp.h, warm_start=cold)
+    assert bool(cold.solved.all()) and bool(warm.solved.all()) and warm.iterations.tolist() == [1]
+    x_ref, _ = clarabel_reference(qp)
+    assert (cold.x - x_ref).abs().max().item() <= 1e-9
+
+
+@needs_cc
+@pytest.mark.parametrize("family", range(len(FAMILIES)))
+def test_native_matches_numpy_and_clarabel(family: int) -> None:
+    # 520 instances in all; every one certified by the C routine, with the numpy path's working
+    # set (same x and multipliers up to rounding) and Clarabel's x.
+    kw, B = FAMILIES[family]
+    qp = random_qp_batch(B, seed=500 + family, **kw)
+    args = stacked(qp)
+    solve = native.load()
+    x, y, z, status, solves = solve(*args, None, 1e-9, 100)
+    assert (status == native.CERTIFIED).all()
+    small_native = small.NATIVE
+    try:
+        small.NATIVE = False
+        x_np, y_np, z_np, outcome, solves_np = small.active_set_small(*args, None, 1e-9, 100)
+    finally:
+        small.NATIVE = small_native
+    assert (outcome == small.CERTIFIED).all()
+    assert np.abs(x - x_np).max() <= 1e-10
+    assert np.abs(z - z_np).max() <= 1e-8 and (np.abs(y - y_np).max() if y.size else 0.0) <= 1e-8
+    assert ((z > 0) == (z_np > 0)).all() and (z >= 0).all()
+    # At most the numpy path's KKT solves (it also tries k + 1 > n rows, which the C code skips).
+    assert (solves <= solves_np).all() and solves.mean() >= 0.9 * solves_np.mean()
+    x_ref, statuses = clarabel_reference(qp)
+    assert set(statuses) == {"optimal"}
+    assert np.abs(x - x_ref.numpy()).max() <= 1e-8
+    # Warm start from the solution: one solve; from the solution of a perturbed q: the cold answer.
+    xw, _, zw, sw, solves_w = solve(*args, z, 1e-9, 100)
+    assert (sw == 0).all() and (solves_w == 1).all() and np.abs(xw - x).max() <= 1e-10
+    P, q, A, b, G, h = args
+    q2 = q + 0.05 * np.random.default_rng(family).standard_normal(q.shape)
+    x2, y2, z2, s2, _ = solve(P, q2, A, b, G, h, z, 1e-9, 100)
+    x2c, y2c, z2c, s2c, _ = solve(P, q2, A, b, G, h, None, 1e-9, 100)
+    assert (s2 == 0).all() and (s2c == 0).all()
+    assert np.abs(x2 - x2c).max() <= 1e-10 and np.abs(z2 - z2c).max() <= 1e-8
+
+
+@needs_cc
+def test_solve_qp_with_and_without_native_agree_including_gradients(numpy_only) -> None:
+    qp = random_qp_batch(6, n=8, m=12, p=1, bounds=True, spread=0.2, seed=21)
+    w = torch.randn(6, 8, generator=torch.Generator().manual_seed(3), dtype=DT)
+
+    def run(warm=None):
+        leaves = [t.clone().requires_grad_() for t in qp.args()]
+        sol = solve_qp(*leaves, warm_start=warm)
+        (sol.x * w).sum().backward()
+        return sol, [t.grad for t in leaves]
+
+    sol, g = run()
+    warm, gw = run(sol)
+    numpy_only(True)
+    sol_np, g_np = run()
+    warm_np, gw_np = run(sol_np)
+    for a, b in ((sol, sol_np), (warm, warm_np)):
+        assert (a.status == b.status).all() and bool(a.solved.all())
+        for f in ("x", "y", "z", "z_lb", "z_ub"):
+            assert (getattr(a, f) - getattr(b, f)).abs().max() <= 1e-9
+    for a, b in zip(g + gw, g_np + gw_np):
+        assert (a - b).abs().max() <= 1e-8
+
+
+@needs_cc
+def test_float32_inputs(numpy_only) -> None:
+    qp = random_qp_batch(8, p=2, bounds=True, spread=0.35, seed=9)
+    args32 = [t.float() for t in qp.args()]
+    sol = solve_qp(*args32)
+    numpy_only(True)
+    ref = solve_qp(*args32)
+    assert sol.x.dtype == torch.float32 and sol.z.dtype == torch.float32 and bool(sol.solved.all())
+    assert (sol.x - ref.x).abs().max() <= 1e-6 and (sol.z - ref.z).abs().max() <= 1e-5
+    assert (sol.x.double() - solve_qp(*qp.args()).x).abs().max() < 1e-3
+
+
+def _hard_batch() -> tuple[torch.Tensor, ...]:
+    """Feasible, infeasible, NaN, singular-P (LP) and dependent-row instances in one batch."""
+    qp = random_qp_batch(6, n=5, m=8, spread=0.2, seed=4)
+    P, q, G, h = qp.P.clone(), qp.q.clone(), qp.G.clone(), qp.h.clone()
+    G[1, 0], h[1, 0] = torch.eye(5, dtype=DT)[0], -1.0  # x0 ≤ −1 and x0 ≥ 1: infeasible
+    G[1, 1], h[1, 1] = -torch.eye(5, dtype=DT)[0], -1.0
+    q[2, 0] = torch.nan
+    P[3] = 0.0  # LP, bounded by a box below
+    G[3, :5], h[3, :5] = torch.eye(5, dtype=DT), torch.ones(5, dtype=DT)
+    G[3, 5:], h[3, 5:] = -torch.eye(5, dtype=DT)[:3], torch.ones(3, dtype=DT)
+    G[4, 1], h[4, 1] = G[4, 0], h[4, 0]  # a duplicated row
+    P[5, 0, 0] = -1.0  # indefinite
+    return P, q, G, h
+
+
+@needs_cc
+def test_infeasible_unbounded_nan_and_singular_instances_fall_back_with_the_same_statuses(numpy_only) -> None:
+    P, q, G, h = _hard_batch()
+    status = native.load()(*(t.numpy() for t in (P, q)), np.zeros((6, 0, 5)), np.zeros((6, 0)), G.numpy(), h.numpy(), None, 1e-9, 100)[3]
+    assert (status[[1, 2, 3, 5]] != native.CERTIFIED).all()  # infeasible, NaN, P singular, P indefinite
+    sol = solve_qp(P, q, G=G, h=h)
+    assert sol.status[1] == QPStatus.PRIMAL_INFEASIBLE and sol.status[2] != QPStatus.SOLVED
+    assert torch.isfinite(sol.x).all() and torch.isfinite(sol.z).all()
+    # Unbounded: P = diag(1, 0), x1 free with cost −x1 and only bounded below.
+    Pu = torch.diag(torch.tensor([1.0, 0.0], dtype=DT)).expand(2, 2, 2)
+    unb_args = (Pu, torch.tensor([[1.0, 1.0], [1.0, -1.0]], dtype=DT))
+    unb_kw = dict(G=torch.tensor([[0.0, -1.0]], dtype=DT).expand(2, 1, 2), h=torch.zeros(2, 1, dtype=DT))
+    unb = solve_qp(*unb_args, **unb_kw)
+    assert unb.status.tolist() == [QPStatus.SOLVED, QPStatus.DUAL_INFEASIBLE]
+    numpy_only(True)
+    ref = solve_qp(P, q, G=G, h=h)
+    assert sol.status.tolist() == ref.status.tolist()
+    ok = ref.solved
+    assert (sol.x[ok] - ref.x[ok]).abs().max() <= 1e-9
+    assert solve_qp(*unb_args, **unb_kw).status.tolist() == unb.status.tolist()
+
+
+@needs_cc
+def test_dependent_warm_rows_restart_cold(numpy_only) -> None:
+    # Both copies of a duplicated active row carry multipliers in the warm start: S_WW is singular,
+    # the C code starts cold, and the answer is the one without the copy.
+    qp = random_qp_batch(8, n=6, m=10, p=1, spread=0.2, seed=11)
+    G, h = torch.cat([qp.G, qp.G], 1), torch.cat([qp.h, qp.h], 1)
+    base = solve_qp(qp.P, qp.q, qp.A, qp.b, qp.G, qp.h)
+    z_dup = torch.cat([base.z, base.z], 1)
+    warm = solve_qp(qp.P, qp.q, qp.A, qp.b, G, h, warm_start=type(base)(base.x, base.y, z_dup, base.z_lb, base.z_ub, base.status, base.iterations))
+    assert bool(warm.solved.all()) and (warm.x - base.x).abs().max() < 1e-9
+
+
+def test_missing_compiler_falls_back_to_numpy_with_one_warning(fresh_native, monkeypatch, caplog, numpy_only) -> None:
+    monkeypatch.setenv("A3CQP_CC", str(fresh_native.parent / "no-such-dir" / "cc"))
+    qp = random_qp_batch(4, spread=0.35, seed=7)
+    with caplog.at_level(logging.WARNING, logger="a3cqp_rl.qp.native"):
+        assert native.load() is None
+        sol = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h)
+        sol2 = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h, warm_start=sol)
+        assert native.load() is None
+    warnings = [r for r in caplog.records if r.name == "a3cqp_rl.qp.native"]
+    assert len(warnings) == 1 and "numpy path" in warnings[0].getMessage()
+    assert not fresh_native.exists() or not list(fresh_native.glob("*.so"))
+    numpy_only(True)
+    ref = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h)
+    assert bool(sol.solved.all()) and bool(sol2.solved.all())
+    assert (sol.x - ref.x).abs().max() == 0 and (sol.z - ref.z).abs().max() == 0 and (sol2.x - ref.x).abs().max() < 1e-10
+
+
+def test_env_switch_disables_native(fresh_native, monkeypatch, caplog) -> None:
+    monkeypatch.setenv("A3CQP_NATIVE_QP", "0")
+    with caplog.at_level(logging.WARNING, logger="a3cqp_rl.qp.native"):
+        assert native.load() is None
+    assert not caplog.records and not fresh_native.exists()
+
+
+@needs_cc
+def test_build_goes_to_the_cache_atomically_and_is_reused(fresh_native) -> None:
+    # Two processes building into the same empty cache at once: both load a whole library, one
+    # file remains, no temporary left behind; a later load reuses it without compiling.
+    code = "from a3cqp_rl.qp import native; import sys; sys.exit(0 if native.load() is not None else 1)"
+    env = dict(os.environ, A3CQP_CACHE_DIR=str(fresh_native))
+    procs = [subprocess.Popen([sys.executable, "-c", code], env=env) for _ in range(2)]
+    assert [p.wait(timeout=300) for p in procs] == [0, 0]
+    files = sorted(f.name for f in fresh_native.iterdir())
+    assert len(files) == 1 and files[0].startswith("gi_qp-") and files[0].endswith(".so")
+    lib = fresh_native / files[0]
+    mtime = lib.stat().st_mtime_ns
+    assert native.load() is not None and lib.stat().st_mtime_ns == mtime
