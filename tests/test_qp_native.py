@@ -13,6 +13,7 @@ import pytest
 import torch
 
 import a3cqp_rl.qp.small_batch as small
+import a3cqp_rl.qp.solver as solver_mod
 from a3cqp_rl.qp import QPStatus, native, solve_qp
 from a3cqp_rl.qp.random_qp import RandomQP, clarabel_reference, random_qp_batch
 
@@ -119,28 +120,71 @@ def test_native_matches_numpy_and_clarabel(family: int) -> None:
     assert np.abs(x2 - x2c).max() <= 1e-10 and np.abs(z2 - z2c).max() <= 1e-8
 
 
+GRAD_FAMILIES = [
+    dict(n=8, m=12, p=1, bounds=True, spread=0.2),
+    dict(m=30, spread=0.35),
+    dict(m=30, p=3, spread=1.0),
+    dict(n=20, m=50, p=4, spread=0.5),
+]
+
+
 @needs_cc
-def test_solve_qp_with_and_without_native_agree_including_gradients(numpy_only) -> None:
-    qp = random_qp_batch(6, n=8, m=12, p=1, bounds=True, spread=0.2, seed=21)
-    w = torch.randn(6, 8, generator=torch.Generator().manual_seed(3), dtype=DT)
+@pytest.mark.parametrize("family", range(len(GRAD_FAMILIES)))
+def test_solve_qp_with_and_without_native_agree_including_gradients(family: int, numpy_only) -> None:
+    # Forward (cold and warm) and backward (the C adjoint vs the numpy one): same statuses,
+    # solutions, multipliers and gradients of all QP data.
+    qp = random_qp_batch(6, seed=40 + family, **GRAD_FAMILIES[family])
+    w = torch.randn(qp.q.shape, generator=torch.Generator().manual_seed(3), dtype=DT)
 
     def run(warm=None):
-        leaves = [t.clone().requires_grad_() for t in qp.args()]
+        leaves = [t.clone().requires_grad_() if t is not None else None for t in qp.args()]
         sol = solve_qp(*leaves, warm_start=warm)
         (sol.x * w).sum().backward()
-        return sol, [t.grad for t in leaves]
+        return sol, [t.grad for t in leaves if t is not None]
 
     sol, g = run()
     warm, gw = run(sol)
     numpy_only(True)
     sol_np, g_np = run()
     warm_np, gw_np = run(sol_np)
+    assert (sol.z > 0).any()  # active rows: the adjoint has work to do
     for a, b in ((sol, sol_np), (warm, warm_np)):
         assert (a.status == b.status).all() and bool(a.solved.all())
         for f in ("x", "y", "z", "z_lb", "z_ub"):
-            assert (getattr(a, f) - getattr(b, f)).abs().max() <= 1e-9
+            assert torch.allclose(getattr(a, f), getattr(b, f), rtol=0.0, atol=1e-9)
     for a, b in zip(g + gw, g_np + gw_np):
-        assert (a - b).abs().max() <= 1e-8
+        if a is None:
+            assert b is None
+            continue
+        assert (a - b).abs().max() <= 1e-8 * (1.0 + b.abs().max())
+
+
+@needs_cc
+def test_native_backward_is_taken_and_falls_back_for_singular_p(monkeypatch, numpy_only) -> None:
+    qp = random_qp_batch(2, spread=0.35, seed=8)
+    leaves = [t.clone().requires_grad_() for t in (qp.P, qp.q, qp.G, qp.h)]
+    monkeypatch.setattr(small, "adjoint_small", lambda *a, **k: pytest.fail("numpy adjoint taken"))
+    monkeypatch.setattr(solver_mod, "adjoint_small", lambda *a, **k: pytest.fail("numpy adjoint taken"))
+    solve_qp(leaves[0], leaves[1], G=leaves[2], h=leaves[3]).x.sum().backward()
+    assert all(t.grad is not None and torch.isfinite(t.grad).all() for t in leaves)
+    monkeypatch.undo()
+    # P = diag(1, 0) (semidefinite) with x1 held by an active row: the C adjoint (range space of
+    # P) declines, the numpy LU adjoint gives the gradient, as without the native routine.
+    P = torch.diag(torch.tensor([1.0, 0.0], dtype=DT)).expand(1, 2, 2).clone()
+    q, G, h = torch.tensor([[1.0, -1.0]], dtype=DT), torch.tensor([[[0.0, 1.0]]], dtype=DT), torch.tensor([[2.0]], dtype=DT)
+
+    def grads():
+        lv = [t.clone().requires_grad_() for t in (P, q, G, h)]
+        sol = solve_qp(*lv[:2], G=lv[2], h=lv[3])
+        (sol.x * torch.tensor([[0.3, 0.7]], dtype=DT)).sum().backward()
+        return sol, [t.grad for t in lv]
+
+    sol, g = grads()
+    assert bool(sol.solved.all()) and torch.allclose(sol.x, torch.tensor([[-1.0, 2.0]], dtype=DT))
+    numpy_only(True)
+    _, g_np = grads()
+    for a, b in zip(g, g_np):
+        assert (a - b).abs().max() <= 1e-12
 
 
 @needs_cc

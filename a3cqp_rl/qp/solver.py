@@ -88,7 +88,7 @@ from a3cqp_rl.qp.active_set import active_set_stage, residual_scales
 from a3cqp_rl.qp.exceptions import QPShapeError
 from a3cqp_rl.qp.interior_point import interior_point
 from a3cqp_rl.qp.kkt import LU_MAX_BATCH, eq_solve_alm, kkt_lu, kkt_schur, mv
-from a3cqp_rl.qp.small_batch import EXHAUSTED, SINGULAR, active_set_small, adjoint_small
+from a3cqp_rl.qp.small_batch import EXHAUSTED, SINGULAR, active_set_small, adjoint_small, gradients_native
 from a3cqp_rl.qp.status import QPStatus
 
 __all__ = ["QPStatus", "QPSolution", "solve_qp", "SMALL_BATCH_MAX", "SMALL_BATCH_MAX_WARM"]
@@ -388,14 +388,18 @@ def _backward_small(
         st = status.numpy()
         if st.any():  # some instance not SOLVED (= 0; an IntEnum operand would take numpy's object path)
             gxn = gxn * (st == 0)[:, None]
-    adj = adjoint_small(Ps, An, Gn, hn, xn, zn, gxn)
-    if adj is None:
-        return None
-    wx, wy, wz, active = adj
     dt = x.dtype
 
     def out(v: np.ndarray) -> Tensor:
         return _from_np(v, dt)
+
+    grads = gradients_native(Ps, An, Gn, hn, xn, yn, zn, gxn)  # adjoint and closed forms in one C call
+    if grads is not None:
+        return tuple(out(g) if need[k] or k % 2 else None for k, g in enumerate(grads))
+    adj = adjoint_small(Ps, An, Gn, hn, xn, zn, gxn)
+    if adj is None:
+        return None
+    wx, wy, wz, active = adj
 
     # Same closed forms as the torch backward: −½(x wxᵀ + wx xᵀ), −(ν wxᵀ + wν xᵀ).
     gP = gA = gG = None

@@ -32,7 +32,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["load", "SOURCE", "CFLAGS", "CERTIFIED"]
+__all__ = ["load", "load_adjoint", "SOURCE", "CFLAGS", "CERTIFIED"]
 
 SOURCE = Path(__file__).with_name("gi_qp.c")
 CFLAGS = ["-std=c99", "-O2", "-fPIC", "-shared"]
@@ -41,7 +41,7 @@ CERTIFIED = 0
 
 _log = logging.getLogger(__name__)
 _lock = threading.Lock()
-_loaded: tuple[bool, Callable | None] = (False, None)
+_loaded: tuple[bool, Callable | None, Callable | None] = (False, None, None)
 
 
 def _cache_dir() -> Path:
@@ -86,12 +86,14 @@ def _build() -> Path:
     return lib
 
 
-def _bind(path: Path) -> Callable:
-    """ctypes binding of gi_qp_solve wrapped as a function of numpy arrays."""
-    fn = ctypes.CDLL(str(path)).gi_qp_solve
+def _bind(path: Path) -> tuple[Callable, Callable]:
+    """ctypes bindings of gi_qp_solve and gi_qp_adjoint wrapped as functions of numpy arrays."""
+    lib = ctypes.CDLL(str(path))
+    fn, fn_adj = lib.gi_qp_solve, lib.gi_qp_adjoint
     i64, dbl, ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
     fn.argtypes = [i64, i64, i64, i64, ptr, ptr, ptr, ptr, ptr, ptr, ptr, dbl, i64, ptr, ptr, ptr, ptr, ptr]
-    fn.restype = ctypes.c_int
+    fn_adj.argtypes = [i64, i64, i64, i64, *[ptr] * 15]
+    fn.restype = fn_adj.restype = ctypes.c_int
     f64, i64v = np.float64, np.int64
     from_buffer, addressof = ctypes.c_char.from_buffer, ctypes.addressof
 
@@ -129,31 +131,59 @@ def _bind(path: Path) -> Callable:
            tol, max_steps, o, o + 8 * e1, o + 8 * e2, o + 8 * e3, o + 8 * (e3 + B))
         return x, y, z, codes[:B], codes[B:]
 
-    return solve
+    def adjoint(
+        P: np.ndarray, A: np.ndarray, G: np.ndarray, h: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, gx: np.ndarray,
+    ) -> tuple[np.ndarray, ...] | None:
+        """Gradients (gP, gq, gA, gb, gG, gh) of Σ gx·x by the range-space adjoint (`gi_qp_adjoint`), or None.
+
+        None when some instance's system is not accepted (the caller then uses its numpy adjoint)."""
+        B, n = x.shape
+        p, m = A.shape[1], G.shape[1]
+        P, A, G, h, x, y, z, gx = (np.ascontiguousarray(t, dtype=f64) for t in (P, A, G, h, x, y, z, gx))
+        sizes = (n * n, n, p * n, p, m * n, m)
+        out = np.empty(B * (sum(sizes) + 1))
+        o, offs = addr(out), [0]
+        for s_ in sizes:
+            offs.append(offs[-1] + B * s_)
+        status = out[offs[-1]:].view(i64v)
+        fn_adj(B, n, p, m, addr(P), addr(A), addr(G), addr(h), addr(x), addr(y), addr(z), addr(gx),
+               *(o + 8 * e for e in offs))
+        if status[status.argmax()]:  # any instance not accepted
+            return None
+        shapes = ((B, n, n), (B, n), (B, p, n), (B, p), (B, m, n), (B, m))
+        return tuple(out[offs[i] : offs[i + 1]].reshape(shapes[i]) for i in range(6))
+
+    return solve, adjoint
 
 
 def load() -> Callable | None:
     """The native batch solver, or None (disabled by A3CQP_NATIVE_QP=0, or no compiler / build failed: one warning)."""
     global _loaded
-    done, fn = _loaded
+    done, fn, _ = _loaded
     if done:
         return fn
     with _lock:
         if _loaded[0]:
             return _loaded[1]
-        fn = None
+        fns = (None, None)
         if os.environ.get("A3CQP_NATIVE_QP", "1").strip().lower() not in ("0", "false", "no", "off"):
             try:
-                fn = _bind(_build())
+                fns = _bind(_build())
             except Exception as exc:  # no compiler, build error, unwritable cache, load error
                 _log.warning("a3cqp_rl.qp: native QP routine unavailable (%s); using the numpy path", exc)
-                fn = None
-        _loaded = (True, fn)
-    return fn
+        _loaded = (True, *fns)
+    return _loaded[1]
+
+
+def load_adjoint() -> Callable | None:
+    """The native backward (adjoint and gradients), or None exactly when `load()` is None."""
+    if not _loaded[0]:
+        load()
+    return _loaded[2]
 
 
 def _reset() -> None:
     """Forget the loaded routine (tests: re-read the environment on the next `load()`)."""
     global _loaded
     with _lock:
-        _loaded = (False, None)
+        _loaded = (False, None, None)

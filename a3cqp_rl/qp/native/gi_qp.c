@@ -509,3 +509,124 @@ int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
     free(mem);
     return 0;
 }
+
+/*
+ * Backward: the adjoint of the KKT conditions and the gradients of Σ gx·x with respect to all QP
+ * data (the closed forms of small_batch.adjoint_small / solver._backward_small), per instance.
+ * Working rows: the equalities and the strictly complementary active rows, z_i > max(h_i − G_i x, 0).
+ * The adjoint system [[P, C_Wᵀ], [C_W, 0]] (wx, wν) = (gx, 0) is solved in the range space:
+ * S_WW wν = C_W P⁻¹gx, wx = P⁻¹(gx − C_Wᵀ wν), and accepted with the numpy code's test on its
+ * residual, ‖e‖₂ ≤ 1e-12 (1 + |gx|∞)(1 + |wν|∞).  Outputs (row-major): gP [B, n, n], gq [B, n],
+ * gA [B, p, n], gb [B, p], gG [B, m, n], gh [B, m]; status [B] is 0 where accepted, else non-zero
+ * (P not definite, dependent rows, residual too large: the caller uses its numpy adjoint).
+ */
+int gi_qp_adjoint(int64_t B, int64_t n, int64_t p, int64_t m,
+                  const double *P, const double *A, const double *G, const double *h,
+                  const double *x, const double *y, const double *z, const double *gx,
+                  double *gP, double *gq, double *gA, double *gb, double *gG, double *gh, int64_t *status) {
+    const int64_t r = p + m;
+    const size_t nd = (size_t)(2 * n * n + 2 * r * n + r * r + 4 * r + (r + 1) + 3 * (r + 1) + (r + 1) + (r + 1) * (r + 1) + 3 * n + (r > n ? r : n) + 8);
+    double *mem = (double *)malloc(nd * sizeof(double) + (size_t)(2 * r + 8) + (size_t)(r + 2) * sizeof(int));
+    if (!mem) {
+        for (int64_t i = 0; i < B; ++i) status[i] = GI_NO_MEMORY;
+        return -1;
+    }
+    gi_ws w;
+    w.n = (int)n, w.p = (int)p, w.m = (int)m, w.r = (int)r;
+    double *cur = mem;
+    w.L = cur, cur += n * n;
+    w.Linv = cur, cur += n;
+    w.Kinv = cur, cur += r + 1;
+    w.Mt = cur, cur += r * n;   /* unused here */
+    w.S = cur, cur += r * r;    /* unused here */
+    w.rhs = cur, cur += r + 1;
+    w.lw = cur, cur += r + 1;   /* wν on the working rows */
+    w.K = cur, cur += (r + 1) * (r + 1);
+    w.x0 = cur, cur += n;       /* u = P⁻¹gx */
+    w.x = cur, cur += n;        /* wx */
+    w.g = cur, cur += n;
+    w.t = cur, cur += (r > n ? r : n) + 1;
+    w.Ct = cur, cur += r * n;   /* rows C_W (gathered), row-major k × n */
+    w.buf = (int *)(mem + nd);
+    for (int64_t i = 0; i < B; ++i) {
+        const int ni = (int)n, pi = (int)p, mi = (int)m;
+        const double *Pi = P + i * n * n, *Ai = A + i * p * n, *Gi = G + i * m * n, *hi = h + i * m;
+        const double *xi = x + i * n, *yi = y + i * p, *zi = z + i * m, *gxi = gx + i * n;
+        double *gPi = gP + i * n * n, *gqi = gq + i * n, *gAi = gA + i * p * n, *gbi = gb + i * p;
+        double *gGi = gG + i * m * n, *ghi = gh + i * m;
+        status[i] = GI_CERTIFIED;
+        memcpy(w.L, Pi, (size_t)(n * n) * sizeof(double));
+        if (cholesky(w.L, w.Linv, ni, 0.0)) { status[i] = GI_NOT_DEFINITE; continue; }
+        /* Working rows and their gathered coefficients. */
+        int k = 0;
+        for (int a = 0; a < pi; ++a) w.buf[k++] = a;
+        for (int a = 0; a < mi; ++a) {
+            double slack = hi[a] - dot(Gi + (size_t)a * ni, xi, ni);
+            if (zi[a] > (slack > 0.0 ? slack : 0.0)) w.buf[k++] = pi + a;
+        }
+        if (k > ni) { status[i] = GI_DEPENDENT; continue; }
+        for (int a = 0; a < k; ++a) {
+            const int row = w.buf[a];
+            memcpy(w.Ct + (size_t)a * ni, row < pi ? Ai + (size_t)row * ni : Gi + (size_t)(row - pi) * ni, (size_t)ni * sizeof(double));
+        }
+        /* u = P⁻¹gx; Mt rows (reusing S as k × n storage) m_a = L⁻¹ c_a; S_WW = M Mᵀ. */
+        fwd_sub(w.L, w.Linv, ni, gxi, w.t);
+        bwd_sub_t(w.L, w.Linv, ni, w.t, w.x0);
+        for (int a = 0; a < k; ++a) fwd_sub(w.L, w.Linv, ni, w.Ct + (size_t)a * ni, w.Mt + (size_t)a * ni);
+        for (int a = 0; a < k; ++a) {
+            for (int c = 0; c <= a; ++c) w.K[(size_t)a * k + c] = dot(w.Mt + (size_t)a * ni, w.Mt + (size_t)c * ni, ni);
+            w.rhs[a] = dot(w.Ct + (size_t)a * ni, w.x0, ni);
+        }
+        if (k) {
+            if (cholesky(w.K, w.Kinv, k, DEP_REL)) { status[i] = GI_DEPENDENT; continue; }
+            fwd_sub(w.K, w.Kinv, k, w.rhs, w.t);
+            bwd_sub_t(w.K, w.Kinv, k, w.t, w.lw);
+        }
+        /* wx = u − P⁻¹ C_Wᵀ wν */
+        memset(w.g, 0, (size_t)ni * sizeof(double));
+        for (int a = 0; a < k; ++a)
+            for (int c = 0; c < ni; ++c) w.g[c] += w.lw[a] * w.Ct[(size_t)a * ni + c];
+        fwd_sub(w.L, w.Linv, ni, w.g, w.t);
+        bwd_sub_t(w.L, w.Linv, ni, w.t, w.x);
+        for (int c = 0; c < ni; ++c) w.x[c] = w.x0[c] - w.x[c];
+        /* Acceptance test of the numpy adjoint on the full KKT residual. */
+        double e2 = 0.0, gmax = 0.0, numax = 0.0;
+        mtv(Pi, ni, ni, w.x, w.t);
+        for (int c = 0; c < ni; ++c) {
+            double e = w.t[c] + w.g[c] - gxi[c];
+            e2 += e * e;
+            if (fabs(gxi[c]) > gmax) gmax = fabs(gxi[c]);
+        }
+        for (int a = 0; a < k; ++a) {
+            double e = dot(w.Ct + (size_t)a * ni, w.x, ni);
+            e2 += e * e;
+            if (fabs(w.lw[a]) > numax) numax = fabs(w.lw[a]);
+        }
+        if (!(sqrt(e2) <= 1e-12 * (1.0 + gmax) * (1.0 + numax))) { status[i] = GI_UNCERTIFIED; continue; }
+        /* Gradients: gP = −½(x wxᵀ + wx xᵀ), gq = −wx, gA = −(y wxᵀ + wy xᵀ), gb = wy,
+         * gG = −((z ∘ active) wxᵀ + wz xᵀ), gh = wz (wy, wz: wν on the equalities / active rows). */
+        const double *wx = w.x;
+        for (int a = 0; a < ni; ++a)
+            for (int c = 0; c < ni; ++c) gPi[(size_t)a * ni + c] = -0.5 * (xi[a] * wx[c] + wx[a] * xi[c]);
+        for (int c = 0; c < ni; ++c) gqi[c] = -wx[c];
+        memset(gbi, 0, (size_t)pi * sizeof(double));
+        memset(ghi, 0, (size_t)mi * sizeof(double));
+        memset(gGi, 0, (size_t)mi * ni * sizeof(double));
+        for (int a = 0; a < k; ++a) {
+            const int row = w.buf[a];
+            if (row < pi) gbi[row] = w.lw[a];
+            else ghi[row - pi] = w.lw[a];
+        }
+        for (int a = 0; a < pi; ++a)
+            for (int c = 0; c < ni; ++c) gAi[(size_t)a * ni + c] = -(yi[a] * wx[c] + gbi[a] * xi[c]);
+        for (int a = 0; a < k; ++a) {
+            const int row = w.buf[a];
+            if (row < pi) continue;
+            const double za = zi[row - pi], wz = w.lw[a];
+            double *gGa = gGi + (size_t)(row - pi) * ni;
+            for (int c = 0; c < ni; ++c) gGa[c] = -(za * wx[c] + wz * xi[c]);
+        }
+    }
+    free(mem);
+    return 0;
+}
