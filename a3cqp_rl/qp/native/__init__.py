@@ -22,6 +22,7 @@ import hashlib
 import logging
 import os
 import platform
+import shlex
 import shutil
 import subprocess
 import sys
@@ -52,13 +53,15 @@ def _cache_dir() -> Path:
     return Path(base) / "a3cqp_rl"
 
 
-def _compiler() -> str | None:
-    """The compiler to use: an explicit A3CQP_CC / CC must exist (no silent substitute)."""
+def _compiler() -> list[str] | None:
+    """The compiler command: an explicit A3CQP_CC / CC (which may carry flags) must exist (no silent substitute)."""
     for var in ("A3CQP_CC", "CC"):
-        cc = os.environ.get(var)
-        if cc:
-            return shutil.which(cc)
-    return shutil.which("cc") or shutil.which("gcc")
+        cmd = shlex.split(os.environ.get(var, ""))
+        if cmd:
+            exe = shutil.which(cmd[0])
+            return [exe, *cmd[1:]] if exe else None
+    exe = shutil.which("cc") or shutil.which("gcc")
+    return [exe] if exe else None
 
 
 def _build() -> Path:
@@ -67,7 +70,7 @@ def _build() -> Path:
     if cc is None:
         raise RuntimeError("no C compiler found (set A3CQP_CC or CC, or install cc/gcc)")
     src = SOURCE.read_bytes()
-    key = hashlib.sha256(b"\0".join([src, cc.encode(), " ".join(CFLAGS).encode(), platform.machine().encode(), sys.platform.encode()])).hexdigest()[:16]
+    key = hashlib.sha256(b"\0".join([src, " ".join(cc + CFLAGS).encode(), platform.machine().encode(), sys.platform.encode()])).hexdigest()[:16]
     cache = _cache_dir()
     lib = cache / f"gi_qp-{key}.so"
     if lib.exists():
@@ -76,9 +79,9 @@ def _build() -> Path:
     fd, tmp = tempfile.mkstemp(prefix=".gi_qp-", suffix=".so", dir=cache)
     os.close(fd)
     try:
-        proc = subprocess.run([cc, *CFLAGS, "-o", tmp, str(SOURCE), "-lm"], capture_output=True, text=True, timeout=120)
+        proc = subprocess.run([*cc, *CFLAGS, "-o", tmp, str(SOURCE), "-lm"], capture_output=True, text=True, timeout=120)
         if proc.returncode != 0:
-            raise RuntimeError(f"{cc} failed ({proc.returncode}): {proc.stderr.strip()[:500]}")
+            raise RuntimeError(f"{cc[0]} failed ({proc.returncode}): {proc.stderr.strip()[:500]}")
         os.replace(tmp, lib)  # atomic: readers see the old name absent or the whole file
     finally:
         if os.path.exists(tmp):
