@@ -27,8 +27,8 @@ _I1, _I2 = [1, 2, 0], [2, 0, 1]
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross product of [N, 3] arrays (np.cross has ~10 µs of overhead per call)."""
-    return a[:, _I1] * b[:, _I2] - a[:, _I2] * b[:, _I1]
+    """Cross product over the last axis of [..., 3] arrays, broadcast (np.cross has ~10 µs of overhead per call)."""
+    return a[..., _I1] * b[..., _I2] - a[..., _I2] * b[..., _I1]
 
 
 def mujoco_dynamics(model: mujoco.MjModel, q: torch.Tensor, qd: torch.Tensor | None = None
@@ -71,19 +71,75 @@ class SimState:
     acceleration; the rotational inertia term is neglected)."""
     kin: Kinematics | None = None
     """Pose, Jacobian, J̇q̇ and twist of the control site (PandaSim.control_site) from MuJoCo's own kinematics of
-    this step (mj_jacSite, mj_jacDot), world frame; pass it to A3CQPController.step(kin=...) to skip the torch FK."""
+    this step (from cdof, cdof_dot: what mj_jacSite, mj_jacDot give), world frame; pass it to
+    A3CQPController.step(kin=...) to skip the torch FK."""
+
+
+def _replicate(text: str, n: int) -> tuple[mujoco.MjModel, list[str], np.ndarray]:
+    """One model holding n copies of the MJCF `text` (arm, tool and scene), prefixed "arm{i}/" and placed on a grid
+    far enough apart that no copy can touch another (returns the model, the prefixes and the copies' origins
+    [n, 3] in the composite's world)."""
+    child = mujoco.MjSpec.from_string(text)
+    for key in list(child.keys):  # keyframes are per-copy qpos vectors: not valid in the composite
+        child.delete(key)
+    spacing = 2.0 * _reach(mujoco.MjModel.from_xml_string(text)) + 1.0
+    parent = mujoco.MjSpec()
+    parent.copy_during_attach = True  # attach the same child n times
+    for name in [a for a in dir(child.option) if not a.startswith("_")]:
+        setattr(parent.option, name, getattr(child.option, name))
+    for name in ("degree", "autolimits", "eulerseq"):
+        setattr(parent.compiler, name, getattr(child.compiler, name))
+    side = int(np.ceil(np.sqrt(n)))
+    prefixes = [f"arm{i}/" for i in range(n)]
+    origins = np.array([[spacing * (i % side - (side - 1) / 2), spacing * (i // side - (side - 1) / 2), 0.0]
+                        for i in range(n)])  # a grid around the origin: small coordinates, small round-off
+    for prefix, pos in zip(prefixes, origins):
+        parent.attach(child, prefix=prefix, frame=parent.worldbody.add_frame(pos=pos))
+    return parent.compile(), prefixes, origins
+
+
+def _reach(m: mujoco.MjModel) -> float:
+    """Horizontal radius about the world origin that bounds every geom of the model in any pose: static geoms
+    where they are, moving ones by the length of their body chain."""
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    reach = 0.0
+    for g in range(m.ngeom):
+        if int(m.geom_type[g]) in (int(mujoco.mjtGeom.mjGEOM_PLANE), int(mujoco.mjtGeom.mjGEOM_HFIELD)):
+            raise ValueError("PandaSim(n > 1) simulates all arms in one MuJoCo model: the scene needs finite geoms "
+                             "(no planes or height fields, which would reach the other arms)")
+        b = int(m.geom_bodyid[g])
+        if m.body_weldid[b] == 0:  # static
+            r = float(np.linalg.norm(d.geom_xpos[g, :2]))
+        else:
+            r = float(np.linalg.norm(m.geom_pos[g]))
+            while b:
+                r += float(np.linalg.norm(m.body_pos[b]))
+                b = int(m.body_parentid[b])
+        reach = max(reach, r + float(m.geom_rbound[g] + m.geom_margin[g]))
+    return reach
 
 
 class PandaSim:
-    """N Panda arms in MuJoCo (one MjModel, N MjData), split-stepped so control sees fresh B(q), h + g.
+    """N Panda arms in MuJoCo, split-stepped so control sees fresh B(q), h + g.
 
     Usage per control period: `s = sim.observe()` (mj_step1: kinematics, B, bias) -> optional `sim.push(...)` ->
     `sim.step(tau)` (mj_step2: actuation, contacts, integration).
 
+    All N arms live in ONE MjModel/MjData (N > 1: N prefixed copies "arm{i}/" of arm + tool + scene on a grid, far
+    enough apart never to touch), so a control period is one mj_step1 and one mj_step2 call, and everything per arm
+    (state, B(q) blocks of the sparse M, h + g, sensors, site poses, Jacobian and J̇ from cdof / cdof_dot, pushes)
+    is read and written with index arrays made once in __init__. Why: with one MjData per arm (the previous design)
+    N = 64 arms cost ~3-4 ms per step, of which MuJoCo's own C calls were only ~11 µs per arm (~0.7 ms); the rest
+    was the Python loop over the MjData and gathering their buffers. The arms stay independent: no contacts
+    between copies, and MuJoCo's constraint islands keep each arm's constraint problem separate, so every arm
+    follows the single-arm simulation (tests/test_sim_batched.py checks it against separate single-arm models).
+
     Args:
         n: number of arms.
         tool: tool name (see a3cqp_rl.robot.mjcf.TOOLS).
-        scene: extra MJCF bodies for the worldbody (e.g. a3cqp_rl.robot.mjcf.table_xml()).
+        scene: extra MJCF bodies for the worldbody (e.g. a3cqp_rl.robot.mjcf.table_xml()); with n > 1 its geoms
+            must be finite (no planes) and free bodies in it must stay near their arm.
         q0: initial joint configuration [7] (rad); default the "ready" pose.
         timestep: simulation period [s] (default the MJCF's 1 ms).
         control_site: site whose kinematics `observe()` returns in `SimState.kin` (None: skip them).
@@ -91,57 +147,93 @@ class PandaSim:
 
     def __init__(self, n: int = 1, tool: str = DEFAULT_TOOL, scene: str = "", q0: tuple[float, ...] = PANDA_HOME,
                  timestep: float | None = None, control_site: str = "tcp") -> None:
-        self.model = mujoco.MjModel.from_xml_string(compose_mjcf(tool, scene))
+        text = compose_mjcf(tool, scene)
+        m1 = mujoco.MjModel.from_xml_string(text)
+        # positions of arm i are reported in its own copy's frame: composite world minus self._origin[i]
+        self.model, self._prefixes, self._origin = (m1, [""], np.zeros((1, 3))) if n == 1 else _replicate(text, n)
         if timestep is not None:
             self.model.opt.timestep = timestep
         self.n = n
-        self.datas = [mujoco.MjData(self.model) for _ in range(n)]
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        # --- which element of the composite belongs to which arm (copies are contiguous in body order)
+        nb1 = m1.nbody - 1
+        body_arm = np.concatenate([[-1], np.arange(m.nbody - 1) // nb1])
+        for i, p in enumerate(self._prefixes):
+            assert body_arm[m.body(p + "link0").id] == i, "attached copies are not contiguous"
+        jnt_arm = body_arm[m.jnt_bodyid]
+        qsize = {int(mujoco.mjtJoint.mjJNT_FREE): (7, 6), int(mujoco.mjtJoint.mjJNT_BALL): (4, 3)}
+        self._arm_qpos, self._arm_dof, self._arm_bodies, self._arm_act, self._arm_mocap = [], [], [], [], []
+        for i in range(n):
+            jnts = np.flatnonzero(jnt_arm == i)
+            sizes = [qsize.get(int(m.jnt_type[j]), (1, 1)) for j in jnts]
+            self._arm_qpos.append(np.concatenate([np.arange(m.jnt_qposadr[j], m.jnt_qposadr[j] + s[0])
+                                                  for j, s in zip(jnts, sizes)]).astype(np.intp))
+            self._arm_dof.append(np.concatenate([np.arange(m.jnt_dofadr[j], m.jnt_dofadr[j] + s[1])
+                                                 for j, s in zip(jnts, sizes)]).astype(np.intp))
+            bodies = np.flatnonzero(body_arm == i)
+            self._arm_bodies.append(bodies)
+            self._arm_mocap.append(bodies[m.body_mocapid[bodies] >= 0])
+            self._arm_act.append(np.arange(i * m1.nu, (i + 1) * m1.nu))
+        self._arm_sensordata = [np.arange(i * m1.nsensordata, (i + 1) * m1.nsensordata) for i in range(n)]
+        # --- per-arm index arrays [N, ...] into the MjData buffers
+        joints = np.array([[m.joint(f"{p}joint{k}").id for k in range(1, 8)] for p in self._prefixes])
+        self._qadr, self._dadr = m.jnt_qposadr[joints].astype(np.intp), m.jnt_dofadr[joints].astype(np.intp)
+        act_of_joint = {int(m.actuator_trnid[a, 0]): a for a in range(m.nu)
+                        if m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT}
+        self._act = np.array([[act_of_joint[int(j)] for j in row] for row in joints], dtype=np.intp)
+        self._m_idx = self._mass_indices(m, self._dadr)
+        self._ft_site = self._site_index("ft_site")
+        self._ft_body = m.site_bodyid[self._ft_site].astype(np.intp)
+        self._root_body = m.body_rootid[self._ft_body].astype(np.intp)
+        self._tool_mass = float(m1.body_subtreemass[m1.site_bodyid[m1.site("ft_site").id]])
+        fa, ta = (np.array([m.sensor(p + name).adr[0] for p in self._prefixes]) for name in ("ft_force", "ft_torque"))
+        self._ft_adr = np.concatenate([fa[:, None] + np.arange(3), ta[:, None] + np.arange(3)], axis=1)
+        self.site_ids = {name: m1.site(name).id for name in ("tcp", "handle", "ft_site", "flange")}
+        self._t0 = np.zeros(n)  # data.time at each arm's last reset
+        # --- output buffers (the tensors of SimState share their memory)
         self._mass = np.zeros((n, 7, 7))
-        self._bias = np.zeros((n, 7))
-        self._q = np.zeros((n, 7))
-        self._qd = np.zeros((n, 7))
-        self._tau_ext = np.zeros((n, 7))
-        self._ft = np.zeros((n, 6))
-        self._f_env = np.zeros((n, 6))
-        self._ft_body = int(self.model.site_bodyid[self.model.site("ft_site").id])
-        self._ft_site = self.model.site("ft_site").id
-        self._tool_mass = float(self.model.body_subtreemass[self._ft_body])
-        self._root_body = int(self.model.body_rootid[self._ft_body])
+        self._bias, self._q, self._qd, self._tau_ext, self._tau_push = (np.zeros((n, 7)) for _ in range(5))
+        self._ft, self._f_env = np.zeros((n, 6)), np.zeros((n, 6))
         self._R = np.zeros((n, 3, 3))
         self._site_pos, self._com, self._root_com = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
         self._cacc, self._cvel = np.zeros((n, 6)), np.zeros((n, 6))
-        self._sensor_adr = (self.model.sensor("ft_force").adr[0], self.model.sensor("ft_torque").adr[0])
-        self.site_ids = {name: self.model.site(name).id for name in ("tcp", "handle", "ft_site", "flange")}
-        self._tau_push = np.zeros((n, self.model.nv))
         self._pushed = False
         self.control_site = control_site
-        nv = self.model.nv
-        self._cs = self.model.site(control_site).id if control_site is not None else -1
-        self._jac = np.zeros((n, 6, nv))  # rows: linear (mj_jacSite jacp), angular (jacr)
-        self._jac_dot = np.zeros((n, 6, nv))
+        self._cs = self._site_index(control_site) if control_site is not None else None
+        if self._cs is not None:
+            self._cs_body = m.site_bodyid[self._cs].astype(np.intp)
+            self._cs_mask = self._ancestor_mask(self._cs_body[0])
+        self._jac, self._jac_dot = np.zeros((n, 6, 7)), np.zeros((n, 6, 7))  # rows: linear, angular
         self._cs_pos, self._cs_rot = np.zeros((n, 3)), np.zeros((n, 3, 3))
         self._jdot_qdot, self._twist = np.zeros((n, 6)), np.zeros((n, 6))
-        # Views into each MjData's buffers, made once: gathering them with one np.stack per field costs ~10 µs for
-        # 64 arms, where per-arm slicing and copying cost ~1 µs per field and arm (most of the old observe()).
-        # Whole small arrays are gathered (sensordata, site_xpos, ...) and indexed afterwards: fewer stacks.
-        b, cs = self._ft_body, max(self._cs, 0)
-        self._views = {name: [get(d) for d in self.datas] for name, get in (
-            ("q", lambda d: d.qpos[:7]), ("qd", lambda d: d.qvel[:7]), ("bias", lambda d: d.qfrc_bias[:7]),
-            ("sensordata", lambda d: d.sensordata), ("site_xpos", lambda d: d.site_xpos),
-            ("site_xmat", lambda d: d.site_xmat), ("subtree_com", lambda d: d.subtree_com),
-            ("cacc", lambda d: d.cacc[b]), ("cvel", lambda d: d.cvel[b]), ("cs_pos", lambda d: d.site_xpos[cs]),
-            ("ctrl", lambda d: d.ctrl[:7]), ("qfrc_constraint", lambda d: d.qfrc_constraint[:7]),
-            ("qfrc_applied", lambda d: d.qfrc_applied[:7]))}
-        m = self.model
-        self._gathered = {"sensordata": np.zeros((n, m.nsensordata)), "site_xpos": np.zeros((n, m.nsite, 3)),
-                          "site_xmat": np.zeros((n, m.nsite, 9)), "subtree_com": np.zeros((n, m.nbody, 3))}
-        # the per-arm arguments of the MuJoCo calls in observe()/step(), made once: at N = 64 building the views
-        # (self._jac[i, :3], ...) each step cost as much as the calls themselves
-        self._fullM = (lambda d, dst: mujoco.mj_fullM(m, dst, d.qM)) if hasattr(self.datas[0], "qM") else (
-            lambda d, dst: mujoco.mj_fullM(m, d, dst))  # MuJoCo 3.x / >= 4 signatures (see full_mass_matrix)
-        self._observe_args = [(d, self._mass[i], self._jac[i, :3], self._jac[i, 3:], self._jac_dot[i, :3],
-                               self._jac_dot[i, 3:], self._views["cs_pos"][i]) for i, d in enumerate(self.datas)]
         self.reset(np.broadcast_to(np.asarray(q0, dtype=np.float64), (n, 7)))
+
+    @staticmethod
+    def _mass_indices(m: mujoco.MjModel, dofs: np.ndarray) -> np.ndarray:
+        """Indices [N, 7, 7] of each arm's B(q) block in MuJoCo's sparse lower-triangular M (CSR: M_rowadr,
+        M_rownnz, M_colind); one np.take replaces mj_fullM of the whole (N·nv)² matrix."""
+        idx = np.zeros(dofs.shape + (7,), dtype=np.intp)
+        for i, arm in enumerate(dofs):
+            for r, row in enumerate(arm):
+                start = m.M_rowadr[row]
+                cols = list(m.M_colind[start:start + m.M_rownnz[row]])
+                for c in range(r + 1):
+                    idx[i, r, c] = idx[i, c, r] = start + cols.index(arm[c])
+        return idx
+
+    def _site_index(self, site: str) -> np.ndarray:
+        """Global ids [N] of the site `site` of every arm."""
+        return np.array([self.model.site(p + site).id for p in self._prefixes], dtype=np.intp)
+
+    def _ancestor_mask(self, body: int) -> np.ndarray | None:
+        """[7] 1.0 for the arm joints that move `body`, 0.0 for the others (None: all move it)."""
+        chain, b = set(), int(body)
+        while b:
+            chain.update(range(self.model.body_dofadr[b], self.model.body_dofadr[b] + self.model.body_dofnum[b]))
+            b = int(self.model.body_parentid[b])
+        mask = np.array([float(dof in chain) for dof in self._dadr[0]])
+        return None if mask.all() else mask
 
     @property
     def dt(self) -> float:
@@ -150,70 +242,99 @@ class PandaSim:
 
     @property
     def time(self) -> float:
-        """Simulated time of arm 0 [s]."""
-        return float(self.datas[0].time)
+        """Simulated time of arm 0 [s] (since its last reset)."""
+        return float(self.data.time - self._t0[0])
 
     def reset(self, q: np.ndarray | torch.Tensor, qd: np.ndarray | torch.Tensor | None = None,
               idx: list[int] | None = None) -> None:
         """Set joint positions [N or len(idx), 7] (rad) and velocities (rad/s, default 0) and clear forces."""
-        idx = list(range(self.n)) if idx is None else list(idx)
-        q = np.asarray(q, dtype=np.float64).reshape(len(idx), 7)
-        qd = np.zeros_like(q) if qd is None else np.asarray(qd, dtype=np.float64).reshape(len(idx), 7)
-        for k, i in enumerate(idx):
-            d = self.datas[i]
-            mujoco.mj_resetData(self.model, d)
-            d.qpos[:7] = q[k]
-            d.qvel[:7] = qd[k]
-            mujoco.mj_forward(self.model, d)
-            self._tau_ext[i] = 0.0
-            self._ft[i] = d.sensordata[self._sensor_adr[0]:self._sensor_adr[0] + 3].tolist() + \
-                d.sensordata[self._sensor_adr[1]:self._sensor_adr[1] + 3].tolist()
+        m, d = self.model, self.data
+        arms = np.arange(self.n) if idx is None else np.asarray(list(idx), dtype=np.intp).reshape(-1)
+        q = np.asarray(q, dtype=np.float64).reshape(len(arms), 7)
+        qd = np.zeros_like(q) if qd is None else np.asarray(qd, dtype=np.float64).reshape(len(arms), 7)
+        partial = len(np.unique(arms)) < self.n
+        if not partial:
+            mujoco.mj_resetData(m, d)
+            self._t0[:] = 0.0
+        else:  # mj_resetData for the copies in `arms` only
+            cat = lambda parts: np.concatenate([parts[i] for i in arms])  # noqa: E731
+            qpos, dof, bodies, mocap = cat(self._arm_qpos), cat(self._arm_dof), cat(self._arm_bodies), cat(self._arm_mocap)
+            d.qpos[qpos] = m.qpos0[qpos]
+            for buf in (d.qvel, d.qacc_warmstart, d.qfrc_applied):
+                buf[dof] = 0.0
+            d.ctrl[cat(self._arm_act)] = 0.0
+            d.xfrc_applied[bodies] = 0.0
+            if len(mocap):
+                d.mocap_pos[m.body_mocapid[mocap]] = m.body_pos[mocap]
+                d.mocap_quat[m.body_mocapid[mocap]] = m.body_quat[mocap]
+            self._t0[arms] = d.time
+            others = np.setdiff1d(np.arange(self.n), arms)
+            keep_s = np.concatenate([self._arm_sensordata[i] for i in others])
+            saved = d.sensordata[keep_s].copy(), d.cacc[self._ft_body[others]].copy()
+        d.qpos[self._qadr[arms]] = q
+        d.qvel[self._dadr[arms]] = qd
+        mujoco.mj_forward(m, d)
+        if partial:  # the other arms keep their previous-step acceleration-stage readings
+            d.sensordata[keep_s], d.cacc[self._ft_body[others]] = saved
+        self._tau_ext[arms] = 0.0
+        self._ft[arms] = d.sensordata[self._ft_adr[arms]]
 
     def observe(self) -> SimState:
-        """Run mj_step1 on every arm and return state, B(q), h + g, last-step sensors and the control site's
+        """Run mj_step1 (all arms) and return state, B(q), h + g, last-step sensors and the control site's
         kinematics as float64 tensors."""
-        m, v, cs = self.model, self._views, self._cs
-        cs_body = int(m.site_bodyid[cs]) if cs >= 0 else -1
+        m, d, take = self.model, self.data, np.take
         if self._pushed:  # forces of push() last only one step
-            for d in self.datas:
-                d.xfrc_applied[:] = 0.0
+            d.xfrc_applied[:] = 0.0
             self._tau_push[:] = 0.0
             self._pushed = False
-        step1, full_m, jac_site, jac_dot = mujoco.mj_step1, self._fullM, mujoco.mj_jacSite, mujoco.mj_jacDot
-        for d, mass, jacp, jacr, jdp, jdr, cs_pos in self._observe_args:
-            step1(m, d)  # kinematics, B(q), h + g, sensors at the current state
-            full_m(d, mass)
-            if cs >= 0:
-                jac_site(m, d, jacp, jacr, cs)
-                jac_dot(m, d, jdp, jdr, cs_pos, cs_body)
-        stack, g = np.stack, self._gathered
-        for name in ("q", "qd", "bias"):
-            stack(v[name], out=getattr(self, "_" + name))
-        for name, buf in g.items():
-            stack(v[name], out=buf)
-        stack(v["cacc"], out=self._cacc)
-        stack(v["cvel"], out=self._cvel)
-        fa, ta = self._sensor_adr
-        self._ft[:, :3] = g["sensordata"][:, fa:fa + 3]
-        self._ft[:, 3:] = g["sensordata"][:, ta:ta + 3]
-        self._R[:] = g["site_xmat"][:, self._ft_site].reshape(-1, 3, 3)
-        self._site_pos[:] = g["site_xpos"][:, self._ft_site]
-        self._com[:] = g["subtree_com"][:, self._ft_body]
-        self._root_com[:] = g["subtree_com"][:, self._root_body]
+        mujoco.mj_step1(m, d)  # kinematics, M, h + g, position/velocity sensors at the current state
+        take(d.qpos, self._qadr, out=self._q)
+        take(d.qvel, self._dadr, out=self._qd)
+        take(d.qfrc_bias, self._dadr, out=self._bias)
+        take(d.M, self._m_idx, out=self._mass)
+        take(d.sensordata, self._ft_adr, out=self._ft)  # force/torque: acceleration stage, previous step
+        take(d.site_xmat, self._ft_site, axis=0, out=self._R.reshape(self.n, 9))
+        take(d.site_xpos, self._ft_site, axis=0, out=self._site_pos)
+        take(d.subtree_com, self._ft_body, axis=0, out=self._com)
+        take(d.subtree_com, self._root_body, axis=0, out=self._root_com)
+        take(d.cacc, self._ft_body, axis=0, out=self._cacc)
+        take(d.cvel, self._ft_body, axis=0, out=self._cvel)
         self._update_f_env()
         kin = None
-        if cs >= 0:
-            self._cs_pos[:] = g["site_xpos"][:, cs]
-            self._cs_rot[:] = g["site_xmat"][:, cs].reshape(-1, 3, 3)
-            jac, qd = self._jac[:, :, :7], self._qd[:, :, None]
-            np.matmul(jac, qd, out=self._twist[:, :, None])  # ẋ = J q̇
-            np.matmul(self._jac_dot[:, :, :7], qd, out=self._jdot_qdot[:, :, None])  # J̇q̇
+        if self._cs is not None:
+            self._site_kinematics()
             kin = Kinematics(pos=torch.from_numpy(self._cs_pos), rot=torch.from_numpy(self._cs_rot),
-                             jac=torch.from_numpy(jac), jdot_qdot=torch.from_numpy(self._jdot_qdot),
+                             jac=torch.from_numpy(self._jac), jdot_qdot=torch.from_numpy(self._jdot_qdot),
                              twist=torch.from_numpy(self._twist))
         return SimState(q=torch.from_numpy(self._q), qd=torch.from_numpy(self._qd), mass=torch.from_numpy(self._mass),
                         bias=torch.from_numpy(self._bias), tau_ext=torch.from_numpy(self._tau_ext),
                         ft=torch.from_numpy(self._ft), f_env=torch.from_numpy(self._f_env), kin=kin)
+
+    def _site_kinematics(self) -> None:
+        """Pose, Jacobian J, J̇, ẋ = J q̇ and J̇q̇ of the control site for all arms at once, from MuJoCo's com-based
+        dof motions (what mj_jacSite and mj_jacDot do per arm): column j of J is (cdof_lin + cdof_ang × r; cdof_ang)
+        with r = p − c (c: subtree com of the arm's root body), and of J̇ (ḋ_lin + ḋ_ang × r + cdof_ang × v_p;
+        ḋ_ang) with ḋ = cdof_dot and v_p the site's linear velocity."""
+        d, take = self.data, np.take
+        take(d.site_xpos, self._cs, axis=0, out=self._cs_pos)
+        self._cs_pos -= self._origin
+        take(d.site_xmat, self._cs, axis=0, out=self._cs_rot.reshape(self.n, 9))
+        cdof, cdof_dot = d.cdof[self._dadr], d.cdof_dot[self._dadr]  # [N, 7, 6] (ang, lin)
+        r = (d.site_xpos[self._cs] - self._root_com)[:, None, :]
+        vel = d.cvel[self._cs_body]
+        v_p = vel[:, None, 3:] + _cross(vel[:, None, :3], r)
+        ang = cdof[:, :, :3]
+        self._jac[:, :3] = (cdof[:, :, 3:] + _cross(ang, r)).transpose(0, 2, 1)
+        self._jac[:, 3:] = ang.transpose(0, 2, 1)
+        self._jac_dot[:, :3] = (cdof_dot[:, :, 3:] + _cross(cdof_dot[:, :, :3], r) + _cross(ang, v_p)
+                                ).transpose(0, 2, 1)
+        self._jac_dot[:, 3:] = cdof_dot[:, :, :3].transpose(0, 2, 1)
+        if self._cs_mask is not None:
+            self._jac *= self._cs_mask
+            self._jac_dot *= self._cs_mask
+        qd = self._qd[:, :, None]
+        np.matmul(self._jac, qd, out=self._twist[:, :, None])  # ẋ = J q̇
+        np.matmul(self._jac_dot, qd, out=self._jdot_qdot[:, :, None])  # J̇q̇
 
     def _update_f_env(self) -> None:
         """Environment wrench on the tool from the F/T reading, batched over arms (see SimState.f_env).
@@ -235,44 +356,54 @@ class PandaSim:
         """Apply a world-frame force [N, 3] (N) (and torque [N, 3], N m) at `site` during the next step()."""
         force = np.asarray(force_world, dtype=np.float64).reshape(self.n, 3)
         torque = np.zeros_like(force) if torque_world is None else np.asarray(torque_world, np.float64).reshape(-1, 3)
-        sid = self.site_ids[site] if site in self.site_ids else self.model.site(site).id
-        body = int(self.model.site_bodyid[sid])
-        for i, d in enumerate(self.datas):
-            if np.any(force[i]) or np.any(torque[i]):
-                # a body force (xfrc_applied, at the body CoM) so that the F/T sensor sees pushes below it
-                d.xfrc_applied[body, :3] += force[i]
-                d.xfrc_applied[body, 3:] += torque[i] + np.cross(d.site_xpos[sid] - d.xipos[body], force[i])
-                mujoco.mj_applyFT(self.model, d, force[i], torque[i], d.site_xpos[sid], body, self._tau_push[i])
-                self._pushed = True
+        pushed = np.any(force != 0, axis=1) | np.any(torque != 0, axis=1)
+        if not pushed.any():
+            return
+        force, torque = force * pushed[:, None], torque * pushed[:, None]
+        d, sid = self.data, self._site_index(site)
+        body = self.model.site_bodyid[sid]
+        p = d.site_xpos[sid]
+        # a body force (xfrc_applied, at the body CoM) so that the F/T sensor sees pushes below it
+        d.xfrc_applied[body, :3] += force
+        d.xfrc_applied[body, 3:] += torque + _cross(p - d.xipos[body], force)
+        # its joint torques Jᵀ(f; τ) at p (as mj_applyFT), for tau_ext: cdof_lin·f + cdof_ang·(r × f + τ)
+        cdof = d.cdof[self._dadr]
+        moment = _cross(p - d.subtree_com[self.model.body_rootid[body]], force) + torque
+        tau = np.einsum("nkj,nj->nk", cdof[:, :, 3:], force) + np.einsum("nkj,nj->nk", cdof[:, :, :3], moment)
+        mask = self._ancestor_mask(body[0])
+        self._tau_push += tau if mask is None else tau * mask
+        self._pushed = True
 
     def step(self, tau: torch.Tensor | np.ndarray) -> None:
-        """Apply joint torques [N, 7] (N m, clipped by the motors' ranges) and run mj_step2 on every arm."""
+        """Apply joint torques [N, 7] (N m, clipped by the motors' ranges) and run mj_step2 (all arms)."""
         tau = tau.detach().cpu().numpy() if isinstance(tau, torch.Tensor) else np.asarray(tau, dtype=np.float64)
-        m, step2 = self.model, mujoco.mj_step2
-        for d, ctrl, t in zip(self.datas, self._views["ctrl"], tau):
-            ctrl[:] = t
-            step2(m, d)
-        np.add(np.stack(self._views["qfrc_constraint"]), np.stack(self._views["qfrc_applied"]), out=self._tau_ext)
+        d = self.data
+        d.ctrl[self._act] = tau
+        mujoco.mj_step2(self.model, d)
+        np.add(d.qfrc_constraint[self._dadr], d.qfrc_applied[self._dadr], out=self._tau_ext)
         if self._pushed:
-            self._tau_ext += self._tau_push[:, :7]
+            self._tau_ext += self._tau_push
 
     def site_pose(self, site: str = "tcp") -> tuple[np.ndarray, np.ndarray]:
         """World position [N, 3] (m) and rotation [N, 3, 3] of a site after the last step (kinematics of step1)."""
-        sid = self.model.site(site).id
-        return (np.stack([d.site_xpos[sid] for d in self.datas]),
-                np.stack([d.site_xmat[sid].reshape(3, 3) for d in self.datas]))
+        sid = self._site_index(site)
+        return self.data.site_xpos[sid] - self._origin, self.data.site_xmat[sid].reshape(-1, 3, 3)
 
     def contact_force(self, geom: str) -> np.ndarray:
         """World-frame force [N, 3] (N) that all contacts involving `geom` exert on `geom`."""
-        gid = self.model.geom(geom).id
+        m, d = self.model, self.data
+        arm_of = np.full(m.ngeom, -1)
+        arm_of[[m.geom(p + geom).id for p in self._prefixes]] = np.arange(self.n)
         out = np.zeros((self.n, 3))
+        if d.ncon == 0:
+            return out
+        geom1, geom2 = d.contact.geom1[:d.ncon], d.contact.geom2[:d.ncon]
         f6 = np.zeros(6)
-        for i, d in enumerate(self.datas):
-            for c in range(d.ncon):
-                con = d.contact[c]
-                if gid not in (con.geom1, con.geom2):
-                    continue
-                mujoco.mj_contactForce(self.model, d, c, f6)
-                f_world = con.frame.reshape(3, 3).T @ f6[:3]  # force on geom2 from geom1, in world
-                out[i] += -f_world if con.geom1 == gid else f_world  # the frame's normal points from geom1 to geom2
+        for c in np.flatnonzero((arm_of[geom1] >= 0) | (arm_of[geom2] >= 0)):
+            mujoco.mj_contactForce(m, d, int(c), f6)
+            f_world = d.contact.frame[c].reshape(3, 3).T @ f6[:3]  # force on geom2 from geom1, in world
+            if arm_of[geom1[c]] >= 0:  # the frame's normal points from geom1 to geom2
+                out[arm_of[geom1[c]]] -= f_world
+            else:
+                out[arm_of[geom2[c]]] += f_world
         return out
