@@ -204,7 +204,18 @@ class PandaSim:
         if self._cs is not None:
             self._cs_body = m.site_bodyid[self._cs].astype(np.intp)
             self._cs_mask = self._ancestor_mask(self._cs_body[0])
-        self._jac, self._jac_dot = np.zeros((n, 6, 7)), np.zeros((n, 6, 7))  # rows: linear, angular
+        # [Jᵀ | J̇ᵀ] [N, 7, 12] of the control site (rows: dofs; columns: linear, angular) and what makes it
+        self._jt, self._dd, self._vel = np.zeros((n, 7, 12)), np.zeros((n, 7, 12)), np.zeros((n, 12))
+        self._jac, self._jac_dot = self._jt[:, :, :6].transpose(0, 2, 1), self._jt[:, :, 6:].transpose(0, 2, 1)
+        self._w = np.zeros((n, 12, 12))
+        for blk in (0, 6):
+            self._w[:, blk + 3:blk + 6, blk:blk + 3] = self._w[:, blk:blk + 3, blk + 3:blk + 6] = np.eye(3)
+        # flat positions in w of the skew entries [r]ₓ (blocks (0, 0) and (6, 6)) and [v_p]ₓ (block (0, 6)):
+        # + entries (1,0)=z (2,1)=x (0,2)=y, − entries (0,1)=z (1,2)=x (2,0)=y
+        plus, minus = [(1, 0), (2, 1), (0, 2)], [(0, 1), (1, 2), (2, 0)]
+        self._skew_idx = np.array([12 * (r0 + i) + c0 + j for r0, c0 in ((0, 0), (6, 6), (0, 6))
+                                   for i, j in plus + minus], dtype=np.intp)
+        self._skew_src = np.array([2, 0, 1, 5, 3, 4, 8, 6, 7, 11, 9, 10], dtype=np.intp)
         self._cs_pos, self._cs_rot = np.zeros((n, 3)), np.zeros((n, 3, 3))
         self._jdot_qdot, self._twist = np.zeros((n, 6)), np.zeros((n, 6))
         self.reset(np.broadcast_to(np.asarray(q0, dtype=np.float64), (n, 7)))
@@ -312,29 +323,27 @@ class PandaSim:
 
     def _site_kinematics(self) -> None:
         """Pose, Jacobian J, J̇, ẋ = J q̇ and J̇q̇ of the control site for all arms at once, from MuJoCo's com-based
-        dof motions (what mj_jacSite and mj_jacDot do per arm): column j of J is (cdof_lin + cdof_ang × r; cdof_ang)
-        with r = p − c (c: subtree com of the arm's root body), and of J̇ (ḋ_lin + ḋ_ang × r + cdof_ang × v_p;
-        ḋ_ang) with ḋ = cdof_dot and v_p the site's linear velocity."""
-        d, take = self.data, np.take
+        dof motions d_j = cdof[j] = (ω_j; v_j) and ḋ_j = cdof_dot[j] (what mj_jacSite and mj_jacDot do per arm):
+        column j of J is (v_j + ω_j × r; ω_j) with r = p − c (c: subtree com of the arm's root), of J̇
+        (v̇_j + ω̇_j × r + ω_j × v_p; ω̇_j) with v_p the site's velocity. With a × r = a [r]ₓ (row vectors) that is
+        one matmul [d | ḋ] @ W per arm: [Jᵀ | J̇ᵀ] (7 × 12), W = [[T(r), U(v_p)], [0, T(r)]],
+        T(r) = [[[r]ₓ, I], [I, 0]], U(v) = [[[v]ₓ, 0], [0, 0]]; then q̇ᵀ [Jᵀ | J̇ᵀ] = [ẋ | J̇q̇]."""
+        d, take, w = self.data, np.take, self._w
         take(d.site_xpos, self._cs, axis=0, out=self._cs_pos)
-        self._cs_pos -= self._origin
         take(d.site_xmat, self._cs, axis=0, out=self._cs_rot.reshape(self.n, 9))
-        cdof, cdof_dot = d.cdof[self._dadr], d.cdof_dot[self._dadr]  # [N, 7, 6] (ang, lin)
-        r = (d.site_xpos[self._cs] - self._root_com)[:, None, :]
-        vel = d.cvel[self._cs_body]
-        v_p = vel[:, None, 3:] + _cross(vel[:, None, :3], r)
-        ang = cdof[:, :, :3]
-        self._jac[:, :3] = (cdof[:, :, 3:] + _cross(ang, r)).transpose(0, 2, 1)
-        self._jac[:, 3:] = ang.transpose(0, 2, 1)
-        self._jac_dot[:, :3] = (cdof_dot[:, :, 3:] + _cross(cdof_dot[:, :, :3], r) + _cross(ang, v_p)
-                                ).transpose(0, 2, 1)
-        self._jac_dot[:, 3:] = cdof_dot[:, :, :3].transpose(0, 2, 1)
+        r = self._cs_pos - self._root_com
+        self._cs_pos -= self._origin
+        w.reshape(self.n, 144)[:, self._skew_idx[:12]] = np.concatenate([r, -r, r, -r], axis=1)[:, self._skew_src]
+        v = d.cvel[self._cs_body][:, None, :] @ w[:, :6, :3]  # (ω; v_body) @ ([r]ₓ; I) = v + ω × r
+        w.reshape(self.n, 144)[:, self._skew_idx[12:]] = np.concatenate([v[:, 0], -v[:, 0]], axis=1)[:, self._skew_src[:6]]
+        self._dd[:, :, :6] = d.cdof[self._dadr]
+        self._dd[:, :, 6:] = d.cdof_dot[self._dadr]
+        np.matmul(self._dd, w, out=self._jt)
         if self._cs_mask is not None:
-            self._jac *= self._cs_mask
-            self._jac_dot *= self._cs_mask
-        qd = self._qd[:, :, None]
-        np.matmul(self._jac, qd, out=self._twist[:, :, None])  # ẋ = J q̇
-        np.matmul(self._jac_dot, qd, out=self._jdot_qdot[:, :, None])  # J̇q̇
+            self._jt *= self._cs_mask[:, None]
+        np.matmul(self._qd[:, None, :], self._jt, out=self._vel[:, None, :])
+        self._twist[:] = self._vel[:, :6]
+        self._jdot_qdot[:] = self._vel[:, 6:]
 
     def _update_f_env(self) -> None:
         """Environment wrench on the tool from the F/T reading, batched over arms (see SimState.f_env).
