@@ -85,7 +85,7 @@ def test_native_routine_is_built_and_taken(monkeypatch) -> None:
 
 @needs_cc
 @pytest.mark.parametrize("family", range(len(FAMILIES)))
-def test_native_matches_numpy_and_clarabel(family: int) -> None:
+def test_native_matches_numpy_and_clarabel(family: int, numpy_only) -> None:
     # 520 instances in all; every one certified by the C routine, with the numpy path's working
     # set (same x and multipliers up to rounding) and Clarabel's x.
     kw, B = FAMILIES[family]
@@ -94,12 +94,8 @@ def test_native_matches_numpy_and_clarabel(family: int) -> None:
     solve = native.load()
     x, y, z, status, solves = solve(*args, None, 1e-9, 100)
     assert (status == native.CERTIFIED).all()
-    small_native = small.NATIVE
-    try:
-        small.NATIVE = False
-        x_np, y_np, z_np, outcome, solves_np = small.active_set_small(*args, None, 1e-9, 100)
-    finally:
-        small.NATIVE = small_native
+    numpy_only(True)
+    x_np, y_np, z_np, outcome, solves_np = small.active_set_small(*args, None, 1e-9, 100)
     assert (outcome == small.CERTIFIED).all()
     assert np.abs(x - x_np).max() <= 1e-10
     assert np.abs(z - z_np).max() <= 1e-8 and (np.abs(y - y_np).max() if y.size else 0.0) <= 1e-8
@@ -116,8 +112,11 @@ def test_native_matches_numpy_and_clarabel(family: int) -> None:
     q2 = q + 0.05 * np.random.default_rng(family).standard_normal(q.shape)
     x2, y2, z2, s2, _ = solve(P, q2, A, b, G, h, z, 1e-9, 100)
     x2c, y2c, z2c, s2c, _ = solve(P, q2, A, b, G, h, None, 1e-9, 100)
-    assert (s2 == 0).all() and (s2c == 0).all()
+    x2n, y2n, z2n, o2n, _ = small.active_set_small(P, q2, A, b, G, h, z, 1e-9, 100)  # numpy, warm
+    assert (s2 == 0).all() and (s2c == 0).all() and (o2n == small.CERTIFIED).all()
     assert np.abs(x2 - x2c).max() <= 1e-10 and np.abs(z2 - z2c).max() <= 1e-8
+    assert np.abs(x2 - x2n).max() <= 1e-10 and np.abs(z2 - z2n).max() <= 1e-8
+    assert (np.abs(y2 - y2n).max() if y2.size else 0.0) <= 1e-8
 
 
 GRAD_FAMILIES = [

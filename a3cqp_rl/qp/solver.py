@@ -47,7 +47,10 @@ set warm-started from the previous working set (one KKT solve in the control loo
 heavily constrained instances, no IPM), with the same certificate; what it does not certify
 (singular P or rows, infeasible, unbounded, NaN) goes to the batched stages above, so answers and
 statuses are the batched path's.  The backward of those batches solves the adjoint system per
-instance in numpy too (same equations; the torch adjoint if a system is singular).  The Python
+instance in numpy too (same equations; the torch adjoint if a system is singular).  Both the
+active set (cold and warm) and the adjoint also exist in C (`native/gi_qp.c`, compiled on first
+use, one ctypes call per batch, same decisions and certificates; the numpy code is the fallback
+and the reference), which takes the numpy call overhead out of B = 1.  The Python
 loop grows with B while the batched torch path is nearly flat, so the route is chosen by batch
 size (CPU only; a CUDA batch always takes the batched path):
 
@@ -60,7 +63,11 @@ size (CPU only; a CUDA batch always takes the batched path):
   (Those numbers predate the range-space cold start of `small_batch.py`; with it and the leaner
   wrapper, B = 1 against proxsuite.torch, medians of 3 `bench/qp.py` runs: default instances
   cold 1.24× forward / 1.16× forward+backward, warm 2.24× / 1.45×; heavily constrained (spread
-  0.35) cold 0.97× / 1.00×, warm 2.80× / 1.66×.)
+  0.35) cold 0.97× / 1.00×, warm 2.80× / 1.66×.  With the C routines, same protocol, old path
+  (A3CQP_NATIVE_QP=0) and new back to back: default cold 1.24× → 2.30× forward, 1.22× → 1.74×
+  forward+backward, warm 2.09× → 2.55× / 1.46× → 1.81×; heavily constrained cold 1.02× → 2.55× /
+  1.14× → 2.05×, warm 2.66× → 3.65× / 1.57× → 2.15×.  Against proxsuite's parallel BatchQP
+  (forward only) cold 0.58× → 1.15× (default), 0.56× → 1.53× (heavy).)
 
 Code: `kkt.py` (the three working-set solves), `active_set.py` (stage 1), `interior_point.py`
 (stage 2), `small_batch.py` (the small-batch route), this file (assembly, polish, autograd,
