@@ -284,3 +284,26 @@ def test_build_goes_to_the_cache_atomically_and_is_reused(fresh_native) -> None:
     lib = fresh_native / files[0]
     mtime = lib.stat().st_mtime_ns
     assert native.load() is not None and lib.stat().st_mtime_ns == mtime
+
+
+@pytest.mark.parametrize("use_native", [True, False])
+def test_equality_only_qp_on_the_small_path(use_native: bool, numpy_only) -> None:
+    # No inequality rows at all (m = 0): x = argmin ½|x|² + 1ᵀx s.t. Σx = 0 is x = 0 with y = −1.
+    numpy_only(not use_native)
+    P, q = torch.eye(3, dtype=DT).expand(2, 3, 3), torch.ones(2, 3, dtype=DT)
+    sol = solve_qp(P, q, torch.ones(2, 1, 3, dtype=DT), torch.zeros(2, 1, dtype=DT))
+    assert bool(sol.solved.all()) and sol.x.abs().max() <= 1e-12 and torch.allclose(sol.y, -torch.ones(2, 1, dtype=DT))
+
+
+@needs_cc
+def test_more_equalities_than_variables_fall_back(numpy_only) -> None:
+    # p = n + 1 consistent equalities (dependent): the C routine declines, the numpy path and the
+    # batched path decide, exactly as without it.
+    qp = random_qp_batch(3, n=4, m=12, p=5, spread=0.5, seed=13)
+    status = native.load()(*stacked(qp), None, 1e-9, 100)[3]
+    assert (status != native.CERTIFIED).all()
+    sol = solve_qp(*qp.args())
+    numpy_only(True)
+    ref = solve_qp(*qp.args())
+    assert sol.status.tolist() == ref.status.tolist()
+    assert torch.allclose(sol.x, ref.x, rtol=0.0, atol=1e-12)

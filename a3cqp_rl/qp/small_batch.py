@@ -263,7 +263,7 @@ def _range_space(
     for rnd in range(COLD_ROUNDS):
         if rnd:
             vp = v[p:]
-            if not vp[vp.argmax()] > tol_p:  # the previous round's point is feasible
+            if not vp.size or not vp[vp.argmax()] > tol_p:  # no inequalities, or the previous round's point is feasible
                 break
         rel = v[p:] * ginv
         room = len(q) - k

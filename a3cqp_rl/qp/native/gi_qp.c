@@ -344,7 +344,7 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps,
             }
             /* Candidates (violated relative to their norm, not working) into buf[k..); when more
              * than `room` = n − k of them, the `room` most violated first (selection sort: m is small). */
-            int room = n - k, nadd = 0;
+            int room = k < n ? n - k : 0, nadd = 0; /* p > n equalities: none (they are dependent) */
             for (int i = p; i < r; ++i)
                 if (w->v[i] * w->ginv[i] > tol_p && !w->W[i]) w->buf[k + nadd++] = i;
             if (nadd > room) {
