@@ -307,3 +307,32 @@ def test_more_equalities_than_variables_fall_back(numpy_only) -> None:
     ref = solve_qp(*qp.args())
     assert sol.status.tolist() == ref.status.tolist()
     assert torch.allclose(sol.x, ref.x, rtol=0.0, atol=1e-12)
+
+
+@needs_cc
+def test_large_batches_take_the_native_path_and_send_what_it_leaves_to_the_batched_path(monkeypatch) -> None:
+    """B = 64 > SMALL_BATCH_MAX: certified in one C call (no batched solve), answers as Clarabel; with some
+    infeasible instances those alone go to the batched path, with the statuses of the C-free route."""
+    assert native.load() is not None and 64 > solver_mod.SMALL_BATCH_MAX
+    qp = random_qp_batch(64, spread=0.35, seed=11)
+    x_ref, _ = clarabel_reference(qp)
+    seen = []
+    batched = solver_mod._solve_batched
+    monkeypatch.setattr(solver_mod, "_solve_batched", lambda *a, **k: seen.append(a[1].shape[0]) or batched(*a, **k))
+    P = qp.P.clone().requires_grad_(True)
+    sol = solve_qp(P, qp.q, G=qp.G, h=qp.h, lb=qp.lb, ub=qp.ub)
+    assert seen == [] and bool((sol.status == QPStatus.SOLVED).all())
+    assert (sol.x - x_ref).abs().max().item() <= 1e-8
+    sol.x.sum().backward()  # the native adjoint over the whole batch
+    assert torch.isfinite(P.grad).all()
+
+    G, h = qp.G.clone(), qp.h.clone()
+    for i in (3, 40):  # g x <= -1 and -g x <= -1: infeasible
+        G[i, 1], h[i, :2] = -G[i, 0], -1.0
+    sol = solve_qp(qp.P, qp.q, G=G, h=h, lb=qp.lb, ub=qp.ub)
+    assert seen and sum(seen) == 2  # only the two uncertified instances left C
+    monkeypatch.setattr(small, "NATIVE", False)
+    ref = solve_qp(qp.P, qp.q, G=G, h=h, lb=qp.lb, ub=qp.ub)
+    assert torch.equal(sol.status, ref.status) and int((sol.status != QPStatus.SOLVED).sum()) == 2
+    ok = sol.status == QPStatus.SOLVED
+    assert (sol.x[ok] - ref.x[ok]).abs().max().item() <= 1e-8

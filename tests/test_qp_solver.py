@@ -11,6 +11,17 @@ from a3cqp_rl.qp.random_qp import clarabel_reference, random_qp_batch
 DT = torch.float64
 
 
+@pytest.fixture(autouse=True, params=["native", "no-native"])
+def solver_route(request, monkeypatch):
+    """Every test twice: with the C routine (batches up to NATIVE_BATCH_MAX take it) and without it
+    (numpy for small batches, the batched torch path above), so the batched path keeps its own coverage."""
+    if request.param == "no-native":
+        import a3cqp_rl.qp.small_batch as small
+
+        monkeypatch.setattr(small, "NATIVE", False)
+    return request.param
+
+
 def _active_any(sol) -> torch.Tensor:
     """Instances with at least one active inequality or bound (positive multiplier)."""
     return (sol.z > 0).any(-1) | (sol.z_lb > 0).any(-1) | (sol.z_ub > 0).any(-1)

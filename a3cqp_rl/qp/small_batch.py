@@ -442,7 +442,7 @@ def _warm_one_solve(
 
 def active_set_small(
     P: np.ndarray, q: np.ndarray, A: np.ndarray, b: np.ndarray, G: np.ndarray, h: np.ndarray,
-    z0: np.ndarray | None, tol: float, max_steps: int,
+    z0: np.ndarray | None, tol: float, max_steps: int, numpy_retry: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Dual active set per instance (float64 numpy, P symmetric); returns x, y, z, outcome, KKT solves.
 
@@ -450,7 +450,7 @@ def active_set_small(
     (warm-start multipliers; the working set starts as {z0 > 0}).  `outcome` [B] holds CERTIFIED,
     SINGULAR or EXHAUSTED; x, y, z are only meaningful where CERTIFIED.  The batch goes through the
     native routine first when it is available (`NATIVE`); the numpy code below solves what it
-    leaves uncertified.
+    leaves uncertified (with `numpy_retry=False` those are returned SINGULAR instead: large batches).
     """
     B, n = q.shape
     p, m = A.shape[1], G.shape[1]
@@ -466,6 +466,8 @@ def active_set_small(
         todo = outcome.nonzero()[0]
         x_out[todo], y_out[todo], z_out[todo] = 0.0, 0.0, 0.0
         outcome[todo] = SINGULAR
+        if not numpy_retry:
+            return x_out, y_out, z_out, outcome, iters
     else:
         x_out, y_out, z_out = np.zeros((B, n)), np.zeros((B, p)), np.zeros((B, m))
         outcome = np.full(B, SINGULAR, dtype=np.int64)
