@@ -6,7 +6,7 @@ and desired forces (no contact). Reported per N (medians over the timed steps):
   ctrl   µs per step for all N arms (kinematics + QP build + a3cqp_rl.qp solve + torque law), and per arm
   split  of ctrl: kin (torch kinematics; 0 with --kin mujoco, where MuJoCo's own kinematics come with `sim`),
          asm (context, task residuals, limit rows, stacking), qp (solve_qp), rest (input checks, torque law eq. 4-7)
-  sim    MuJoCo (mj_step1 + B(q) + site Jacobian/J̇ + mj_step2 for N MjData, a Python loop)
+  sim    MuJoCo (one mj_step1 + mj_step2 for all N arms in one MjData; B(q), site Jacobian/J̇ gathered batched)
   RTF    aggregate real-time factor N · Δt / (ctrl + sim)
 Peer measured in the same run: the same QPs solved one by one by Clarabel (direct API, no cvxpy) -> "qp speed-up".
 Targets (issue 6): N = 1 under 1000 µs per step; N = 64 at least 20x real time in aggregate.

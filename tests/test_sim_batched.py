@@ -126,3 +126,7 @@ def test_single_arm_keeps_the_plain_model_and_scene_planes_are_refused() -> None
     PandaSim(1, scene=plane)
     with pytest.raises(ValueError, match="finite"):
         PandaSim(2, scene=plane)
+    # without a scene no geom pair can collide: the collision pass is switched off (no change of physics)
+    contact_off = int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    assert PandaSim(2).model.opt.disableflags & contact_off
+    assert not PandaSim(2, scene=table_xml()).model.opt.disableflags & contact_off

@@ -120,6 +120,16 @@ def _reach(m: mujoco.MjModel) -> float:
     return reach
 
 
+def _can_collide(m: mujoco.MjModel) -> bool:
+    """Whether any two geoms of different bodies pass MuJoCo's contype/conaffinity filter (or explicit pairs exist);
+    the arm alone never collides with itself (contype 2, conaffinity 1), so without a scene there are no contacts."""
+    if m.npair:
+        return True
+    ct, ca = m.geom_contype.astype(np.int64), m.geom_conaffinity.astype(np.int64)
+    compatible = ((ct[:, None] & ca[None, :]) | (ca[:, None] & ct[None, :])) != 0
+    return bool((compatible & (m.geom_bodyid[:, None] != m.geom_bodyid[None, :])).any())
+
+
 class PandaSim:
     """N Panda arms in MuJoCo, split-stepped so control sees fresh B(q), h + g.
 
@@ -153,6 +163,8 @@ class PandaSim:
         self.model, self._prefixes, self._origin = (m1, [""], np.zeros((1, 3))) if n == 1 else _replicate(text, n)
         if timestep is not None:
             self.model.opt.timestep = timestep
+        if not _can_collide(m1):  # e.g. no scene: skip the collision pass (~1/3 of mj_step1 at N = 64), same physics
+            self.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
         self.n = n
         self.data = mujoco.MjData(self.model)
         m = self.model
@@ -189,7 +201,8 @@ class PandaSim:
         self._tool_mass = float(m1.body_subtreemass[m1.site_bodyid[m1.site("ft_site").id]])
         fa, ta = (np.array([m.sensor(p + name).adr[0] for p in self._prefixes]) for name in ("ft_force", "ft_torque"))
         self._ft_adr = np.concatenate([fa[:, None] + np.arange(3), ta[:, None] + np.arange(3)], axis=1)
-        self.site_ids = {name: m1.site(name).id for name in ("tcp", "handle", "ft_site", "flange")}
+        # ids in self.model of arm 0's named sites (those of arm i: self._site_index(name)[i])
+        self.site_ids = {name: int(self._site_index(name)[0]) for name in ("tcp", "handle", "ft_site", "flange")}
         self._t0 = np.zeros(n)  # data.time at each arm's last reset
         # --- output buffers (the tensors of SimState share their memory)
         self._mass = np.zeros((n, 7, 7))
