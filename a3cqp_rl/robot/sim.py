@@ -140,10 +140,12 @@ class PandaSim:
     enough apart never to touch), so a control period is one mj_step1 and one mj_step2 call, and everything per arm
     (state, B(q) blocks of the sparse M, h + g, sensors, site poses, Jacobian and J̇ from cdof / cdof_dot, pushes)
     is read and written with index arrays made once in __init__. Why: with one MjData per arm (the previous design)
-    N = 64 arms cost ~3-4 ms per step, of which MuJoCo's own C calls were only ~11 µs per arm (~0.7 ms); the rest
-    was the Python loop over the MjData and gathering their buffers. The arms stay independent: no contacts
-    between copies, and MuJoCo's constraint islands keep each arm's constraint problem separate, so every arm
-    follows the single-arm simulation (tests/test_sim_batched.py checks it against separate single-arm models).
+    N = 64 arms cost ~2.5-4 ms per step, of which MuJoCo's own C calls were only ~11 µs per arm (~0.7 ms); the rest
+    was the Python loop over the MjData and gathering their buffers. With one MjData: ~0.75 ms (bench/controller.py,
+    N = 64, 2 loaded cores), about 2/3 of it mj_step1 + mj_step2. The arms stay independent: no contacts between
+    copies, and MuJoCo's constraint islands keep each arm's constraint problem separate, so every arm follows the
+    single-arm simulation to round-off (tests/test_sim_batched.py checks it against separate single-arm models; in
+    sliding contact of a cylinder, whose collider is iterative, round-off grows as it does in one arm run twice).
 
     Args:
         n: number of arms.
