@@ -464,6 +464,39 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps,
     return certify(w, k, lw, tol_p, tol_d, tol_r, x_out, y_out, z_out);
 }
 
+/* The workspace of one instance (reused across the batch): one allocation carved into the arrays of
+ * gi_ws; NULL if out of memory.  The adjoint uses a subset (Ct/Mt as k × n row blocks, K as k × k). */
+static double *ws_alloc(gi_ws *w, int64_t n, int64_t p, int64_t m) {
+    const int64_t r = p + m;
+    const size_t nd = (size_t)(2 * n * n + 2 * r * n + r * r + 4 * r + (r + 1) + 3 * (r + 1) + (r + 1) + (r + 1) * (r + 1) + 3 * n + (r > n ? r : n) + 8);
+    double *mem = (double *)malloc(nd * sizeof(double) + (size_t)(2 * r + 8) + (size_t)(r + 2) * sizeof(int));
+    if (!mem) return NULL;
+    w->n = (int)n, w->p = (int)p, w->m = (int)m, w->r = (int)r;
+    double *cur = mem;
+    w->L = cur, cur += n * n;
+    w->Linv = cur, cur += n;
+    w->Kinv = cur, cur += r + 1;
+    w->Ct = cur, cur += r * n;
+    w->Mt = cur, cur += r * n;
+    w->S = cur, cur += r * r;
+    w->x0 = cur, cur += n;
+    w->v0 = cur, cur += r;
+    w->v = cur, cur += r;
+    w->ginv = cur, cur += r;
+    w->rhs = cur, cur += r + 1;
+    w->lw = cur, cur += r + 1;
+    w->lwj = cur, cur += r + 1;
+    w->dl = cur, cur += r + 1;
+    w->K = cur, cur += (r + 1) * (r + 1);
+    w->x = cur, cur += n;
+    w->g = cur, cur += n;
+    w->t = cur, cur += (r > n ? r : n) + 1;
+    w->buf = (int *)(mem + nd);
+    w->have = (unsigned char *)(w->buf + r + 2);
+    w->W = w->have + r + 1;
+    return mem;
+}
+
 /*
  * Batch entry point.  Row-major float64 arrays: P [B, n, n] (symmetric), q [B, n], A [B, p, n],
  * b [B, p], G [B, m, n], h [B, m], z0 [B, m] or NULL; outputs x [B, n], y [B, p], z [B, m],
@@ -474,37 +507,12 @@ int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
                 const double *P, const double *q, const double *A, const double *b,
                 const double *G, const double *h, const double *z0, double tol, int64_t max_steps,
                 double *x, double *y, double *z, int64_t *status, int64_t *solves) {
-    const int64_t r = p + m;
-    const size_t nd = (size_t)(2 * n * n + 2 * r * n + r * r + 4 * r + (r + 1) + 3 * (r + 1) + (r + 1) + (r + 1) * (r + 1) + 3 * n + (r > n ? r : n) + 8);
-    double *mem = (double *)malloc(nd * sizeof(double) + (size_t)(2 * r + 8) + (size_t)(r + 2) * sizeof(int));
+    gi_ws w;
+    double *mem = ws_alloc(&w, n, p, m);
     if (!mem) {
         for (int64_t i = 0; i < B; ++i) status[i] = GI_NO_MEMORY, solves[i] = 0;
         return -1;
     }
-    gi_ws w;
-    w.n = (int)n, w.p = (int)p, w.m = (int)m, w.r = (int)r;
-    double *cur = mem;
-    w.L = cur, cur += n * n;
-    w.Linv = cur, cur += n;
-    w.Kinv = cur, cur += r + 1;
-    w.Ct = cur, cur += r * n;
-    w.Mt = cur, cur += r * n;
-    w.S = cur, cur += r * r;
-    w.x0 = cur, cur += n;
-    w.v0 = cur, cur += r;
-    w.v = cur, cur += r;
-    w.ginv = cur, cur += r;
-    w.rhs = cur, cur += r + 1;
-    w.lw = cur, cur += r + 1;
-    w.lwj = cur, cur += r + 1;
-    w.dl = cur, cur += r + 1;
-    w.K = cur, cur += (r + 1) * (r + 1);
-    w.x = cur, cur += n;
-    w.g = cur, cur += n;
-    w.t = cur, cur += (r > n ? r : n) + 1;
-    w.buf = (int *)(mem + nd);
-    w.have = (unsigned char *)(w.buf + r + 2);
-    w.W = w.have + r + 1;
     for (int64_t i = 0; i < B; ++i) {
         w.P = P + i * n * n, w.q = q + i * n, w.A = A + i * p * n, w.b = b + i * p;
         w.G = G + i * m * n, w.h = h + i * m;
@@ -529,30 +537,12 @@ int gi_qp_adjoint(int64_t B, int64_t n, int64_t p, int64_t m,
                   const double *P, const double *A, const double *G, const double *h,
                   const double *x, const double *y, const double *z, const double *gx,
                   double *gP, double *gq, double *gA, double *gb, double *gG, double *gh, int64_t *status) {
-    const int64_t r = p + m;
-    const size_t nd = (size_t)(2 * n * n + 2 * r * n + r * r + 4 * r + (r + 1) + 3 * (r + 1) + (r + 1) + (r + 1) * (r + 1) + 3 * n + (r > n ? r : n) + 8);
-    double *mem = (double *)malloc(nd * sizeof(double) + (size_t)(2 * r + 8) + (size_t)(r + 2) * sizeof(int));
+    gi_ws w;
+    double *mem = ws_alloc(&w, n, p, m);
     if (!mem) {
         for (int64_t i = 0; i < B; ++i) status[i] = GI_NO_MEMORY;
         return -1;
     }
-    gi_ws w;
-    w.n = (int)n, w.p = (int)p, w.m = (int)m, w.r = (int)r;
-    double *cur = mem;
-    w.L = cur, cur += n * n;
-    w.Linv = cur, cur += n;
-    w.Kinv = cur, cur += r + 1;
-    w.Mt = cur, cur += r * n;   /* unused here */
-    w.S = cur, cur += r * r;    /* unused here */
-    w.rhs = cur, cur += r + 1;
-    w.lw = cur, cur += r + 1;   /* wν on the working rows */
-    w.K = cur, cur += (r + 1) * (r + 1);
-    w.x0 = cur, cur += n;       /* u = P⁻¹gx */
-    w.x = cur, cur += n;        /* wx */
-    w.g = cur, cur += n;
-    w.t = cur, cur += (r > n ? r : n) + 1;
-    w.Ct = cur, cur += r * n;   /* rows C_W (gathered), row-major k × n */
-    w.buf = (int *)(mem + nd);
     for (int64_t i = 0; i < B; ++i) {
         const int ni = (int)n, pi = (int)p, mi = (int)m;
         const double *Pi = P + i * n * n, *Ai = A + i * p * n, *Gi = G + i * m * n, *hi = h + i * m;
