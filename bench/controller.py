@@ -12,6 +12,11 @@ Peer measured in the same run: the same QPs solved one by one by Clarabel (direc
 Targets (issue 6): N = 1 under 1000 µs per step; N = 64 at least 20x real time in aggregate.
 
     python bench/controller.py [--quick] [--threads T] [--sizes 1 64] [--kin mujoco|torch] [--repeats R] [--clock cpu]
+                               [--backend both|native|python]
+
+Backends (ControllerOptions.backend): "native" evaluates the default tasks, limits and torque law in C
+(control/native); "python" the objects of tasks.py / limits.py (numpy on CPU), the baseline "vs python" is taken
+against in the same run.
 
 --clock cpu times with this thread's CPU time instead of wall time: on a machine shared with other jobs it leaves out
 the time the process waits for a core (the RTF is then what an unshared core would give).
@@ -28,7 +33,7 @@ import numpy as np
 import torch
 
 import a3cqp_rl.control.controller as controller_module
-from a3cqp_rl.control import A3CQPController
+from a3cqp_rl.control import A3CQPController, ControllerOptions
 from a3cqp_rl.robot import PandaSim
 
 
@@ -45,11 +50,11 @@ def clarabel_solve(P: np.ndarray, c: np.ndarray, G: np.ndarray, h: np.ndarray) -
 
 
 def run(n: int, steps: int, warmup: int, seed: int = 0, kin_source: str = "mujoco",
-        clock=time.perf_counter) -> dict[str, float]:  # noqa: ANN001
+        clock=time.perf_counter, backend: str = "auto") -> dict[str, float]:  # noqa: ANN001
     """Closed-loop run of n arms; returns median timings (µs) and the QP peer's time."""
     gen = torch.Generator().manual_seed(seed)
     sim = PandaSim(n, control_site="tcp" if kin_source == "mujoco" else None)
-    ctrl = A3CQPController(n)
+    ctrl = A3CQPController(n, options=ControllerOptions(backend=backend))
     s = sim.observe()
     pos0, rot0 = ctrl.model.fk(s.q.clone())
     pos_d = pos0 + 0.2 * (torch.rand(n, 3, generator=gen, dtype=torch.float64) - 0.5)
@@ -80,6 +85,7 @@ def run(n: int, steps: int, warmup: int, seed: int = 0, kin_source: str = "mujoc
 
     ctrl.build_context = timed("asm", ctrl.build_context)
     ctrl.build_qp = timed("asm", ctrl.build_qp)
+    ctrl.assemble_native = timed("asm", ctrl.assemble_native)
     ctrl.model.kinematics = timed("kin", ctrl.model.kinematics)
     ctrl_t, sim_t, asm_t, kin_t = [], [], [], []
     try:
@@ -123,28 +129,38 @@ def main(argv: list[str] | None = None) -> int:
                         help="site kinematics from PandaSim's MuJoCo step (default) or PandaModel (torch)")
     parser.add_argument("--repeats", type=int, default=1, help="runs per N; the row shows the median run")
     parser.add_argument("--clock", choices=["wall", "cpu"], default="wall", help="wall time or this thread's CPU time")
+    parser.add_argument("--backend", choices=["both", "native", "python"], default="both",
+                        help="controller backend (ControllerOptions.backend); both: native, then the Python objects "
+                             "as the in-run baseline")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(args.threads)
     steps, warmup = (60, 20) if args.quick else (1000, 100)
     print(f"A3CQP controller benchmark: torch {torch.__version__}, {args.threads} thread(s), {steps} timed steps, "
           f"kinematics from {args.kin}, {args.clock} clock, median of {args.repeats} run(s)")
-    print(f"{'N':>4} {'ctrl µs/step':>13} {'µs/arm':>8} {'kin':>6} {'asm':>6} {'qp µs':>7} {'rest':>6} {'sim µs':>8} "
-          f"{'RTF':>7} {'Clarabel µs/arm':>16} {'qp speed-up':>12} {'target':>22}")
+    print(f"{'N':>4} {'backend':>8} {'ctrl µs/step':>13} {'µs/arm':>8} {'kin':>6} {'asm':>6} {'qp µs':>7} "
+          f"{'rest':>6} {'sim µs':>8} {'RTF':>7} {'vs python':>10} {'Clarabel µs/arm':>16} {'qp speed-up':>12} "
+          f"{'target':>22}")
+    backends = ["native", "python"] if args.backend == "both" else [args.backend]
     for n in args.sizes:
         clock = time.thread_time if args.clock == "cpu" else time.perf_counter
-        runs = sorted((run(n, steps, warmup, kin_source=args.kin, clock=clock) for _ in range(args.repeats)),
-                      key=lambda r: r["ctrl"] + r["sim"])
-        r = runs[len(runs) // 2]
-        rtf = n * r["dt"] * 1e6 / (r["ctrl"] + r["sim"])
-        speedup = r["peer_qp_per_arm"] * n / r["qp"]
-        if n == 1:
-            target = f"<1000 µs: {'met' if r['ctrl'] < 1000 else 'NOT met'}"
-        else:
-            target = f">=20x RT: {'met' if rtf >= 20 else 'NOT met'}"
-        print(f"{n:>4} {r['ctrl']:>13.0f} {r['ctrl'] / n:>8.1f} {r['kin']:>6.0f} {r['asm']:>6.0f} {r['qp']:>7.0f} "
-              f"{r['rest']:>6.0f} {r['sim']:>8.0f} {rtf:>6.2f}x "
-              f"{r['peer_qp_per_arm']:>16.0f} {speedup:>11.2f}x {target:>22}"
-              + (f"  ({r['fallbacks']} fallbacks)" if r["fallbacks"] else ""))
+        medians = {}
+        for backend in backends:
+            runs = sorted((run(n, steps, warmup, kin_source=args.kin, clock=clock, backend=backend)
+                           for _ in range(args.repeats)), key=lambda r: r["ctrl"] + r["sim"])
+            medians[backend] = runs[len(runs) // 2]
+        for backend in backends:
+            r = medians[backend]
+            rtf = n * r["dt"] * 1e6 / (r["ctrl"] + r["sim"])
+            speedup = r["peer_qp_per_arm"] * n / r["qp"]
+            vs = f"{medians['python']['ctrl'] / r['ctrl']:.2f}x" if "python" in medians else "-"
+            if n == 1:
+                target = f"<1000 µs: {'met' if r['ctrl'] < 1000 else 'NOT met'}"
+            else:
+                target = f">=20x RT: {'met' if rtf >= 20 else 'NOT met'}"
+            print(f"{n:>4} {backend:>8} {r['ctrl']:>13.0f} {r['ctrl'] / n:>8.1f} {r['kin']:>6.0f} {r['asm']:>6.0f} "
+                  f"{r['qp']:>7.0f} {r['rest']:>6.0f} {r['sim']:>8.0f} {rtf:>6.2f}x {vs:>10} "
+                  f"{r['peer_qp_per_arm']:>16.0f} {speedup:>11.2f}x {target:>22}"
+                  + (f"  ({r['fallbacks']} fallbacks)" if r["fallbacks"] else ""))
     return 0
 
 

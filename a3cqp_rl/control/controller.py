@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from a3cqp_rl.config import ControllerConfig
+from a3cqp_rl.control import native
 from a3cqp_rl.control.arrays import Array, cat, const, inv, mm, mv, solve_spd, zeros
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import ControlShapeError, InvalidGainError
@@ -82,6 +83,10 @@ class ControllerOptions:
     """Interior-point iteration budget of the QP solver."""
     q_center: tuple[float, ...] = field(default=PANDA_HOME)
     """q_d of the JC task (eq. 23) [rad]; default the Franka "ready" pose."""
+    backend: Literal["auto", "python", "native"] = "auto"
+    """Who evaluates the default tasks, limits and torque law on CPU: "python" the objects of tasks.py/limits.py;
+    "native" their C translation (control/native: same numbers to rounding, ~20x faster per step; an error if the
+    composition is not the default one or the library cannot be built); "auto" (default) native when possible."""
 
 
 @dataclass(frozen=True)
@@ -223,9 +228,21 @@ class A3CQPController:
         self._numpy_ok = all(getattr(p, "numpy_capable", False) for p in [*self.tasks, *self.limits])
         self.residuals: dict[str, Residual] = {}
         """Task residuals of the last step, by task name (their b are the references f_adm, f_ctc, ...); numpy arrays
-        when the step ran on the CPU path (see arrays.py)."""
+        when the step ran on the CPU path (see arrays.py); empty after a native step (ControlOutput has f_adm, f_ctc)."""
         self.fallback_count = 0
         """Number of (robot, step) pairs that used the fallback since construction."""
+        self._native: native.NativeStep | None = None
+        if opt.backend not in ("auto", "python", "native"):
+            raise InvalidGainError(f"backend must be 'auto', 'python' or 'native', got {opt.backend!r}")
+        if opt.backend != "python":
+            params, why = native.native_params(self)
+            lib = native.load() if params is not None else None
+            if lib is not None:
+                self._native = native.NativeStep(lib, params)
+            elif opt.backend == "native":
+                raise InvalidGainError(f"backend='native' is not available: {why or 'the C library did not build'}")
+        # the composition the native step was made for (a task or limit swapped in later turns it off)
+        self._native_for = (tuple(map(id, self.tasks)), tuple(map(id, self.limits)))
 
     # ------------------------------------------------------------------ state
     def reset(self, q: torch.Tensor, qd: torch.Tensor | None = None, idx: torch.Tensor | list[int] | None = None) -> None:
@@ -371,6 +388,58 @@ class A3CQPController:
                 c[:, col:col + size] += g
         return 0.5 * (P + P.mT), c
 
+    def _solve(self, P: torch.Tensor, c: torch.Tensor, G: torch.Tensor,
+               h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """solve_qp warm-started from the last step: (x [N, 13], status [N], iterations [N]); never raises."""
+        n = self.n
+        warm = self._warm if self._warm is not None and self._warm.z.shape == (n, G.shape[1]) else None
+        try:
+            sol = solve_qp(P, c, G=G, h=h, warm_start=warm, max_iter=self.options.qp_max_iter)
+            self._warm = sol
+            return sol.x, sol.status, sol.iterations
+        except Exception:  # a solver bug must not take the arms down: brake every robot and say so loudly
+            logger.exception("A3CQP: solve_qp raised; every robot of the batch falls back")
+            self._warm = None
+            return (P.new_zeros(n, N_VARS), torch.full((n,), SOLVER_ERROR, dtype=torch.long),
+                    torch.zeros(n, dtype=torch.long))
+
+    def _report_fallback(self, ok: Array, qp_status: torch.Tensor, valid: Array) -> None:
+        """Count and log the robots that fell back this step (and drop the warm start)."""
+        bad = [i for i in range(self.n) if not bool(ok[i])]
+        self.fallback_count += len(bad)
+        logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s, valid input %s",
+                       bad, qp_status[bad].tolist(), [bool(valid[i]) for i in bad])
+        self._warm = None
+
+    def assemble_native(self, q: np.ndarray, qd: np.ndarray, mass: np.ndarray, bias: np.ndarray,
+                        weights: np.ndarray, f_d: np.ndarray, pos_d: np.ndarray, rot_d: np.ndarray,
+                        f_ext: np.ndarray, in_contact: np.ndarray, kin: Kinematics) -> native.Assembled:
+        """`build_context` + `build_qp` by the C step (numpy arrays; the default composition only, see `backend`)."""
+        if self._native is None:
+            raise RuntimeError("this controller has no native step (backend='python' or not the default composition)")
+        return self._native.assemble(q, qd, mass, bias, kin.jac, kin.jdot_qdot, kin.twist, kin.pos, kin.rot, weights,
+                                     f_d, pos_d, rot_d, f_ext, in_contact, _np(self.q_des), _np(self.qd_des))
+
+    def _step_native(self, q: np.ndarray, qd: np.ndarray, mass: np.ndarray, bias: np.ndarray, weights: np.ndarray,
+                     f_d: np.ndarray, pos_d: np.ndarray, rot_d: np.ndarray, f_ext: np.ndarray,
+                     in_contact: np.ndarray, kin: Kinematics | None) -> ControlOutput:
+        """`step` by the C translation of the default tasks, limits and torque law (finite numpy inputs)."""
+        if kin is None:
+            kin = _kin_numpy(self.model.kinematics(torch.from_numpy(q), torch.from_numpy(qd)))
+        asm = self.assemble_native(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, kin)
+        x, qp_status, iterations = self._solve(*(torch.from_numpy(a) for a in (asm.P, asm.c, asm.G, asm.h)))
+        xn = _np(x)
+        ok = (_np(qp_status) == 0) & np.isfinite(xn).all(axis=1)
+        tau, qdd, f, qdd_pd, q_des, qd_des, saturated = self._native.torque(xn, ok, asm)
+        if not ok.all():
+            self._report_fallback(ok, qp_status, np.ones(self.n, dtype=bool))
+        self.q_des, self.qd_des = torch.from_numpy(q_des), torch.from_numpy(qd_des)
+        self.residuals = {}
+        t = torch.from_numpy
+        return ControlOutput(tau=t(tau), qdd=t(qdd), wrench=t(f), qdd_pd=t(qdd_pd), pose_error=t(asm.pose_error),
+                             f_adm=t(asm.f_adm), f_ctc=t(asm.f_ctc), status=qp_status, fallback=t(~ok),
+                             saturated=t(saturated), iterations=iterations)
+
     # ------------------------------------------------------------------ step
     @torch.no_grad()
     def step(self, q: torch.Tensor, qd: torch.Tensor, mass: torch.Tensor, bias: torch.Tensor, weights: torch.Tensor,
@@ -428,6 +497,9 @@ class A3CQPController:
             in_contact = _np(in_contact)
             if kin is not None:
                 kin = _kin_numpy(kin)
+        if use_np and all_valid and self._native is not None and self._native_for == (
+                tuple(map(id, self.tasks)), tuple(map(id, self.limits))):
+            return self._step_native(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, kin)
         xp = np if use_np else torch
         if not all_valid:
             # invalid robots (non-finite inputs) are computed on a harmless stand-in and replaced by the fallback
@@ -447,17 +519,7 @@ class A3CQPController:
         P, c, G, h = self.build_qp(ctx)
         if use_np:
             P, c, G, h = torch.from_numpy(P), torch.from_numpy(c), torch.from_numpy(G), torch.from_numpy(h)
-        warm = self._warm if self._warm is not None and self._warm.z.shape == (n, G.shape[1]) else None
-        try:
-            sol = solve_qp(P, c, G=G, h=h, warm_start=warm, max_iter=self.options.qp_max_iter)
-            x, qp_status, iterations = sol.x, sol.status, sol.iterations
-            self._warm = sol
-        except Exception:  # a solver bug must not take the arms down: brake every robot and say so loudly
-            logger.exception("A3CQP: solve_qp raised; every robot of the batch falls back")
-            x = P.new_zeros(n, N_VARS)
-            qp_status = torch.full((n,), SOLVER_ERROR, dtype=torch.long)
-            iterations = torch.zeros(n, dtype=torch.long)
-            self._warm = None
+        x, qp_status, iterations = self._solve(P, c, G, h)
         dt, cfg, opt = self.dt, self.config, self.options
         tau_max = self._constants(q)["tau_max"]
         if use_np:
@@ -480,11 +542,7 @@ class A3CQPController:
             qdd, f = xp.where(o1, qdd, qdd_fb), xp.where(o1, f, 0.0)
             qdd_pd = xp.where(o1, qdd_pd, 0.0)
             q_des, qd_des = xp.where(o1, q_des, q), xp.where(o1, qd_des, qd)
-            bad = [i for i in range(n) if not bool(ok[i])]
-            self.fallback_count += len(bad)
-            logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s, valid input "
-                           "%s", bad, qp_status[bad].tolist(), valid[bad].tolist())
-            self._warm = None
+            self._report_fallback(ok, qp_status, valid)
         out = _finish(xp, tau, qdd, f, qdd_pd, q_des, qd_des, q, qd, weights, tau_max, dt * opt.desired_state_leak)
         if use_np:
             out = tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in out)

@@ -12,87 +12,32 @@ The backward (`gi_qp_adjoint`: adjoint solve and closed-form gradients) replaces
 (~100 µs) the same way.  `solve_qp` at B = 1, medians of 3 bench runs: forward cold 348 → 163 µs
 (default), 614 → 222 µs (heavy); forward+backward 654 → 434, 942 → 481 µs.
 
-Build: the system C compiler (`A3CQP_CC`, else `CC`, else `cc`/`gcc` on PATH), plain
-`-O2 -fPIC -shared` (no -march=native: results must not depend on the machine that built them),
-into a per-user cache (`A3CQP_CACHE_DIR`, else `$XDG_CACHE_HOME/a3cqp_rl` or `~/.cache/a3cqp_rl`)
-under a name keyed by a hash of the source, compiler and flags.  The library is written to a
-temporary file in that directory and moved into place with `os.replace`, so concurrent processes
-(pytest-xdist workers, two trainers) never load half a file; at worst both compile.  A failure
-logs one warning and `load()` returns None for the rest of the process.
+Build: `a3cqp_rl.native_build` (the system C compiler, plain -O2, a per-user cache written
+atomically; see there).  A failure logs one warning and `load()` returns None for the rest of the
+process.
 """
 
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import logging
-import os
-import platform
-import shlex
-import shutil
-import subprocess
-import sys
-import tempfile
 import threading
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-__all__ = ["load", "load_adjoint", "SOURCE", "CFLAGS", "CERTIFIED"]
+from a3cqp_rl.native_build import build, enabled
+
+__all__ = ["load", "load_adjoint", "SOURCE", "CERTIFIED"]
 
 SOURCE = Path(__file__).with_name("gi_qp.c")
-CFLAGS = ["-std=c99", "-O2", "-fPIC", "-shared"]
 CERTIFIED = 0
 """Status code of a certified instance (any other code: solve it on the numpy path)."""
 
 _log = logging.getLogger(__name__)
 _lock = threading.Lock()
 _loaded: tuple[bool, Callable | None, Callable | None] = (False, None, None)
-
-
-def _cache_dir() -> Path:
-    env = os.environ.get("A3CQP_CACHE_DIR")
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "a3cqp_rl"
-
-
-def _compiler() -> list[str] | None:
-    """The compiler command: an explicit A3CQP_CC / CC (which may carry flags) must exist (no silent substitute)."""
-    for var in ("A3CQP_CC", "CC"):
-        cmd = shlex.split(os.environ.get(var, ""))
-        if cmd:
-            exe = shutil.which(cmd[0])
-            return [exe, *cmd[1:]] if exe else None
-    exe = shutil.which("cc") or shutil.which("gcc")
-    return [exe] if exe else None
-
-
-def _build() -> Path:
-    """Path of the compiled library, compiling it if this source/compiler/flags has not been built."""
-    cc = _compiler()
-    if cc is None:
-        raise RuntimeError("no C compiler found (set A3CQP_CC or CC, or install cc/gcc)")
-    src = SOURCE.read_bytes()
-    key = hashlib.sha256(b"\0".join([src, " ".join(cc + CFLAGS).encode(), platform.machine().encode(), sys.platform.encode()])).hexdigest()[:16]
-    cache = _cache_dir()
-    lib = cache / f"gi_qp-{key}.so"
-    if lib.exists():
-        return lib
-    cache.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".gi_qp-", suffix=".so", dir=cache)
-    os.close(fd)
-    try:
-        proc = subprocess.run([*cc, *CFLAGS, "-o", tmp, str(SOURCE), "-lm"], capture_output=True, text=True, timeout=120)
-        if proc.returncode != 0:
-            raise RuntimeError(f"{cc[0]} failed ({proc.returncode}): {proc.stderr.strip()[:500]}")
-        os.replace(tmp, lib)  # atomic: readers see the old name absent or the whole file
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return lib
 
 
 def _bind(path: Path) -> tuple[Callable, Callable]:
@@ -175,9 +120,9 @@ def load() -> Callable | None:
         if _loaded[0]:
             return _loaded[1]
         fns = (None, None)
-        if os.environ.get("A3CQP_NATIVE_QP", "1").strip().lower() not in ("0", "false", "no", "off"):
+        if enabled("A3CQP_NATIVE_QP"):
             try:
-                fns = _bind(_build())
+                fns = _bind(build(SOURCE))
             except Exception as exc:  # no compiler, build error, unwritable cache, load error
                 _log.warning("a3cqp_rl.qp: native QP routine unavailable (%s); using the numpy path", exc)
         _loaded = (True, *fns)

@@ -1,0 +1,486 @@
+/*
+ * The A3CQP controller's default step in C, one arm after the other: the QP assembly (context, the
+ * four tasks and the Cartesian regularizer, the four limits) and, after the QP, the torque law.
+ *
+ * This is a translation of the Python objects, not a second design: each function below is one
+ * object of a3cqp_rl/control (named in its comment) and computes the same numbers in the same
+ * order, so that the two agree to rounding (tests/test_control_native.py checks 1e-9 on random,
+ * contact and near-limit states).  The Python code is the reference and the only path for custom
+ * tasks, limits, other devices and autograd; the controller takes this one for its default
+ * composition on CPU float64 (see native/__init__.py for when and why: at B = 1 a step is a few
+ * hundred numpy calls of 0.5-3 µs each while its arithmetic is ~20 k flops).
+ *
+ * Arrays are row-major float64, batch first; per arm: q, qd [7]; M = B(q) [7 7]; bias = h + g [7];
+ * J [6 7] (linear rows first, world frame); jdqd = J̇q̇ [6]; twist = J q̇ [6]; pos [3]; rot [3 3];
+ * w = local task weights [6 3] (columns IK, AC, FC); f_d [6]; pos_d [3]; rot_d [3 3]; f_ext [6];
+ * contact [1] (uint8); q_des, qd_des [7] (q*, q̇* of eq. 6-7).
+ *
+ * Plain C99 + libm, no allocation.
+ */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#define NQ 7  /* q̈ = x[0:7] */
+#define NW 6  /* f = x[7:13] */
+#define NV 13
+
+/* Parameters, mirrored field by field by `native.Params` (a ctypes Structure; sizeof checked on load).
+ * Flags are doubles (0 or 1) so that the Python side is one list of floats. */
+typedef struct {
+    double dt, cv, cp;                       /* control period [s]; eq. 5 gains c_v, c_p */
+    double kp[6], kv[6];                     /* CartesianIK: K_p, K_v diagonals (eq. 10-11) */
+    double lambda_d, c_d, ac_paper;          /* Admittance: Λd, Cd, eq. 18 as printed (1) or consistent (0) */
+    double f_d_max;                          /* FC: f_d clipped to [0, f̄_d] (eq. 21) */
+    double wrench_ff, pd_pinv;               /* ControllerOptions.ik_wrench_feedforward, pd_projection == "pinv" */
+    double creg_gamma;                       /* CartesianAccelerationRegularizer γ (0: absent) */
+    double q_center[7], kq, jc_eps, jc_eps_n;/* JointCentering q_d, k_q, ε, ε_N (eq. 23) */
+    double reg, pinv_damping, nullspace_damping;
+    double q_min[7], q_max[7], dq_max[7], ddq_max[7]; /* JointLimitsViability (margins applied) */
+    double horizon, target_total, include_f_ext, brake_gain;
+    double has_tau_stop, tau_stop_max[7], torque_share, min_stop_fraction;
+    double wrench_max[6];                    /* WrenchBox */
+    double mu;                               /* FrictionPyramid */
+    double has_torque_limits, torque_max[7], torque_safe; /* TorqueLimits (scaled τ̄), anchored to the brake */
+    double tau_clip[7], leak;                /* torque clip ±τ_max; Δt · desired_state_leak */
+} a3cqp_params;
+
+int64_t a3cqp_params_size(void) { return (int64_t)sizeof(a3cqp_params); }
+
+/* Rows of the inequality block: joint limits (2 or 4 sets of 7), wrench box 12, friction 4, torque 14. */
+int64_t a3cqp_rows(const a3cqp_params *p) {
+    return (p->target_total != 0.0 ? 28 : 14) + 12 + 4 + (p->has_torque_limits != 0.0 ? 14 : 0);
+}
+
+/* ------------------------------------------------------------------ small dense helpers */
+
+/* X = A⁻¹ B by Gauss-Jordan with partial pivoting (A n × n, B n × r; B = NULL: the inverse). Returns 0 if a pivot
+ * is exactly zero (X is then NaN, as numpy's singular solve would leave the controller: the step falls back). */
+static int gj_solve(int n, const double *A, int r, const double *B, double *X) {
+    double a[7 * 7], b[7 * 7];
+    memcpy(a, A, sizeof(double) * n * n);
+    if (B) memcpy(b, B, sizeof(double) * n * r);
+    else {
+        r = n;
+        memset(b, 0, sizeof(double) * n * n);
+        for (int i = 0; i < n; i++) b[i * n + i] = 1.0;
+    }
+    for (int k = 0; k < n; k++) {
+        int piv = k;
+        for (int i = k + 1; i < n; i++)
+            if (fabs(a[i * n + k]) > fabs(a[piv * n + k])) piv = i;
+        if (a[piv * n + k] == 0.0) {
+            for (int i = 0; i < n * r; i++) X[i] = NAN;
+            return 0;
+        }
+        if (piv != k) {
+            for (int j = 0; j < n; j++) { double t = a[k * n + j]; a[k * n + j] = a[piv * n + j]; a[piv * n + j] = t; }
+            for (int j = 0; j < r; j++) { double t = b[k * r + j]; b[k * r + j] = b[piv * r + j]; b[piv * r + j] = t; }
+        }
+        double inv = 1.0 / a[k * n + k];
+        for (int j = 0; j < n; j++) a[k * n + j] *= inv;
+        for (int j = 0; j < r; j++) b[k * r + j] *= inv;
+        for (int i = 0; i < n; i++) {
+            double f = a[i * n + k];
+            if (i == k || f == 0.0) continue;
+            for (int j = 0; j < n; j++) a[i * n + j] -= f * a[k * n + j];
+            for (int j = 0; j < r; j++) b[i * r + j] -= f * b[k * r + j];
+        }
+    }
+    memcpy(X, b, sizeof(double) * n * r);
+    return 1;
+}
+
+/* C = A B (A m × k, B k × n). */
+static void mm(int m, int k, int n, const double *A, const double *B, double *C) {
+    for (int i = 0; i < m; i++) {
+        double *c = C + i * n;
+        for (int j = 0; j < n; j++) c[j] = 0.0;
+        for (int l = 0; l < k; l++) {
+            double a = A[i * k + l];
+            const double *b = B + l * n;
+            for (int j = 0; j < n; j++) c[j] += a * b[j];
+        }
+    }
+}
+
+/* C = Aᵀ B (A stored k × m, B k × n). */
+static void mm_tn(int m, int k, int n, const double *A, const double *B, double *C) {
+    for (int i = 0; i < m * n; i++) C[i] = 0.0;
+    for (int l = 0; l < k; l++)
+        for (int i = 0; i < m; i++) {
+            double a = A[l * m + i];
+            const double *b = B + l * n;
+            double *c = C + i * n;
+            for (int j = 0; j < n; j++) c[j] += a * b[j];
+        }
+}
+
+/* C = A Bᵀ (A m × k, B stored n × k). */
+static void mm_nt(int m, int k, int n, const double *A, const double *B, double *C) {
+    for (int i = 0; i < m; i++)
+        for (int j = 0; j < n; j++) {
+            double s = 0.0;
+            for (int l = 0; l < k; l++) s += A[i * k + l] * B[j * k + l];
+            C[i * n + j] = s;
+        }
+}
+
+/* y = A x (A m × k). */
+static void mv(int m, int k, const double *A, const double *x, double *y) {
+    for (int i = 0; i < m; i++) {
+        double s = 0.0;
+        for (int l = 0; l < k; l++) s += A[i * k + l] * x[l];
+        y[i] = s;
+    }
+}
+
+/* y = Aᵀ x (A stored k × m). */
+static void mtv(int m, int k, const double *A, const double *x, double *y) {
+    for (int i = 0; i < m; i++) y[i] = 0.0;
+    for (int l = 0; l < k; l++)
+        for (int i = 0; i < m; i++) y[i] += A[l * m + i] * x[l];
+}
+
+static double clampd(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
+
+/* ------------------------------------------------------------------ context (ControlContext, build_context) */
+
+typedef struct {
+    double binv_jt[7 * 6];   /* B⁻¹Jᵀ */
+    double lam_inv[36], lam[36]; /* Λ⁻¹ = J B⁻¹ Jᵀ + λ² I, Λ (eq. 12) */
+    double D[36];            /* blockdiag(R, R) (eq. 3) */
+    double W[3][36];         /* W1, W2, W3 = D diag(w_i) Dᵀ (eq. 8) */
+    double jpinv[7 * 6];     /* J⁺ = Jᵀ (J Jᵀ + λ² I)⁻¹ */
+    double w1j[6 * 7];       /* W1 J */
+    double pd[49];           /* P W1 J (eq. 5) */
+    double qdd_map[49];      /* I + (c_v Δt + c_p Δt²/2) P W1 J */
+    double qdd_pd0[7];       /* q̈_pd at q̈* = 0 */
+    double nullspace[49];    /* I − J⁺J */
+    double jtw1j[49];        /* Jᵀ W1 J */
+    double pose_err[6];      /* e_x (eq. 10) */
+    double fdl[6];           /* f_d^𝓛 clipped (eq. 21) */
+} context;
+
+/* frames.rotation_log of R_d Rᵀ: the rotation vector θ·axis (exact for θ < π). */
+static void rotation_error(const double *rot_d, const double *rot, double *e) {
+    double E[9];
+    mm_nt(3, 3, 3, rot_d, rot, E);
+    double v[3] = {0.5 * (E[7] - E[5]), 0.5 * (E[2] - E[6]), 0.5 * (E[3] - E[1])}; /* sin θ · axis */
+    double s = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    double c = 0.5 * (E[0] + E[4] + E[8] - 1.0);
+    double theta = atan2(s, c);
+    double scale = s > 1e-9 ? theta / (s > 1e-12 ? s : 1e-12) : 1.0 + theta * theta / 6.0;
+    for (int i = 0; i < 3; i++) e[i] = scale * v[i];
+}
+
+static void build_context(const a3cqp_params *p, const double *q, const double *qd, const double *M, const double *J,
+                          const double *pos, const double *rot, const double *w, const double *f_d, const double *pos_d,
+                          const double *rot_d, const double *q_des, const double *qd_des, context *c) {
+    double Jt[7 * 6];
+    for (int i = 0; i < 6; i++)
+        for (int j = 0; j < 7; j++) Jt[j * 6 + i] = J[i * 7 + j];
+    gj_solve(7, M, 6, Jt, c->binv_jt);
+    mm(6, 7, 6, J, c->binv_jt, c->lam_inv);
+    for (int i = 0; i < 6; i++) c->lam_inv[i * 6 + i] += p->pinv_damping;
+    double lam[36];
+    gj_solve(6, c->lam_inv, 0, NULL, lam);
+    for (int i = 0; i < 6; i++)
+        for (int j = 0; j < 6; j++) c->lam[i * 6 + j] = 0.5 * (lam[i * 6 + j] + lam[j * 6 + i]);
+    memset(c->D, 0, sizeof c->D);
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) c->D[i * 6 + j] = c->D[(i + 3) * 6 + j + 3] = rot[i * 3 + j];
+    for (int k = 0; k < 3; k++) {
+        double Dw[36];
+        for (int i = 0; i < 6; i++)
+            for (int a = 0; a < 6; a++) Dw[i * 6 + a] = c->D[i * 6 + a] * w[a * 3 + k];
+        mm_nt(6, 6, 6, Dw, c->D, c->W[k]);
+    }
+    double jjt[36], jjt_inv[36];
+    mm_nt(6, 7, 6, J, J, jjt);
+    for (int i = 0; i < 6; i++) jjt[i * 6 + i] += p->nullspace_damping;
+    gj_solve(6, jjt, 0, NULL, jjt_inv);
+    mm_tn(7, 6, 6, J, jjt_inv, c->jpinv);
+    mm(6, 6, 7, c->W[0], J, c->w1j);
+    if (p->pd_pinv != 0.0) mm(7, 6, 7, c->jpinv, c->w1j, c->pd);
+    else mm_tn(7, 6, 7, J, c->w1j, c->pd);
+    double err[7];
+    for (int i = 0; i < 7; i++)
+        err[i] = p->cv * (qd_des[i] - qd[i]) + p->cp * (q_des[i] + p->dt * qd_des[i] - q[i]);
+    double gain = p->cv * p->dt + p->cp * p->dt * p->dt / 2.0;
+    mv(7, 7, c->pd, err, c->qdd_pd0);
+    double jpj[49];
+    mm(7, 6, 7, c->jpinv, J, jpj);
+    for (int i = 0; i < 49; i++) {
+        double eye = (i % 8 == 0) ? 1.0 : 0.0;
+        c->qdd_map[i] = eye + gain * c->pd[i];
+        c->nullspace[i] = eye - jpj[i];
+    }
+    mm_tn(7, 6, 7, J, c->w1j, c->jtw1j);
+    for (int i = 0; i < 3; i++) c->pose_err[i] = pos_d[i] - pos[i];
+    rotation_error(rot_d, rot, c->pose_err + 3);
+    for (int i = 0; i < 6; i++) c->fdl[i] = clampd(f_d[i], 0.0, p->f_d_max);
+}
+
+/* ------------------------------------------------------------------ limits (limits.py) */
+
+/* _acc_bounds_from_position, _from_viability and _acc_bounds for one joint (Del Prete 2017). */
+static void joint_bounds(double q, double dq, double q_min, double q_max, double dq_max, double ddq_max,
+                         double ddq_stop, double dt, double *lb_out, double *ub_out) {
+    /* position */
+    double two_dt_sq = 2.0 / (dt * dt);
+    double ub_q3 = two_dt_sq * (q_max - q - dt * dq), lb_q3 = two_dt_sq * (q_min - q - dt * dq);
+    double stop = -dq / dt, dq2 = dq * dq;
+    double lb_brake = fmax(dq2 / (2.0 * (q != q_min ? q - q_min : 1.0)), stop);
+    double lb_down = lb_q3 < stop ? lb_q3 : (q != q_min ? lb_brake : stop);
+    double ub_brake = fmin(-dq2 / (2.0 * (q != q_max ? q_max - q : 1.0)), stop);
+    double ub_up = ub_q3 > stop ? ub_q3 : (q != q_max ? ub_brake : stop);
+    int down = dq <= 0.0;
+    double lb_p = down ? lb_down : lb_q3, ub_p = down ? ub_q3 : ub_up;
+    /* velocity */
+    double lb_v = (-dq_max - dq) / dt, ub_v = (dq_max - dq) / dt;
+    /* viability */
+    double dt2 = dt * dt, two_a = 2.0 * dt2;
+    double b = 2.0 * dt * dq + ddq_stop * dt2;
+    double cc = dq2 - 2.0 * ddq_stop * (q_max - q - dt * dq);
+    double delta = b * b - 2.0 * two_a * cc;
+    double ub_s = delta >= 0.0 ? (-b + sqrt(fmax(delta, 0.0))) / two_a : stop;
+    b = 2.0 * dt * dq - ddq_stop * dt2;
+    cc = dq2 - 2.0 * ddq_stop * (q + dt * dq - q_min);
+    delta = b * b - 2.0 * two_a * cc;
+    double lb_s = delta >= 0.0 ? (-b - sqrt(fmax(delta, 0.0))) / two_a : stop;
+    lb_s = fmin(lb_s, stop);
+    ub_s = fmax(ub_s, stop);
+    /* combine; on conflict drop viability, then velocity; then saturate into the acceleration limits */
+    double lb_pv = fmax(lb_p, lb_v), ub_pv = fmin(ub_p, ub_v);
+    double lb = fmax(lb_pv, lb_s), ub = fmin(ub_pv, ub_s);
+    if (ub < lb) { lb = lb_pv; ub = ub_pv; }
+    if (ub < lb) { lb = lb_p; ub = ub_p; }
+    *lb_out = fmin(fmax(lb, -ddq_max), ddq_max);
+    *ub_out = fmin(fmax(ub, -ddq_max), ddq_max);
+}
+
+/* JointLimitsViability.bounds_for (with stopping_deceleration) and safe_acceleration. */
+static void viable_bounds(const a3cqp_params *p, const double *q, const double *qd, const double *M, const double *bias,
+                          double *lb, double *ub, double *safe) {
+    for (int i = 0; i < 7; i++) {
+        double stop = p->ddq_max[i];
+        if (p->has_tau_stop != 0.0) {
+            double room = fmax(p->tau_stop_max[i] - fabs(bias[i]), 0.0);
+            stop = fmax(fmin(p->torque_share * room / M[i * 8], p->ddq_max[i]), p->min_stop_fraction * p->ddq_max[i]);
+        }
+        joint_bounds(q[i], qd[i], p->q_min[i], p->q_max[i], p->dq_max[i], p->ddq_max[i], stop, p->horizon,
+                     &lb[i], &ub[i]);
+        safe[i] = fmin(fmax(-p->brake_gain * qd[i], lb[i]), ub[i]);
+    }
+}
+
+/* ------------------------------------------------------------------ one arm: tasks, P, c, G, h */
+
+static void assemble_one(const a3cqp_params *p, const double *q, const double *qd, const double *M, const double *bias,
+                         const double *J, const double *jdqd, const double *twist, const double *pos, const double *rot,
+                         const double *w, const double *f_d, const double *pos_d, const double *rot_d,
+                         const double *f_ext, int contact, const double *q_des, const double *qd_des,
+                         double *P, double *c, double *G, double *h, double *pd_out, double *pose_out,
+                         double *f_adm, double *f_ctc, double *safe) {
+    context cx;
+    build_context(p, q, qd, M, J, pos, rot, w, f_d, pos_d, rot_d, q_des, qd_des, &cx);
+    const double *W1 = cx.W[0], *W2 = cx.W[1], *W3 = cx.W[2];
+
+    /* Admittance.admittance_wrench (eq. 16-18) */
+    double v[6];
+    for (int i = 0; i < 6; i++)
+        v[i] = (p->ac_paper != 0.0 ? f_ext[i] : f_ext[i] - p->c_d * twist[i]) / p->lambda_d - jdqd[i];
+    mv(6, 6, cx.lam, v, f_adm);
+    for (int i = 0; i < 6; i++) f_adm[i] -= f_ext[i] + (p->ac_paper != 0.0 ? p->c_d * twist[i] : 0.0);
+    /* ForceControl.contact_wrench (eq. 20) */
+    mv(6, 6, cx.D, cx.fdl, f_ctc);
+    /* A3CQPController.wrench_feedforward (eq. 24b per local axis), zero in contact */
+    double f_ff[6] = {0};
+    if (p->wrench_ff != 0.0 && !contact) {
+        double la[6], lc[6], r[6];
+        mtv(6, 6, cx.D, f_adm, la);
+        mtv(6, 6, cx.D, f_ctc, lc);
+        for (int i = 0; i < 6; i++)
+            r[i] = (w[i * 3 + 1] * la[i] + w[i * 3 + 2] * lc[i]) / (w[i * 3 + 1] + w[i * 3 + 2] + p->reg);
+        mv(6, 6, cx.D, r, f_ff);
+    }
+    /* CartesianIK (eq. 10-11): J q̈ = ẍ_d − J̇q̇ − Λ⁻¹ f_ff */
+    double b_ik[6], lf[6];
+    mv(6, 6, cx.lam_inv, f_ff, lf);
+    for (int i = 0; i < 6; i++) b_ik[i] = p->kp[i] * cx.pose_err[i] - p->kv[i] * twist[i] - jdqd[i] - lf[i];
+    /* JointCentering (eq. 23) */
+    double b_jc[7], sk = 2.0 * sqrt(p->kq);
+    for (int i = 0; i < 7; i++) b_jc[i] = p->kq * (p->q_center[i] - q[i]) - sk * qd[i];
+
+    /* q̈ block: Jᵀ (W1 + γ(I − W1)) J, −Jᵀ W1 b_ik (IK and the regularizer share A = J), + the JC weight */
+    double Wg[36], wb[6], WJ[42], Hqq[49], gqq[7], Wjc[49], wjb[7];
+    for (int i = 0; i < 36; i++)
+        Wg[i] = W1[i] + (p->creg_gamma != 0.0 ? (i % 7 == 0 ? p->creg_gamma : 0.0) - p->creg_gamma * W1[i] : 0.0);
+    mv(6, 6, W1, b_ik, wb);
+    mm(6, 6, 7, Wg, J, WJ);
+    mm_tn(7, 6, 7, J, WJ, Hqq);
+    mtv(7, 6, J, wb, gqq);
+    for (int i = 0; i < 49; i++) Wjc[i] = p->jc_eps * cx.jtw1j[i] + p->jc_eps_n * cx.nullspace[i];
+    mv(7, 7, Wjc, b_jc, wjb);
+    for (int i = 0; i < 49; i++) Hqq[i] += Wjc[i];
+    for (int i = 0; i < 7; i++) gqq[i] = -gqq[i] - wjb[i];
+    /* f block: AC and FC (A = I): W2 + W3, −(W2 f_adm + W3 f_ctc) */
+    double a2[6], a3[6];
+    mv(6, 6, W2, f_adm, a2);
+    mv(6, 6, W3, f_ctc, a3);
+    /* A3CQPController._assemble: P = ½ (H + Hᵀ) + r I on the block diagonal, c */
+    memset(P, 0, sizeof(double) * NV * NV);
+    for (int i = 0; i < 7; i++)
+        for (int j = 0; j < 7; j++) P[i * NV + j] = 0.5 * (Hqq[i * 7 + j] + Hqq[j * 7 + i]);
+    for (int i = 0; i < 6; i++)
+        for (int j = 0; j < 6; j++)
+            P[(i + 7) * NV + j + 7] = 0.5 * ((W2[i * 6 + j] + W3[i * 6 + j]) + (W2[j * 6 + i] + W3[j * 6 + i]));
+    for (int i = 0; i < NV; i++) P[i * NV + i] += p->reg;
+    for (int i = 0; i < 7; i++) c[i] = gqq[i];
+    for (int i = 0; i < 6; i++) c[7 + i] = -(a2[i] + a3[i]);
+
+    /* JointLimitsViability.rows: (I + ∂q̈_pd/∂q̈*) q̈* + q̈_pd0 ∈ [lb, ub], and the total with B⁻¹Jᵀ f */
+    double lb[7], ub[7];
+    viable_bounds(p, q, qd, M, bias, lb, ub, safe);
+    double *g = G, *hh = h;
+    double off[7];
+    memcpy(off, cx.qdd_pd0, sizeof off);
+    if (p->include_f_ext != 0.0) {
+        double t[7];
+        mv(7, 6, cx.binv_jt, f_ext, t);
+        for (int i = 0; i < 7; i++) off[i] += t[i];
+    }
+    int sets = p->target_total != 0.0 ? 4 : 2;
+    for (int s = 0; s < sets; s++) {
+        double sign = (s % 2 == 0) ? 1.0 : -1.0;
+        int total = s >= 2;
+        for (int i = 0; i < 7; i++, g += NV, hh++) {
+            for (int j = 0; j < 7; j++) g[j] = sign * cx.qdd_map[i * 7 + j];
+            for (int j = 0; j < 6; j++) g[7 + j] = total ? sign * cx.binv_jt[i * 6 + j] : 0.0;
+            double o = total ? off[i] : cx.qdd_pd0[i];
+            *hh = sign > 0 ? ub[i] - o : o - lb[i];
+        }
+    }
+    /* WrenchBox: ±f ≤ f̄ */
+    for (int s = 0; s < 2; s++)
+        for (int i = 0; i < 6; i++, g += NV, hh++) {
+            memset(g, 0, sizeof(double) * NV);
+            g[7 + i] = s == 0 ? 1.0 : -1.0;
+            *hh = p->wrench_max[i];
+        }
+    /* FrictionPyramid (eq. 9): U(μ) Rᵀ f ≤ 0 in contact, 0 ≤ 1 otherwise */
+    static const double U[4][2] = {{1.0, 0.0}, {-1.0, 0.0}, {0.0, 1.0}, {0.0, -1.0}};
+    for (int r = 0; r < 4; r++, g += NV, hh++) {
+        memset(g, 0, sizeof(double) * NV);
+        if (contact)
+            for (int j = 0; j < 3; j++) /* (U Rᵀ)_rj = Σ_a U_ra R_ja */
+                g[7 + j] = U[r][0] * rot[j * 3 + 0] + U[r][1] * rot[j * 3 + 1] + (-p->mu) * rot[j * 3 + 2];
+        *hh = contact ? 0.0 : 1.0;
+    }
+    /* TorqueLimits: ±(B (I + ∂q̈_pd/∂q̈*) q̈* + Jᵀ f) ≤ τ̄ ∓ (B q̈_pd0 + h + g), τ̄ ≥ |τ of the brake| */
+    if (p->has_torque_limits != 0.0) {
+        double Mg[49], toff[7], ts[7];
+        mm(7, 7, 7, M, cx.qdd_map, Mg);
+        mv(7, 7, M, cx.qdd_pd0, toff);
+        mv(7, 7, M, safe, ts);
+        for (int s = 0; s < 2; s++) {
+            double sign = s == 0 ? 1.0 : -1.0;
+            for (int i = 0; i < 7; i++, g += NV, hh++) {
+                for (int j = 0; j < 7; j++) g[j] = sign * Mg[i * 7 + j];
+                for (int j = 0; j < 6; j++) g[7 + j] = sign * J[j * 7 + i];
+                double o = toff[i] + bias[i];
+                double lim = p->torque_max[i];
+                if (p->torque_safe != 0.0) lim = fmax(lim, fabs(ts[i] + bias[i]));
+                *hh = lim - sign * o;
+            }
+        }
+    }
+    memcpy(pd_out, cx.pd, sizeof cx.pd);
+    memcpy(pose_out, cx.pose_err, sizeof cx.pose_err);
+}
+
+/* The packed per-arm input row of a3cqp_assemble (native.INPUTS packs it in this order). */
+enum {
+    IN_Q = 0, IN_QD = 7, IN_M = 14, IN_BIAS = 63, IN_J = 70, IN_JDQD = 112, IN_TWIST = 118, IN_POS = 124,
+    IN_ROT = 127, IN_W = 136, IN_FD = 154, IN_POSD = 160, IN_ROTD = 163, IN_FEXT = 172, IN_CONTACT = 178,
+    IN_QDES = 179, IN_QDDES = 186, IN_SIZE = 193
+};
+
+int64_t a3cqp_input_size(void) { return IN_SIZE; }
+
+/* A3CQPController.build_context + build_qp for n arms.  in: n rows of IN_SIZE doubles.  out, one array after the
+ * other: P [n 13 13], c [n 13], G [n m 13], h [n m] (m = a3cqp_rows(p)), then what the step needs afterwards:
+ * pd = P W1 J [n 7 7], e_x [n 6], f_adm [n 6], f_ctc [n 6], the viable brake q̈_safe [n 7]. */
+void a3cqp_assemble(int64_t n, const a3cqp_params *p, const double *in, double *out) {
+    int64_t m = a3cqp_rows(p);
+    double *P = out, *c = P + NV * NV * n, *G = c + NV * n, *h = G + m * NV * n, *pd = h + m * n;
+    double *pose = pd + 49 * n, *f_adm = pose + 6 * n, *f_ctc = f_adm + 6 * n, *safe = f_ctc + 6 * n;
+    for (int64_t k = 0; k < n; k++) {
+        const double *a = in + IN_SIZE * k;
+        assemble_one(p, a + IN_Q, a + IN_QD, a + IN_M, a + IN_BIAS, a + IN_J, a + IN_JDQD, a + IN_TWIST, a + IN_POS,
+                     a + IN_ROT, a + IN_W, a + IN_FD, a + IN_POSD, a + IN_ROTD, a + IN_FEXT, a[IN_CONTACT] != 0.0,
+                     a + IN_QDES, a + IN_QDDES, P + NV * NV * k, c + NV * k, G + m * NV * k, h + m * k, pd + 49 * k,
+                     pose + 6 * k, f_adm + 6 * k, f_ctc + 6 * k, safe + 7 * k);
+    }
+}
+
+/* ------------------------------------------------------------------ after the QP: controller._torque_law, _finish */
+
+/* Eq. 4-7 from x = (q̈*, f) [n 13] where ok[k], else the fallback brake (q̈ = q̈_safe, f = 0, τ = B q̈_safe + h + g,
+ * q* = q, q̇* = q̇); then q*, q̇* relax toward (q, q̇) where IK is off, and τ is clipped to ±τ_max (NaN → 0).
+ * in, asm: a3cqp_assemble's input and output.  out, one array after the other: τ, q̈*, f, q̈_pd, q*, q̇* [n 7 / 6]
+ * and saturated [n] (1.0 where some |τ_i| exceeded τ_max). */
+void a3cqp_torque(int64_t n, const a3cqp_params *p, const double *in, const double *asm_out, const double *x,
+                  const uint8_t *ok, double *out) {
+    const double dt = p->dt;
+    int64_t m = a3cqp_rows(p);
+    const double *pd = asm_out + (NV * NV + NV + m * NV + m) * n, *safe = pd + (49 + 6 + 6 + 6) * n;
+    double *tau = out, *qdd = tau + 7 * n, *f = qdd + 7 * n, *qdd_pd = f + 6 * n, *q_des = qdd_pd + 7 * n;
+    double *qd_des = q_des + 7 * n, *saturated = qd_des + 7 * n;
+    for (int64_t k = 0; k < n; k++) {
+        const double *a = in + IN_SIZE * k;
+        const double *qk = a + IN_Q, *qdk = a + IN_QD, *Mk = a + IN_M, *Jk = a + IN_J, *wk = a + IN_W;
+        const double *bk = a + IN_BIAS, *qs = a + IN_QDES, *qds = a + IN_QDDES;
+        double *tk = tau + 7 * k, *ak = qdd + 7 * k, *fk = f + 6 * k, *pk = qdd_pd + 7 * k;
+        double qn[7], qdn[7], acc[7];
+        if (ok[k]) {
+            const double *xk = x + NV * k;
+            double e[7], jf[7];
+            for (int i = 0; i < 7; i++) {
+                ak[i] = xk[i];
+                qdn[i] = qds[i] + dt * ak[i];
+                qn[i] = qs[i] + dt * qds[i] + (0.5 * dt * dt) * ak[i];
+                e[i] = p->cv * (qdn[i] - qdk[i]) + p->cp * (qn[i] - qk[i]);
+            }
+            for (int i = 0; i < 6; i++) fk[i] = xk[7 + i];
+            mv(7, 7, pd + 49 * k, e, pk);
+            for (int i = 0; i < 7; i++) acc[i] = ak[i] + pk[i];
+            mv(7, 7, Mk, acc, tk);
+            mtv(7, 6, Jk, fk, jf);
+            for (int i = 0; i < 7; i++) tk[i] += jf[i] + bk[i];
+        } else {
+            memcpy(ak, safe + 7 * k, sizeof(double) * 7);
+            mv(7, 7, Mk, ak, tk);
+            for (int i = 0; i < 7; i++) {
+                tk[i] += bk[i];
+                pk[i] = 0.0;
+                qn[i] = qk[i];
+                qdn[i] = qdk[i];
+            }
+            memset(fk, 0, sizeof(double) * 6);
+        }
+        double w1_min = wk[0];
+        for (int i = 1; i < 6; i++) w1_min = fmin(w1_min, wk[i * 3]);
+        double rate = clampd(p->leak * (1.0 - clampd(w1_min, 0.0, 1.0)), 0.0, 1.0);
+        double sat = 0.0;
+        for (int i = 0; i < 7; i++) {
+            q_des[7 * k + i] = qn[i] - rate * (qn[i] - qk[i]);
+            qd_des[7 * k + i] = qdn[i] - rate * (qdn[i] - qdk[i]);
+            double t = tk[i], lim = p->tau_clip[i];
+            if (fabs(t) > lim) sat = 1.0;
+            tk[i] = t != t ? 0.0 : clampd(t, -lim, lim);
+        }
+        saturated[k] = sat;
+    }
+}

@@ -1,0 +1,81 @@
+"""Build one of the package's C sources with the system compiler, once, into a per-user cache.
+
+Shared by the native QP (`a3cqp_rl.qp.native`) and the native controller step (`a3cqp_rl.control.native`).
+Compiler: `A3CQP_CC`, else `CC`, else `cc`/`gcc` on PATH; an explicit one that does not exist is an error (no
+silent substitute).  Cache: `A3CQP_CACHE_DIR`, else `$XDG_CACHE_HOME/a3cqp_rl` or `~/.cache/a3cqp_rl`, one file
+per hash of (source, compiler, flags, platform).  The library is written to a temporary file in that directory and
+moved into place with `os.replace`, so concurrent processes (pytest-xdist workers, two trainers) never load half a
+file; at worst both compile.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import shlex
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+__all__ = ["cache_dir", "compiler", "build", "enabled", "CFLAGS"]
+
+CFLAGS = ["-std=c99", "-O2", "-fPIC", "-shared"]
+"""Plain -O2 (no -march=native: results must not depend on the machine that built the library)."""
+
+
+def cache_dir() -> Path:
+    """Directory of the compiled libraries."""
+    env = os.environ.get("A3CQP_CACHE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "a3cqp_rl"
+
+
+def compiler() -> list[str] | None:
+    """The compiler command (an explicit A3CQP_CC / CC may carry flags), or None when there is none."""
+    for var in ("A3CQP_CC", "CC"):
+        cmd = shlex.split(os.environ.get(var, ""))
+        if cmd:
+            exe = shutil.which(cmd[0])
+            return [exe, *cmd[1:]] if exe else None
+    exe = shutil.which("cc") or shutil.which("gcc")
+    return [exe] if exe else None
+
+
+def enabled(var: str) -> bool:
+    """False when the environment variable `var` switches the native code off (0, false, no, off)."""
+    return os.environ.get(var, "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+def build(source: Path, cflags: list[str] = CFLAGS) -> Path:
+    """Path of the shared library compiled from `source`, compiling it if this source/compiler/flags is not cached.
+
+    Raises RuntimeError when there is no compiler or it fails (callers log one warning and use their numpy path).
+    """
+    cc = compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found (set A3CQP_CC or CC, or install cc/gcc)")
+    src = source.read_bytes()
+    key = hashlib.sha256(b"\0".join([src, " ".join(cc + cflags).encode(), platform.machine().encode(),
+                                     sys.platform.encode()])).hexdigest()[:16]
+    cache = cache_dir()
+    lib = cache / f"{source.stem}-{key}.so"
+    if lib.exists():
+        return lib
+    cache.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{source.stem}-", suffix=".so", dir=cache)
+    os.close(fd)
+    try:
+        proc = subprocess.run([*cc, *cflags, "-o", tmp, str(source), "-lm"], capture_output=True, text=True,
+                              timeout=120)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{cc[0]} failed ({proc.returncode}): {proc.stderr.strip()[:500]}")
+        os.replace(tmp, lib)  # atomic: readers see the old name absent or the whole file
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return lib

@@ -1,0 +1,187 @@
+"""The native controller step (control/native, a3cqp_step.c) against the Python objects it translates."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+import a3cqp_rl.control.controller as controller_module
+from a3cqp_rl.control import A3CQPController, ControllerOptions, native
+from a3cqp_rl.control.exceptions import InvalidGainError
+from a3cqp_rl.control.limits import WrenchBox
+from a3cqp_rl.control.tasks import CartesianIK, ForceControl
+from a3cqp_rl.robot import PANDA_LIMITS, PandaModel, PandaSim, mujoco_dynamics
+
+pytestmark = pytest.mark.skipif(native.load() is None, reason="no C compiler: the native step is not built")
+
+N = 48
+
+
+def random_inputs(n: int, seed: int, near_limits: bool = False) -> tuple[dict, PandaModel]:
+    """Controller inputs at random states (a third of them at/over the position limits when `near_limits`)."""
+    gen = torch.Generator().manual_seed(seed)
+    f64 = torch.float64
+    lim = PANDA_LIMITS.tensors()
+    q = lim["q_min"] + 0.05 + (lim["q_max"] - lim["q_min"] - 0.1) * torch.rand(n, 7, generator=gen, dtype=f64)
+    qd = 0.8 * torch.randn(n, 7, generator=gen, dtype=f64)
+    if near_limits:  # at, inside and just past the position limits, moving toward them
+        k = n // 3
+        side = torch.rand(k, 7, generator=gen) < 0.5
+        off = 0.02 * torch.rand(k, 7, generator=gen, dtype=f64) - 0.012
+        q[:k] = torch.where(side, lim["q_max"] - off, lim["q_min"] + off)
+        qd[:k] = torch.where(side, 1.0, -1.0) * 2.0 * torch.rand(k, 7, generator=gen, dtype=f64)
+    model = PandaModel()
+    mass, bias = mujoco_dynamics(model.mj_model, q, qd)
+    kin = model.kinematics(q, qd)
+    rot_d = torch.linalg.matrix_exp(torch.linalg.cross(  # the site orientation turned by up to ~0.5 rad
+        torch.eye(3, dtype=f64).expand(n, 3, 3), 0.3 * torch.randn(n, 1, 3, generator=gen, dtype=f64).expand(n, 3, 3),
+        dim=-1)) @ kin.rot
+    inputs = dict(
+        q=q, qd=qd, mass=mass, bias=bias, kin=kin,
+        weights=torch.softmax(2.0 * torch.randn(n, 6, 3, generator=gen, dtype=f64), dim=-1),
+        f_d=30.0 * torch.rand(n, 6, generator=gen, dtype=f64) - 5.0,
+        pos_d=kin.pos + 0.05 * torch.randn(n, 3, generator=gen, dtype=f64), rot_d=rot_d,
+        f_ext=10.0 * torch.randn(n, 6, generator=gen, dtype=f64),
+        in_contact=torch.rand(n, generator=gen) < 0.5)
+    return inputs, model
+
+
+def pair(n: int, options: dict | None = None, model: PandaModel | None = None,
+         q_des: tuple | None = None) -> tuple[A3CQPController, A3CQPController]:
+    """A Python-backend and a native-backend controller with the same options and references q*, q̇*."""
+    out = []
+    for backend in ("python", "native"):
+        ctrl = A3CQPController(n, model=model, options=ControllerOptions(backend=backend, **(options or {})))
+        if q_des is not None:
+            ctrl.reset(*q_des)
+        out.append(ctrl)
+    return out[0], out[1]
+
+
+def assert_close(a: torch.Tensor | np.ndarray, b: torch.Tensor | np.ndarray, what: str, rtol: float = 1e-9) -> None:
+    a, b = torch.as_tensor(np.asarray(a)), torch.as_tensor(np.asarray(b))
+    err = ((a - b).abs() / (1.0 + b.abs())).max().item()
+    assert err <= rtol, f"{what}: max relative difference {err:.2e}"
+
+
+OPTION_VARIANTS = [
+    {},
+    {"admittance_form": "paper", "ik_wrench_feedforward": False, "pd_projection": "transpose"},
+    {"joint_limit_target": "qdd", "torque_limits": False, "cartesian_regularization": 0.0},
+    {"joint_limits_include_f_ext": True, "jc_nullspace_weight": 0.0, "desired_state_leak": 0.0},
+]
+
+
+@pytest.mark.parametrize("options", OPTION_VARIANTS, ids=["default", "paper-forms", "qdd-target", "f_ext"])
+@pytest.mark.parametrize("near_limits", [False, True], ids=["inside", "near-limits"])
+def test_native_qp_equals_the_python_objects(options: dict, near_limits: bool) -> None:
+    inputs, model = random_inputs(N, seed=3 + near_limits, near_limits=near_limits)
+    gen = torch.Generator().manual_seed(9)
+    q_des = (inputs["q"] + 0.01 * torch.randn(N, 7, generator=gen, dtype=torch.float64),
+             inputs["qd"] + 0.05 * torch.randn(N, 7, generator=gen, dtype=torch.float64))
+    py, nat = pair(N, options, model, q_des)
+    args = {k: v for k, v in inputs.items() if k not in ("kin", "bias")}
+    ctx = py.build_context(**args, bias=inputs["bias"], kin=inputs["kin"])
+    P, c, G, h = py.build_qp(ctx)
+    a = {k: (v.numpy() if isinstance(v, torch.Tensor) else v) for k, v in inputs.items() if k != "kin"}
+    kin = controller_module._kin_numpy(inputs["kin"])
+    asm = nat.assemble_native(a["q"], a["qd"], a["mass"], a["bias"], a["weights"], a["f_d"], a["pos_d"], a["rot_d"],
+                              a["f_ext"], a["in_contact"], kin)
+    assert asm.G.shape == G.shape, "row count"
+    for name, mine, ref in (("P", asm.P, P), ("c", asm.c, c), ("G", asm.G, G), ("h", asm.h, h),
+                            ("pd", asm.pd, ctx.pd_matrix), ("pose error", asm.pose_error, ctx.pose_error),
+                            ("f_adm", asm.f_adm, py.residuals["ac"].b), ("f_ctc", asm.f_ctc, py.residuals["fc"].b),
+                            ("brake", asm.safe, py.joint_limits.safe_acceleration(ctx))):
+        assert_close(mine, ref, name)
+    if near_limits:  # the branches of the viable bounds were exercised: some rows bind at ±ddq_max
+        ddq = py.joint_limits.ddq_max
+        lb, ub = py.joint_limits.bounds_for(ctx)
+        assert ((ub - ddq).abs() < 1e-12).any() or ((lb + ddq).abs() < 1e-12).any()
+
+
+def closed_loop(backend: str, steps: int, n: int = 3, seed: int = 0, scene: str = "") -> tuple[list, A3CQPController]:
+    """Torques and statuses of a closed loop with random weight switching every 20 ms and a push on arm 0."""
+    gen = torch.Generator().manual_seed(seed)
+    sim = PandaSim(n, control_site="tcp", scene=scene)
+    ctrl = A3CQPController(n, options=ControllerOptions(backend=backend))
+    s = sim.observe()
+    pos_d = s.kin.pos + 0.1 * (torch.rand(n, 3, generator=gen, dtype=torch.float64) - 0.5)
+    rot_d = s.kin.rot.clone()
+    out_log = []
+    for k in range(steps):
+        if k % 20 == 0:
+            w = torch.softmax(3.0 * torch.randn(n, 6, 3, generator=gen, dtype=torch.float64), dim=-1)
+            f_d = 10.0 * torch.rand(n, 6, generator=gen, dtype=torch.float64)
+        s = sim.observe()
+        f_ext = torch.zeros(n, 6, dtype=torch.float64)
+        f_ext[0, 0] = 10.0 if 50 <= k < 150 else 0.0
+        out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, f_d, pos_d, rot_d, f_ext=f_ext, f_env=s.f_env, kin=s.kin)
+        sim.step(out.tau)
+        out_log.append(out)
+    return out_log, ctrl
+
+
+def test_native_closed_loop_equals_python() -> None:
+    py, _ = closed_loop("python", 300)
+    nat, ctrl = closed_loop("native", 300)
+    assert ctrl._native is not None
+    for k, (a, b) in enumerate(zip(py, nat)):
+        for f in ("tau", "qdd", "wrench", "qdd_pd", "pose_error", "f_adm", "f_ctc"):
+            assert_close(getattr(b, f), getattr(a, f), f"step {k} {f}", rtol=1e-7)
+        assert torch.equal(a.status, b.status) and torch.equal(a.fallback, b.fallback)
+        assert torch.equal(a.saturated, b.saturated)
+
+
+def test_native_fallback_equals_python(monkeypatch, caplog) -> None:
+    inputs, model = random_inputs(4, seed=5)
+    outs = []
+    for backend in ("python", "native"):
+        ctrl = A3CQPController(4, model=model, options=ControllerOptions(backend=backend))
+        monkeypatch.setattr(controller_module, "solve_qp", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("x")))
+        with caplog.at_level(logging.WARNING):
+            outs.append(ctrl.step(**inputs))
+        assert ctrl.fallback_count == 4
+    a, b = outs
+    assert b.fallback.all() and (b.status == controller_module.SOLVER_ERROR).all()
+    for f in ("tau", "qdd", "wrench", "qdd_pd"):
+        assert_close(getattr(b, f), getattr(a, f), f)
+    assert (b.wrench == 0).all() and (b.qdd_pd == 0).all()
+
+
+def test_custom_composition_keeps_python_and_native_backend_says_why() -> None:
+    class MyIK(CartesianIK):
+        numpy_capable = True
+
+    auto = A3CQPController(2, tasks=[MyIK(), ForceControl()])
+    assert auto._native is None
+    with pytest.raises(InvalidGainError, match="not one of the default tasks"):
+        A3CQPController(2, tasks=[MyIK(), ForceControl()], options=ControllerOptions(backend="native"))
+    with pytest.raises(InvalidGainError, match="limits"):
+        A3CQPController(2, extra_limits=[WrenchBox(5.0, 1.0)], options=ControllerOptions(backend="native"))
+    with pytest.raises(InvalidGainError, match="backend"):
+        A3CQPController(2, options=ControllerOptions(backend="fast"))  # type: ignore[arg-type]
+
+
+def test_swapping_a_task_after_construction_turns_the_native_step_off(monkeypatch) -> None:
+    inputs, model = random_inputs(2, seed=6)
+    ctrl = A3CQPController(2, model=model)
+    ctrl.tasks[0] = CartesianIK(kp=10.0, k_theta=5.0)  # a user tweaking a gain in place
+    monkeypatch.setattr(A3CQPController, "_step_native", lambda *a, **k: pytest.fail("native step taken"))
+    out = ctrl.step(**inputs)
+    assert out.tau.shape == (2, 7) and ctrl.residuals  # the Python path ran (it keeps residuals)
+
+
+def test_env_switch_disables_the_native_step(monkeypatch) -> None:
+    monkeypatch.setenv("A3CQP_NATIVE_CONTROL", "0")
+    native._reset()
+    try:
+        assert A3CQPController(1)._native is None
+        with pytest.raises(InvalidGainError, match="did not build"):
+            A3CQPController(1, options=ControllerOptions(backend="native"))
+    finally:
+        monkeypatch.undo()
+        native._reset()
+    assert A3CQPController(1)._native is not None
