@@ -22,8 +22,10 @@ from pathlib import Path
 
 __all__ = ["cache_dir", "compiler", "build", "enabled", "CFLAGS"]
 
-CFLAGS = ["-std=c99", "-O2", "-fPIC", "-shared"]
-"""Plain -O2 (no -march=native: results must not depend on the machine that built the library)."""
+CFLAGS = ["-std=c99", "-O3", "-fPIC", "-shared"]
+"""-O3: loop unswitching and vectorised axpy loops (the controller's QP at B = 64: 716 → 500 µs per batch against
+-O2); IEEE semantics unchanged (no -ffast-math: reductions are not reassociated).  No -march=native: results must
+not depend on the machine that built the library."""
 
 
 def cache_dir() -> Path:

@@ -215,9 +215,9 @@ def _inert_infinite_rows(G: Tensor, h: Tensor, like: Tensor) -> tuple[Tensor, Te
 
     An infinite right-hand side is no constraint; 0·x ≤ 1 is always satisfied with slack 1 and a
     zero multiplier, so every instance keeps the same row count."""
-    if _use_small_path(h):
-        # Three torch calls are ~10 µs of the B = 1 budget: test in numpy.  A finite sum proves
-        # every entry finite (a non-finite one, or an overflow, takes the exact test below).
+    if h.is_cpu:
+        # Three torch calls are ~10 µs of the B = 1 budget (~25 at B = 64): test in numpy.  A finite
+        # sum proves every entry finite (a non-finite one, or an overflow, takes the exact test below).
         if math.isfinite(_np64(h).sum()):
             return G, h
     finite = torch.isfinite(h)

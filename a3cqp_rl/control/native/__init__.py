@@ -22,7 +22,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from a3cqp_rl.native_build import CFLAGS as _BASE_FLAGS
 from a3cqp_rl.native_build import build, enabled
 
 if TYPE_CHECKING:
@@ -31,8 +30,6 @@ if TYPE_CHECKING:
 __all__ = ["Params", "NativeStep", "Assembled", "load", "native_params", "SOURCE", "INPUTS"]
 
 SOURCE = Path(__file__).with_name("a3cqp_step.c")
-CFLAGS = [f if f != "-O2" else "-O3" for f in _BASE_FLAGS]
-"""-O3 (loop unswitching, unrolling of the fixed-size loops): IEEE semantics unchanged (no -ffast-math)."""
 
 _log = logging.getLogger(__name__)
 _lock = threading.Lock()
@@ -115,7 +112,7 @@ def load() -> ctypes.CDLL | None:
             lib = None
             if enabled("A3CQP_NATIVE_CONTROL"):
                 try:
-                    lib = ctypes.CDLL(str(build(SOURCE, CFLAGS)))
+                    lib = ctypes.CDLL(str(build(SOURCE)))
                     lib.a3cqp_params_size.restype = ctypes.c_int64
                     if lib.a3cqp_params_size() != ctypes.sizeof(Params):
                         raise RuntimeError("a3cqp_params in a3cqp_step.c and native.Params differ")

@@ -12,8 +12,8 @@ The backward (`gi_qp_adjoint`: adjoint solve and closed-form gradients) replaces
 (~100 µs) the same way.  `solve_qp` at B = 1, medians of 3 bench runs: forward cold 348 → 163 µs
 (default), 614 → 222 µs (heavy); forward+backward 654 → 434, 942 → 481 µs.
 
-Build: `a3cqp_rl.native_build` (the system C compiler, plain -O2, a per-user cache written
-atomically; see there).  A failure logs one warning and `load()` returns None for the rest of the
+Build: `a3cqp_rl.native_build` (the system C compiler, -O3, a per-user cache written atomically;
+see there).  A failure logs one warning and `load()` returns None for the rest of the
 process.
 """
 
