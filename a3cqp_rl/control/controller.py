@@ -176,6 +176,9 @@ class A3CQPController:
     weights w^𝓛 [6, 3] (columns IK, AC, FC), the local desired contact wrench f_d^𝓛 [6], the Cartesian reference
     (position, rotation) and the measured external wrench f_ext at the control site.
 
+    On CPU the default composition (these tasks and limits, float64) runs as a C translation of the objects
+    (control/native, `ControllerOptions.backend`); any other composition runs the objects themselves.
+
     Args:
         n: number of robots N.
         model: kinematics (default PandaModel() with the peg tool).
