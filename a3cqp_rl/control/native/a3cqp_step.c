@@ -10,10 +10,11 @@
  * composition on CPU float64 (see native/__init__.py for when and why: at B = 1 a step is a few
  * hundred numpy calls of 0.5-3 µs each while its arithmetic is ~20 k flops).
  *
- * Arrays are row-major float64, batch first; per arm: q, qd [7]; M = B(q) [7 7]; bias = h + g [7];
- * J [6 7] (linear rows first, world frame); jdqd = J̇q̇ [6]; twist = J q̇ [6]; pos [3]; rot [3 3];
- * w = local task weights [6 3] (columns IK, AC, FC); f_d [6]; pos_d [3]; rot_d [3 3]; f_ext [6];
- * contact [1] (uint8); q_des, qd_des [7] (q*, q̇* of eq. 6-7).
+ * Arrays are row-major float64.  The inputs of an arm are one packed row (the IN_* offsets below):
+ * q, qd [7]; M = B(q) [7 7]; bias = h + g [7]; J [6 7] (linear rows first, world frame);
+ * jdqd = J̇q̇ [6]; twist = J q̇ [6]; pos [3]; rot [3 3]; w = local task weights [6 3] (columns IK,
+ * AC, FC); f_d [6]; pos_d [3]; rot_d [3 3]; f_ext [6]; contact [1] (0 or 1); q_des, qd_des [7]
+ * (q*, q̇* of eq. 6-7).  Outputs are whole arrays one after the other, batch first.
  *
  * Plain C99 + libm, no allocation.
  */
