@@ -216,3 +216,18 @@ def test_cartesian_regularizer_weights_only_non_ik_axes() -> None:
 def test_options_select_the_paper_forms() -> None:
     ctrl = A3CQPController(1, options=ControllerOptions(admittance_form="paper", jc_nullspace_weight=0.0))
     assert ctrl.tasks[1].form == "paper" and ctrl.tasks[3].nullspace_weight == 0.0
+
+
+def test_wrench_from_joint_torques_numpy_path_equals_torch_and_inverts_jt() -> None:
+    from a3cqp_rl.control import wrench_from_joint_torques
+
+    gen = torch.Generator().manual_seed(4)
+    A = torch.randn(6, 7, 7, generator=gen, dtype=torch.float64)
+    M = A @ A.mT + 7.0 * torch.eye(7, dtype=torch.float64)
+    J = torch.randn(6, 6, 7, generator=gen, dtype=torch.float64)
+    f = torch.randn(6, 6, generator=gen, dtype=torch.float64)
+    tau = mv(J.mT, f)  # τ_ext = Jᵀ f: without damping the wrench comes back exactly
+    fast = wrench_from_joint_torques(tau, J, M)  # CPU float64 without grad: the numpy path
+    ref = wrench_from_joint_torques(tau, J, M.clone().requires_grad_()).detach()  # the torch path
+    assert torch.allclose(fast, ref, atol=1e-10)
+    assert torch.allclose(wrench_from_joint_torques(tau, J, M, damping=0.0), f, atol=1e-9)

@@ -120,6 +120,12 @@ class ControlOutput:
 def wrench_from_joint_torques(tau_ext: torch.Tensor, jac: torch.Tensor, mass: torch.Tensor,
                               damping: float = 1e-6) -> torch.Tensor:
     """f_ext = J^{T†} τ_ext = Λ J B⁻¹ τ_ext [B, 6] (N, N m) from external joint torques [B, 7] (section V-A)."""
+    if all(t.device.type == "cpu" and t.dtype == torch.float64 and not t.requires_grad for t in (tau_ext, jac, mass)):
+        # the 1 kHz loop's case: two numpy solves (~15 µs) instead of four torch.linalg calls (~100 µs)
+        J = jac.numpy()
+        X = np.linalg.solve(mass.numpy(), np.concatenate([J.transpose(0, 2, 1), tau_ext.numpy()[..., None]], -1))
+        lam_inv = J @ X[..., :6] + damping * np.eye(6)
+        return torch.from_numpy(np.linalg.solve(lam_inv, J @ X[..., 6:])[..., 0])
     L = torch.linalg.cholesky(mass)
     binv_jt = torch.cholesky_solve(jac.transpose(-1, -2), L)  # (B, 7, 6)
     lam_inv = jac @ binv_jt + damping * torch.eye(6, dtype=jac.dtype, device=jac.device)
