@@ -25,6 +25,7 @@ from __future__ import annotations
 import csv
 import math
 import time
+import types
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -510,11 +511,18 @@ def _compile(fn: Callable) -> Callable:
 
     The graphs are dozens of tiny kernels, so fixed per-call costs dominate: the default Python
     wrapper was ~1.5x slower per iteration, and guard checks cost ~100 µs per call. Guards can be
-    skipped safely because each compiled closure is private to one trainer and always receives
-    tensors of the same shapes and dtypes (its configs are captured constants).
+    skipped safely because each compiled function is private to one trainer (its own copy of the
+    code object, below) and always receives tensors of the same shapes and dtypes (its configs are
+    captured constants).
     """
     import torch._inductor.config as inductor_config
 
+    # Dynamo keeps compiled graphs on the function's *code object*, which every function made by the same `def`
+    # shares (each FusedRollout's `iteration` closure; `a2c_update` itself). With the guards skipped, a second
+    # trainer in the same process (another config: a sweep, a GA, the slow tests) would silently run the first
+    # one's graph with the first one's hyper-parameters baked in. A private copy of the code object gives each
+    # compiled function its own cache (tests/test_a2c.py::test_compiled_functions_do_not_share_graphs).
+    fn = types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
     compiled = torch.compile(fn, dynamic=False, options={"guard_filter_fn": torch.compiler.skip_all_guards_unsafe})
     first = [True]
 

@@ -240,3 +240,22 @@ def test_split_and_fused_rollouts_give_the_same_numbers():
         flats.append((flat, torch.stack(metrics), runner.finished))
     assert torch.equal(flats[0][0], flats[1][0]) and torch.equal(flats[0][1], flats[1][1])
     assert flats[0][2] == flats[1][2] and len(flats[0][2]) == 6
+
+
+def test_compiled_functions_do_not_share_graphs() -> None:
+    """Two functions from the same `def` (two trainers' closures) keep their own compiled graphs.
+
+    Regression: dynamo caches graphs on the code object and `_compile` skips the guards, so a second
+    trainer with another config used to run the first one's graph (its hyper-parameters baked in).
+    """
+    from algorithms.a2c import _compile
+
+    def make(k: float):
+        def scale(x: torch.Tensor) -> torch.Tensor:
+            return x * k
+        return scale
+
+    first, second = _compile(make(2.0)), _compile(make(3.0))
+    x = torch.ones(3)
+    assert torch.equal(first(x), 2.0 * x)
+    assert torch.equal(second(x), 3.0 * x)
