@@ -175,6 +175,13 @@ def _kin_numpy(kin: Kinematics) -> Kinematics:
                       twist=_np(kin.twist))
 
 
+def _model_kinematics(model: PandaModel, q: Array, qd: Array) -> Kinematics:
+    """One pass of `model.kinematics` at (q, q̇), returned in the kind of q (numpy arrays or tensors)."""
+    if isinstance(q, np.ndarray):
+        return _kin_numpy(model.kinematics(torch.from_numpy(q), torch.from_numpy(qd)))
+    return model.kinematics(q, qd)
+
+
 class A3CQPController:
     """Batched A3CQP QP controller for N Panda arms (paper 000, eq. 1-24), float64, one step per call.
 
@@ -281,10 +288,7 @@ class A3CQPController:
         """
         opt, cfg, dt = self.options, self.config, self.dt
         if kin is None:
-            if isinstance(q, np.ndarray):
-                kin = _kin_numpy(self.model.kinematics(torch.from_numpy(q), torch.from_numpy(qd)))
-            else:
-                kin = self.model.kinematics(q, qd)
+            kin = _model_kinematics(self.model, q, qd)
         c = self._constants(q)
         J = kin.jac
         Jt = J.mT
@@ -434,7 +438,7 @@ class A3CQPController:
                      in_contact: np.ndarray, kin: Kinematics | None) -> ControlOutput:
         """`step` by the C translation of the default tasks, limits and torque law (finite numpy inputs)."""
         if kin is None:
-            kin = _kin_numpy(self.model.kinematics(torch.from_numpy(q), torch.from_numpy(qd)))
+            kin = _model_kinematics(self.model, q, qd)
         asm = self.assemble_native(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, kin)
         x, qp_status, iterations = self._solve(*(torch.from_numpy(a) for a in (asm.P, asm.c, asm.G, asm.h)))
         xn = _np(x)

@@ -15,14 +15,13 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from a3cqp_rl.native_build import build, enabled
+from a3cqp_rl.native_build import LazyLibrary, address
 
 if TYPE_CHECKING:
     from a3cqp_rl.control.controller import A3CQPController
@@ -32,8 +31,6 @@ __all__ = ["Params", "NativeStep", "Assembled", "load", "native_params", "SOURCE
 SOURCE = Path(__file__).with_name("a3cqp_step.c")
 
 _log = logging.getLogger(__name__)
-_lock = threading.Lock()
-_lib: tuple[bool, ctypes.CDLL | None] = (False, None)
 
 _d = ctypes.c_double
 
@@ -81,7 +78,7 @@ def native_params(ctrl: A3CQPController) -> tuple[Params | None, str]:
     ik, ac, jc = by_type[CartesianIK], by_type[Admittance], by_type[JointCentering]
     creg = by_type.get(CartesianAccelerationRegularizer)
     cfg, opt = ctrl.config, ctrl.options
-    kp, kv = (t.numpy() for t in ik._gains)
+    kp, kv = ik.gains(np.empty(0))  # (numpy arrays: `gains` returns them in the kind of its argument)
     tl = lims[3] if len(lims) == 4 else None
     p = Params(
         dt=ctrl.dt, cv=cfg.cv, cp=cfg.cp, kp=_vec(kp, 6), kv=_vec(kv, 6),
@@ -102,54 +99,38 @@ def native_params(ctrl: A3CQPController) -> tuple[Params | None, str]:
     return p, ""
 
 
-def load() -> ctypes.CDLL | None:
-    """The compiled a3cqp_step library, or None (A3CQP_NATIVE_CONTROL=0, or no compiler / failed build: one warning)."""
-    global _lib
-    if _lib[0]:
-        return _lib[1]
-    with _lock:
-        if not _lib[0]:
-            lib = None
-            if enabled("A3CQP_NATIVE_CONTROL"):
-                try:
-                    lib = ctypes.CDLL(str(build(SOURCE)))
-                    lib.a3cqp_params_size.restype = ctypes.c_int64
-                    if lib.a3cqp_params_size() != ctypes.sizeof(Params):
-                        raise RuntimeError("a3cqp_params in a3cqp_step.c and native.Params differ")
-                    lib.a3cqp_rows.restype = ctypes.c_int64
-                    lib.a3cqp_rows.argtypes = [ctypes.c_void_p]
-                    lib.a3cqp_input_size.restype = ctypes.c_int64
-                    if lib.a3cqp_input_size() != sum(w for _, w in INPUTS):
-                        raise RuntimeError("the input row of a3cqp_step.c and native.INPUTS differ")
-                    lib.a3cqp_assemble.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 3]
-                    lib.a3cqp_torque.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 6]
-                    lib.a3cqp_assemble.restype = lib.a3cqp_torque.restype = None
-                except Exception as exc:  # no compiler, build error, unwritable cache, load error
-                    _log.warning("a3cqp_rl.control: native controller step unavailable (%s); using the Python path",
-                                 exc)
-                    lib = None
-            _lib = (True, lib)
-    return _lib[1]
+def _bind(path: Path) -> ctypes.CDLL:
+    """Load the compiled a3cqp_step and declare its functions (checking the C layouts against Params and INPUTS)."""
+    lib = ctypes.CDLL(str(path))
+    lib.a3cqp_params_size.restype = lib.a3cqp_input_size.restype = lib.a3cqp_rows.restype = ctypes.c_int64
+    if lib.a3cqp_params_size() != ctypes.sizeof(Params):
+        raise RuntimeError("a3cqp_params in a3cqp_step.c and native.Params differ")
+    if lib.a3cqp_input_size() != sum(w for _, w in INPUTS):
+        raise RuntimeError("the input row of a3cqp_step.c and native.INPUTS differ")
+    lib.a3cqp_rows.argtypes = [ctypes.c_void_p]
+    lib.a3cqp_assemble.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 3]
+    lib.a3cqp_torque.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 6]
+    lib.a3cqp_assemble.restype = lib.a3cqp_torque.restype = None
+    return lib
 
-
-def _reset() -> None:
-    """Forget the loaded library (tests: re-read the environment on the next `load()`)."""
-    global _lib
-    with _lock:
-        _lib = (False, None)
-
-
-_from_buffer, _addressof = ctypes.c_char.from_buffer, ctypes.addressof
 
 INPUTS = (("q", 7), ("qd", 7), ("mass", 49), ("bias", 7), ("jac", 42), ("jdot_qdot", 6), ("twist", 6), ("pos", 3),
           ("rot", 9), ("weights", 18), ("f_d", 6), ("pos_d", 3), ("rot_d", 9), ("f_ext", 6), ("in_contact", 1),
           ("q_des", 7), ("qd_des", 7))
 """The per-arm input row of a3cqp_assemble (the IN_* offsets of the C file), in order: (name, width)."""
 
+_library = LazyLibrary(SOURCE, "A3CQP_NATIVE_CONTROL", _bind, _log, "a3cqp_rl.control: native controller step",
+                       "the Python path")
 
-def _addr(a: np.ndarray) -> int:
-    """Data address of a C-contiguous array (from_buffer: ~0.5 µs against ~1.6 for `a.ctypes.data`)."""
-    return _addressof(_from_buffer(a))
+
+def load() -> ctypes.CDLL | None:
+    """The compiled a3cqp_step library, or None (A3CQP_NATIVE_CONTROL=0, or no compiler / failed build: one warning)."""
+    return _library.get()
+
+
+def _reset() -> None:
+    """Forget the loaded library (tests: re-read the environment on the next `load()`)."""
+    _library.reset()
 
 
 @dataclass(frozen=True)
@@ -208,7 +189,7 @@ class NativeStep:
                                  in_contact.reshape(n, 1), q_des, qd_des], axis=1, dtype=np.float64)
         sl = self._slices(n)
         out = np.empty(sl[-1][1])
-        self.lib.a3cqp_assemble(n, self._p, _addr(packed), _addr(out))
+        self.lib.a3cqp_assemble(n, self._p, address(packed), address(out))
         return Assembled(*(out[a:b].reshape(shape) for a, b, shape in sl), packed=(packed, out))
 
     def torque(self, x: np.ndarray, ok: np.ndarray, asm: Assembled) -> tuple[np.ndarray, ...]:
@@ -218,7 +199,7 @@ class NativeStep:
         okc = np.ascontiguousarray(ok, dtype=np.uint8)
         out = np.empty(n * 42)  # τ | q̈* | f | q̈_pd | q* | q̇* | saturated (7 + 7 + 6 + 7 + 7 + 7 + 1)
         packed, asm_out = asm.packed
-        self.lib.a3cqp_torque(n, self._p, _addr(packed), _addr(asm_out), _addr(x), _addr(okc), _addr(out))
+        self.lib.a3cqp_torque(n, self._p, address(packed), address(asm_out), address(x), address(okc), address(out))
         tau, qdd, f, qdd_pd, qs, qds = (out[n * a:n * b].reshape(n, b - a)
                                         for a, b in ((0, 7), (7, 14), (14, 20), (20, 27), (27, 34), (34, 41)))
         return tau, qdd, f, qdd_pd, qs, qds, out[41 * n:] != 0.0

@@ -21,13 +21,12 @@ from __future__ import annotations
 
 import ctypes
 import logging
-import threading
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from a3cqp_rl.native_build import build, enabled
+from a3cqp_rl.native_build import LazyLibrary, address
 
 __all__ = ["load", "load_adjoint", "SOURCE", "CERTIFIED"]
 
@@ -36,8 +35,6 @@ CERTIFIED = 0
 """Status code of a certified instance (any other code: solve it on the numpy path)."""
 
 _log = logging.getLogger(__name__)
-_lock = threading.Lock()
-_loaded: tuple[bool, Callable | None, Callable | None] = (False, None, None)
 
 
 def _bind(path: Path) -> tuple[Callable, Callable]:
@@ -49,18 +46,6 @@ def _bind(path: Path) -> tuple[Callable, Callable]:
     fn_adj.argtypes = [i64, i64, i64, i64, *[ptr] * 15]
     fn.restype = fn_adj.restype = ctypes.c_int
     f64, i64v = np.float64, np.int64
-    from_buffer, addressof = ctypes.c_char.from_buffer, ctypes.addressof
-
-    def addr(a: np.ndarray) -> int | None:
-        # Address of a C-contiguous array's data.  ctypes' from_buffer takes ~0.5 µs where
-        # `a.ctypes.data` and `__array_interface__` take ~1.6 (a dict or object built per call),
-        # which for the ~8 arrays of a call was most of the wrapper's cost at B = 1.
-        if a.size == 0:
-            return None  # never dereferenced (p = 0 or m = 0)
-        try:
-            return addressof(from_buffer(a))
-        except TypeError:  # read-only array
-            return a.__array_interface__["data"][0]
 
     def solve(
         P: np.ndarray, q: np.ndarray, A: np.ndarray, b: np.ndarray, G: np.ndarray, h: np.ndarray,
@@ -80,8 +65,8 @@ def _bind(path: Path) -> tuple[Callable, Callable]:
         e1, e2, e3 = B * n, B * (n + p), B * (n + p + m)
         x, y, z = out[:e1].reshape(B, n), out[e1:e2].reshape(B, p), out[e2:e3].reshape(B, m)
         codes = out[e3:].view(i64v)
-        o = addr(out)
-        fn(B, n, p, m, addr(P), addr(q), addr(A), addr(b), addr(G), addr(h), None if z0 is None else addr(z0),
+        o = address(out)
+        fn(B, n, p, m, address(P), address(q), address(A), address(b), address(G), address(h), None if z0 is None else address(z0),
            tol, max_steps, o, o + 8 * e1, o + 8 * e2, o + 8 * e3, o + 8 * (e3 + B))
         return x, y, z, codes[:B], codes[B:]
 
@@ -96,11 +81,11 @@ def _bind(path: Path) -> tuple[Callable, Callable]:
         P, A, G, h, x, y, z, gx = (np.ascontiguousarray(t, dtype=f64) for t in (P, A, G, h, x, y, z, gx))
         sizes = (n * n, n, p * n, p, m * n, m)
         out = np.empty(B * (sum(sizes) + 1))
-        o, offs = addr(out), [0]
+        o, offs = address(out), [0]
         for s_ in sizes:
             offs.append(offs[-1] + B * s_)
         status = out[offs[-1]:].view(i64v)
-        fn_adj(B, n, p, m, addr(P), addr(A), addr(G), addr(h), addr(x), addr(y), addr(z), addr(gx),
+        fn_adj(B, n, p, m, address(P), address(A), address(G), address(h), address(x), address(y), address(z), address(gx),
                *(o + 8 * e for e in offs))
         if status[status.argmax()]:  # any instance not accepted
             return None
@@ -112,32 +97,19 @@ def _bind(path: Path) -> tuple[Callable, Callable]:
 
 def load() -> Callable | None:
     """The native batch solver, or None (disabled by A3CQP_NATIVE_QP=0, or no compiler / build failed: one warning)."""
-    global _loaded
-    done, fn, _ = _loaded
-    if done:
-        return fn
-    with _lock:
-        if _loaded[0]:
-            return _loaded[1]
-        fns = (None, None)
-        if enabled("A3CQP_NATIVE_QP"):
-            try:
-                fns = _bind(build(SOURCE))
-            except Exception as exc:  # no compiler, build error, unwritable cache, load error
-                _log.warning("a3cqp_rl.qp: native QP routine unavailable (%s); using the numpy path", exc)
-        _loaded = (True, *fns)
-    return _loaded[1]
+    fns = _library.get()
+    return None if fns is None else fns[0]
 
 
 def load_adjoint() -> Callable | None:
     """The native backward (adjoint and gradients), or None exactly when `load()` is None."""
-    if not _loaded[0]:
-        load()
-    return _loaded[2]
+    fns = _library.get()
+    return None if fns is None else fns[1]
 
 
 def _reset() -> None:
     """Forget the loaded routine (tests: re-read the environment on the next `load()`)."""
-    global _loaded
-    with _lock:
-        _loaded = (False, None, None)
+    _library.reset()
+
+
+_library = LazyLibrary(SOURCE, "A3CQP_NATIVE_QP", _bind, _log, "a3cqp_rl.qp: native QP routine", "the numpy path")
