@@ -522,7 +522,9 @@ def _compile(fn: Callable) -> Callable:
     # trainer in the same process (another config: a sweep, a GA, the slow tests) would silently run the first
     # one's graph with the first one's hyper-parameters baked in. A private copy of the code object gives each
     # compiled function its own cache (tests/test_a2c.py::test_compiled_functions_do_not_share_graphs).
-    fn = types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
+    private = types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
+    private.__kwdefaults__ = fn.__kwdefaults__
+    fn = private
     compiled = torch.compile(fn, dynamic=False, options={"guard_filter_fn": torch.compiler.skip_all_guards_unsafe})
     first = [True]
 

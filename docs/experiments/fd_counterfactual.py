@@ -1,8 +1,8 @@
 """Counterfactual for the ḟd region: does forcing ḟd inside the Fig. 5 contact region change the return?
 
 Runs a trained policy (OUT/policy.pt) on 2048 point-mass episodes three times: as learned, with ḟd forced to +1
-inside the region (|f_env| > THR, |f_ope| < 0.05, |e| < 0.05, normalised), and forced to −1; prints the mean return
-per scenario and the fraction of steps spent in the region.
+inside the region (`a3cqp_rl.regions.FIG5_REGIONS["fd_desired_force_in_contact"]`, normalised; THR replaces its lower
+|f_env| edge), and forced to −1; prints the mean return per scenario and the fraction of steps spent in the region.
 
     python docs/experiments/fd_counterfactual.py CONFIG RUN_DIR ['{"point_mass": {...}}'] [THR]
 """
@@ -15,8 +15,17 @@ import sys
 import torch
 
 from a3cqp_rl.config import load_config
+from a3cqp_rl.regions import FIG5_REGIONS
 from algorithms.a2c import load_policy
 from envs.point_mass import SCENARIOS, PointMassEnv
+
+
+def in_box(obs: torch.Tensor, thr: float) -> torch.Tensor:
+    """Whether normalised observations (|e|, |f_env|, |f_ope|) [N, 3] lie in the ḟd region, |f_env| from `thr`."""
+    _, e_range, f_env_range, f_ope_range = FIG5_REGIONS["fd_desired_force_in_contact"]
+    lows = torch.tensor([e_range[0], thr, f_ope_range[0]])
+    highs = torch.tensor([e_range[1], f_env_range[1], f_ope_range[1]])
+    return ((obs >= lows) & (obs <= highs)).all(-1)
 
 
 def episode_returns(cfg, policy, force: float | None, thr: float, n: int = 2048, seed: int = 1):  # noqa: ANN001, ANN201
@@ -28,8 +37,7 @@ def episode_returns(cfg, policy, force: float | None, thr: float, n: int = 2048,
     obs, total, scenario, inside = obs_fn(state), torch.zeros(n), state["scenario"].clone(), 0
     for _ in range(cfg.point_mass.episode_steps):
         action = policy(obs).clamp(-1, 1)
-        e, f_env, f_ope = obs.unbind(-1)
-        region = (f_env > thr) & (f_ope < 0.05) & (e < 0.05)
+        region = in_box(obs, thr)
         inside += int(region.sum())
         if force is not None:
             action[region, 3] = force
