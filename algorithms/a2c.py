@@ -36,7 +36,7 @@ from torch import Tensor
 from a3cqp_rl.checkpoint import load_checkpoint, save_atomic
 from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_to_dict
 from a3cqp_rl.exceptions import CheckpointError
-from algorithms.networks import LOG_2PI, ParamLayout, backward, forward, policy_mean
+from algorithms.networks import LOG_2PI, ParamLayout, backward, forward, policy_forward, policy_mean
 from algorithms.rmsprop import clip_grad_norm_, rmsprop_step_
 
 __all__ = ["Batch", "HeldNoise", "nstep_returns", "gae_advantages", "a2c_update", "train", "TrainResult", "load_policy", "METRICS"]
@@ -54,6 +54,7 @@ class Batch:
     terminated: Tensor
     truncated: Tensor
     next_obs: Tensor  # observation after each step, before any reset
+    policy_acts: tuple[Tensor, ...] | None = None  # policy hidden layers at obs while acting, [T, N, h] each
 
 
 def nstep_returns(rewards: Tensor, terminated: Tensor, truncated: Tensor, next_values: Tensor, gamma: float) -> Tensor:
@@ -89,10 +90,12 @@ def a2c_update(layout: ParamLayout, flat: Tensor, square_avg: Tensor, batch: Bat
     T, N = batch.rewards.shape
     B = T * N
     obs, actions = batch.obs.reshape(B, -1), batch.actions.reshape(B, -1)
-    # one pass over [obs; next_obs]: the second half only feeds the bootstrap values V(s')
-    mu, log_std, values, cache = forward(layout, flat, torch.cat([obs, batch.next_obs.reshape(B, -1)]))
-    next_values = values[B:].reshape(T, N)
-    mu, values, cache = mu[:B], values[:B], {k: [a[:B] for a in acts] for k, acts in cache.items()}
+    acts = None  # the parameters have not moved since acting: reuse the policy's activations at obs
+    if batch.policy_acts is not None:
+        acts = [obs[:, : layout.obs_dim], *(a.reshape(B, -1) for a in batch.policy_acts)]
+    # V at [obs; next_obs]: the second half only feeds the bootstrap values V(s')
+    mu, log_std, values, cache = forward(layout, flat, obs, batch.next_obs.reshape(B, -1), acts)
+    values, next_values = values[:B], values[B:].reshape(T, N)
     if hp.gae_lambda == 1.0:  # the paper's n-step returns (eq. 31)
         returns = nstep_returns(batch.rewards, batch.terminated, batch.truncated, next_values, hp.gamma).reshape(B)
         adv = returns - values
@@ -164,16 +167,18 @@ class HeldNoise:
         self.t, self.current = int(d["t"]), d["current"].clone()
 
 
-def _sample_action(layout: ParamLayout, flat: Tensor, obs: Tensor, noise: Tensor) -> Tensor:
-    return policy_mean(layout, flat, obs) + torch.exp(layout.views(flat)["log_std"]) * noise
+def _sample_action(layout: ParamLayout, flat: Tensor, obs: Tensor, noise: Tensor) -> tuple[Tensor, list[Tensor]]:
+    """Unclipped Gaussian action mean + σ·noise [B, act], and the policy's activations at `obs`."""
+    mu, acts = policy_forward(layout, flat, obs)
+    return mu + torch.exp(layout.views(flat)["log_std"]) * noise, acts
 
 
 def rollout_step(layout: ParamLayout, env_step, flat: Tensor, state: dict, pending: dict, schedule: Tensor,
                  obs: Tensor, noise: Tensor):
-    """Act and step once: (state, batch row (obs, action, r, term, trunc, final_obs), next obs)."""
-    action = _sample_action(layout, flat, obs, noise)
+    """Act and step once: (state, batch row (obs, action, r, term, trunc, final_obs, policy hidden acts), next obs)."""
+    action, acts = _sample_action(layout, flat, obs, noise)
     state, final_obs, next_obs, r, term, trunc = env_step(state, pending, schedule, action.clamp(-1.0, 1.0))
-    return state, (obs, action, r, term, trunc, final_obs), next_obs
+    return state, (obs, action, r, term, trunc, final_obs, tuple(acts[1:])), next_obs
 
 
 def fused_iteration(layout: ParamLayout, hp: A2CConfig, env_step, env_observe, flat: Tensor, square_avg: Tensor,
@@ -191,7 +196,8 @@ def collect(step: Callable, state: dict, obs: Tensor, noise: Tensor) -> tuple[di
     for t in range(noise.shape[0]):
         state, row, obs = step(state, obs, noise[t])
         rows.append(row)
-    return state, Batch(*(torch.stack(c) for c in zip(*rows)))
+    *fields, acts = zip(*rows)
+    return state, Batch(*(torch.stack(c) for c in fields), tuple(torch.stack(a) for a in zip(*acts)))
 
 
 class FusedRollout:
@@ -293,7 +299,7 @@ class TorchRLRollout:
 
         def policy(obs: Tensor) -> tuple[Tensor, Tensor]:
             noise = held.draw(1)[0].reshape(obs.shape[:-1] + (layout.act_dim,))
-            raw = _sample_action(layout, self.flat, obs.reshape(-1, layout.obs_dim), noise.reshape(-1, layout.act_dim))
+            raw, _ = _sample_action(layout, self.flat, obs.reshape(-1, layout.obs_dim), noise.reshape(-1, layout.act_dim))
             raw = raw.reshape(noise.shape)
             return raw.clamp(-1.0, 1.0).to(env.action_spec.dtype), raw
 

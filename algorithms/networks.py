@@ -23,7 +23,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-__all__ = ["ParamLayout", "ActorCritic", "forward", "policy_mean", "backward"]
+__all__ = ["ParamLayout", "ActorCritic", "forward", "policy_forward", "policy_mean", "backward"]
 
 LOG_2PI = math.log(2.0 * math.pi)
 
@@ -102,26 +102,46 @@ def _stack_forward(p: dict[str, Tensor], stack: str, depth: int, x: Tensor) -> l
     return acts
 
 
-def forward(layout: ParamLayout, flat: Tensor, obs: Tensor) -> tuple[Tensor, Tensor, Tensor, dict[str, list[Tensor]]]:
-    """Policy mean [B, act], log-std [act], value [B] and the activations cache for `backward`.
+def forward(
+    layout: ParamLayout, flat: Tensor, obs: Tensor, next_obs: Tensor | None = None, policy_acts: list[Tensor] | None = None
+) -> tuple[Tensor, Tensor, Tensor, dict[str, list[Tensor]]]:
+    """Policy mean [B, act], log-std [act], values [B (+ B')] at `obs` (then `next_obs`), and the cache at `obs` for `backward`.
 
-    `obs` [B, critic_obs_dim]: each stack reads its first `layout.in_dims[stack]` columns.
+    `obs` [B, critic_obs_dim], `next_obs` [B', critic_obs_dim]: each stack reads its first
+    `layout.in_dims[stack]` columns. At `next_obs` only V is computed (what bootstrapping needs).
+    `policy_acts`: the policy stack's activations at `obs` from `policy_forward` while acting; the
+    parameters have not changed since, so they are reused instead of computed again.
     """
-    p, d = layout.views(flat), len(layout.hidden)
-    cache = {s: _stack_forward(p, s, d, obs[:, : layout.in_dims[s]]) for s in layout.stacks}
-    h_pi = cache["pi" if layout.network == "separate" else "trunk"][-1]
-    h_vf = cache["vf" if layout.network == "separate" else "trunk"][-1]
-    mu = torch.addmm(p["pi.out.b"], h_pi, p["pi.out.w"].T)
-    value = torch.addmm(p["vf.out.b"], h_vf, p["vf.out.w"].T).squeeze(-1)
-    return mu, p["log_std"], value, cache
+    p, d, B = layout.views(flat), len(layout.hidden), obs.shape[0]
+    pol = "pi" if layout.network == "separate" else "trunk"
+    if policy_acts is None:
+        policy_acts = _stack_forward(p, pol, d, obs[:, : layout.obs_dim])
+    mu = torch.addmm(p["pi.out.b"], policy_acts[-1], p["pi.out.w"].T)
+    if layout.network == "separate":
+        x = obs if next_obs is None else torch.cat([obs, next_obs])
+        vf = _stack_forward(p, "vf", d, x[:, : layout.critic_obs_dim])
+        cache = {"pi": policy_acts, "vf": [a[:B] for a in vf]}
+        h_vf = vf[-1]
+    else:  # the trunk at obs is the policy's; only next_obs needs a pass
+        cache = {"trunk": policy_acts}
+        h_vf = policy_acts[-1]
+        if next_obs is not None:
+            h_vf = torch.cat([h_vf, _stack_forward(p, "trunk", d, next_obs[:, : layout.obs_dim])[-1]])
+    values = torch.addmm(p["vf.out.b"], h_vf, p["vf.out.w"].T).squeeze(-1)
+    return mu, p["log_std"], values, cache
+
+
+def policy_forward(layout: ParamLayout, flat: Tensor, obs: Tensor) -> tuple[Tensor, list[Tensor]]:
+    """Policy mean [B, act] and the policy stack's activations (for `forward`); reads the first obs_dim columns of `obs`."""
+    p = layout.views(flat)
+    stack = "pi" if layout.network == "separate" else "trunk"
+    acts = _stack_forward(p, stack, len(layout.hidden), obs[:, : layout.obs_dim])
+    return torch.addmm(p["pi.out.b"], acts[-1], p["pi.out.w"].T), acts
 
 
 def policy_mean(layout: ParamLayout, flat: Tensor, obs: Tensor) -> Tensor:
     """Policy mean [B, act] only (no value head): what acting needs; reads the first obs_dim columns of `obs`."""
-    p = layout.views(flat)
-    stack = "pi" if layout.network == "separate" else "trunk"
-    h = _stack_forward(p, stack, len(layout.hidden), obs[:, : layout.obs_dim])[-1]
-    return torch.addmm(p["pi.out.b"], h, p["pi.out.w"].T)
+    return policy_forward(layout, flat, obs)[0]
 
 
 def backward(

@@ -8,7 +8,7 @@ import torch
 from a3cqp_rl.config import config_from_dict
 from a3cqp_rl.exceptions import CheckpointError
 from algorithms.a2c import Batch, HeldNoise, a2c_update, gae_advantages, load_policy, nstep_returns, train
-from algorithms.networks import LOG_2PI, ActorCritic, ParamLayout, backward, forward
+from algorithms.networks import LOG_2PI, ActorCritic, ParamLayout, backward, forward, policy_forward
 
 
 def random_batch(T=4, N=3, seed=0, dtype=torch.float64, obs_dim=3):
@@ -96,6 +96,25 @@ def test_hand_gradients_equal_autograd(network, critic_dim, lam, bound, normaliz
     nz = ref.abs() > 1e-12
     assert torch.equal(torch.sign(step[nz]), torch.sign(ref[nz]))
     assert metrics[3] == pytest.approx(ref.norm().item(), rel=1e-9)
+
+
+@pytest.mark.parametrize("network,critic_dim", [("separate", None), ("shared", None), ("separate", 7)])
+def test_update_reusing_the_acting_activations_equals_recomputing_them(network, critic_dim):
+    hp = config_from_dict({"a2c": {"network": network, "hidden": [8, 6], "learning_rate": 1e-2}}).a2c
+    layout = ParamLayout(3, 4, hp.hidden, network, critic_dim)
+    flat = layout.init(torch.Generator().manual_seed(0)).double()
+    batch = random_batch(obs_dim=critic_dim or 3)
+    T, N, D = batch.obs.shape
+    _, acts = policy_forward(layout, flat, batch.obs.reshape(T * N, D))
+    reused = Batch(*(getattr(batch, f) for f in ("obs", "actions", "rewards", "terminated", "truncated", "next_obs")),
+                   tuple(a.reshape(T, N, -1) for a in acts[1:]))
+    flat_a, flat_b = flat.clone(), flat.clone()
+    sq_a, sq_b = torch.zeros_like(flat), torch.zeros_like(flat)
+    m_a = a2c_update(layout, flat_a, sq_a, batch, hp)
+    m_b = a2c_update(layout, flat_b, sq_b, reused, hp)
+    assert torch.allclose(m_a, m_b, rtol=1e-12, atol=1e-12)
+    assert torch.allclose(flat_a, flat_b, rtol=0, atol=1e-12) and not torch.equal(flat_a, flat)
+    assert torch.allclose(sq_a, sq_b, rtol=1e-12, atol=1e-20)
 
 
 def test_backward_matches_autograd_for_arbitrary_output_gradients():
