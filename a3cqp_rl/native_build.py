@@ -114,8 +114,9 @@ class LazyLibrary(Generic[T]):
     """
 
     def __init__(self, source: Path, switch: str, bind: Callable[[Path], T], log: logging.Logger, what: str,
-                 fallback: str) -> None:
+                 fallback: str, cflags: list[str] = CFLAGS) -> None:
         self.source, self.switch, self.bind, self.log, self.what, self.fallback = source, switch, bind, log, what, fallback
+        self.cflags = cflags
         self._lock = threading.Lock()
         self._state: tuple[bool, T | None] = (False, None)
 
@@ -129,7 +130,7 @@ class LazyLibrary(Generic[T]):
                 value = None
                 if enabled(self.switch):
                     try:
-                        value = self.bind(build(self.source))
+                        value = self.bind(build(self.source, self.cflags))
                     except Exception as exc:  # no compiler, build error, unwritable cache, load error
                         self.log.warning("%s unavailable (%s); using %s", self.what, exc, self.fallback)
                 self._state = (True, value)

@@ -203,6 +203,7 @@ def collect(step: Callable, state: dict, obs: Tensor, noise: Tensor) -> tuple[di
 class FusedRollout:
     """Rollout + update fused into one (compiled) call, for envs with the fused API (PointMassEnv).
 
+    With `a2c.backend` auto/native the whole iteration is one C call instead (algorithms/native).
     Per iteration Python does: draw the policy noise, call the compiled graph, and — only when an
     episode ended — record its return and draw a new pending episode (`env.refill`).
     Compile time grows faster than the graph (n steps × env sub-steps, unrolled), so for n_steps >
@@ -231,7 +232,10 @@ class FusedRollout:
         def update(flat, square_avg, batch):
             return a2c_update(layout, flat, square_avg, batch, hp)
 
-        if self.fuse:
+        self._native = _native_iteration(env, layout, hp)
+        if self._native is not None:
+            pass  # the C iteration replaces the torch graphs (nothing to compile)
+        elif self.fuse:
             self._iteration = maybe_compile(iteration)
         else:
             self._step, self._update = maybe_compile(step), maybe_compile(update)
@@ -243,7 +247,9 @@ class FusedRollout:
         """Collect n steps in every env and update `flat`/`square_avg` in place; returns METRICS [5]."""
         noise = self.noise.draw(self.hp.n_steps)
         state, pending, schedule = self.env.fused_inputs()
-        if self.fuse:
+        if self._native is not None:
+            state, metrics, rewards, dones = self._native(flat, square_avg, state, pending, schedule, noise)
+        elif self.fuse:
             state, metrics, rewards, dones = self._iteration(flat, square_avg, state, pending, schedule, noise)
         else:
             state, batch = collect(lambda s, o, z: self._step(flat, s, pending, schedule, o, z),
@@ -270,6 +276,24 @@ class FusedRollout:
         if "noise" in d:
             self.noise.load_state_dict(d["noise"])
         self.ep_return, self.ep_length = d["ep_return"], d["ep_length"]
+
+
+def _native_iteration(env, layout: ParamLayout, hp: A2CConfig):
+    """The C iteration (algorithms/native) for this trainer per `hp.backend`, or None for the torch path."""
+    if hp.backend == "torch":
+        return None
+    from algorithms import native
+
+    why = native.unsupported(env, layout, hp)
+    if why is None and hp.backend == "auto" and hp.n_steps * env.num_envs > native.AUTO_MAX_BATCH:
+        return None  # large batches are GEMM-bound: MKL through torch is faster there
+    lib = native.load() if why is None else None
+    if lib is None:
+        if hp.backend == "native":
+            reason = why or "no C compiler, a failed build or A3CQP_NATIVE_A2C=0 (see the warning above)"
+            raise ValueError(f"a2c.backend: native is not available here: {reason}")
+        return None
+    return native.NativeIteration(lib, env, layout, hp)
 
 
 def _count_episodes(runner, rewards: Tensor, dones: Tensor) -> None:
@@ -422,13 +446,14 @@ def train(
     compile_s = 0.0
     t_start = time.perf_counter()
     last: dict[str, float] = {}
-    if hp.compile and start < num_updates:
+    compiles = hp.compile and getattr(runner, "_native", None) is None
+    if compiles and start < num_updates:
         bar.set_description("A2C (compiling the step, one-time)")
     for u in range(start, num_updates):
         t0 = time.perf_counter()
         metric_sum += runner.iterate(flat, square_avg)
         metric_count += 1
-        if u == start and hp.compile:  # the first iteration pays for torch.compile
+        if u == start and compiles:  # the first iteration pays for torch.compile
             compile_s = time.perf_counter() - t0
             bar.set_description("A2C")
             bar.reset(total=num_updates * per_update)  # restart the rate estimate after compiling

@@ -189,9 +189,9 @@ def test_train_short_run_writes_files_and_learns_something(tmp_path):
         policy(torch.full((2, 3), float("nan")))
 
 
-@pytest.mark.parametrize("hold", [1, 7])
-def test_same_seed_same_numbers_and_resume_is_exact(tmp_path, hold):
-    base = {"a2c": {"compile": False, "log_every": 10, "checkpoint_every": 25, "noise_hold": hold},
+@pytest.mark.parametrize("hold,backend", [(1, "torch"), (7, "torch"), (1, "native"), (7, "native")])
+def test_same_seed_same_numbers_and_resume_is_exact(tmp_path, hold, backend):
+    base = {"a2c": {"compile": False, "log_every": 10, "checkpoint_every": 25, "noise_hold": hold, "backend": backend},
             "point_mass": {"episode_steps": 30}}
     cfg = config_from_dict(base)
     full = train(cfg, tmp_path / "full", total_steps=16 * 50)
@@ -245,7 +245,8 @@ def test_split_and_fused_rollouts_give_the_same_numbers():
     from algorithms.a2c import FusedRollout
     from envs.point_mass import PointMassEnv
 
-    cfg = config_from_dict({"a2c": {"compile": False, "n_steps": 5}, "point_mass": {"episode_steps": 12}})
+    cfg = config_from_dict({"a2c": {"compile": False, "n_steps": 5, "backend": "torch"},
+                            "point_mass": {"episode_steps": 12}})
     flats = []
     for fuse in (True, False):
         env = PointMassEnv(3, cfg, seed=4)

@@ -1,0 +1,428 @@
+/* One A2C iteration on the point-mass surrogate, in C: n agent steps of N envs + one update.
+ *
+ * A translation of the torch reference, function by function, in the same order of operations:
+ *   envs/point_mass.py   agent_step (eq. 29 + eq. 35 sub-steps + eq. 30), observe_state, auto_reset
+ *   algorithms/a2c.py    rollout_step, nstep_returns / gae_advantages, a2c_update (eq. 31, hand-derived gradients)
+ *   algorithms/networks.py  _stack_forward, forward, backward (tanh MLPs in one flat float32 vector)
+ *   algorithms/rmsprop.py   clip_grad_norm_ (λζ), rmsprop_step_ (eq. 32)
+ * Physics in double, networks in float, as the reference.  algorithms/native/__init__.py fills `a2c_params`
+ * and the pointer table; tests/test_a2c_native.py checks this file against the torch code.
+ *
+ * Dot products use `omp simd` reductions (-fopenmp-simd, no OpenMP runtime): vectorised, in a fixed order, so
+ * the same binary gives the same numbers (not bit-equal to MKL's, which sums in its own order).  -fno-math-errno
+ * lets sqrtf vectorise (it only drops errno; IEEE results are unchanged).
+ */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+#define MAX_DEPTH 8
+#define LOG_2PI 1.8378770664093453
+
+typedef struct {
+    /* sizes */
+    int64_t N, n, episode_steps, substeps, sched_len;
+    int64_t obs_dim, act_dim, critic_dim, privileged, shared, depth, hidden[MAX_DEPTH], size;
+    /* flat-vector offsets: stack 0 = pi (or trunk), stack 1 = vf (separate only) */
+    int64_t off_w[2][MAX_DEPTH], off_b[2][MAX_DEPTH], off_pi_w, off_pi_b, off_vf_w, off_vf_b, off_log_std;
+    int64_t in_dim[2];
+    int64_t gae, normalize_advantage;
+    double gamma, gae_lambda, vf_coef, ent_coef, bound_coef, max_grad_norm, lr, rms_alpha, rms_eps;
+    /* point mass (PointMassConfig), adaptation (AdaptationConfig), reward (RewardConfig) */
+    double mass, kp, kv, physics_dt, lambda_d, c_d, wall_stiffness, wall_damping, operator_v_hand;
+    double sigma_w, sigma_f, adapt_dt, f_d_max, e_max, f_env_max, f_ope_max;
+    double alpha[4];
+} a2c_params;
+
+/* The pointer table, in this order (Python: algorithms/native/__init__.py BUFFERS). */
+enum {
+    B_X, B_XD, B_TARGET, B_WLOG, B_FD, B_WALL, B_HASWALL, B_T, B_FENV, B_FOPE, B_SCEN, B_SLOT,
+    B_P_TARGET, B_P_WALL, B_P_HASWALL, B_P_SCEN, B_P_WLOG, B_P_FD,
+    B_SCHED, B_NOISE, B_FLAT, B_SQ, B_METRICS, B_REWARDS, B_DONES, B_WORK, B_COUNT
+};
+
+int64_t a2c_params_size(void) { return (int64_t)sizeof(a2c_params); }
+
+static int64_t hmax(const a2c_params *P) {
+    int64_t m = P->act_dim;
+    for (int64_t l = 0; l < P->depth; l++) m = P->hidden[l] > m ? P->hidden[l] : m;
+    return m;
+}
+
+static int64_t acts_floats(const a2c_params *P, int64_t rows) {
+    int64_t s = 0;
+    for (int64_t l = 0; l < P->depth; l++) s += rows * P->hidden[l];
+    return s;
+}
+
+/* float32 workspace entries this iteration needs */
+int64_t a2c_workspace_floats(const a2c_params *P) {
+    int64_t B = P->n * P->N, D = P->critic_dim, A = P->act_dim, H = hmax(P);
+    return 2 * B * D + 2 * B * A      /* obs, final obs; actions, mu */
+           + acts_floats(P, B)       /* policy stack at obs (from acting) */
+           + acts_floats(P, 2 * B)   /* value stack (or trunk at next_obs) */
+           + 2 * B + 3 * B            /* values at [obs; next obs]; adv, returns, log-prob scratch */
+           + P->size                  /* gradient */
+           + 2 * B * H + 2 * B * A;   /* backward scratch; g_mu */
+}
+
+static inline double clamp(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
+static inline double clip01(double v) { return clamp(v, 0.0, 1.0); }
+
+/* ------------------------------------------------------------------ environment (envs/point_mass.py) */
+
+typedef struct {
+    double *x, *xd, *target, *wlog, *fd, *wall, *fenv, *fope;
+    uint8_t *has_wall;
+    int64_t *t, *scen, *slot;
+} state_ptrs;
+
+/* observe_state: eq. 26 observation (+ privileged_state), cast to float, for env i */
+static void observe(const a2c_params *P, const state_ptrs *s, int64_t i, float *out) {
+    double e = s->target[i] - s->x[i];
+    out[0] = (float)clip01(fabs(e) / P->e_max);
+    out[1] = (float)clip01(fabs(s->fenv[i]) / P->f_env_max);
+    out[2] = (float)clip01(fabs(s->fope[i]) / P->f_ope_max);
+    if (!P->privileged) return;
+    const double *wl = s->wlog + 3 * i;
+    double m = fmax(fmax(wl[0], wl[1]), wl[2]);
+    double ex[3], sum = 0.0;
+    for (int k = 0; k < 3; k++) { ex[k] = exp(wl[k] - m); sum += ex[k]; }
+    for (int k = 0; k < 3; k++) out[3 + k] = (float)(ex[k] / sum);
+    double has_wall = s->has_wall[i] ? 1.0 : 0.0;
+    double has_op = (s->scen[i] == 1 || s->scen[i] == 3) ? 1.0 : 0.0;
+    out[6] = (float)(s->fd[i] / P->f_d_max);
+    out[7] = (float)clamp(e / P->e_max, -1.0, 1.0);
+    out[8] = (float)clamp(s->fenv[i] / P->f_env_max, -1.0, 1.0);
+    out[9] = (float)clamp(s->fope[i] / P->f_ope_max, -1.0, 1.0);
+    out[10] = (float)tanh(s->xd[i]);
+    out[11] = (float)has_wall;
+    out[12] = (float)has_op;
+    out[13] = (float)(has_wall * clamp((s->wall[i] - s->x[i]) / P->e_max, -1.0, 1.0));
+}
+
+/* agent_step for env i with clipped action a (float): eq. 29, `substeps` x eq. 35, eq. 30; returns the reward */
+static double agent_step(const a2c_params *P, const state_ptrs *s, const double *sched, int64_t i, const float *a) {
+    double half = 0.5 * P->sigma_w, *wl = s->wlog + 3 * i, w[3];
+    for (int k = 0; k < 3; k++)  /* eq. 29a-c */
+        wl[k] = clamp(wl[k] + P->sigma_w * P->adapt_dt * clamp((double)a[k], -1.0, 1.0), -half, half);
+    double m = fmax(fmax(wl[0], wl[1]), wl[2]), sum = 0.0;
+    for (int k = 0; k < 3; k++) { w[k] = exp(wl[k] - m); sum += w[k]; }
+    for (int k = 0; k < 3; k++) w[k] /= sum;  /* eq. 29e */
+    double fd = clamp(s->fd[i] + P->sigma_f * P->adapt_dt * clamp((double)a[3], -1.0, 1.0), 0.0, P->f_d_max);  /* 29d */
+    int64_t t = s->t[i], tt = t < P->sched_len - 1 ? t : P->sched_len - 1;
+    double f_cmd = sched[(s->slot[i] * P->N + i) * P->sched_len + tt];
+    double sgn = (f_cmd > 0.0) - (f_cmd < 0.0);
+    double mass = P->mass, adm = mass / P->lambda_d - 1.0, dt = P->physics_dt;
+    double x = s->x[i], v = s->xd[i], target = s->target[i], wall = s->wall[i], f_env = 0.0, f_ope = 0.0;
+    int has_wall = s->has_wall[i] != 0;
+    for (int64_t k = 0; k < P->substeps; k++) {
+        double pen = x - wall;
+        /* unilateral wall: pushes back only */
+        f_env = (has_wall && pen > 0.0) ? fmin(-P->wall_stiffness * pen - P->wall_damping * v, 0.0) : 0.0;
+        f_ope = f_cmd * clamp(1.0 - v * sgn / P->operator_v_hand, 0.0, 1.0);
+        double f_ext = f_env + f_ope, e = target - x;
+        double acc = (f_ext + w[0] * mass * (P->kp * e - P->kv * v) + w[1] * (adm * f_ext - P->c_d * v) + w[2] * fd) / mass;
+        v = v + acc * dt;  /* eq. 35, semi-implicit Euler */
+        x = x + v * dt;
+    }
+    s->x[i] = x; s->xd[i] = v; s->fd[i] = fd; s->fenv[i] = f_env; s->fope[i] = f_ope; s->t[i] = t + 1;
+    const double *al = P->alpha;  /* eq. 30 */
+    return -al[0] * clip01(fabs(target - x) / P->e_max) - al[1] * clip01(fabs(f_ope) / P->f_ope_max)
+           + al[2] * clip01(fabs(f_env) / P->f_env_max) - al[3] * clip01(fabs(fd) / P->f_d_max);
+}
+
+/* auto_reset for env i: switch to the pending episode */
+static void auto_reset(const state_ptrs *s, const state_ptrs *p, int64_t i) {
+    s->target[i] = p->target[i]; s->wall[i] = p->wall[i]; s->has_wall[i] = p->has_wall[i];
+    s->scen[i] = p->scen[i]; s->fd[i] = p->fd[i];
+    for (int k = 0; k < 3; k++) s->wlog[3 * i + k] = p->wlog[3 * i + k];
+    s->x[i] = 0.0; s->xd[i] = 0.0; s->t[i] = 0; s->fenv[i] = 0.0; s->fope[i] = 0.0;
+    s->slot[i] = 1 - s->slot[i];
+}
+
+/* ------------------------------------------------------------------ networks (algorithms/networks.py) */
+
+/* tanh through one expf: glibc's tanhf (via expm1f) was ~70 % of an iteration at the paper's size.  Absolute error
+ * ~1e-7 (cancellation in 1 - t near 0), below float32's resolution of the activations that follow. */
+static inline float tanh_fast(float x) {
+    float t = expf(-2.0f * fabsf(x)), y = (1.0f - t) / (1.0f + t);
+    return x < 0.0f ? -y : y;
+}
+
+/* y[r, o] = bias[o] + x[r, :] . W[o, :]  (addmm(b, x, W.T)); tanh if `act` */
+static void linear(const float *x, int64_t rows, int64_t in, int64_t ldx, const float *W, const float *b,
+                   int64_t out, int act, float *y) {
+    for (int64_t r = 0; r < rows; r++) {
+        const float *xr = x + r * ldx;
+        for (int64_t o = 0; o < out; o++) {
+            const float *wo = W + o * in;
+            float acc = 0.0f;
+#pragma omp simd reduction(+ : acc)
+            for (int64_t k = 0; k < in; k++) acc += xr[k] * wo[k];
+            acc += b[o];
+            y[r * out + o] = act ? tanh_fast(acc) : acc;
+        }
+    }
+}
+
+/* _stack_forward of stack `st` over `rows` inputs x (row stride ldx, first in_dim columns): hidden layers into acts */
+static void stack_forward(const a2c_params *P, const float *flat, int st, const float *x, int64_t rows, int64_t ldx,
+                          float *acts) {
+    const float *in = x;
+    int64_t width = P->in_dim[st], ld = ldx;
+    for (int64_t l = 0; l < P->depth; l++) {
+        linear(in, rows, width, ld, flat + P->off_w[st][l], flat + P->off_b[st][l], P->hidden[l], 1, acts);
+        in = acts; width = P->hidden[l]; ld = width;
+        acts += rows * P->hidden[l];
+    }
+}
+
+static const float *last_layer(const a2c_params *P, const float *acts, int64_t rows) {
+    for (int64_t l = 0; l + 1 < P->depth; l++) acts += rows * P->hidden[l];
+    return acts;
+}
+
+/* backward through hidden layers of stack `st`: g [rows, h_last] -> weight/bias grads (acts at the layer inputs) */
+static void stack_backward(const a2c_params *P, const float *flat, int st, const float *x, int64_t ldx,
+                           const float *acts, int64_t rows, float *g, float *g_prev, float *grad) {
+    const float *layer_out[MAX_DEPTH];
+    const float *a = acts;
+    for (int64_t l = 0; l < P->depth; l++) { layer_out[l] = a; a += rows * P->hidden[l]; }
+    for (int64_t l = P->depth - 1; l >= 0; l--) {
+        int64_t h = P->hidden[l], in = l == 0 ? P->in_dim[st] : P->hidden[l - 1];
+        const float *y = layer_out[l];
+        for (int64_t r = 0; r < rows * h; r++) g[r] *= 1.0f - y[r] * y[r];  /* tanh' = 1 - tanh^2 */
+        float *gw = grad + P->off_w[st][l], *gb = grad + P->off_b[st][l];
+        const float *inp = l == 0 ? x : layer_out[l - 1];
+        int64_t ld = l == 0 ? ldx : in;
+        for (int64_t r = 0; r < rows; r++) {
+            const float *gr = g + r * h, *ir = inp + r * ld;
+            for (int64_t o = 0; o < h; o++) {
+                float go = gr[o];
+                float *gwo = gw + o * in;
+#pragma omp simd
+                for (int64_t k = 0; k < in; k++) gwo[k] += go * ir[k];
+                gb[o] += go;
+            }
+        }
+        if (l > 0) {  /* g_prev = g @ W */
+            const float *W = flat + P->off_w[st][l];
+            memset(g_prev, 0, sizeof(float) * rows * in);
+            for (int64_t r = 0; r < rows; r++) {
+                const float *gr = g + r * h;
+                float *pr = g_prev + r * in;
+                for (int64_t o = 0; o < h; o++) {
+                    float go = gr[o];
+                    const float *wo = W + o * in;
+#pragma omp simd
+                    for (int64_t k = 0; k < in; k++) pr[k] += go * wo[k];
+                }
+            }
+            float *tmp = g; g = g_prev; g_prev = tmp;
+        }
+    }
+}
+
+/* grad of a linear head out = h W^T + b, given g_out [rows, out]: accumulate dW, db; g_h = g_out W (added into g_h) */
+static void head_backward(const float *h, int64_t rows, int64_t in, const float *W, const float *g_out, int64_t out,
+                          float *gW, float *gb, float *g_h) {
+    for (int64_t r = 0; r < rows; r++) {
+        const float *hr = h + r * in;
+        for (int64_t o = 0; o < out; o++) {
+            float go = g_out[r * out + o];
+            float *gwo = gW + o * in;
+            const float *wo = W + o * in;
+            float *ghr = g_h + r * in;
+#pragma omp simd
+            for (int64_t k = 0; k < in; k++) { gwo[k] += go * hr[k]; ghr[k] += go * wo[k]; }
+            gb[o] += go;
+        }
+    }
+}
+
+/* ------------------------------------------------------------------ the iteration */
+
+int a2c_iteration(const a2c_params *P, void **buf) {
+    const int64_t N = P->N, n = P->n, B = n * N, D = P->critic_dim, A = P->act_dim, O = P->obs_dim;
+    const int64_t H = hmax(P), hl = P->hidden[P->depth - 1];
+    state_ptrs s = {buf[B_X], buf[B_XD], buf[B_TARGET], buf[B_WLOG], buf[B_FD], buf[B_WALL], buf[B_FENV], buf[B_FOPE],
+                    buf[B_HASWALL], buf[B_T], buf[B_SCEN], buf[B_SLOT]};
+    state_ptrs p = {NULL, NULL, buf[B_P_TARGET], buf[B_P_WLOG], buf[B_P_FD], buf[B_P_WALL], NULL, NULL,
+                    buf[B_P_HASWALL], NULL, buf[B_P_SCEN], NULL};
+    const double *sched = buf[B_SCHED];
+    const float *noise = buf[B_NOISE];
+    float *flat = buf[B_FLAT], *sq = buf[B_SQ], *metrics = buf[B_METRICS], *rewards = buf[B_REWARDS];
+    uint8_t *dones = buf[B_DONES];
+    float *w = buf[B_WORK];
+    float *obs = w; w += B * D;
+    float *fin = w; w += B * D;
+    float *act = w; w += B * A;
+    float *mu = w; w += B * A;
+    float *pi_acts = w; w += acts_floats(P, B);
+    float *vf_acts = w; w += acts_floats(P, 2 * B);
+    float *values = w; w += 2 * B;
+    float *adv = w; w += B;
+    float *ret = w; w += B;
+    float *scratch = w; w += B;
+    float *grad = w; w += P->size;
+    float *g1 = w; w += B * H;
+    float *g2 = w; w += B * H;
+    float *g_mu = w; w += B * A;
+    (void)scratch;
+    const float *log_std = flat + P->off_log_std;
+    float sigma[16];
+    for (int64_t j = 0; j < A; j++) sigma[j] = expf(log_std[j]);
+
+    /* rollout (rollout_step x n): act with the policy mean + sigma * noise, step, observe, auto-reset */
+    for (int64_t i = 0; i < N; i++) observe(P, &s, i, obs + i * D);
+    for (int64_t t = 0; t < n; t++) {
+        float *o = obs + t * N * D, *pa = pi_acts;
+        /* policy stack for the N rows of step t: layer l of all B rows is one block, step t is its slice */
+        float *slice[MAX_DEPTH];
+        for (int64_t l = 0; l < P->depth; l++) { slice[l] = pa + t * N * P->hidden[l]; pa += B * P->hidden[l]; }
+        const float *in = o;
+        int64_t width = O, ld = D;
+        for (int64_t l = 0; l < P->depth; l++) {
+            linear(in, N, width, ld, flat + P->off_w[0][l], flat + P->off_b[0][l], P->hidden[l], 1, slice[l]);
+            in = slice[l]; width = P->hidden[l]; ld = width;
+        }
+        float *m = mu + t * N * A, *a = act + t * N * A;
+        linear(in, N, width, ld, flat + P->off_pi_w, flat + P->off_pi_b, A, 0, m);
+        for (int64_t r = 0; r < N * A; r++) a[r] = m[r] + sigma[r % A] * noise[t * N * A + r];
+        for (int64_t i = 0; i < N; i++) {
+            float clipped[16];
+            for (int64_t j = 0; j < A; j++) clipped[j] = a[i * A + j] < -1.0f ? -1.0f : (a[i * A + j] > 1.0f ? 1.0f : a[i * A + j]);
+            rewards[t * N + i] = (float)agent_step(P, &s, sched, i, clipped);
+            observe(P, &s, i, fin + (t * N + i) * D);
+            int done = s.t[i] >= P->episode_steps;  /* truncation; eq. 35 has no terminal state */
+            dones[t * N + i] = (uint8_t)done;
+            if (done) auto_reset(&s, &p, i);
+            if (t + 1 < n) observe(P, &s, i, obs + ((t + 1) * N + i) * D);
+        }
+    }
+
+    /* values at [obs; final obs] (separate: value stack; shared: trunk at obs is the policy's) */
+    if (!P->shared) {
+        stack_forward(P, flat, 1, obs, B, D, vf_acts);             /* rows 0..B-1 */
+        float *vf2 = vf_acts + acts_floats(P, B);                  /* rows B..2B-1, separate block */
+        stack_forward(P, flat, 1, fin, B, D, vf2);
+        linear(last_layer(P, vf_acts, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, 0, values);
+        linear(last_layer(P, vf2, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, 0, values + B);
+    } else {
+        stack_forward(P, flat, 0, fin, B, D, vf_acts);
+        linear(last_layer(P, pi_acts, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, 0, values);
+        linear(last_layer(P, vf_acts, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, 0, values + B);
+    }
+    const float *nv = values + B;
+
+    /* advantages and returns (terminated is always false here) */
+    if (!P->gae) {  /* nstep_returns */
+        for (int64_t i = 0; i < N; i++) {
+            int64_t b = (n - 1) * N + i;
+            float r = (float)P->gamma * nv[b] + rewards[b];
+            ret[b] = r;
+            for (int64_t t = n - 2; t >= 0; t--) {
+                b = t * N + i;
+                r = rewards[b] + (dones[b] ? (float)P->gamma * nv[b] : (float)P->gamma * r);
+                ret[b] = r;
+            }
+        }
+        for (int64_t b = 0; b < B; b++) adv[b] = ret[b] - values[b];
+    } else {  /* gae_advantages */
+        float g = (float)P->gamma, gl = (float)(P->gamma * P->gae_lambda);
+        for (int64_t i = 0; i < N; i++) {
+            int64_t b = (n - 1) * N + i;
+            float acc = rewards[b] + g * nv[b] - values[b];
+            adv[b] = acc;
+            for (int64_t t = n - 2; t >= 0; t--) {
+                b = t * N + i;
+                float delta = rewards[b] + g * nv[b] - values[b];
+                acc = delta + (dones[b] ? 0.0f : gl) * acc;
+                adv[b] = acc;
+            }
+        }
+        for (int64_t b = 0; b < B; b++) ret[b] = adv[b] + values[b];
+    }
+    double value_loss = 0.0, ret_mean = 0.0, res_mean = 0.0;
+    for (int64_t b = 0; b < B; b++) {
+        double d = (double)ret[b] - values[b];
+        value_loss += d * d; ret_mean += ret[b]; res_mean += d;
+    }
+    value_loss /= B; ret_mean /= B; res_mean /= B;
+    double ret_var = 0.0, res_var = 0.0;
+    for (int64_t b = 0; b < B; b++) {
+        double d = (double)ret[b] - values[b] - res_mean, e = ret[b] - ret_mean;
+        res_var += d * d; ret_var += e * e;
+    }
+    ret_var /= (double)(B - 1); res_var /= (double)(B - 1);
+    if (P->normalize_advantage) {
+        double mean = 0.0, var = 0.0;
+        for (int64_t b = 0; b < B; b++) mean += adv[b];
+        mean /= B;
+        for (int64_t b = 0; b < B; b++) var += (adv[b] - mean) * (adv[b] - mean);
+        float sd = (float)sqrt(var / (double)(B - 1));
+        for (int64_t b = 0; b < B; b++) adv[b] = (adv[b] - (float)mean) / (sd + 1e-8f);
+    }
+
+    /* eq. 31 loss gradients w.r.t. mean, log-std and value (a2c_update) */
+    double policy_loss = 0.0, entropy = 0.0;
+    float g_log_std[16];
+    for (int64_t j = 0; j < A; j++) { g_log_std[j] = 0.0f; entropy += log_std[j] + 0.5 * (1.0 + LOG_2PI); }
+    for (int64_t b = 0; b < B; b++) {
+        float wb = adv[b] / (float)B, lp = 0.0f;
+        for (int64_t j = 0; j < A; j++) {
+            float inv = expf(-log_std[j]), z = (act[b * A + j] - mu[b * A + j]) * inv, m = mu[b * A + j];
+            lp += -0.5f * z * z - log_std[j] - 0.5f * (float)LOG_2PI;
+            float gm = -wb * z * inv;
+            if (P->bound_coef > 0.0) {
+                float over = fabsf(m) - 1.0f;
+                if (over > 0.0f) gm += (float)(2.0 * P->bound_coef / B) * over * ((m > 0.0f) - (m < 0.0f));
+            }
+            g_mu[b * A + j] = gm;
+            g_log_std[j] += -wb * (z * z - 1.0f);
+        }
+        policy_loss += (double)adv[b] * lp;
+    }
+    policy_loss = -policy_loss / B;
+
+    /* backward (networks.backward) into grad */
+    memset(grad, 0, sizeof(float) * P->size);
+    for (int64_t j = 0; j < A; j++) grad[P->off_log_std + j] = g_log_std[j] - (float)P->ent_coef;
+    float *g_v = values + B;  /* reuse: V(next) is no longer needed; holds dL/dV at obs */
+    for (int64_t b = 0; b < B; b++) g_v[b] = (float)(2.0 * P->vf_coef / B) * (values[b] - ret[b]);
+    const float *h_pi = last_layer(P, pi_acts, B);
+    memset(g1, 0, sizeof(float) * B * hl);
+    head_backward(h_pi, B, hl, flat + P->off_pi_w, g_mu, A, grad + P->off_pi_w, grad + P->off_pi_b, g1);
+    if (!P->shared) {
+        stack_backward(P, flat, 0, obs, D, pi_acts, B, g1, g2, grad);
+        memset(g1, 0, sizeof(float) * B * hl);
+        head_backward(last_layer(P, vf_acts, B), B, hl, flat + P->off_vf_w, g_v, 1, grad + P->off_vf_w,
+                      grad + P->off_vf_b, g1);
+        stack_backward(P, flat, 1, obs, D, vf_acts, B, g1, g2, grad);
+    } else {  /* both heads feed the trunk */
+        head_backward(h_pi, B, hl, flat + P->off_vf_w, g_v, 1, grad + P->off_vf_w, grad + P->off_vf_b, g1);
+        stack_backward(P, flat, 0, obs, D, pi_acts, B, g1, g2, grad);
+    }
+
+    /* λζ clipping and eq. 32 RMSProp */
+    double sumsq = 0.0;
+#pragma omp simd reduction(+ : sumsq)
+    for (int64_t k = 0; k < P->size; k++) sumsq += (double)grad[k] * grad[k];
+    float norm = (float)sqrt(sumsq);
+    float scale = (float)P->max_grad_norm / (norm + 1e-6f);
+    if (scale > 1.0f) scale = 1.0f;
+    float al = (float)P->rms_alpha, lr = (float)P->lr, eps = (float)P->rms_eps;
+#pragma omp simd
+    for (int64_t k = 0; k < P->size; k++) {
+        float g = grad[k] * scale;
+        sq[k] = sq[k] * al + (1.0f - al) * g * g;
+        flat[k] -= lr * g / sqrtf(sq[k] + eps);
+    }
+    metrics[0] = (float)policy_loss;
+    metrics[1] = (float)value_loss;
+    metrics[2] = (float)entropy;
+    metrics[3] = norm;
+    metrics[4] = (float)(1.0 - res_var / (ret_var + 1e-8));
+    return 0;
+}
