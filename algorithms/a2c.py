@@ -247,17 +247,20 @@ class FusedRollout:
         """Collect n steps in every env and update `flat`/`square_avg` in place; returns METRICS [5]."""
         noise = self.noise.draw(self.hp.n_steps)
         state, pending, schedule = self.env.fused_inputs()
-        if self._native is not None:
-            state, metrics, rewards, dones = self._native(flat, square_avg, state, pending, schedule, noise)
-        elif self.fuse:
-            state, metrics, rewards, dones = self._iteration(flat, square_avg, state, pending, schedule, noise)
+        if self._native is not None:  # updates the env's state in place; counts the episode ends itself
+            _, metrics, rewards, dones = self._native(flat, square_avg, state, pending, schedule, noise)
+            any_done = self._native.done_count > 0
         else:
-            state, batch = collect(lambda s, o, z: self._step(flat, s, pending, schedule, o, z),
-                                   state, self._observe(state), noise)
-            metrics = self._update(flat, square_avg, batch)
-            rewards, dones = batch.rewards, batch.terminated | batch.truncated
-        self.env.fused_commit(state)
-        if bool(dones.any()):
+            if self.fuse:
+                state, metrics, rewards, dones = self._iteration(flat, square_avg, state, pending, schedule, noise)
+            else:
+                state, batch = collect(lambda s, o, z: self._step(flat, s, pending, schedule, o, z),
+                                       state, self._observe(state), noise)
+                metrics = self._update(flat, square_avg, batch)
+                rewards, dones = batch.rewards, batch.terminated | batch.truncated
+            self.env.fused_commit(state)
+            any_done = bool(dones.any())
+        if any_done:
             _count_episodes(self, rewards, dones)
             self.env.refill(dones.any(0))
         else:

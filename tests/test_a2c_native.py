@@ -52,7 +52,7 @@ def test_c_iteration_equals_the_torch_iteration(case):
         ref_state, ref_m, ref_r, ref_d = fused_iteration(layout, hp, step_fn, obs_fn, ref_flat, ref_sq, ref_state,
                                                          pending, schedule, noise)
         state, m, r, d = it(flat, sq, state, pending, schedule, noise)
-        assert torch.equal(d, ref_d.bool())
+        assert torch.equal(d, ref_d.bool()) and it.done_count == int(d.sum())
         ends += int(d.sum())
         for k in state:
             assert state[k].dtype == ref_state[k].dtype

@@ -68,7 +68,7 @@ def _bind(path: Path) -> ctypes.CDLL:
         raise RuntimeError("a2c_params in a2c_iteration.c and native.Params differ")
     lib.a2c_workspace_floats.argtypes = [ctypes.c_void_p]
     lib.a2c_iteration.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
-    lib.a2c_iteration.restype = ctypes.c_int
+    lib.a2c_iteration.restype = ctypes.c_int64
     return lib
 
 
@@ -140,6 +140,8 @@ class NativeIteration:
         self.table = (ctypes.c_void_p * (len(STATE) + len(PENDING) + 8))()
         self._shapes = {k: (N, 3) if k == "w_logits" else (N,) for k in STATE}
         self._seen: tuple | None = None
+        self.done_count = 0
+        """Episode ends (dones) in the last call's rollout."""
         self._noise_shape = torch.Size((n, N, layout.act_dim))
         self._params_ref = ctypes.byref(self.params)
 
@@ -181,5 +183,5 @@ class NativeIteration:
             raise ValueError(f"noise must be a contiguous float32 tensor of shape {tuple(self._noise_shape)}, "
                              f"got {noise.dtype} {tuple(noise.shape)}")
         self.table[_NOISE] = noise.data_ptr()
-        self.lib.a2c_iteration(self._params_ref, self.table)
+        self.done_count = self.lib.a2c_iteration(self._params_ref, self.table)
         return state, self.metrics, self.rewards, self.dones

@@ -63,7 +63,8 @@ int64_t a2c_workspace_floats(const a2c_params *P) {
            + acts_floats(P, 2 * B)   /* value stack (or trunk at next_obs) */
            + 2 * B + 3 * B            /* values at [obs; next obs]; adv, returns, log-prob scratch */
            + P->size                  /* gradient */
-           + 2 * B * H + 2 * B * A;   /* backward scratch; g_mu */
+           + 2 * B * H + 2 * B * A    /* backward scratch; g_mu */
+           + P->size + B * D;         /* transposed weights; gathered final observations */
 }
 
 static inline double clamp(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
@@ -143,16 +144,33 @@ static void auto_reset(const state_ptrs *s, const state_ptrs *p, int64_t i) {
 
 /* ------------------------------------------------------------------ networks (algorithms/networks.py) */
 
-/* tanh through one expf: glibc's tanhf (via expm1f) was ~70 % of an iteration at the paper's size.  Absolute error
- * ~1e-7 (cancellation in 1 - t near 0), below float32's resolution of the activations that follow. */
-static inline float tanh_fast(float x) {
-    float t = expf(-2.0f * fabsf(x)), y = (1.0f - t) / (1.0f + t);
-    return x < 0.0f ? -y : y;
+/* exp(z) for z <= 0 and tanh, in plain arithmetic so that row loops vectorise: glibc's tanhf (via expm1f) was
+ * ~70 % of an iteration at the paper's size, and a scalar expf call per activation still ~15 %.  Cody-Waite
+ * reduction (|r| <= ln2/2) and a degree-6 Taylor polynomial: relative error ~1e-7; tanh's absolute error ~1e-7
+ * (cancellation in 1 - t near 0), below float32's resolution of the activations that follow. */
+static inline float exp_nonpos(float z) {
+    z = z < -87.0f ? -87.0f : z;
+    int32_t n = (int32_t)(z * 1.44269504f - 0.5f);  /* round to nearest (z <= 0: truncation is a ceiling) */
+    float fn = (float)n, r = (z - fn * 0.693145751953125f) - fn * 1.428606765330187e-06f;
+    float p = 1.0f + r * (1.0f + r * (0.5f + r * (0.16666667f + r * (0.041666668f + r * (0.008333334f
+                                                                                       + r * 0.0013888889f)))));
+    int32_t bits = (n + 127) << 23;  /* 2^n */
+    float scale;
+    memcpy(&scale, &bits, sizeof scale);
+    return p * scale;
 }
 
-/* y[r, o] = bias[o] + x[r, :] . W[o, :]  (addmm(b, x, W.T)); tanh if `act` */
+static void tanh_row(float *y, int64_t len) {
+#pragma omp simd
+    for (int64_t i = 0; i < len; i++) {
+        float a = fabsf(y[i]), t = exp_nonpos(-2.0f * a), v = (1.0f - t) / (1.0f + t);
+        y[i] = y[i] < 0.0f ? -v : v;
+    }
+}
+
+/* y[r, o] = bias[o] + x[r, :] . W[o, :]  (addmm(b, x, W.T)): the linear heads */
 static void linear(const float *x, int64_t rows, int64_t in, int64_t ldx, const float *W, const float *b,
-                   int64_t out, int act, float *y) {
+                   int64_t out, float *y) {
     for (int64_t r = 0; r < rows; r++) {
         const float *xr = x + r * ldx;
         for (int64_t o = 0; o < out; o++) {
@@ -160,19 +178,40 @@ static void linear(const float *x, int64_t rows, int64_t in, int64_t ldx, const 
             float acc = 0.0f;
 #pragma omp simd reduction(+ : acc)
             for (int64_t k = 0; k < in; k++) acc += xr[k] * wo[k];
-            acc += b[o];
-            y[r * out + o] = act ? tanh_fast(acc) : acc;
+            y[r * out + o] = acc + b[o];
         }
     }
 }
 
-/* _stack_forward of stack `st` over `rows` inputs x (row stride ldx, first in_dim columns): hidden layers into acts */
-static void stack_forward(const a2c_params *P, const float *flat, int st, const float *x, int64_t rows, int64_t ldx,
-                          float *acts) {
+/* the same with W^T [in, out] (`transpose`): each input scales a contiguous row of W^T, so the loop over outputs
+ * vectorises without a horizontal sum per output (the hidden layers; `linear` is kept for 1-4 outputs) */
+static void linear_t(const float *x, int64_t rows, int64_t in, int64_t ldx, const float *Wt, const float *b,
+                     int64_t out, float *y) {
+    for (int64_t r = 0; r < rows; r++) {
+        const float *xr = x + r * ldx;
+        float *yr = y + r * out;
+        memcpy(yr, b, sizeof(float) * out);
+        for (int64_t k = 0; k < in; k++) {
+            const float xk = xr[k], *wk = Wt + k * out;
+#pragma omp simd
+            for (int64_t o = 0; o < out; o++) yr[o] += xk * wk[o];
+        }
+        tanh_row(yr, out);
+    }
+}
+
+static void transpose(const float *W, int64_t out, int64_t in, float *Wt) {
+    for (int64_t o = 0; o < out; o++)
+        for (int64_t k = 0; k < in; k++) Wt[k * out + o] = W[o * in + k];
+}
+
+/* _stack_forward of stack `st` over `rows` inputs x (hidden weights transposed in `wt`, at the flat offsets) (row stride ldx, first in_dim columns): hidden layers into acts */
+static void stack_forward(const a2c_params *P, const float *flat, const float *wt, int st, const float *x,
+                          int64_t rows, int64_t ldx, float *acts) {
     const float *in = x;
     int64_t width = P->in_dim[st], ld = ldx;
     for (int64_t l = 0; l < P->depth; l++) {
-        linear(in, rows, width, ld, flat + P->off_w[st][l], flat + P->off_b[st][l], P->hidden[l], 1, acts);
+        linear_t(in, rows, width, ld, wt + P->off_w[st][l], flat + P->off_b[st][l], P->hidden[l], acts);
         in = acts; width = P->hidden[l]; ld = width;
         acts += rows * P->hidden[l];
     }
@@ -243,7 +282,8 @@ static void head_backward(const float *h, int64_t rows, int64_t in, const float 
 
 /* ------------------------------------------------------------------ the iteration */
 
-int a2c_iteration(const a2c_params *P, void **buf) {
+/* returns the number of episode ends in the rollout */
+int64_t a2c_iteration(const a2c_params *P, void **buf) {
     const int64_t N = P->N, n = P->n, B = n * N, D = P->critic_dim, A = P->act_dim, O = P->obs_dim;
     const int64_t H = hmax(P), hl = P->hidden[P->depth - 1];
     state_ptrs s = {buf[B_X], buf[B_XD], buf[B_TARGET], buf[B_WLOG], buf[B_FD], buf[B_WALL], buf[B_FENV], buf[B_FOPE],
@@ -269,7 +309,12 @@ int a2c_iteration(const a2c_params *P, void **buf) {
     float *g1 = w; w += B * H;
     float *g2 = w; w += B * H;
     float *g_mu = w; w += B * A;
-    (void)scratch;
+    float *wt = w; w += P->size;
+    float *gathered = w; w += B * D;
+    for (int st = 0; st < (P->shared ? 1 : 2); st++)
+        for (int64_t l = 0; l < P->depth; l++)
+            transpose(flat + P->off_w[st][l], P->hidden[l], l == 0 ? P->in_dim[st] : P->hidden[l - 1],
+                      wt + P->off_w[st][l]);
     const float *log_std = flat + P->off_log_std;
     float sigma[16];
     for (int64_t j = 0; j < A; j++) sigma[j] = expf(log_std[j]);
@@ -284,12 +329,12 @@ int a2c_iteration(const a2c_params *P, void **buf) {
         const float *in = o;
         int64_t width = O, ld = D;
         for (int64_t l = 0; l < P->depth; l++) {
-            linear(in, N, width, ld, flat + P->off_w[0][l], flat + P->off_b[0][l], P->hidden[l], 1, slice[l]);
+            linear_t(in, N, width, ld, wt + P->off_w[0][l], flat + P->off_b[0][l], P->hidden[l], slice[l]);
             in = slice[l]; width = P->hidden[l]; ld = width;
         }
-        float *m = mu + t * N * A, *a = act + t * N * A;
-        linear(in, N, width, ld, flat + P->off_pi_w, flat + P->off_pi_b, A, 0, m);
-        for (int64_t r = 0; r < N * A; r++) a[r] = m[r] + sigma[r % A] * noise[t * N * A + r];
+        float *mu_t = mu + t * N * A, *a = act + t * N * A;
+        linear(in, N, width, ld, flat + P->off_pi_w, flat + P->off_pi_b, A, mu_t);
+        for (int64_t r = 0; r < N * A; r++) a[r] = mu_t[r] + sigma[r % A] * noise[t * N * A + r];
         for (int64_t i = 0; i < N; i++) {
             float clipped[16];
             for (int64_t j = 0; j < A; j++) clipped[j] = a[i * A + j] < -1.0f ? -1.0f : (a[i * A + j] > 1.0f ? 1.0f : a[i * A + j]);
@@ -302,18 +347,22 @@ int a2c_iteration(const a2c_params *P, void **buf) {
         }
     }
 
-    /* values at [obs; final obs] (separate: value stack; shared: trunk at obs is the policy's) */
+    /* values at obs, and at the final observations: those equal the next step's obs (whose values are already
+     * there, row by row the same arithmetic) except after the last step and at episode ends */
     if (!P->shared) {
-        stack_forward(P, flat, 1, obs, B, D, vf_acts);             /* rows 0..B-1 */
-        float *vf2 = vf_acts + acts_floats(P, B);                  /* rows B..2B-1, separate block */
-        stack_forward(P, flat, 1, fin, B, D, vf2);
-        linear(last_layer(P, vf_acts, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, 0, values);
-        linear(last_layer(P, vf2, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, 0, values + B);
-    } else {
-        stack_forward(P, flat, 0, fin, B, D, vf_acts);
-        linear(last_layer(P, pi_acts, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, 0, values);
-        linear(last_layer(P, vf_acts, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, 0, values + B);
+        stack_forward(P, flat, wt, 1, obs, B, D, vf_acts);
+        linear(last_layer(P, vf_acts, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, values);
+    } else {  /* the trunk at obs is the policy's */
+        linear(last_layer(P, pi_acts, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, values);
     }
+    int64_t m = 0;
+    for (int64_t b = 0; b < B; b++)
+        if (b >= B - N || dones[b]) memcpy(gathered + (m++) * D, fin + b * D, sizeof(float) * D);
+    float *vf2 = vf_acts + acts_floats(P, B);
+    stack_forward(P, flat, wt, P->shared ? 0 : 1, gathered, m, D, vf2);
+    linear(last_layer(P, vf2, m), m, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, scratch);
+    for (int64_t b = 0, j = 0; b < B; b++)
+        values[B + b] = (b >= B - N || dones[b]) ? scratch[j++] : values[b + N];
     const float *nv = values + B;
 
     /* advantages and returns (terminated is always false here) */
@@ -424,5 +473,7 @@ int a2c_iteration(const a2c_params *P, void **buf) {
     metrics[2] = (float)entropy;
     metrics[3] = norm;
     metrics[4] = (float)(1.0 - res_var / (ret_var + 1e-8));
-    return 0;
+    int64_t ends = 0;
+    for (int64_t b = 0; b < B; b++) ends += dones[b];
+    return ends;
 }
