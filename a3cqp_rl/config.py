@@ -159,7 +159,7 @@ class A2CConfig:
     backend: Literal["auto", "torch", "native"] = "auto"
     """Fused path only: 'torch' = rollout + update as torch code (compiled with `compile`); 'native' = the same
     iteration in C (algorithms/native, PointMassEnv on the CPU; an error if unavailable); 'auto' = C for at most
-    1024 samples per update (n_steps × num_envs), where it is faster, else torch."""
+    512 samples per update (n_steps × num_envs), where it is faster, else torch."""
 
     def _check(self, err: _Errors) -> None:
         for name in ("learning_rate", "rms_eps", "max_grad_norm", "n_steps", "num_envs", "total_steps",
