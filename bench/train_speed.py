@@ -15,7 +15,8 @@ steps (all envs together):
 Both run with ``torch.set_num_threads(1)``. With ``--repeats R`` the two are run alternately R times
 (so they see the same machine load) and the medians are reported.
 
-Usage: python bench/train_speed.py [--steps N] [--repeats R] [--quick] [--only sb3|ours]
+Usage: python bench/train_speed.py [--steps N] [--ours-steps M] [--repeats R] [--quick] [--only sb3|ours]
+                                   [--backend auto|torch|native]
 
 Stable-Baselines3 is the optional ``bench`` extra; without it this prints how to install it and
 exits 0.
@@ -163,8 +164,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="short smoke run: 2000 steps, 1 repeat")
     p.add_argument("--only", choices=("sb3", "ours"), default=None, help="run only one side")
     p.add_argument("--config", default=str(CONFIG), help="experiment config for both trainers")
+    p.add_argument("--ours-steps", type=int, default=None,
+                   help="agent steps per run of ours (default 5 x --steps: it is ~30x faster, so short runs are noisy)")
+    p.add_argument("--backend", choices=("auto", "torch", "native"), default=None,
+                   help="a2c.backend for ours (default: the config's; auto = C at the paper's 16 samples/update)")
     args = p.parse_args(argv)
     steps = args.steps if args.steps is not None else (2000 if args.quick else 20000)
+    ours_steps = args.ours_steps if args.ours_steps is not None else 5 * steps
     repeats = args.repeats if args.repeats is not None else (1 if args.quick else 3)
     if steps < 16 or repeats < 1:
         p.error("--steps must be >= 16 (one update of 4 envs x 4 steps) and --repeats >= 1")
@@ -186,11 +192,12 @@ def main(argv: list[str] | None = None) -> int:
     from a3cqp_rl.config import load_config
 
     torch.set_num_threads(1)
-    cfg = load_config(args.config)
+    cfg = load_config(args.config, {"a2c": {"backend": args.backend}} if args.backend else None)
     a = cfg.a2c
     print("Training speed: A2C on the point mass (paper 000, eq. 35), paper settings (Table IV)")
     print(f"  {a.num_envs} envs x n={a.n_steps} steps per update ({a.num_envs * a.n_steps} samples/update), "
-          f"{steps:,} agent steps per run, {repeats} run(s) each (median), config {args.config}")
+          f"{steps:,} agent steps per SB3 run and {ours_steps:,} per run of ours, {repeats} run(s) each (median), "
+          f"config {args.config}, a2c.backend {a.backend}")
     print(f"  torch.set_num_threads(1) for both (this machine: {os.cpu_count()} CPU cores, "
           f"load average at start {os.getloadavg()[0]:.2f})")
     print(f"  versions: stable-baselines3 {sb3_version}, a3cqp-rl {a3cqp_rl.__version__} "
@@ -210,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  run {i + 1}: SB3  {rate:>10,.0f} steps/s  (learn() {elapsed:.2f} s)", flush=True)
         if args.only != "sb3" and ours_error is None:
             try:
-                rate, comp, wall, done = run_ours(cfg, steps)
+                rate, comp, wall, done = run_ours(cfg, ours_steps)
             except ImportError as exc:
                 ours_error = f"algorithms.a2c.train not available ({exc})"
                 continue
