@@ -52,3 +52,15 @@ def test_tuned_config_learns_fig5_regions_in_1e6_steps(tmp_path):
     res = train(cfg, tmp_path, total_steps=1_000_000)
     results = check_fig5_regions(load_policy(res.policy_path))
     assert all(r.ok for r in results), results
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fd_1e6_config_learns_three_of_four_regions_in_1e6_steps(tmp_path, seed):
+    """configs/point_mass_a2c_fig5_fd_1e6.yaml: the paper's 1e6 steps (~25 s each on the C iteration), 3 of 4 checks."""
+    cfg = load_config(CONFIGS / "point_mass_a2c_fig5_fd_1e6.yaml", {"seed": seed})
+    res = train(cfg, tmp_path)
+    assert res.steps == 1_000_000
+    results = check_fig5_regions(load_policy(res.policy_path))
+    assert sum(r.ok for r in results) >= 3, results
+    assert results[1].ok, results  # ẇ3, force control in contact: passed on all five seeds measured
