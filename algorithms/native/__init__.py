@@ -4,8 +4,8 @@ Why native: at the paper's settings (4 envs, n = 4) an iteration is ~0.6 M multi
 graph spends most of its ~0.4 ms in fixed costs: 26 tiny GEMM calls, 30 kernels, and the dynamo/AOT wrappers
 that flatten the state dicts on every call. The C file does the same arithmetic (rollout with auto-reset, n-step
 returns or GAE, eq. 31 gradients by hand, λζ clipping, eq. 32) in one call, in the order of the torch reference,
-which stays the definition: tests/test_a2c_native.py checks one iteration against `fused_iteration` and whole
-runs against the torch trainer. Results agree to float32 round-off, not bit for bit (MKL sums in its own order);
+which stays the definition: tests/test_a2c_native.py checks 60 iterations in lockstep against `fused_iteration`
+(three network/option sets) and the first update of whole runs against the torch trainer. Results agree to float32 round-off, not bit for bit (MKL sums in its own order);
 each path is deterministic on its own.
 
 `FusedRollout` takes it when `a2c.backend` allows (`auto`: PointMassEnv on the CPU and at most
