@@ -16,7 +16,7 @@ Conventions (those of Stable-Baselines3's A2C, the paper's library; defaults = T
     random-walk weakly-rewarded action means far past the clip, where every clipped sample is the
     same action and the policy gradient can no longer pull them back.
 Data comes from either (a) the env's fused API (`fused_functions`: a pure step with auto-reset, PointMassEnv), rollout
-and update compiled together into one graph, or
+and update compiled together into one graph (or, for small batches, the same iteration in C: algorithms/native), or
 (b) any TorchRL EnvBase through a TorchRL `Collector` (ParallelEnv/SerialEnv, MuJoCo Panda).
 """
 
@@ -233,12 +233,11 @@ class FusedRollout:
             return a2c_update(layout, flat, square_avg, batch, hp)
 
         self._native = _native_iteration(env, layout, hp)
-        if self._native is not None:
-            pass  # the C iteration replaces the torch graphs (nothing to compile)
-        elif self.fuse:
-            self._iteration = maybe_compile(iteration)
-        else:
-            self._step, self._update = maybe_compile(step), maybe_compile(update)
+        if self._native is None:  # the torch graphs (the C iteration needs none)
+            if self.fuse:
+                self._iteration = maybe_compile(iteration)
+            else:
+                self._step, self._update = maybe_compile(step), maybe_compile(update)
         self.ep_return = torch.zeros(self.num_envs)
         self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
         self.finished: list[tuple[float, int]] = []
