@@ -233,6 +233,8 @@ class FusedRollout:
             return a2c_update(layout, flat, square_avg, batch, hp)
 
         self._native = _native_iteration(env, layout, hp)
+        self.compiles = hp.compile and self._native is None
+        """Whether the first `iterate` pays for torch.compile."""
         if self._native is None:  # the torch graphs (the C iteration needs none)
             if self.fuse:
                 self._iteration = maybe_compile(iteration)
@@ -286,7 +288,7 @@ def _native_iteration(env, layout: ParamLayout, hp: A2CConfig):
         return None
     from algorithms import native
 
-    why = native.unsupported(env, layout, hp)
+    why = native.unsupported(env, layout)
     if why is None and hp.backend == "auto" and hp.n_steps * env.num_envs > native.AUTO_MAX_BATCH:
         return None  # large batches are GEMM-bound: MKL through torch is faster there
     lib = native.load() if why is None else None
@@ -320,6 +322,7 @@ class TorchRLRollout:
 
         self.layout, self.gen, self.flat, self.hp, self.n = layout, generator, layout.init(), hp, hp.n_steps
         self._update = _compile(a2c_update) if hp.compile else a2c_update
+        self.compiles = hp.compile
         self.num_envs = int(env.batch_size.numel())
         held = HeldNoise(generator, self.num_envs, layout.act_dim, hp.noise_hold)
 
@@ -448,14 +451,13 @@ def train(
     compile_s = 0.0
     t_start = time.perf_counter()
     last: dict[str, float] = {}
-    compiles = hp.compile and getattr(runner, "_native", None) is None
-    if compiles and start < num_updates:
+    if runner.compiles and start < num_updates:
         bar.set_description("A2C (compiling the step, one-time)")
     for u in range(start, num_updates):
         t0 = time.perf_counter()
         metric_sum += runner.iterate(flat, square_avg)
         metric_count += 1
-        if u == start and compiles:  # the first iteration pays for torch.compile
+        if u == start and runner.compiles:  # the first iteration pays for torch.compile
             compile_s = time.perf_counter() - t0
             bar.set_description("A2C")
             bar.reset(total=num_updates * per_update)  # restart the rate estimate after compiling

@@ -108,7 +108,7 @@ def test_backend_choice_and_errors(monkeypatch):
 
     other = Other(4, cfg, seed=0)
     other.reset()
-    assert "PointMassEnv only" in native.unsupported(other, layout, cfg.a2c)
+    assert "PointMassEnv only" in native.unsupported(other, layout)
     assert FusedRollout(other, layout, gen, cfg.a2c)._native is None
     with pytest.raises(ValueError, match="PointMassEnv only"):
         FusedRollout(other, layout, gen, config_from_dict({"a2c": {"backend": "native"}}).a2c)

@@ -58,15 +58,18 @@ PENDING = ("target", "wall_pos", "has_wall", "scenario", "w_logits", "f_d")
 """The pointer table's order (the B_* enum of the C file): STATE, PENDING, then schedule, noise, flat, square_avg,
 metrics, rewards, dones, workspace."""
 _NOISE = len(STATE) + len(PENDING) + 1
+_BUFFERS = len(STATE) + len(PENDING) + 8
 _DTYPES = {"has_wall": torch.bool, "t": torch.int64, "scenario": torch.int64, "slot": torch.int64}
 
 
 def _bind(path: Path) -> ctypes.CDLL:
     """Load the compiled library and declare its functions (checking the C layout against Params)."""
     lib = ctypes.CDLL(str(path))
-    lib.a2c_params_size.restype = lib.a2c_workspace_floats.restype = ctypes.c_int64
+    lib.a2c_params_size.restype = lib.a2c_workspace_floats.restype = lib.a2c_buffer_count.restype = ctypes.c_int64
     if lib.a2c_params_size() != ctypes.sizeof(Params):
         raise RuntimeError("a2c_params in a2c_iteration.c and native.Params differ")
+    if lib.a2c_buffer_count() != _BUFFERS:
+        raise RuntimeError("the pointer table of a2c_iteration.c and native.STATE/PENDING differ")
     lib.a2c_workspace_floats.argtypes = [ctypes.c_void_p]
     lib.a2c_iteration.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
     lib.a2c_iteration.restype = ctypes.c_int64
@@ -82,7 +85,7 @@ def load() -> ctypes.CDLL | None:
     return _library.get()
 
 
-def unsupported(env, layout, hp) -> str | None:  # noqa: ANN001
+def unsupported(env, layout) -> str | None:  # noqa: ANN001
     """Why the C iteration cannot run this trainer (None when it can)."""
     from envs.point_mass import PointMassEnv
 
@@ -90,7 +93,7 @@ def unsupported(env, layout, hp) -> str | None:  # noqa: ANN001
         return f"the C iteration simulates PointMassEnv only, not {type(env).__name__}"
     if env.device.type != "cpu":
         return f"the C iteration runs on the CPU, the env is on {env.device}"
-    if len(layout.hidden) > MAX_DEPTH or layout.act_dim > 16 or layout.act_dim != 4 or layout.obs_dim != 3:
+    if len(layout.hidden) > MAX_DEPTH or layout.act_dim != 4 or layout.obs_dim != 3:
         return f"network {layout.hidden} with {layout.obs_dim} -> {layout.act_dim} is outside the C file's limits"
     return None
 
@@ -116,8 +119,6 @@ def _params(env, layout, hp) -> Params:  # noqa: ANN001
         p.in_dim[st] = layout.in_dims[name]
         for k in range(len(layout.hidden)):
             p.off_w[st][k], p.off_b[st][k] = layout.offsets[f"{name}.{k}.w"][0], layout.offsets[f"{name}.{k}.b"][0]
-    if layout.network == "shared":
-        p.in_dim[1] = layout.obs_dim
     p.off_pi_w, p.off_pi_b = layout.offsets["pi.out.w"][0], layout.offsets["pi.out.b"][0]
     p.off_vf_w, p.off_vf_b = layout.offsets["vf.out.w"][0], layout.offsets["vf.out.b"][0]
     p.off_log_std = layout.offsets["log_std"][0]
@@ -129,7 +130,7 @@ class NativeIteration:
 
     def __init__(self, lib: ctypes.CDLL, env, layout, hp) -> None:  # noqa: ANN001
         """Bind `lib` to `env` (a PointMassEnv), the network `layout` and the A2C settings `hp`."""
-        why = unsupported(env, layout, hp)
+        why = unsupported(env, layout)
         if why:
             raise ValueError(why)
         self.lib, self.params = lib, _params(env, layout, hp)
@@ -138,7 +139,7 @@ class NativeIteration:
         self.metrics = torch.empty(5, dtype=torch.float32)
         self.rewards = torch.empty(n, N, dtype=torch.float32)
         self.dones = torch.empty(n, N, dtype=torch.bool)
-        self.table = (ctypes.c_void_p * (len(STATE) + len(PENDING) + 8))()
+        self.table = (ctypes.c_void_p * _BUFFERS)()
         self._shapes = {k: (N, 3) if k == "w_logits" else (N,) for k in STATE}
         self._seen: tuple | None = None
         self.done_count = 0
@@ -146,8 +147,7 @@ class NativeIteration:
         self._noise_shape = torch.Size((n, N, layout.act_dim))
         self._params_ref = ctypes.byref(self.params)
 
-    def _check(self, flat: Tensor, square_avg: Tensor, state: dict, pending: dict, schedule: Tensor,
-               noise: Tensor) -> None:
+    def _check(self, flat: Tensor, square_avg: Tensor, state: dict, pending: dict, schedule: Tensor) -> None:
         p = self.params
         for group, d in (("state", state), ("pending", pending)):
             for k in STATE if group == "state" else PENDING:
@@ -155,8 +155,7 @@ class NativeIteration:
                 if v.dtype != _DTYPES.get(k, torch.float64) or tuple(v.shape) != self._shapes[k] or not v.is_contiguous():
                     raise ValueError(f"{group}[{k!r}] must be a contiguous {_DTYPES.get(k, torch.float64)} tensor of "
                                      f"shape {self._shapes[k]}, got {v.dtype} {tuple(v.shape)}")
-        want = {"schedule": ((2, p.N, p.sched_len), torch.float64, schedule), "noise": ((p.n, p.N, p.act_dim),
-                torch.float32, noise), "flat": ((p.size,), torch.float32, flat),
+        want = {"schedule": ((2, p.N, p.sched_len), torch.float64, schedule), "flat": ((p.size,), torch.float32, flat),
                 "square_avg": ((p.size,), torch.float32, square_avg)}
         for name, (shape, dtype, v) in want.items():
             if tuple(v.shape) != shape or v.dtype != dtype or not v.is_contiguous():
@@ -169,20 +168,20 @@ class NativeIteration:
         `flat` and `square_avg` are updated in place. The three outputs are this object's buffers: valid until the
         next call.
         """
+        if noise.shape != self._noise_shape or noise.dtype != torch.float32 or not noise.is_contiguous():
+            raise ValueError(f"noise must be a contiguous float32 tensor of shape {tuple(self._noise_shape)}, "
+                             f"got {noise.dtype} {tuple(noise.shape)}")
         seen = self._seen
         # The env swaps its state dicts only on reset/resume (and edits their tensors in place): check layouts and
         # take addresses then, not on every call (holding the objects, so their addresses stay theirs).
         if seen is None or state is not seen[0] or pending is not seen[1] or schedule is not seen[2] \
                 or flat is not seen[3] or square_avg is not seen[4]:
-            self._check(flat, square_avg, state, pending, schedule, noise)
+            self._check(flat, square_avg, state, pending, schedule)
             tensors = [*(state[k] for k in STATE), *(pending[k] for k in PENDING), schedule, noise, flat, square_avg,
                        self.metrics, self.rewards, self.dones, self.work]
             for k, t in enumerate(tensors):
                 self.table[k] = t.data_ptr()
             self._seen = (state, pending, schedule, flat, square_avg)
-        if noise.shape != self._noise_shape or noise.dtype != torch.float32 or not noise.is_contiguous():
-            raise ValueError(f"noise must be a contiguous float32 tensor of shape {tuple(self._noise_shape)}, "
-                             f"got {noise.dtype} {tuple(noise.shape)}")
         self.table[_NOISE] = noise.data_ptr()
         self.done_count = self.lib.a2c_iteration(self._params_ref, self.table)
         return state, self.metrics, self.rewards, self.dones

@@ -34,7 +34,7 @@ typedef struct {
     double alpha[4];
 } a2c_params;
 
-/* The pointer table, in this order (Python: algorithms/native/__init__.py BUFFERS). */
+/* The pointer table, in this order (Python: STATE, PENDING and the rest, algorithms/native/__init__.py). */
 enum {
     B_X, B_XD, B_TARGET, B_WLOG, B_FD, B_WALL, B_HASWALL, B_T, B_FENV, B_FOPE, B_SCEN, B_SLOT,
     B_P_TARGET, B_P_WALL, B_P_HASWALL, B_P_SCEN, B_P_WLOG, B_P_FD,
@@ -42,6 +42,7 @@ enum {
 };
 
 int64_t a2c_params_size(void) { return (int64_t)sizeof(a2c_params); }
+int64_t a2c_buffer_count(void) { return B_COUNT; }
 
 static int64_t hmax(const a2c_params *P) {
     int64_t m = P->act_dim;
@@ -61,7 +62,7 @@ int64_t a2c_workspace_floats(const a2c_params *P) {
     return 2 * B * D + 2 * B * A      /* obs, final obs; actions, mu */
            + acts_floats(P, B)       /* policy stack at obs (from acting) */
            + acts_floats(P, 2 * B)   /* value stack (or trunk at next_obs) */
-           + 2 * B + 3 * B            /* values at [obs; next obs]; adv, returns, log-prob scratch */
+           + 2 * B + 3 * B            /* values at [obs; next obs]; adv, returns, V at gathered final obs */
            + P->size                  /* gradient */
            + 2 * B * H + 2 * B * A    /* backward scratch; g_mu */
            + P->size + B * D;         /* transposed weights; gathered final observations */
@@ -69,6 +70,13 @@ int64_t a2c_workspace_floats(const a2c_params *P) {
 
 static inline double clamp(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
 static inline double clip01(double v) { return clamp(v, 0.0, 1.0); }
+
+/* eq. 29e: task weights from the pre-softmax w̌ [3] */
+static void softmax3(const double *wl, double *w) {
+    double m = fmax(fmax(wl[0], wl[1]), wl[2]), sum = 0.0;
+    for (int k = 0; k < 3; k++) { w[k] = exp(wl[k] - m); sum += w[k]; }
+    for (int k = 0; k < 3; k++) w[k] /= sum;
+}
 
 /* ------------------------------------------------------------------ environment (envs/point_mass.py) */
 
@@ -85,11 +93,9 @@ static void observe(const a2c_params *P, const state_ptrs *s, int64_t i, float *
     out[1] = (float)clip01(fabs(s->fenv[i]) / P->f_env_max);
     out[2] = (float)clip01(fabs(s->fope[i]) / P->f_ope_max);
     if (!P->privileged) return;
-    const double *wl = s->wlog + 3 * i;
-    double m = fmax(fmax(wl[0], wl[1]), wl[2]);
-    double ex[3], sum = 0.0;
-    for (int k = 0; k < 3; k++) { ex[k] = exp(wl[k] - m); sum += ex[k]; }
-    for (int k = 0; k < 3; k++) out[3 + k] = (float)(ex[k] / sum);
+    double w[3];
+    softmax3(s->wlog + 3 * i, w);
+    for (int k = 0; k < 3; k++) out[3 + k] = (float)w[k];
     double has_wall = s->has_wall[i] ? 1.0 : 0.0;
     double has_op = (s->scen[i] == 1 || s->scen[i] == 3) ? 1.0 : 0.0;
     out[6] = (float)(s->fd[i] / P->f_d_max);
@@ -107,9 +113,7 @@ static double agent_step(const a2c_params *P, const state_ptrs *s, const double 
     double half = 0.5 * P->sigma_w, *wl = s->wlog + 3 * i, w[3];
     for (int k = 0; k < 3; k++)  /* eq. 29a-c */
         wl[k] = clamp(wl[k] + P->sigma_w * P->adapt_dt * clamp((double)a[k], -1.0, 1.0), -half, half);
-    double m = fmax(fmax(wl[0], wl[1]), wl[2]), sum = 0.0;
-    for (int k = 0; k < 3; k++) { w[k] = exp(wl[k] - m); sum += w[k]; }
-    for (int k = 0; k < 3; k++) w[k] /= sum;  /* eq. 29e */
+    softmax3(wl, w);
     double fd = clamp(s->fd[i] + P->sigma_f * P->adapt_dt * clamp((double)a[3], -1.0, 1.0), 0.0, P->f_d_max);  /* 29d */
     int64_t t = s->t[i], tt = t < P->sched_len - 1 ? t : P->sched_len - 1;
     double f_cmd = sched[(s->slot[i] * P->N + i) * P->sched_len + tt];
@@ -205,16 +209,21 @@ static void transpose(const float *W, int64_t out, int64_t in, float *Wt) {
         for (int64_t k = 0; k < in; k++) Wt[k * out + o] = W[o * in + k];
 }
 
-/* _stack_forward of stack `st` over `rows` inputs x (hidden weights transposed in `wt`, at the flat offsets) (row stride ldx, first in_dim columns): hidden layers into acts */
-static void stack_forward(const a2c_params *P, const float *flat, const float *wt, int st, const float *x,
-                          int64_t rows, int64_t ldx, float *acts) {
+/* _stack_forward of stack `st` over `rows` inputs x (row stride ldx, first in_dim columns), with the hidden weights
+ * transposed in `wt` (at the flat offsets).  Layer l's outputs go to the l-th block of `acts`, blocks of `block_rows`
+ * rows, from row `row0` on (the rollout writes step t's N rows into the B-row blocks the update reads).  Returns
+ * the last layer's outputs. */
+static const float *stack_forward(const a2c_params *P, const float *flat, const float *wt, int st, const float *x,
+                                  int64_t rows, int64_t ldx, float *acts, int64_t block_rows, int64_t row0) {
     const float *in = x;
     int64_t width = P->in_dim[st], ld = ldx;
     for (int64_t l = 0; l < P->depth; l++) {
-        linear_t(in, rows, width, ld, wt + P->off_w[st][l], flat + P->off_b[st][l], P->hidden[l], acts);
-        in = acts; width = P->hidden[l]; ld = width;
-        acts += rows * P->hidden[l];
+        float *out = acts + row0 * P->hidden[l];
+        linear_t(in, rows, width, ld, wt + P->off_w[st][l], flat + P->off_b[st][l], P->hidden[l], out);
+        in = out; width = P->hidden[l]; ld = width;
+        acts += block_rows * P->hidden[l];
     }
+    return in;
 }
 
 static const float *last_layer(const a2c_params *P, const float *acts, int64_t rows) {
@@ -284,7 +293,7 @@ static void head_backward(const float *h, int64_t rows, int64_t in, const float 
 
 /* returns the number of episode ends in the rollout */
 int64_t a2c_iteration(const a2c_params *P, void **buf) {
-    const int64_t N = P->N, n = P->n, B = n * N, D = P->critic_dim, A = P->act_dim, O = P->obs_dim;
+    const int64_t N = P->N, n = P->n, B = n * N, D = P->critic_dim, A = P->act_dim;
     const int64_t H = hmax(P), hl = P->hidden[P->depth - 1];
     state_ptrs s = {buf[B_X], buf[B_XD], buf[B_TARGET], buf[B_WLOG], buf[B_FD], buf[B_WALL], buf[B_FENV], buf[B_FOPE],
                     buf[B_HASWALL], buf[B_T], buf[B_SCEN], buf[B_SLOT]};
@@ -321,19 +330,11 @@ int64_t a2c_iteration(const a2c_params *P, void **buf) {
 
     /* rollout (rollout_step x n): act with the policy mean + sigma * noise, step, observe, auto-reset */
     for (int64_t i = 0; i < N; i++) observe(P, &s, i, obs + i * D);
+    int64_t ends = 0;
     for (int64_t t = 0; t < n; t++) {
-        float *o = obs + t * N * D, *pa = pi_acts;
-        /* policy stack for the N rows of step t: layer l of all B rows is one block, step t is its slice */
-        float *slice[MAX_DEPTH];
-        for (int64_t l = 0; l < P->depth; l++) { slice[l] = pa + t * N * P->hidden[l]; pa += B * P->hidden[l]; }
-        const float *in = o;
-        int64_t width = O, ld = D;
-        for (int64_t l = 0; l < P->depth; l++) {
-            linear_t(in, N, width, ld, wt + P->off_w[0][l], flat + P->off_b[0][l], P->hidden[l], slice[l]);
-            in = slice[l]; width = P->hidden[l]; ld = width;
-        }
+        const float *h = stack_forward(P, flat, wt, 0, obs + t * N * D, N, D, pi_acts, B, t * N);
         float *mu_t = mu + t * N * A, *a = act + t * N * A;
-        linear(in, N, width, ld, flat + P->off_pi_w, flat + P->off_pi_b, A, mu_t);
+        linear(h, N, hl, hl, flat + P->off_pi_w, flat + P->off_pi_b, A, mu_t);
         for (int64_t r = 0; r < N * A; r++) a[r] = mu_t[r] + sigma[r % A] * noise[t * N * A + r];
         for (int64_t i = 0; i < N; i++) {
             float clipped[16];
@@ -342,6 +343,7 @@ int64_t a2c_iteration(const a2c_params *P, void **buf) {
             observe(P, &s, i, fin + (t * N + i) * D);
             int done = s.t[i] >= P->episode_steps;  /* truncation; eq. 35 has no terminal state */
             dones[t * N + i] = (uint8_t)done;
+            ends += done;
             if (done) auto_reset(&s, &p, i);
             if (t + 1 < n) observe(P, &s, i, obs + ((t + 1) * N + i) * D);
         }
@@ -350,17 +352,16 @@ int64_t a2c_iteration(const a2c_params *P, void **buf) {
     /* values at obs, and at the final observations: those equal the next step's obs (whose values are already
      * there, row by row the same arithmetic) except after the last step and at episode ends */
     if (!P->shared) {
-        stack_forward(P, flat, wt, 1, obs, B, D, vf_acts);
-        linear(last_layer(P, vf_acts, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, values);
+        const float *h_vf = stack_forward(P, flat, wt, 1, obs, B, D, vf_acts, B, 0);
+        linear(h_vf, B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, values);
     } else {  /* the trunk at obs is the policy's */
         linear(last_layer(P, pi_acts, B), B, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, values);
     }
     int64_t m = 0;
     for (int64_t b = 0; b < B; b++)
         if (b >= B - N || dones[b]) memcpy(gathered + (m++) * D, fin + b * D, sizeof(float) * D);
-    float *vf2 = vf_acts + acts_floats(P, B);
-    stack_forward(P, flat, wt, P->shared ? 0 : 1, gathered, m, D, vf2);
-    linear(last_layer(P, vf2, m), m, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, scratch);
+    const float *h_fin = stack_forward(P, flat, wt, P->shared ? 0 : 1, gathered, m, D, vf_acts + acts_floats(P, B), m, 0);
+    linear(h_fin, m, hl, hl, flat + P->off_vf_w, flat + P->off_vf_b, 1, scratch);
     for (int64_t b = 0, j = 0; b < B; b++)
         values[B + b] = (b >= B - N || dones[b]) ? scratch[j++] : values[b + N];
     const float *nv = values + B;
@@ -473,7 +474,5 @@ int64_t a2c_iteration(const a2c_params *P, void **buf) {
     metrics[2] = (float)entropy;
     metrics[3] = norm;
     metrics[4] = (float)(1.0 - res_var / (ret_var + 1e-8));
-    int64_t ends = 0;
-    for (int64_t b = 0; b < B; b++) ends += dones[b];
     return ends;
 }
