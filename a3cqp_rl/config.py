@@ -152,6 +152,9 @@ class A2CConfig:
     """Updates between checkpoints."""
     log_every: int = 250
     """Updates between metric rows in metrics.csv."""
+    region_checks: int = 20
+    """Paper Fig. 5 region checks (a3cqp_rl.regions, ~20 ms each) written to metrics.csv over a run, on evenly
+    spaced log rows and the last one (0 = none): shows when each region is learned, and whether it stays."""
     compile: bool = True
     """torch.compile the rollout and update steps (one-time cost of ~30-60 s, then several times faster)."""
     rollout: Literal["auto", "torchrl"] = "auto"
@@ -165,7 +168,7 @@ class A2CConfig:
         for name in ("learning_rate", "rms_eps", "max_grad_norm", "n_steps", "num_envs", "total_steps",
                      "checkpoint_every", "log_every", "noise_hold"):
             err.positive(self, name)
-        for name in ("ent_coef", "vf_coef", "rms_init", "bound_coef"):
+        for name in ("ent_coef", "vf_coef", "rms_init", "bound_coef", "region_checks"):
             if getattr(self, name) < 0:
                 err.add(name, f"must be >= 0, got {getattr(self, name)}")
         if not 0.0 < self.gamma <= 1.0:

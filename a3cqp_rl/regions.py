@@ -25,6 +25,10 @@ FIG5_REGIONS: dict[str, tuple[int, tuple[float, float], tuple[float, float], tup
 }
 
 
+REGION_COLUMNS = ("regions_ok", *(f"region_{name.split('_')[0]}" for name in FIG5_REGIONS))
+"""metrics.csv columns of `region_row`: regions_ok (0-4), then region_w2, region_w3, region_fd, region_w1 (1 = passes)."""
+
+
 @dataclass
 class RegionResult:
     """Mean action inside a region and over the rest of the state space."""
@@ -50,3 +54,9 @@ def check_fig5_regions(policy: Callable[[Tensor], Tensor], threshold: float = 0.
         a_in, a_out = act[inside, i].mean().item(), act[~inside, i].mean().item()
         out.append(RegionResult(name, a_in, a_out, a_in > threshold and a_in - a_out > 0.1))
     return out
+
+
+def region_row(policy: Callable[[Tensor], Tensor]) -> dict[str, float]:
+    """`check_fig5_regions` as REGION_COLUMNS values: the number of regions that pass, then 1.0 / 0.0 per region."""
+    results = check_fig5_regions(policy)
+    return dict(zip(REGION_COLUMNS, [float(sum(r.ok for r in results)), *(float(r.ok) for r in results)]))

@@ -36,12 +36,15 @@ from torch import Tensor
 from a3cqp_rl.checkpoint import load_checkpoint, save_atomic
 from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_to_dict
 from a3cqp_rl.exceptions import CheckpointError
+from a3cqp_rl.regions import REGION_COLUMNS, region_row
 from algorithms.networks import LOG_2PI, ParamLayout, backward, forward, policy_forward, policy_mean
 from algorithms.rmsprop import clip_grad_norm_, rmsprop_step_
 
 __all__ = ["Batch", "HeldNoise", "nstep_returns", "gae_advantages", "a2c_update", "train", "TrainResult", "load_policy", "METRICS"]
 
 METRICS = ("policy_loss", "value_loss", "entropy", "grad_norm", "explained_variance")
+CSV_COLUMNS = ("step", "update", *METRICS, "episode_reward", "episodes", "steps_per_second", *REGION_COLUMNS)
+"""metrics.csv columns; the region columns are NaN on rows without a Fig. 5 check (`a2c.region_checks`)."""
 
 
 @dataclass
@@ -447,6 +450,8 @@ def train(
         (out / "config.yaml").write_text(_yaml_dump(config_to_dict(cfg)))
         _truncate_csv(out / "metrics.csv", keep_until_update=start, log_every=hp.log_every)
 
+    # Fig. 5 region checks on every `region_stride`-th log row and the last one (a2c.region_checks of them)
+    region_stride = max(1, math.ceil(num_updates // hp.log_every / hp.region_checks)) if hp.region_checks else 0
     bar = _progress(num_updates * per_update, start * per_update, progress)
     compile_s = 0.0
     t_start = time.perf_counter()
@@ -465,7 +470,10 @@ def train(
         done_updates = u + 1
         boundary = done_updates % hp.log_every == 0
         if boundary or done_updates == num_updates:
-            last = _log_row(out, done_updates, per_update, metric_sum / metric_count, runner, t_start, compile_s, start)
+            check = region_stride and (done_updates == num_updates or (done_updates // hp.log_every) % region_stride == 0)
+            regions = region_row(lambda o: policy_mean(layout, flat, o).clamp(-1.0, 1.0)) if check else {}
+            last = _log_row(out, done_updates, per_update, metric_sum / metric_count, runner, t_start, compile_s, start,
+                            regions)
             if not math.isfinite(last["value_loss"]) or not bool(torch.isfinite(flat).all()):
                 raise FloatingPointError(f"training diverged at update {done_updates}: {last}")
             if boundary:  # a final, partial window stays in the sums so a resumed run re-logs it whole
@@ -574,18 +582,19 @@ def _compile(fn: Callable) -> Callable:
 
 
 
-def _log_row(out, updates, per_update, means, runner, t_start, compile_s, start) -> dict[str, float]:
+def _log_row(out, updates, per_update, means, runner, t_start, compile_s, start, regions) -> dict[str, float]:
     recent = [r for r, _ in runner.finished[-100:]]
     row = {"step": updates * per_update, "update": updates,
            **{k: float(v) for k, v in zip(METRICS, means)},
            "episode_reward": float(sum(recent) / len(recent)) if recent else float("nan"),
            "episodes": len(runner.finished),
-           "steps_per_second": (updates - start) * per_update / max(time.perf_counter() - t_start - compile_s, 1e-9)}
+           "steps_per_second": (updates - start) * per_update / max(time.perf_counter() - t_start - compile_s, 1e-9),
+           **{k: regions.get(k, float("nan")) for k in REGION_COLUMNS}}
     if out:
         path = out / "metrics.csv"
         new = not path.exists()
         with path.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(row))
+            w = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
             if new:
                 w.writeheader()
             w.writerow(row)
@@ -601,8 +610,8 @@ def _truncate_csv(path: Path, keep_until_update: int, log_every: int) -> None:
     if not rows:
         return
     keep = [r for r in rows if int(r["update"]) <= keep_until_update and int(r["update"]) % log_every == 0]
-    with path.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+    with path.open("w", newline="") as f:  # files from before a column existed get it, as NaN
+        w = csv.DictWriter(f, fieldnames=CSV_COLUMNS, restval="nan", extrasaction="ignore")
         w.writeheader()
         w.writerows(keep)
 

@@ -4,9 +4,9 @@
                 [--out runs/NAME] [--resume] [--no-compile] [--no-plots]
 
 Writes under OUT (per seed OUT/seed_S when sweeping): config.yaml, metrics.csv, checkpoint.pt
-(atomic, every `a2c.checkpoint_every` updates), policy.pt, and the plots policy_map.png and
-loss_curves.png. `--resume` continues a killed run from OUT/checkpoint.pt with no lost or
-repeated steps.
+(atomic, every `a2c.checkpoint_every` updates), policy.pt, and the plots policy_map.png,
+loss_curves.png and regions.png (the Fig. 5 regions checked over training). `--resume` continues
+a killed run from OUT/checkpoint.pt with no lost or repeated steps.
 """
 
 from __future__ import annotations
@@ -78,13 +78,17 @@ def main(argv: list[str] | None = None) -> int:
         if not args.no_plots:
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
             from a3cqp_rl.plotting.policy_map import plot_policy_map
+            from a3cqp_rl.plotting.region_history import plot_region_history
 
             for d in run_dirs:
                 plot_policy_map(d / "policy.pt", d / "policy_map.png")
             plot_loss_curves(run_dirs, out / "loss_curves.png")
+            if cfg.a2c.region_checks:
+                plot_region_history(run_dirs, out / "regions.png")
         maps = f"{out}/policy_map.png" if args.seeds is None else f"{out}/seed_*/policy_map.png"
         print(f"results in {out}/: policy.pt (load with algorithms.a2c.load_policy), checkpoint.pt, metrics.csv"
-              + ("" if args.no_plots else f"; plots {out}/loss_curves.png and {maps}"))
+              + ("" if args.no_plots else f"; plots {out}/loss_curves.png, {maps}"
+                   + (f" and {out}/regions.png (Fig. 5 regions over training)" if cfg.a2c.region_checks else "")))
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -1,5 +1,6 @@
 """A2C: hand-derived gradients vs autograd, n-step returns, training, checkpoints, resume, policy loading."""
 
+import csv
 import math
 
 import pytest
@@ -7,6 +8,7 @@ import torch
 
 from a3cqp_rl.config import config_from_dict
 from a3cqp_rl.exceptions import CheckpointError
+from a3cqp_rl.regions import check_fig5_regions
 from algorithms.a2c import Batch, HeldNoise, a2c_update, gae_advantages, load_policy, nstep_returns, train
 from algorithms.networks import LOG_2PI, ActorCritic, ParamLayout, backward, forward, policy_forward
 
@@ -180,6 +182,13 @@ def test_train_short_run_writes_files_and_learns_something(tmp_path):
         assert (tmp_path / "run" / name).is_file()
     rows = (tmp_path / "run" / "metrics.csv").read_text().strip().splitlines()
     assert len(rows) == 1 + 4 and rows[0].startswith("step,update,policy_loss")
+    # the Fig. 5 region columns: checked on every row here (4 rows <= region_checks), the last = the saved policy's
+    with (tmp_path / "run" / "metrics.csv").open() as f:
+        table = list(csv.DictReader(f))
+    flags = [[float(r[f"region_{k}"]) for k in ("w2", "w3", "fd", "w1")] for r in table]
+    assert all(set(f) <= {0.0, 1.0} and sum(f) == float(r["regions_ok"]) for f, r in zip(flags, table))
+    final = check_fig5_regions(load_policy(tmp_path / "run" / "policy.pt"))
+    assert flags[-1] == [float(r.ok) for r in final]
     policy = load_policy(tmp_path / "run" / "policy.pt")
     a = policy(torch.rand(7, 5, 3))
     assert a.shape == (7, 5, 4) and a.abs().max() <= 1.0
@@ -204,11 +213,24 @@ def test_same_seed_same_numbers_and_resume_is_exact(tmp_path, hold, backend):
     train(cfg, tmp_path / "part", total_steps=16 * 50, resume=True)
     p_part = torch.load(tmp_path / "part" / "policy.pt", weights_only=True)["flat"]
     assert torch.equal(p_full, p_part)
-    full_csv = (tmp_path / "full" / "metrics.csv").read_text().splitlines()
-    part_csv = (tmp_path / "part" / "metrics.csv").read_text().splitlines()
-    strip = lambda rows: [r.rsplit(",", 1)[0] for r in rows]  # steps/s differs, nothing else
-    assert strip(full_csv) == strip(part_csv)
+    def rows(run):  # steps/s differs, nothing else (region checks included)
+        with (tmp_path / run / "metrics.csv").open() as f:
+            return [{k: v for k, v in r.items() if k != "steps_per_second"} for r in csv.DictReader(f)]
+
+    assert rows("full") == rows("part") and rows("full")[-1]["regions_ok"] != "nan"
     assert full.episode_returns  # 30-step episodes ended and were counted
+
+
+def test_resuming_a_run_logged_before_the_region_columns_keeps_its_rows(tmp_path):
+    from algorithms.a2c import CSV_COLUMNS, _truncate_csv
+
+    path = tmp_path / "metrics.csv"
+    path.write_text("step,update,policy_loss\n16,1,0.5\n32,2,0.25\n48,3,0.125\n")
+    _truncate_csv(path, keep_until_update=2, log_every=1)
+    with path.open() as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == list(CSV_COLUMNS) and [r["policy_loss"] for r in rows] == ["0.5", "0.25"]
+    assert rows[0]["regions_ok"] == "nan"
 
 
 def test_missing_and_corrupt_checkpoints(tmp_path):

@@ -10,7 +10,7 @@ CONFIG = str(Path(__file__).parents[1] / "configs" / "point_mass_a2c.yaml")
 def test_train_writes_results_and_plots_then_resumes(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["train", "--config", CONFIG, "--steps", "320", "--no-compile", "--quiet", "--out", str(out)]) == 0
-    for name in ("policy.pt", "checkpoint.pt", "metrics.csv", "policy_map.png", "loss_curves.png"):
+    for name in ("policy.pt", "checkpoint.pt", "metrics.csv", "policy_map.png", "loss_curves.png", "regions.png"):
         assert (out / name).is_file(), name
     assert str(out) in capsys.readouterr().out  # tells the user where results went
     assert main(["train", "--config", CONFIG, "--steps", "640", "--no-compile", "--quiet", "--no-plots",
@@ -23,7 +23,7 @@ def test_seed_sweep_makes_one_folder_per_seed(tmp_path):
     assert main(["train", "--config", CONFIG, "--steps", "160", "--no-compile", "--quiet", "--seeds", "0-1",
                  "--out", str(out)]) == 0
     assert (out / "seed_0" / "policy.pt").is_file() and (out / "seed_1" / "policy.pt").is_file()
-    assert (out / "loss_curves.png").is_file()
+    assert (out / "loss_curves.png").is_file() and (out / "regions.png").is_file()
 
 
 def test_clear_errors(tmp_path, capsys):

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from a3cqp_rl.config import config_from_dict
-from a3cqp_rl.plotting import plot_loss_curves, plot_policy_map, policy_grid
+from a3cqp_rl.plotting import plot_loss_curves, plot_policy_map, plot_region_history, policy_grid, region_history
 from algorithms.a2c import train
 
 
@@ -44,4 +44,44 @@ def test_plot_cli(tmp_path):
     assert main(["plot", "policy-map", str(tmp_path / "r"), "--pdf"]) == 0
     assert (tmp_path / "r" / "policy_map.pdf").is_file()
     assert main(["plot", "loss-curves", str(tmp_path / "r"), "--out", str(tmp_path / "l.png")]) == 0
+    assert main(["plot", "regions", str(tmp_path / "r"), "--pdf"]) == 0
+    assert (tmp_path / "regions.pdf").read_bytes()[:4] == b"%PDF"
     assert main(["plot", "policy-map", str(tmp_path / "missing.pt")]) == 2
+
+
+def _region_csv(path, steps, flags):
+    """A metrics.csv with only the columns region_history reads; flags [S, 4] (w2, w3, fd, w1) or None (no check)."""
+    path.mkdir(parents=True)
+    lines = ["step,regions_ok,region_w2,region_w3,region_fd,region_w1"]
+    for s, f in zip(steps, flags):
+        lines.append(f"{s},nan,nan,nan,nan,nan" if f is None else f"{s},{sum(f)},{','.join(map(str, f))}")
+    (path / "metrics.csv").write_text("\n".join(lines) + "\n")
+
+
+def test_region_history_fractions_by_hand(tmp_path):
+    _region_csv(tmp_path / "a", [10, 20, 30, 40], [[1, 1, 1, 1], None, [0, 1, 1, 1], [1, 1, 1, 1]])
+    _region_csv(tmp_path / "b", [10, 20, 30, 40], [[0, 1, 0, 1], None, [0, 1, 1, 1], None])  # b's last check: 30
+    steps, frac = region_history([tmp_path / "a", tmp_path / "b"])
+    assert steps.tolist() == [10, 30, 40]  # the unchecked row is skipped
+    # rows: w2, w3, fd, w1, all four; at 40 run b counts with its check at 30
+    assert frac.tolist() == [[0.5, 0.0, 0.5], [1.0, 1.0, 1.0], [0.5, 1.0, 1.0], [1.0, 1.0, 1.0], [0.5, 0.0, 0.5]]
+    png = plot_region_history([tmp_path / "a", tmp_path / "b"], tmp_path / "r.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    _region_csv(tmp_path / "none", [10, 20], [None, None])
+    with pytest.raises(ValueError, match="no Fig. 5 region checks"):
+        region_history([tmp_path / "none"])
+
+
+def test_region_checks_follow_the_config(tmp_path):
+    import csv
+
+    def checked(run, **a2c):
+        train(config_from_dict({"a2c": {"compile": False, "log_every": 5, **a2c}}), tmp_path / run, total_steps=16 * 52)
+        with (tmp_path / run / "metrics.csv").open() as f:
+            return [int(r["update"]) for r in csv.DictReader(f) if r["regions_ok"] != "nan"]
+
+    # 10 full log rows + a partial last one; 3 checks asked: every 4th row, and the last
+    assert checked("three", region_checks=3) == [20, 40, 52]
+    assert checked("off", region_checks=0) == []
+    with pytest.raises(ValueError, match="region_checks"):
+        config_from_dict({"a2c": {"region_checks": -1}})

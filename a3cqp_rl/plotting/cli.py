@@ -1,5 +1,6 @@
 """`a3cqp plot policy-map POLICY [--out F] [--fixed e --levels 0,0.05,0.3]` and
-`a3cqp plot loss-curves RUN [RUN ...] [--out F]` (PNG by default; --pdf or a .pdf name for PDF)."""
+`a3cqp plot loss-curves RUN [RUN ...] [--out F]` and `a3cqp plot regions RUN [RUN ...] [--out F]`
+(PNG by default; --pdf or a .pdf name for PDF)."""
 
 from __future__ import annotations
 
@@ -26,6 +27,10 @@ def main(argv: list[str] | None = None) -> int:
     lc.add_argument("runs", nargs="+", help="run folders holding metrics.csv (e.g. runs/sweep/seed_*)")
     lc.add_argument("--out", default=None)
     lc.add_argument("--pdf", action="store_true")
+    rg = sub.add_parser("regions", help="Fig. 5 regions passed over training (metrics.csv region checks)")
+    rg.add_argument("runs", nargs="+", help="run folders holding metrics.csv (e.g. runs/sweep/seed_*)")
+    rg.add_argument("--out", default=None)
+    rg.add_argument("--pdf", action="store_true")
     args = p.parse_args(argv)
     ext = ".pdf" if args.pdf else ".png"
     try:
@@ -38,11 +43,16 @@ def main(argv: list[str] | None = None) -> int:
             levels = [float(v) for v in args.levels.split(",")]
             out = Path(args.out) if args.out else src.with_name("policy_map" + ext)
             plot_policy_map(src, out, args.x, args.y, args.fixed, levels)
-        else:
+        elif args.what == "loss-curves":
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
 
             out = Path(args.out) if args.out else Path(args.runs[0]).parent / ("loss_curves" + ext)
             plot_loss_curves(args.runs, out)
+        else:
+            from a3cqp_rl.plotting.region_history import plot_region_history
+
+            out = Path(args.out) if args.out else Path(args.runs[0]).parent / ("regions" + ext)
+            plot_region_history(args.runs, out)
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
