@@ -148,6 +148,10 @@ class A2CConfig:
     """Agent steps each exploration-noise draw is held (1 = white noise, SB3/paper; k > 1 like gSDE's sde_sample_freq)."""
     normalize_advantage: bool = False
     """Normalise advantages per batch (SB3 default: off)."""
+    average_last: float = 0.0
+    """Fraction in [0, 1) of the run, at its end, whose parameters policy.pt averages uniformly (stochastic weight
+    averaging, Izmailov et al. 2018; for A2C, Nikishin et al. 2018). 0 = the last parameters (the paper). Training
+    itself uses the raw parameters; the average only smooths the noise the last updates leave in the saved policy."""
     checkpoint_every: int = 5000
     """Updates between checkpoints."""
     log_every: int = 250
@@ -175,6 +179,8 @@ class A2CConfig:
             err.add("gamma", f"must be in (0, 1], got {self.gamma}")
         if not 0.0 <= self.gae_lambda <= 1.0:
             err.add("gae_lambda", f"must be in [0, 1], got {self.gae_lambda}")
+        if not 0.0 <= self.average_last < 1.0:
+            err.add("average_last", f"must be in [0, 1), got {self.average_last}")
         if not 0.0 <= self.rms_alpha < 1.0:
             err.add("rms_alpha", f"must be in [0, 1), got {self.rms_alpha}")
         if not self.hidden or any(h <= 0 for h in self.hidden):

@@ -14,7 +14,8 @@ Conventions (those of Stable-Baselines3's A2C, the paper's library; defaults = T
     critic, held exploration noise (`HeldNoise`), and a bound loss on the policy mean outside
     [-1, 1] (rl_games' `bounds_loss_coef`): with weak per-sample signal, RMSProp's ~lr-sized steps
     random-walk weakly-rewarded action means far past the clip, where every clipped sample is the
-    same action and the policy gradient can no longer pull them back.
+    same action and the policy gradient can no longer pull them back. And `average_last`: the saved
+    policy is the mean of the parameters over the run's final fraction (stochastic weight averaging).
 Data comes from either (a) the env's fused API (`fused_functions`: a pure step with auto-reset, PointMassEnv), rollout
 and update compiled together into one graph (or, for small batches, the same iteration in C: algorithms/native), or
 (b) any TorchRL EnvBase through a TorchRL `Collector` (ParallelEnv/SerialEnv, MuJoCo Panda).
@@ -26,6 +27,7 @@ import csv
 import math
 import time
 import types
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -44,7 +46,8 @@ __all__ = ["Batch", "HeldNoise", "nstep_returns", "gae_advantages", "a2c_update"
 
 METRICS = ("policy_loss", "value_loss", "entropy", "grad_norm", "explained_variance")
 CSV_COLUMNS = ("step", "update", *METRICS, "episode_reward", "episodes", "steps_per_second", *REGION_COLUMNS)
-"""metrics.csv columns; the region columns are NaN on rows without a Fig. 5 check (`a2c.region_checks`)."""
+"""metrics.csv columns. The region columns check the policy policy.pt would hold at that row (with `a2c.average_last`,
+the running average once it has begun); NaN on rows without a Fig. 5 check (`a2c.region_checks`)."""
 
 
 @dataclass
@@ -432,6 +435,9 @@ def train(
     start = 0
     metric_sum = torch.zeros(len(METRICS))  # running sums since the last logged row
     metric_count = 0
+    # a2c.average_last: policy.pt holds the running mean of the parameters after update `average_from` (SWA)
+    average_from = num_updates - math.ceil(hp.average_last * num_updates)
+    averaged, average_count = flat.clone(), 0
     if resume:
         if ckpt_path is None:
             raise CheckpointError("--resume needs an output directory holding checkpoint.pt")
@@ -445,6 +451,14 @@ def train(
         runner.finished = [tuple(x) for x in ck.get("finished", [])]
         start = int(ck["update"])
         metric_sum, metric_count = ck["metric_sum"].clone(), int(ck["metric_count"])
+        average_count = int(ck.get("average_count", 0))
+        if average_count and int(ck.get("average_from", -1)) == average_from:
+            averaged.copy_(ck["averaged"])
+        elif average_count or start > average_from:  # resumed with another --steps: the window moved
+            average_count = 0
+            if start > average_from:
+                warnings.warn(f"a2c.average_last: the average over updates {average_from + 1}-{num_updates} cannot be "
+                              f"rebuilt from a checkpoint at update {start}; policy.pt averages {start + 1}-{num_updates}")
     if out:
         out.mkdir(parents=True, exist_ok=True)
         (out / "config.yaml").write_text(_yaml_dump(config_to_dict(cfg)))
@@ -462,16 +476,20 @@ def train(
         t0 = time.perf_counter()
         metric_sum += runner.iterate(flat, square_avg)
         metric_count += 1
+        done_updates = u + 1
+        if done_updates > average_from:
+            average_count += 1
+            averaged.lerp_(flat, 1.0 / average_count)
+        policy_flat = averaged if average_count else flat  # what policy.pt would hold now
         if u == start and runner.compiles:  # the first iteration pays for torch.compile
             compile_s = time.perf_counter() - t0
             bar.set_description("A2C")
             bar.reset(total=num_updates * per_update)  # restart the rate estimate after compiling
             bar.update(start * per_update)
-        done_updates = u + 1
         boundary = done_updates % hp.log_every == 0
         if boundary or done_updates == num_updates:
             check = region_stride and (done_updates == num_updates or (done_updates // hp.log_every) % region_stride == 0)
-            regions = region_row(lambda o: policy_mean(layout, flat, o).clamp(-1.0, 1.0)) if check else {}
+            regions = region_row(lambda o: policy_mean(layout, policy_flat, o).clamp(-1.0, 1.0)) if check else {}
             last = _log_row(out, done_updates, per_update, metric_sum / metric_count, runner, t_start, compile_s, start,
                             regions)
             if not math.isfinite(last["value_loss"]) or not bool(torch.isfinite(flat).all()):
@@ -488,7 +506,9 @@ def train(
                          "gen": gen.get_state(), "rollout": runner.state_dict(), "config": config_to_dict(cfg),
                          "layout": layout_key,
                          "finished": [list(x) for x in runner.finished[-1000:]],
-                         "metric_sum": metric_sum, "metric_count": metric_count}, ckpt_path)
+                         "metric_sum": metric_sum, "metric_count": metric_count,
+                         "averaged": averaged, "average_count": average_count, "average_from": average_from},
+                        ckpt_path)
     bar.close()
     if isinstance(runner, TorchRLRollout):
         runner.close()
@@ -496,8 +516,9 @@ def train(
     steps_done = (num_updates - start) * per_update
     policy_path = None
     if out:
-        policy_path = save_atomic({"format": 1, "flat": flat.clone(), "layout": layout_key,
-                                   "config": config_to_dict(cfg)}, out / "policy.pt")
+        policy_path = save_atomic({"format": 1, "flat": (averaged if average_count else flat).clone(),
+                                   "layout": layout_key, "config": config_to_dict(cfg),
+                                   "averaged_updates": average_count}, out / "policy.pt")
     return TrainResult(
         steps=num_updates * per_update, updates=num_updates, seconds=elapsed, compile_seconds=compile_s,
         steps_per_second=steps_done / max(elapsed - compile_s, 1e-9), out_dir=out, policy_path=policy_path,
@@ -506,7 +527,8 @@ def train(
 
 
 def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
-    """Load OUT/policy.pt (or a checkpoint.pt); return f(obs [..., 3]) -> mean action [..., 4] clipped to [-1, 1]."""
+    """Load OUT/policy.pt (or a checkpoint.pt: the raw, never averaged parameters); return f(obs [..., 3]) -> mean
+    action [..., 4] clipped to [-1, 1]."""
     data = load_checkpoint(path, ("flat", "layout"))
     obs_dim, act_dim, hidden, network, critic_dim = _layout_key(data["layout"])
     layout = ParamLayout(obs_dim, act_dim, hidden, network, critic_dim)

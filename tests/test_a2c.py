@@ -301,3 +301,36 @@ def test_compiled_functions_do_not_share_graphs() -> None:
     x = torch.ones(3)
     assert torch.equal(first(x), 2.0 * x)
     assert torch.equal(second(x), 3.0 * x)
+
+
+def test_average_last_saves_the_mean_of_the_final_parameters_and_resumes_exactly(tmp_path):
+    base = {"a2c": {"compile": False, "log_every": 1, "checkpoint_every": 3, "region_checks": 0, "learning_rate": 1e-2},
+            "point_mass": {"episode_steps": 30}}
+    raw = []  # the parameters after each update k = 1..8 (a k-update run is the prefix of a longer one)
+    for k in range(1, 9):
+        train(config_from_dict(base), tmp_path / f"raw{k}", total_steps=16 * k)
+        raw.append(torch.load(tmp_path / f"raw{k}" / "policy.pt", weights_only=True)["flat"])
+    avg_cfg = config_from_dict({**base, "a2c": {**base["a2c"], "average_last": 0.5}})
+    train(avg_cfg, tmp_path / "avg", total_steps=16 * 8)
+    saved = torch.load(tmp_path / "avg" / "policy.pt", weights_only=True)
+    assert saved["averaged_updates"] == 4
+    assert torch.allclose(saved["flat"], torch.stack(raw[4:]).mean(0), atol=1e-6)  # updates 5-8
+    assert not torch.allclose(saved["flat"], raw[-1], atol=1e-4)
+    ck = torch.load(tmp_path / "avg" / "checkpoint.pt", weights_only=True)
+    assert torch.equal(ck["flat"], raw[-1])  # training itself runs on the raw parameters
+
+    # killed after update 7 (last checkpoint: 6, inside the window), resumed: the same average
+    def kill(step, row):
+        if step == 16 * 7:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(avg_cfg, tmp_path / "killed", total_steps=16 * 8, callback=kill)
+    train(avg_cfg, tmp_path / "killed", total_steps=16 * 8, resume=True)
+    assert torch.equal(torch.load(tmp_path / "killed" / "policy.pt", weights_only=True)["flat"], saved["flat"])
+    # extended to 12 updates: the new window (7-12) began before the checkpoint (8), so it says what it averages
+    with pytest.warns(UserWarning, match="averages 9-12"):
+        train(avg_cfg, tmp_path / "killed", total_steps=16 * 12, resume=True)
+    assert torch.load(tmp_path / "killed" / "policy.pt", weights_only=True)["averaged_updates"] == 4
+    with pytest.raises(ValueError, match="average_last"):
+        config_from_dict({"a2c": {"average_last": 1.0}})
