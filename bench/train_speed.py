@@ -192,12 +192,13 @@ def main(argv: list[str] | None = None) -> int:
     from a3cqp_rl.config import load_config
 
     torch.set_num_threads(1)
-    cfg = load_config(args.config, {"a2c": {"backend": args.backend}} if args.backend else None)
+    # no Fig. 5 region checks (~20 ms each): SB3 runs no evaluation during learn() either
+    cfg = load_config(args.config, {"a2c": {"region_checks": 0, **({"backend": args.backend} if args.backend else {})}})
     a = cfg.a2c
     print("Training speed: A2C on the point mass (paper 000, eq. 35), paper settings (Table IV)")
     print(f"  {a.num_envs} envs x n={a.n_steps} steps per update ({a.num_envs * a.n_steps} samples/update), "
           f"{steps:,} agent steps per SB3 run and {ours_steps:,} per run of ours, {repeats} run(s) each (median), "
-          f"config {args.config}, a2c.backend {a.backend}")
+          f"config {args.config}, a2c.backend {a.backend}, a2c.region_checks 0")
     print(f"  torch.set_num_threads(1) for both (this machine: {os.cpu_count()} CPU cores, "
           f"load average at start {os.getloadavg()[0]:.2f})")
     print(f"  versions: stable-baselines3 {sb3_version}, a3cqp-rl {a3cqp_rl.__version__} "
