@@ -463,6 +463,7 @@ def train(
         out.mkdir(parents=True, exist_ok=True)
         (out / "config.yaml").write_text(_yaml_dump(config_to_dict(cfg)))
         _truncate_csv(out / "metrics.csv", keep_until_update=start, log_every=hp.log_every)
+    tb = _tensorboard(out, start * per_update + 1) if out else None
 
     # Fig. 5 region checks on every `region_stride`-th log row and the last one (a2c.region_checks of them)
     region_stride = max(1, math.ceil(num_updates // hp.log_every / hp.region_checks)) if hp.region_checks else 0
@@ -497,6 +498,10 @@ def train(
             if boundary:  # a final, partial window stays in the sums so a resumed run re-logs it whole
                 metric_sum.zero_()
                 metric_count = 0
+            if tb is not None:
+                for k, v in last.items():
+                    if k not in ("step", "update") and math.isfinite(v):
+                        tb.add_scalar(f"a2c/{k}", v, done_updates * per_update)
             if callback:
                 callback(done_updates * per_update, last)
             bar.set_postfix(ep_reward=f"{last['episode_reward']:.2f}", refresh=False)
@@ -510,6 +515,8 @@ def train(
                          "averaged": averaged, "average_count": average_count, "average_from": average_from},
                         ckpt_path)
     bar.close()
+    if tb is not None:
+        tb.close()
     if isinstance(runner, TorchRLRollout):
         runner.close()
     elapsed = time.perf_counter() - t_start
@@ -602,6 +609,17 @@ def _compile(fn: Callable) -> Callable:
 
     return run
 
+
+
+def _tensorboard(out: Path, purge_step: int):
+    """A SummaryWriter on OUT/tb when TensorBoard is installed, else None. TensorBoard hides earlier events at steps
+    >= `purge_step`: a resumed run passes its checkpoint's step + 1, dropping what a killed run logged after the
+    checkpoint, as metrics.csv does."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:  # torch's writer needs the tensorboard package (the `tensorboard` extra)
+        return None
+    return SummaryWriter(str(out / "tb"), purge_step=purge_step if purge_step > 1 else None, flush_secs=10)
 
 
 def _log_row(out, updates, per_update, means, runner, t_start, compile_s, start, regions) -> dict[str, float]:

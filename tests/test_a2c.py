@@ -1,6 +1,7 @@
 """A2C: hand-derived gradients vs autograd, n-step returns, training, checkpoints, resume, policy loading."""
 
 import csv
+import gc
 import math
 
 import pytest
@@ -334,3 +335,31 @@ def test_average_last_saves_the_mean_of_the_final_parameters_and_resumes_exactly
     assert torch.load(tmp_path / "killed" / "policy.pt", weights_only=True)["averaged_updates"] == 4
     with pytest.raises(ValueError, match="average_last"):
         config_from_dict({"a2c": {"average_last": 1.0}})
+
+
+def test_tensorboard_scalars_match_metrics_csv_and_a_resume_hides_the_killed_runs_extra_rows(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = config_from_dict({"a2c": {"compile": False, "log_every": 1, "checkpoint_every": 3, "region_checks": 2},
+                            "point_mass": {"episode_steps": 30}})
+
+    def kill(step, row):
+        if step == 16 * 5:  # rows 4 and 5 are past the last checkpoint (3)
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(cfg, tmp_path / "run", total_steps=16 * 8, callback=kill)
+    gc.collect()  # the killed run's writer flushes when collected
+    killed = EventAccumulator(str(tmp_path / "run" / "tb"))
+    killed.Reload()
+    assert [e.step for e in killed.Scalars("a2c/policy_loss")] == [16, 32, 48, 64, 80]
+    train(cfg, tmp_path / "run", total_steps=16 * 8, resume=True)
+    events = EventAccumulator(str(tmp_path / "run" / "tb"))
+    events.Reload()
+    with (tmp_path / "run" / "metrics.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    loss = events.Scalars("a2c/policy_loss")
+    assert [e.step for e in loss] == [int(r["step"]) for r in rows] == [16 * k for k in range(1, 9)]
+    assert [e.value for e in loss] == pytest.approx([float(r["policy_loss"]) for r in rows], rel=1e-6)
+    checks = [int(r["step"]) for r in rows if r["regions_ok"] != "nan"]
+    assert [e.step for e in events.Scalars("a2c/regions_ok")] == checks  # NaN cells are not logged
