@@ -42,7 +42,8 @@ from a3cqp_rl.regions import REGION_COLUMNS, region_row
 from algorithms.networks import LOG_2PI, ParamLayout, backward, forward, policy_forward, policy_mean
 from algorithms.rmsprop import clip_grad_norm_, rmsprop_step_
 
-__all__ = ["Batch", "HeldNoise", "nstep_returns", "gae_advantages", "a2c_update", "train", "TrainResult", "load_policy", "METRICS"]
+__all__ = ["Batch", "HeldNoise", "ParameterAverage", "nstep_returns", "gae_advantages", "a2c_update", "train", "TrainResult",
+           "load_policy", "METRICS"]
 
 METRICS = ("policy_loss", "value_loss", "entropy", "grad_norm", "explained_variance")
 CSV_COLUMNS = ("step", "update", *METRICS, "episode_reward", "episodes", "steps_per_second", *REGION_COLUMNS)
@@ -376,6 +377,40 @@ class TorchRLRollout:
 # ------------------------------------------------------------------------------ training loop
 
 
+class ParameterAverage:
+    """`a2c.average_last` (stochastic weight averaging): the running uniform mean of the parameters over the last
+    `fraction` of `num_updates` updates, which policy.pt holds instead of the last parameters."""
+
+    def __init__(self, num_updates: int, fraction: float) -> None:
+        """Average the parameters after updates num_updates − ⌈fraction·num_updates⌉ + 1 … num_updates."""
+        self.num_updates, self.first = num_updates, num_updates - math.ceil(fraction * num_updates) + 1
+        self.mean: Tensor | None = None
+        self.count = 0
+
+    def update(self, done_updates: int, flat: Tensor) -> None:
+        """Fold in the parameters after update `done_updates` (1-based) if it is inside the window."""
+        if done_updates >= self.first:
+            self.count += 1
+            self.mean = flat.clone() if self.mean is None else self.mean.lerp_(flat, 1.0 / self.count)
+
+    def policy(self, flat: Tensor) -> Tensor:
+        """The parameters a saved policy gets now: the average once it has begun, else `flat`."""
+        return self.mean if self.count else flat
+
+    def state_dict(self) -> dict:
+        """Checkpoint entry (empty before the window)."""
+        return {"first": self.first, "count": self.count, "mean": self.mean} if self.count else {}
+
+    def load_state_dict(self, d: dict, start: int) -> None:
+        """Restore at checkpoint update `start`; a window moved by another --steps restarts (with a warning if its
+        start has passed)."""
+        if d and d["first"] == self.first:
+            self.count, self.mean = int(d["count"]), d["mean"].clone()
+        elif start >= self.first:
+            warnings.warn(f"a2c.average_last: the average over updates {self.first}-{self.num_updates} cannot be "
+                          f"rebuilt from a checkpoint at update {start}; policy.pt averages {start + 1}-{self.num_updates}")
+
+
 @dataclass
 class TrainResult:
     """What `train` did: steps, timings and where files went."""
@@ -435,9 +470,7 @@ def train(
     start = 0
     metric_sum = torch.zeros(len(METRICS))  # running sums since the last logged row
     metric_count = 0
-    # a2c.average_last: policy.pt holds the running mean of the parameters after update `average_from` (SWA)
-    average_from = num_updates - math.ceil(hp.average_last * num_updates)
-    averaged, average_count = flat.clone(), 0
+    average = ParameterAverage(num_updates, hp.average_last)
     if resume:
         if ckpt_path is None:
             raise CheckpointError("--resume needs an output directory holding checkpoint.pt")
@@ -451,14 +484,7 @@ def train(
         runner.finished = [tuple(x) for x in ck.get("finished", [])]
         start = int(ck["update"])
         metric_sum, metric_count = ck["metric_sum"].clone(), int(ck["metric_count"])
-        average_count = int(ck.get("average_count", 0))
-        if average_count and int(ck.get("average_from", -1)) == average_from:
-            averaged.copy_(ck["averaged"])
-        elif average_count or start > average_from:  # resumed with another --steps: the window moved
-            average_count = 0
-            if start > average_from:
-                warnings.warn(f"a2c.average_last: the average over updates {average_from + 1}-{num_updates} cannot be "
-                              f"rebuilt from a checkpoint at update {start}; policy.pt averages {start + 1}-{num_updates}")
+        average.load_state_dict(ck.get("average", {}), start)
     if out:
         out.mkdir(parents=True, exist_ok=True)
         (out / "config.yaml").write_text(_yaml_dump(config_to_dict(cfg)))
@@ -478,10 +504,7 @@ def train(
         metric_sum += runner.iterate(flat, square_avg)
         metric_count += 1
         done_updates = u + 1
-        if done_updates > average_from:
-            average_count += 1
-            averaged.lerp_(flat, 1.0 / average_count)
-        policy_flat = averaged if average_count else flat  # what policy.pt would hold now
+        average.update(done_updates, flat)
         if u == start and runner.compiles:  # the first iteration pays for torch.compile
             compile_s = time.perf_counter() - t0
             bar.set_description("A2C")
@@ -490,7 +513,8 @@ def train(
         boundary = done_updates % hp.log_every == 0
         if boundary or done_updates == num_updates:
             check = region_stride and (done_updates == num_updates or (done_updates // hp.log_every) % region_stride == 0)
-            regions = region_row(lambda o: policy_mean(layout, policy_flat, o).clamp(-1.0, 1.0)) if check else {}
+            saved = average.policy(flat)  # what policy.pt would hold now
+            regions = region_row(lambda o: policy_mean(layout, saved, o).clamp(-1.0, 1.0)) if check else {}
             last = _log_row(out, done_updates, per_update, metric_sum / metric_count, runner, t_start, compile_s, start,
                             regions)
             if not math.isfinite(last["value_loss"]) or not bool(torch.isfinite(flat).all()):
@@ -511,8 +535,7 @@ def train(
                          "gen": gen.get_state(), "rollout": runner.state_dict(), "config": config_to_dict(cfg),
                          "layout": layout_key,
                          "finished": [list(x) for x in runner.finished[-1000:]],
-                         "metric_sum": metric_sum, "metric_count": metric_count,
-                         "averaged": averaged, "average_count": average_count, "average_from": average_from},
+                         "metric_sum": metric_sum, "metric_count": metric_count, "average": average.state_dict()},
                         ckpt_path)
     bar.close()
     if tb is not None:
@@ -523,9 +546,8 @@ def train(
     steps_done = (num_updates - start) * per_update
     policy_path = None
     if out:
-        policy_path = save_atomic({"format": 1, "flat": (averaged if average_count else flat).clone(),
-                                   "layout": layout_key, "config": config_to_dict(cfg),
-                                   "averaged_updates": average_count}, out / "policy.pt")
+        policy_path = save_atomic({"format": 1, "flat": average.policy(flat).clone(), "layout": layout_key,
+                                   "config": config_to_dict(cfg), "averaged_updates": average.count}, out / "policy.pt")
     return TrainResult(
         steps=num_updates * per_update, updates=num_updates, seconds=elapsed, compile_seconds=compile_s,
         steps_per_second=steps_done / max(elapsed - compile_s, 1e-9), out_dir=out, policy_path=policy_path,
