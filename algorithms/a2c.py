@@ -340,7 +340,10 @@ class TorchRLRollout:
             return raw.clamp(-1.0, 1.0).to(env.action_spec.dtype), raw
 
         module = TensorDictModule(policy, in_keys=["observation"], out_keys=["action", "action_raw"])
-        self.collector = Collector(env, module, frames_per_batch=self.n * self.num_envs, total_frames=-1)
+        # The policy is feed-forward and needs no env transforms; torchrl 0.14 still flags a missing InitTracker
+        # with a FutureWarning (0.15 would append it to the user's env). False keeps the env as given, silently.
+        self.collector = Collector(env, module, frames_per_batch=self.n * self.num_envs, total_frames=-1,
+                                   auto_register_policy_transforms=False)
         self._iter = iter(self.collector)
         self.ep_return = torch.zeros(self.num_envs)
         self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
