@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_config(args.config, overrides)
         out = Path(args.out or Path("runs") / Path(args.config).stem)
         seeds = args.seeds if args.seeds is not None else [cfg.seed if args.seed is None else args.seed]
-        run_dirs = []
+        run_dirs, passed = [], []
         for seed in seeds:
             run_cfg = load_config(args.config, {**overrides, "seed": seed})
             run_dir = out / f"seed_{seed}" if args.seeds is not None else out
@@ -75,6 +75,10 @@ def main(argv: list[str] | None = None) -> int:
             print(f"trained {res.steps:,} steps in {res.seconds:.1f} s ({res.steps_per_second:,.0f} steps/s"
                   f"{f', plus {res.compile_seconds:.0f} s compiling' if res.compile_seconds else ''}); "
                   + _reward_text(res.final_metrics.get("episode_reward", float("nan"))))
+            passed.append(_print_regions(res.policy_path))
+        if len(seeds) > 1:
+            print(f"Fig. 5 regions: all four on {passed.count(4)} of {len(seeds)} seeds, at least three on "
+                  f"{sum(n >= 3 for n in passed)}")
         if not args.no_plots:
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
             from a3cqp_rl.plotting.policy_map import plot_policy_map
@@ -104,3 +108,16 @@ def _reward_text(r: float) -> str:
     if math.isnan(r):
         return "no episode finished yet (episodes are longer than this run per env)"
     return f"last mean episode reward {r:.2f}"
+
+
+def _print_regions(policy_path: Path) -> int:
+    """Print the paper's Fig. 5 region check of the saved policy (a3cqp_rl.regions); returns how many pass."""
+    from a3cqp_rl.regions import check_fig5_regions
+    from algorithms.a2c import load_policy
+
+    results = check_fig5_regions(load_policy(policy_path))
+    labels = {"w2": "w2 admittance", "w3": "w3 force control", "fd": "fd desired force", "w1": "w1 IK"}
+    parts = [f"{labels[r.name.split('_')[0]]} {r.inside:+.2f}/{r.outside:+.2f} {'ok' if r.ok else 'no'}" for r in results]
+    n = sum(r.ok for r in results)
+    print(f"Fig. 5 regions {n}/4 (mean action inside/outside each region): " + ", ".join(parts))
+    return n

@@ -12,18 +12,21 @@ def test_train_writes_results_and_plots_then_resumes(tmp_path, capsys):
     assert main(["train", "--config", CONFIG, "--steps", "320", "--no-compile", "--quiet", "--out", str(out)]) == 0
     for name in ("policy.pt", "checkpoint.pt", "metrics.csv", "policy_map.png", "loss_curves.png", "regions.png"):
         assert (out / name).is_file(), name
-    assert str(out) in capsys.readouterr().out  # tells the user where results went
+    printed = capsys.readouterr().out
+    assert str(out) in printed  # tells the user where results went
+    assert "Fig. 5 regions " in printed and "w2 admittance" in printed  # and how the policy does on Fig. 5
     assert main(["train", "--config", CONFIG, "--steps", "640", "--no-compile", "--quiet", "--no-plots",
                  "--out", str(out), "--resume"]) == 0
     assert "640" in capsys.readouterr().out
 
 
-def test_seed_sweep_makes_one_folder_per_seed(tmp_path):
+def test_seed_sweep_makes_one_folder_per_seed(tmp_path, capsys):
     out = tmp_path / "sweep"
     assert main(["train", "--config", CONFIG, "--steps", "160", "--no-compile", "--quiet", "--seeds", "0-1",
                  "--out", str(out)]) == 0
     assert (out / "seed_0" / "policy.pt").is_file() and (out / "seed_1" / "policy.pt").is_file()
     assert (out / "loss_curves.png").is_file() and (out / "regions.png").is_file()
+    assert "Fig. 5 regions: all four on" in capsys.readouterr().out
 
 
 def test_clear_errors(tmp_path, capsys):
