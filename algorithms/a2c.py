@@ -516,8 +516,8 @@ def train(
         boundary = done_updates % hp.log_every == 0
         if boundary or done_updates == num_updates:
             check = region_stride and (done_updates == num_updates or (done_updates // hp.log_every) % region_stride == 0)
-            saved = average.policy(flat)  # what policy.pt would hold now
-            regions = region_row(lambda o: policy_mean(layout, saved, o).clamp(-1.0, 1.0)) if check else {}
+            # the policy that policy.pt would hold now
+            regions = region_row(lambda o: policy_mean(layout, average.policy(flat), o).clamp(-1.0, 1.0)) if check else {}
             last = _log_row(out, done_updates, per_update, metric_sum / metric_count, runner, t_start, compile_s, start,
                             regions)
             if not math.isfinite(last["value_loss"]) or not bool(torch.isfinite(flat).all()):

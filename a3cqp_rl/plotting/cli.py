@@ -23,14 +23,12 @@ def main(argv: list[str] | None = None) -> int:
     pm.add_argument("--levels", default="0,0.05,0.3", help="comma-separated levels of the fixed variable in [0, 1]")
     pm.add_argument("--out", default=None)
     pm.add_argument("--pdf", action="store_true")
-    lc = sub.add_parser("loss-curves", help="paper Fig. 4: policy/value loss, mean and IQR over runs")
-    lc.add_argument("runs", nargs="+", help="run folders holding metrics.csv (e.g. runs/sweep/seed_*)")
-    lc.add_argument("--out", default=None)
-    lc.add_argument("--pdf", action="store_true")
-    rg = sub.add_parser("regions", help="Fig. 5 regions passed over training (metrics.csv region checks)")
-    rg.add_argument("runs", nargs="+", help="run folders holding metrics.csv (e.g. runs/sweep/seed_*)")
-    rg.add_argument("--out", default=None)
-    rg.add_argument("--pdf", action="store_true")
+    for name, text in (("loss-curves", "paper Fig. 4: policy/value loss, mean and IQR over runs"),
+                       ("regions", "Fig. 5 regions passed over training (metrics.csv region checks)")):
+        runs = sub.add_parser(name, help=text)
+        runs.add_argument("runs", nargs="+", help="run folders holding metrics.csv (e.g. runs/sweep/seed_*)")
+        runs.add_argument("--out", default=None)
+        runs.add_argument("--pdf", action="store_true")
     args = p.parse_args(argv)
     ext = ".pdf" if args.pdf else ".png"
     try:
