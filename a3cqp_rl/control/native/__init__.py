@@ -1,4 +1,5 @@
-"""The controller's default step in C (`a3cqp_step.c`): QP assembly and torque law, built on first use, via ctypes.
+"""The controller's default step in C (`a3cqp_step.c`): QP assembly and torque law (built at install time),
+via ctypes.
 
 Why native: on the CPU a control step of the Python objects is a few hundred numpy calls on 6×7 / 7×7 matrices at
 0.5-3 µs each (and 10-25 µs each for 64 stacked matrices), while its arithmetic is ~20 k flops per arm.  The C file
@@ -8,7 +9,7 @@ the Cartesian regularizer; JointLimitsViability, WrenchBox, FrictionPyramid, Tor
 composition (a custom task or limit, other devices, autograd through `build_context`) runs the Python objects, which
 stay the reference (tests/test_control_native.py: agreement to 1e-9).  The QP itself is still `solve_qp`.
 
-`A3CQP_NATIVE_CONTROL=0` switches it off; no compiler or a failed build logs one warning and the Python path runs.
+`A3CQP_NATIVE_CONTROL=0` switches it off; a library not built at install time (no compiler) or stale logs one warning and the Python path runs.
 """
 
 from __future__ import annotations
@@ -124,7 +125,7 @@ _library = LazyLibrary(SOURCE, "A3CQP_NATIVE_CONTROL", _bind, _log, "a3cqp_rl.co
 
 
 def load() -> ctypes.CDLL | None:
-    """The compiled a3cqp_step library, or None (A3CQP_NATIVE_CONTROL=0, or no compiler / failed build: one warning)."""
+    """The compiled a3cqp_step library, or None (A3CQP_NATIVE_CONTROL=0, or not built / stale: one warning)."""
     return _library.get()
 
 
