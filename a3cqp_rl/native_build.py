@@ -24,7 +24,8 @@ __all__ = ["library_path", "enabled", "address", "LazyLibrary", "REBUILD_HINT"]
 
 T = TypeVar("T")
 
-REBUILD_HINT = "rebuild with `pip install -e .` (or `make install`) where a C compiler is available"
+REBUILD_HINT = ("rebuild with `pip install -e .` (or, in a source checkout, `python setup.py build_ext --inplace`) where a "
+                "C compiler is available")
 
 
 def library_path(source: Path) -> Path | None:
