@@ -7,7 +7,7 @@ import functools
 import logging
 import operator
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -133,6 +133,28 @@ def wrench_from_joint_torques(tau_ext: torch.Tensor, jac: torch.Tensor, mass: to
     return torch.linalg.solve(lam_inv, jac @ binv_tau).squeeze(-1)
 
 
+@dataclass
+class _StepInputs:
+    """One step's inputs after the checks of `A3CQPController._prepare`: float64, numpy views on the CPU path."""
+
+    q: Array
+    qd: Array
+    mass: Array
+    bias: Array
+    weights: Array
+    f_d: Array
+    pos_d: Array
+    rot_d: Array
+    f_ext: Array
+    in_contact: Array
+    kin: Kinematics | None
+    valid: Array
+    """Bool [N]: every input of the robot is finite."""
+    all_valid: bool
+    xp: Any
+    """numpy or torch: the kind of the arrays above."""
+
+
 def _np(t: torch.Tensor) -> np.ndarray:
     """numpy view of a CPU tensor (no copy)."""
     return (t.detach() if t.requires_grad else t).numpy()
@@ -236,6 +258,7 @@ class A3CQPController:
             self.limits.append(TorqueLimits(lim["tau_max"], safe=self.joint_limits))
         self.limits += list(extra_limits or [])
         self.f_d_max = getattr(cfg, "f_d_max", 20.0)
+        self._q_center = torch.tensor(opt.q_center, dtype=torch.float64)  # stand-in for a non-finite first state
         self.q_des: torch.Tensor | None = None  # q*, eq. 7 [N, 7]
         self.qd_des: torch.Tensor | None = None  # q̇*, eq. 6 [N, 7]
         self._warm: QPSolution | None = None
@@ -251,14 +274,32 @@ class A3CQPController:
         if opt.backend not in ("auto", "python", "native"):
             raise InvalidGainError(f"backend must be 'auto', 'python' or 'native', got {opt.backend!r}")
         if opt.backend != "python":
-            params, why = native.native_params(self)
-            lib = native.load() if params is not None else None
-            if lib is not None:
-                self._native = native.NativeStep(lib, params)
-            elif opt.backend == "native":
-                raise InvalidGainError(f"backend='native' is not available: {why or 'the C library did not build'}")
+            self._native, why = self._make_native_step()
+            if self._native is None and opt.backend == "native":
+                raise InvalidGainError(f"backend='native' is not available: {why}")
         # the composition the native step was made for (a task or limit swapped in later turns it off)
         self._native_for = (tuple(map(id, self.tasks)), tuple(map(id, self.limits)))
+
+    def _make_native_step(self) -> tuple[native.NativeStep | None, str]:
+        """The C step for this composition, or (None, why)."""
+        fields, why = self._native_fields()
+        if fields is None:
+            return None, why
+        lib = native.load()
+        if lib is None:
+            return None, "the C library is not available (see the warning above)"
+        return native.NativeStep(lib, fields), ""
+
+    def _native_fields(self) -> tuple[dict | None, str]:
+        """The C step's parameters: each task and limit hands its own, the step-level ones come from here."""
+        cfg, opt = self.config, self.options
+        step_fields = {"dt": self.dt, "cv": cfg.cv, "cp": cfg.cp, "f_d_max": self.f_d_max,
+                       "wrench_ff": float(opt.ik_wrench_feedforward), "pd_pinv": float(opt.pd_projection == "pinv"),
+                       "reg": opt.regularization, "pinv_damping": opt.pinv_damping,
+                       "nullspace_damping": opt.nullspace_damping, "tau_clip": self.tau_max.numpy(),
+                       "leak": self.dt * opt.desired_state_leak}
+        return native.compose_params([(type(t).__name__, t.c_params()) for t in self.tasks],
+                                     [(type(x).__name__, x.c_params()) for x in self.limits], step_fields)
 
     # ------------------------------------------------------------------ state
     def reset(self, q: torch.Tensor, qd: torch.Tensor | None = None, idx: torch.Tensor | list[int] | None = None) -> None:
@@ -424,35 +465,6 @@ class A3CQPController:
                        bad, qp_status[bad].tolist(), [bool(valid[i]) for i in bad])
         self._warm = None
 
-    def assemble_native(self, q: np.ndarray, qd: np.ndarray, mass: np.ndarray, bias: np.ndarray,
-                        weights: np.ndarray, f_d: np.ndarray, pos_d: np.ndarray, rot_d: np.ndarray,
-                        f_ext: np.ndarray, in_contact: np.ndarray, kin: Kinematics) -> native.Assembled:
-        """`build_context` + `build_qp` by the C step (numpy arrays; the default composition only, see `backend`)."""
-        if self._native is None:
-            raise RuntimeError("this controller has no native step (backend='python' or not the default composition)")
-        return self._native.assemble(q, qd, mass, bias, kin.jac, kin.jdot_qdot, kin.twist, kin.pos, kin.rot, weights,
-                                     f_d, pos_d, rot_d, f_ext, in_contact, _np(self.q_des), _np(self.qd_des))
-
-    def _step_native(self, q: np.ndarray, qd: np.ndarray, mass: np.ndarray, bias: np.ndarray, weights: np.ndarray,
-                     f_d: np.ndarray, pos_d: np.ndarray, rot_d: np.ndarray, f_ext: np.ndarray,
-                     in_contact: np.ndarray, kin: Kinematics | None) -> ControlOutput:
-        """`step` by the C translation of the default tasks, limits and torque law (finite numpy inputs)."""
-        if kin is None:
-            kin = _model_kinematics(self.model, q, qd)
-        asm = self.assemble_native(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, kin)
-        x, qp_status, iterations = self._solve(*(torch.from_numpy(a) for a in (asm.P, asm.c, asm.G, asm.h)))
-        xn = _np(x)
-        ok = (_np(qp_status) == 0) & np.isfinite(xn).all(axis=1)
-        tau, qdd, f, qdd_pd, q_des, qd_des, saturated = self._native.torque(xn, ok, asm)
-        if not ok.all():
-            self._report_fallback(ok, qp_status, np.ones(self.n, dtype=bool))
-        self.q_des, self.qd_des = torch.from_numpy(q_des), torch.from_numpy(qd_des)
-        self.residuals = {}
-        t = torch.from_numpy
-        return ControlOutput(tau=t(tau), qdd=t(qdd), wrench=t(f), qdd_pd=t(qdd_pd), pose_error=t(asm.pose_error),
-                             f_adm=t(asm.f_adm), f_ctc=t(asm.f_ctc), status=qp_status, fallback=t(~ok),
-                             saturated=t(saturated), iterations=iterations)
-
     # ------------------------------------------------------------------ step
     @torch.no_grad()
     def step(self, q: torch.Tensor, qd: torch.Tensor, mass: torch.Tensor, bias: torch.Tensor, weights: torch.Tensor,
@@ -472,103 +484,134 @@ class A3CQPController:
             f_env: measured environment (F/T) wrench [N, 6], world frame, only used to infer `in_contact`.
             kin: kinematics of the control site at (q, q̇) if the caller has them (PandaSim's `SimState.kin`, from
                 MuJoCo's step: same values as `self.model.kinematics` to ~1e-8); default computed by `self.model`.
+
+        A robot whose inputs are not finite (or whose QP fails) gets the safe fallback: a viable brake with gravity
+        compensation, `fallback` True and status INVALID_INPUT (or the QP's status).
         """
-        n = self.n
-        q = self._check("q", q, (n, 7))
-        qd = self._check("qd", qd, (n, 7))
-        mass = self._check("mass", mass, (n, 7, 7))
-        bias = self._check("bias", bias, (n, 7))
-        weights = self._check("weights", weights, (n, 6, 3))
-        f_d = self._check("f_d", f_d, (n, 6))
-        pos_d = self._check("pos_d", pos_d, (n, 3))
-        rot_d = self._check("rot_d", rot_d, (n, 3, 3))
-        f_ext = q.new_zeros(n, 6) if f_ext is None else self._check("f_ext", f_ext, (n, 6))
-        if in_contact is None:
-            thr = self.options.contact_force_threshold
-            if f_env is None:
-                in_contact = torch.zeros(n, dtype=torch.bool)
-            elif f_env.device.type == "cpu":  # |f| > thr as a squared norm in numpy (two µs instead of ~20)
-                in_contact = torch.from_numpy(np.square(_np(f_env)[:, :3]).sum(axis=1) > thr * thr)
-            else:
-                in_contact = f_env[:, :3].norm(dim=-1) > thr
-        if self.q_des is None:
-            self.reset(q, qd)
-
-        # the CPU path: everything below on numpy views (same code; ~3x less overhead per op, see arrays.py)
-        inputs = [q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext]
-        on_cpu = all(t.device.type == "cpu" for t in inputs)
-        use_np = on_cpu and self._numpy_ok
-        if on_cpu:  # (numpy for the finiteness check in any case: ~1 µs per op instead of ~5)
-            arrays = [_np(t) for t in inputs]
-            valid_np = np.isfinite(np.concatenate([a.reshape(n, -1) for a in arrays], axis=1)).all(axis=1)
-            valid, all_valid = torch.from_numpy(valid_np), bool(valid_np.all())
-        else:
-            valid = torch.isfinite(torch.cat([t.reshape(n, -1) for t in inputs], dim=1)).all(-1)  # (N,)
-            all_valid = bool(valid.all())
-        if use_np:
-            q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext = arrays
-            in_contact = _np(in_contact)
-            if kin is not None:
-                kin = _kin_numpy(kin)
-        if use_np and all_valid and self._native is not None and self._native_for == (
+        inp = self._prepare(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, f_env, kin)
+        if inp.all_valid and inp.xp is np and self._native is not None and self._native_for == (
                 tuple(map(id, self.tasks)), tuple(map(id, self.limits))):
-            return self._step_native(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, kin)
-        xp = np if use_np else torch
-        if not all_valid:
-            # invalid robots (non-finite inputs) are computed on a harmless stand-in and replaced by the fallback
-            # below (a caller's kin is not checked: non-finite kinematics make x non-finite, which falls back too)
-            def keep(t: Array, default: Array | float) -> Array:
-                ok = xp.isfinite(t.reshape(n, -1)).all(-1).reshape(-1, *([1] * (t.ndim - 1)))
-                return xp.where(ok, t, default)
-
-            eye7 = self._constants(q)["eye7"]
-            q, qd = keep(q, const(self.q_des, q)), keep(qd, 0.0)
-            mass, bias = keep(mass, eye7), keep(bias, 0.0)
-            weights, f_d, f_ext = keep(weights, 1.0 / 3.0), keep(f_d, 0.0), keep(f_ext, 0.0)
-            pos_d, rot_d = keep(pos_d, 0.0), keep(rot_d, eye7[:3, :3])
-            kin = None  # recomputed from the stand-in q, q̇
-
-        ctx = self.build_context(q, qd, mass, weights, f_d, pos_d, rot_d, f_ext, in_contact, bias, kin=kin)
-        P, c, G, h = self.build_qp(ctx)
-        if use_np:
-            P, c, G, h = torch.from_numpy(P), torch.from_numpy(c), torch.from_numpy(G), torch.from_numpy(h)
+            return self._step_native(inp)
+        if not inp.all_valid:
+            inp = self._stand_ins(inp)
+        ctx = self.build_context(inp.q, inp.qd, inp.mass, inp.weights, inp.f_d, inp.pos_d, inp.rot_d, inp.f_ext,
+                                 inp.in_contact, inp.bias, kin=inp.kin)
+        P, c, G, h = (torch.as_tensor(a) for a in self.build_qp(ctx))
         x, qp_status, iterations = self._solve(P, c, G, h)
-        dt, cfg, opt = self.dt, self.config, self.options
-        tau_max = self._constants(q)["tau_max"]
-        if use_np:
-            x = _np(x)
-            ok = (_np(qp_status) == 0) & valid_np & np.isfinite(x).all(axis=1)
+        return self._apply(inp, ctx, x, qp_status, iterations)
+
+    def _prepare(self, q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, f_env,  # noqa: ANN001
+                 kin) -> _StepInputs:  # noqa: ANN001
+        """Stage 1: shapes, float64, contact flag, per-robot finiteness, first-call references, numpy views on CPU."""
+        n = self.n
+        t = {name: self._check(name, v, shape) for name, v, shape in (
+            ("q", q, (n, 7)), ("qd", qd, (n, 7)), ("mass", mass, (n, 7, 7)), ("bias", bias, (n, 7)),
+            ("weights", weights, (n, 6, 3)), ("f_d", f_d, (n, 6)), ("pos_d", pos_d, (n, 3)),
+            ("rot_d", rot_d, (n, 3, 3)),
+            ("f_ext", q.new_zeros(n, 6) if f_ext is None else f_ext, (n, 6)))}
+        if in_contact is None:
+            in_contact = self._contact_from(f_env)
+        on_cpu = all(v.device.type == "cpu" for v in t.values())
+        if on_cpu:  # (numpy for the finiteness check in any case: ~1 µs per op instead of ~5)
+            flat = np.concatenate([_np(v).reshape(n, -1) for v in t.values()], axis=1)
+            valid = np.isfinite(flat).all(axis=1)
         else:
-            ok = (qp_status == 0) & valid & torch.isfinite(x).all(-1)
-        all_ok = bool(ok.all())
-        q_des, qd_des = const(self.q_des, q), const(self.qd_des, q)
-        tau, qdd, f, qdd_pd, q_des, qd_des = _torque_law(x, q, qd, mass, bias, ctx.kin.jac, ctx.pd_matrix, q_des,
-                                                         qd_des, dt, cfg.cv, cfg.cp)
-        if not all_ok:
-            # safe fallback for failed QPs / invalid inputs: a damped joint-space brake inside the viable bounds,
-            # which always respect the acceleration limits (Del Prete 2017; limits._acc_bounds), so that with
-            # gravity compensation it is torque-realisable; zero wrench
+            valid = torch.isfinite(torch.cat([v.reshape(n, -1) for v in t.values()], dim=1)).all(-1)
+        if self.q_des is None:  # first call: q*, q̇* from the measured state, a harmless stand-in where not finite
+            ok = torch.as_tensor(valid)[:, None]
+            self.reset(torch.where(ok, t["q"], self._q_center.to(t["q"])), torch.where(ok, t["qd"], 0.0))
+        if on_cpu and self._numpy_ok:  # the objects on numpy views: ~3x less overhead per op (arrays.py)
+            arrays = {k: _np(v) for k, v in t.items()}
+            return _StepInputs(**arrays, in_contact=_np(in_contact), kin=None if kin is None else _kin_numpy(kin),
+                               valid=valid, all_valid=bool(valid.all()), xp=np)
+        return _StepInputs(**t, in_contact=in_contact, kin=kin, valid=torch.as_tensor(valid),
+                           all_valid=bool(valid.all()), xp=torch)
+
+    def _contact_from(self, f_env: torch.Tensor | None) -> torch.Tensor:
+        """in_contact [N] from the measured F/T force: |f| > ControllerOptions.contact_force_threshold."""
+        thr = self.options.contact_force_threshold
+        if f_env is None:
+            return torch.zeros(self.n, dtype=torch.bool)
+        if f_env.device.type == "cpu":  # |f| > thr as a squared norm in numpy (two µs instead of ~20)
+            return torch.from_numpy(np.square(_np(f_env)[:, :3]).sum(axis=1) > thr * thr)
+        return f_env[:, :3].norm(dim=-1) > thr
+
+    def _stand_ins(self, inp: _StepInputs) -> _StepInputs:
+        """Stage 2: robots with non-finite inputs computed on a harmless stand-in (replaced by the fallback later).
+
+        A caller's kin is not checked: non-finite kinematics make x non-finite, which falls back too; it is
+        recomputed here from the stand-in q, q̇."""
+        xp, n = inp.xp, self.n
+
+        def keep(t: Array, default: Array | float) -> Array:
+            ok = xp.isfinite(t.reshape(n, -1)).all(-1).reshape(-1, *([1] * (t.ndim - 1)))
+            return xp.where(ok, t, default)
+
+        eye7 = self._constants(inp.q)["eye7"]
+        return dataclasses.replace(
+            inp, q=keep(inp.q, const(self.q_des, inp.q)), qd=keep(inp.qd, 0.0), mass=keep(inp.mass, eye7),
+            bias=keep(inp.bias, 0.0), weights=keep(inp.weights, 1.0 / 3.0), f_d=keep(inp.f_d, 0.0),
+            f_ext=keep(inp.f_ext, 0.0), pos_d=keep(inp.pos_d, 0.0), rot_d=keep(inp.rot_d, eye7[:3, :3]), kin=None)
+
+    def _apply(self, inp: _StepInputs, ctx: ControlContext, x: torch.Tensor, qp_status: torch.Tensor,
+               iterations: torch.Tensor) -> ControlOutput:
+        """Stage 4: computed torque (eq. 4-7) where the QP succeeded, the safe brake elsewhere, then the clip."""
+        xp = inp.xp
+        if xp is np:
+            x = _np(x)
+            ok = (_np(qp_status) == 0) & inp.valid & np.isfinite(x).all(axis=1)
+        else:
+            ok = (qp_status == 0) & inp.valid & torch.isfinite(x).all(-1)
+        cfg, dt = self.config, self.dt
+        q_des, qd_des = const(self.q_des, inp.q), const(self.qd_des, inp.q)
+        tau, qdd, f, qdd_pd, q_des, qd_des = _torque_law(x, inp.q, inp.qd, inp.mass, inp.bias, ctx.kin.jac,
+                                                         ctx.pd_matrix, q_des, qd_des, dt, cfg.cv, cfg.cp)
+        if not bool(ok.all()):
+            # a damped joint-space brake inside the viable bounds, which always respect the acceleration limits
+            # (Del Prete 2017; limits._acc_bounds), so that with gravity compensation it is torque-realisable
             qdd_fb = self.joint_limits.safe_acceleration(ctx)
-            tau_fb = mv(mass, qdd_fb) + bias
             o1 = ok[:, None]
-            tau = xp.where(o1, tau, tau_fb)
-            qdd, f = xp.where(o1, qdd, qdd_fb), xp.where(o1, f, 0.0)
-            qdd_pd = xp.where(o1, qdd_pd, 0.0)
-            q_des, qd_des = xp.where(o1, q_des, q), xp.where(o1, qd_des, qd)
-            self._report_fallback(ok, qp_status, valid)
-        out = _finish(xp, tau, qdd, f, qdd_pd, q_des, qd_des, q, qd, weights, tau_max, dt * opt.desired_state_leak)
-        if use_np:
-            out = tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in out)
-        tau, qdd, f, qdd_pd, q_des, qd_des, saturated = out
-        self.q_des, self.qd_des = q_des, qd_des
-        status = qp_status if all_valid else torch.where(valid, qp_status, torch.full_like(qp_status, INVALID_INPUT))
-        f_adm = self.residuals["ac"].b if "ac" in self.residuals else None
-        f_ctc = self.residuals["fc"].b if "fc" in self.residuals else None
-        pose_err, ok = ctx.pose_error, torch.as_tensor(ok)
-        if use_np:
-            f_adm, f_ctc, pose_err = (None if a is None else torch.from_numpy(a) for a in (f_adm, f_ctc, pose_err))
-        f_adm = torch.zeros_like(f) if f_adm is None else f_adm
-        f_ctc = torch.zeros_like(f) if f_ctc is None else f_ctc
+            tau = xp.where(o1, tau, mv(inp.mass, qdd_fb) + inp.bias)
+            qdd, f, qdd_pd = xp.where(o1, qdd, qdd_fb), xp.where(o1, f, 0.0), xp.where(o1, qdd_pd, 0.0)
+            q_des, qd_des = xp.where(o1, q_des, inp.q), xp.where(o1, qd_des, inp.qd)
+            self._report_fallback(ok, qp_status, inp.valid)
+        out = _finish(xp, tau, qdd, f, qdd_pd, q_des, qd_des, inp.q, inp.qd, inp.weights,
+                      self._constants(inp.q)["tau_max"], dt * self.options.desired_state_leak)
+        f_adm = self.residuals["ac"].b if "ac" in self.residuals else xp.zeros_like(out[2])
+        f_ctc = self.residuals["fc"].b if "fc" in self.residuals else xp.zeros_like(out[2])
+        out = [torch.as_tensor(np.ascontiguousarray(a) if xp is np else a)
+               for a in (*out, ctx.pose_error, f_adm, f_ctc, ok)]
+        tau, qdd, f, qdd_pd, self.q_des, self.qd_des, saturated, pose_err, f_adm, f_ctc, ok = out
+        status = qp_status if inp.all_valid else torch.where(
+            torch.as_tensor(inp.valid), qp_status, torch.full_like(qp_status, INVALID_INPUT))
         return ControlOutput(tau=tau, qdd=qdd, wrench=f, qdd_pd=qdd_pd, pose_error=pose_err, f_adm=f_adm,
-                             f_ctc=f_ctc, status=status, fallback=~ok, saturated=saturated,
-                             iterations=iterations)
+                             f_ctc=f_ctc, status=status, fallback=~ok, saturated=saturated, iterations=iterations)
+
+    def assemble_native(self, q: np.ndarray, qd: np.ndarray, mass: np.ndarray, bias: np.ndarray,
+                        weights: np.ndarray, f_d: np.ndarray, pos_d: np.ndarray, rot_d: np.ndarray,
+                        f_ext: np.ndarray, in_contact: np.ndarray, kin: Kinematics | None = None) -> native.Assembled:
+        """`build_context` + `build_qp` by the C step (numpy arrays, shapes as `step`; the default composition only)."""
+        if self._native is None:
+            raise RuntimeError("this controller has no native step (backend='python' or not the default composition)")
+        kin = kin if kin is not None else _model_kinematics(self.model, q, qd)
+        return self._native.assemble(
+            q=q, qd=qd, mass=mass, bias=bias, jac=kin.jac, jdot_qdot=kin.jdot_qdot, twist=kin.twist, pos=kin.pos,
+            rot=kin.rot, weights=weights, f_d=f_d, pos_d=pos_d, rot_d=rot_d, f_ext=f_ext, in_contact=in_contact,
+            q_des=_np(self.q_des), qd_des=_np(self.qd_des))
+
+    def _step_native(self, inp: _StepInputs) -> ControlOutput:
+        """Stages 3-4 by the C translation of the default tasks, limits and torque law (finite numpy inputs)."""
+        asm = self.assemble_native(inp.q, inp.qd, inp.mass, inp.bias, inp.weights, inp.f_d, inp.pos_d, inp.rot_d,
+                                   inp.f_ext, inp.in_contact, inp.kin)
+        x, qp_status, iterations = self._solve(*(torch.from_numpy(a) for a in (asm.P, asm.c, asm.G, asm.h)))
+        xn = _np(x)
+        ok = (_np(qp_status) == 0) & np.isfinite(xn).all(axis=1)
+        tau, qdd, f, qdd_pd, q_des, qd_des, saturated = self._native.torque(xn, ok, asm)
+        if not ok.all():
+            self._report_fallback(ok, qp_status, np.ones(self.n, dtype=bool))
+        self.q_des, self.qd_des = torch.from_numpy(q_des), torch.from_numpy(qd_des)
+        self.residuals = {}
+        t = torch.from_numpy
+        return ControlOutput(tau=t(tau), qdd=t(qdd), wrench=t(f), qdd_pd=t(qdd_pd), pose_error=t(asm.pose_error),
+                             f_adm=t(asm.f_adm), f_ctc=t(asm.f_ctc), status=qp_status, fallback=t(~ok),
+                             saturated=t(saturated), iterations=iterations)

@@ -85,6 +85,13 @@ class Task(ABC):
     def residual(self, ctx: ControlContext) -> Residual:
         """Residual (A, b) and weight W of this task for the batch in `ctx`."""
 
+    def c_params(self) -> tuple[str, dict] | None:
+        """(kind, its fields of the native step's parameters, control/native) or None when C does not translate it.
+
+        Only a class that defines `_c_params` itself is translated: a subclass may change the math."""
+        own = type(self).__dict__.get("_c_params")
+        return None if own is None else own(self)
+
 
 class CartesianIK(Task):
     """IK task (eq. 1, 10-11): J q̈ + J̇q̇ = ẍ_d with ẍ_d = K_p e_x − K_v ẋ, weight W1.
@@ -107,6 +114,9 @@ class CartesianIK(Task):
         """Diagonals of K_p and K_v [6] (eq. 11)."""
         kp, kv = self._gains
         return const(kp, like), const(kv, like)
+
+    def _c_params(self) -> tuple[str, dict]:
+        return "ik", {"kp": self._gains[0].numpy(), "kv": self._gains[1].numpy()}
 
     def desired_acceleration(self, ctx: ControlContext) -> Array:
         """ẍ_d = K_p e_x − K_v ẋ [B, 6] (eq. 10), world frame (m/s², rad/s²)."""
@@ -143,6 +153,9 @@ class Admittance(Task):
             raise InvalidGainError(f"form must be 'consistent' or 'paper', got {form!r}")
         self.lambda_d, self.c_d, self.form = lambda_d, c_d, form
 
+    def _c_params(self) -> tuple[str, dict]:
+        return "ac", {"lambda_d": self.lambda_d, "c_d": self.c_d, "ac_paper": float(self.form == "paper")}
+
     def admittance_wrench(self, ctx: ControlContext) -> Array:
         """f_adm [B, 6] (N, N m), world frame (eq. 18)."""
         lam = ctx.cart_inertia  # Λ (B, 6, 6)
@@ -164,6 +177,9 @@ class ForceControl(Task):
 
     name = "fc"
     numpy_capable = True
+
+    def _c_params(self) -> tuple[str, dict]:
+        return "fc", {}
 
     def contact_wrench(self, ctx: ControlContext) -> Array:
         """f_ctc = D f_d^𝓛 [B, 6] (N, N m), world frame (eq. 20)."""
@@ -197,6 +213,10 @@ class JointCentering(Task):
         self.q_center = torch.as_tensor(q_center, dtype=torch.float64)
         self.kq, self.epsilon, self.nullspace_weight = kq, epsilon, nullspace_weight
 
+    def _c_params(self) -> tuple[str, dict]:
+        return "jc", {"q_center": self.q_center.numpy(), "kq": self.kq, "jc_eps": self.epsilon,
+                      "jc_eps_n": self.nullspace_weight}
+
     def desired_acceleration(self, ctx: ControlContext) -> Array:
         """q̈_d [B, 7] (rad/s²), eq. 23."""
         e_q = const(self.q_center, ctx.q) - ctx.q
@@ -224,6 +244,9 @@ class CartesianAccelerationRegularizer(Task):
         _check_positive(gamma=gamma)
         self.gamma = gamma
         self._gamma_eye = gamma * torch.eye(6, dtype=torch.float64)
+
+    def _c_params(self) -> tuple[str, dict]:
+        return "creg", {"creg_gamma": self.gamma}
 
     def residual(self, ctx: ControlContext) -> Residual:
         return Residual(A=ctx.kin.jac, b=zeros((ctx.batch, 6), ctx.q),
