@@ -26,6 +26,8 @@ __all__ = [
     "ControllerConfig",
     "A2CConfig",
     "GAConfig",
+    "GeneConfig",
+    "NSGA2Config",
     "PointMassConfig",
     "ExperimentConfig",
     "load_config",
@@ -190,27 +192,197 @@ class A2CConfig:
 
 
 @dataclass
-class GAConfig:
-    """pygad genetic algorithm over A2C hyper-parameters (Table V); fitness eq. 34."""
+class GeneConfig:
+    """One gene of a tuned genome: a value searched in [low, high] (pygad works on u in [0, 1] per gene)."""
 
-    num_generations: int = 50
-    num_parents_mating: int = 4
-    sol_per_pop: int = 8
-    num_genes: int = 5
-    parent_selection_type: str = "sss"
-    """Steady-state selection."""
-    keep_parents: int = 1
-    crossover_type: str = "single_point"
-    mutation_type: str = "random"
-    mutation_percent_genes: float = 10.0
+    name: str = ""
+    """What the gene sets. GA: an A2C field (`learning_rate`) or a dotted field of the experiment
+    (`point_mass.operator_v_hand`); NSGA-II: a name the objective reads."""
+    low: float = 0.0
+    """Smallest value."""
+    high: float = 1.0
+    """Largest value."""
+    scale: Literal["linear", "log"] = "linear"
+    """'log': u maps to low·(high/low)^u (needs low > 0), so each decade gets the same share of the search."""
+    type: Literal["float", "int", "level"] = "float"
+    """'int': rounded to the nearest integer; 'level': a priority-level selector l = u in [0, 1] mapped as
+    paper 002 eq. 4 (l ≤ 0.25 → level 1, ≤ 0.5 → 2, ≤ 0.75 → 3, else 0 = off); low/high stay 0 and 1."""
+    size: int = 1
+    """Genes sharing this spec: a vector value name[0..size-1] (e.g. ZDT's 30 variables)."""
 
     def _check(self, err: _Errors) -> None:
-        for name in ("num_generations", "num_parents_mating", "sol_per_pop", "num_genes"):
+        if not self.name or not all(part.isidentifier() for part in self.name.split(".")):
+            err.add("name", f"must be a field name like learning_rate or point_mass.c_d, got {self.name!r}")
+        if not (math.isfinite(self.low) and math.isfinite(self.high)) or not self.low < self.high:
+            err.add("low", f"the range [{self.low}, {self.high}] is empty or not finite: need low < high")
+        if self.scale == "log" and not self.low > 0:
+            err.add("low", f"a log-scale gene needs low > 0, got {self.low}")
+        if self.type == "level" and (self.low, self.high, self.scale) != (0.0, 1.0, "linear"):
+            err.add("type", "a level selector spans [0, 1] linearly (paper 002 eq. 4): leave low, high and scale unset")
+        if self.type == "int" and math.floor(self.high) < math.ceil(self.low):
+            err.add("type", f"no integer lies in [{self.low}, {self.high}]")
+        if self.size < 1:
+            err.add("size", f"must be >= 1, got {self.size}")
+
+
+def _table_iv_genes() -> tuple[GeneConfig, ...]:
+    # The five Table IV entries with non-round values (λη, λβ, n, λε, λζ); the paper does not list its ranges.
+    return (
+        GeneConfig("learning_rate", 1e-6, 1e-2, "log"),
+        GeneConfig("ent_coef", 1e-6, 1e-1, "log"),
+        GeneConfig("n_steps", 1, 32, "log", "int"),
+        GeneConfig("rms_eps", 1e-8, 1e-3, "log"),
+        GeneConfig("max_grad_norm", 0.1, 10.0, "log"),
+    )
+
+
+@dataclass
+class GAConfig:
+    """pygad genetic algorithm over A2C hyper-parameters (section IV-C): settings of Table V, fitness eq. 34.
+
+    pygad mutates max(1, ⌊10 % · genes⌋) genes per offspring (1 of 5 here), each replaced by a uniform draw in
+    its range (uniform in the exponent for log genes).
+    """
+
+    num_generations: int = 50
+    """Generations bred after the initial population (Table V: 50)."""
+    num_parents_mating: int = 4
+    """Solutions selected as parents (Table V: 4)."""
+    sol_per_pop: int = 8
+    """Population size (Table V: 8)."""
+    parent_selection_type: Literal["sss", "rws", "sus", "rank", "random", "tournament"] = "sss"
+    """pygad parent selection; 'sss' = steady-state (Table V)."""
+    keep_parents: int = 1
+    """Parents carried into the next population (Table V: 1; -1 = all)."""
+    keep_elitism: int = 0
+    """Best solutions carried over; pygad's default of 1 would override keep_parents, so Table V needs 0."""
+    crossover_type: Literal["single_point", "two_points", "uniform", "scattered"] = "single_point"
+    """pygad crossover (Table V: single point)."""
+    mutation_type: Literal["random", "swap", "inversion", "scramble"] = "random"
+    """pygad mutation (Table V: random)."""
+    mutation_percent_genes: float = 10.0
+    """Percentage of genes mutated per offspring (Table V: 10)."""
+    genes: tuple[GeneConfig, ...] = field(default_factory=_table_iv_genes)
+    """The genome (default: λη, λβ, n, λε, λζ of Table IV)."""
+    fitness: str = "episode_reward"
+    """'episode_reward': eq. 34, the mean return of the last `fitness_episodes` training episodes; 'behaviour': the
+    mean return of the trained policy on the closed-loop evaluation scenarios (envs/point_mass_eval.py)."""
+    fitness_episodes: int = 100
+    """N of eq. 34 (100 = the window of SB3's ep_rew_mean, the paper's library)."""
+    steps_per_trial: int = 1_000_000
+    """Agent steps of each trial training (the paper's 1e6)."""
+    trials: int = 1
+    """Trainings per genome, with seeds seed, seed+1, ...; the fitness is their mean."""
+
+    @property
+    def num_genes(self) -> int:
+        """Genes in the genome (Table V: 5)."""
+        return sum(g.size for g in self.genes)
+
+    def _check(self, err: _Errors) -> None:
+        for name in ("num_generations", "num_parents_mating", "sol_per_pop", "fitness_episodes", "steps_per_trial",
+                     "trials"):
             err.positive(self, name)
         if self.num_parents_mating > self.sol_per_pop:
             err.add("num_parents_mating", "must be <= sol_per_pop")
+        if not -1 <= self.keep_parents <= self.num_parents_mating:
+            err.add("keep_parents", f"must be in [-1, num_parents_mating], got {self.keep_parents}")
+        if not 0 <= self.keep_elitism < self.sol_per_pop:
+            err.add("keep_elitism", f"must be in [0, sol_per_pop), got {self.keep_elitism}")
         if not 0 < self.mutation_percent_genes <= 100:
             err.add("mutation_percent_genes", "must be in (0, 100]")
+        if not self.genes:
+            err.add("genes", "at least one gene is needed")
+        names = [g.name for g in self.genes]
+        for dup in sorted({n for n in names if names.count(n) > 1}):
+            err.add("genes", f"{dup!r} appears more than once")
+        for i, gene in enumerate(self.genes):
+            sub = _Errors(f"{err.prefix}genes[{i}].")
+            gene._check(sub)
+            if not sub.messages:
+                _check_experiment_gene(gene, sub)
+            err.messages += sub.messages
+
+
+def _check_experiment_gene(gene: GeneConfig, err: _Errors) -> None:
+    """A GA gene must name a numeric experiment field whose checks accept both ends of the range."""
+    section, _, name = gene.name.rpartition(".")
+    section = section or "a2c"
+    section_cls = typing.get_type_hints(ExperimentConfig).get(section)
+    if "." in section or section_cls is None or not dataclasses.is_dataclass(section_cls):
+        err.add("name", f"unknown config section {section!r} in {gene.name!r}; use an A2C field or e.g. point_mass.c_d")
+        return
+    hints = typing.get_type_hints(section_cls)
+    if name not in hints:
+        err.add("name", f"unknown {section} field {name!r}; valid: {sorted(hints)}")
+        return
+    field_type = hints[name]
+    if field_type is int and gene.type != "int":
+        err.add("type", f"{section}.{name} is an integer: set type: int")
+    elif field_type is float and gene.type != "float":
+        err.add("type", f"{section}.{name} is a real number: set type: float")
+    elif field_type not in (int, float):
+        err.add("name", f"{section}.{name} is not a number ({field_type}) and cannot be a gene")
+        return
+    if gene.size != 1:
+        err.add("size", f"{section}.{name} is a single number: size must be 1")
+        return
+    for end in ("low", "high"):
+        value = getattr(gene, end)
+        obj = section_cls(**{name: int(round(value)) if field_type is int else value})
+        sub = _Errors()
+        obj._check(sub)
+        problems = [m for m in sub.messages if m.startswith(f"{name}:")]
+        if problems:
+            err.add(end, f"{value} is not a valid {section}.{name} ({problems[0]})")
+
+
+@dataclass
+class NSGA2Config:
+    """Multi-objective tuning with NSGA-II on pygad (Penco et al., paper 002): soft weights, levels, gains.
+
+    pygad holds 2·population solutions: the `population` survivors of the last generation and as many offspring;
+    each generation keeps the best `population` of both by Pareto rank and crowding distance (NSGA-II's elitism),
+    mates them at random (SBX) and mutates the offspring (polynomial mutation).
+    """
+
+    objective: str = "zdt1"
+    """Registered objective (algorithms.tuning.objectives): a function from a batch of genomes to objective vectors,
+    all minimised."""
+    population: int = 100
+    """Survivors per generation (paper 002: 100)."""
+    generations: int = 300
+    """Generations bred after the initial population (paper 002: 300)."""
+    genes: tuple[GeneConfig, ...] = ()
+    """The genome; empty = the objective's own genes."""
+    parent_selection_type: Literal["nsga2", "tournament_nsga2"] = "nsga2"
+    """'nsga2': the survivors (rank, then crowding distance) are the parents; 'tournament_nsga2': binary
+    tournaments on rank and crowding distance."""
+    crossover_probability: float = 0.9
+    """Probability that a mating pair is crossed (SBX); otherwise the children copy the parents."""
+    sbx_eta: float = 15.0
+    """SBX distribution index (larger = children nearer their parents)."""
+    mutation_probability: float | None = None
+    """Probability per gene of a polynomial mutation; None = 1 / genes."""
+    polynomial_eta: float = 20.0
+    """Polynomial-mutation distribution index."""
+
+    def _check(self, err: _Errors) -> None:
+        for name in ("population", "generations", "sbx_eta", "polynomial_eta"):
+            err.positive(self, name)
+        if self.population < 2:
+            err.add("population", f"must be >= 2, got {self.population}")
+        if not 0.0 <= self.crossover_probability <= 1.0:
+            err.add("crossover_probability", f"must be in [0, 1], got {self.crossover_probability}")
+        if self.mutation_probability is not None and not 0.0 <= self.mutation_probability <= 1.0:
+            err.add("mutation_probability", f"must be in [0, 1] or null, got {self.mutation_probability}")
+        names = [g.name for g in self.genes]
+        for dup in sorted({n for n in names if names.count(n) > 1}):
+            err.add("genes", f"{dup!r} appears more than once")
+        for i, gene in enumerate(self.genes):
+            sub = _Errors(f"{err.prefix}genes[{i}].")
+            gene._check(sub)
+            err.messages += sub.messages
 
 
 @dataclass
@@ -328,6 +500,7 @@ class ExperimentConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
     a2c: A2CConfig = field(default_factory=A2CConfig)
     ga: GAConfig = field(default_factory=GAConfig)
+    nsga2: NSGA2Config = field(default_factory=NSGA2Config)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
 
     def _check(self, err: _Errors) -> None:

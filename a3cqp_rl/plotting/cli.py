@@ -1,6 +1,6 @@
 """`a3cqp plot policy-map POLICY [--out F] [--fixed e --levels 0,0.05,0.3]` and
-`a3cqp plot loss-curves RUN [RUN ...] [--out F]` and `a3cqp plot regions RUN [RUN ...] [--out F]`
-(PNG by default; --pdf or a .pdf name for PDF)."""
+`a3cqp plot loss-curves RUN [RUN ...] [--out F]` and `a3cqp plot regions RUN [RUN ...] [--out F]` and
+`a3cqp plot ga DIR [--out F]` and `a3cqp plot pareto DIR [--out F]` (PNG by default; --pdf or a .pdf name for PDF)."""
 
 from __future__ import annotations
 
@@ -29,6 +29,12 @@ def main(argv: list[str] | None = None) -> int:
         runs.add_argument("runs", nargs="+", help="run folders holding metrics.csv (e.g. runs/sweep/seed_*)")
         runs.add_argument("--out", default=None)
         runs.add_argument("--pdf", action="store_true")
+    for name, text in (("ga", "GA run (a3cqp tune): fitness per generation, best and spread, genes"),
+                       ("pareto", "NSGA-II run (a3cqp pareto): evaluations and Pareto front, 2-D (and 3-D)")):
+        run = sub.add_parser(name, help=text)
+        run.add_argument("run", help="the run's folder (OUT of a3cqp tune / a3cqp pareto)")
+        run.add_argument("--out", default=None)
+        run.add_argument("--pdf", action="store_true")
     args = p.parse_args(argv)
     ext = ".pdf" if args.pdf else ".png"
     try:
@@ -46,6 +52,15 @@ def main(argv: list[str] | None = None) -> int:
 
             out = Path(args.out) if args.out else Path(args.runs[0]).parent / ("loss_curves" + ext)
             plot_loss_curves(args.runs, out)
+        elif args.what == "ga":
+            from a3cqp_rl.plotting.ga_history import plot_ga_run
+
+            out = plot_ga_run(args.run, Path(args.out) if args.out else Path(args.run) / ("ga" + ext))
+        elif args.what == "pareto":
+            from a3cqp_rl.plotting.pareto import plot_pareto_run
+
+            written = plot_pareto_run(args.run, Path(args.out) if args.out else Path(args.run) / ("pareto" + ext))
+            out = ", ".join(map(str, written))
         else:
             from a3cqp_rl.plotting.region_history import plot_region_history
 
