@@ -41,26 +41,34 @@ def plot_pareto(values: np.ndarray, generation: np.ndarray, front: np.ndarray, n
         if len(front) <= 30:
             for k, p in enumerate(front):
                 ax.annotate(str(k), (p[i], p[j]), fontsize=6, xytext=(3, 3), textcoords="offset points")
-        lo = front.min(0) if len(front) else values.min(0)
-        span = np.ptp(front, 0) if len(front) > 1 else np.ones(m)
-        # frame the front and its neighbourhood: early generations can lie orders of magnitude away
-        ax.set_xlim(lo[i] - 0.15 * span[i] - 1e-12, lo[i] + 1.6 * span[i] + 1e-12)
-        ax.set_ylim(lo[j] - 0.15 * span[j] - 1e-12, lo[j] + 1.6 * span[j] + 1e-12)
+        # frame the front and what lies just behind it: early generations can be orders of magnitude away
+        lo, hi = (front.min(0), front.max(0)) if len(front) else (values.min(0), values.max(0))
+        span = np.where(hi - lo > 0, hi - lo, np.maximum(np.abs(hi), 1.0))
+        top = np.minimum(values.max(0), hi + 0.6 * span) + 0.05 * span
+        ax.set_xlim(lo[i] - 0.08 * span[i], top[i])
+        ax.set_ylim(lo[j] - 0.08 * span[j], top[j])
         ax.set_xlabel(names[i])
         ax.set_ylabel(names[j])
         ax.legend(fontsize=7, loc="upper right")
     for ax in list(axes.flat)[len(pairs):]:
         ax.axis("off")
     fig.colorbar(sc, ax=axes, label="generation", shrink=0.8)
-    fig.suptitle(f"{len(values)} evaluations; all objectives minimised")
+    fig.suptitle(f"{len(values)} evaluated genomes; all objectives minimised")
     fig.savefig(out, dpi=110)
     plt.close(fig)
     written = [out]
     if m >= 3:
         fig = plt.figure(figsize=(6.5, 5.5), constrained_layout=True)
         ax = fig.add_subplot(projection="3d")
-        ax.scatter(*values[order, :3].T, c=np.asarray(generation)[order], cmap="viridis", s=4, alpha=0.3)
+        near = (values[order, :3] <= front[:, :3].max(0) + 0.65 * np.ptp(front[:, :3], 0)).all(1)
+        ax.scatter(*values[order][near, :3].T, c=np.asarray(generation)[order][near], cmap="viridis", s=4, alpha=0.3)
         ax.scatter(*front[:, :3].T, color="tab:red", s=14, label=f"final front ({len(front)})")
+        lo, hi = front[:, :3].min(0), front[:, :3].max(0)
+        span = np.where(hi - lo > 0, hi - lo, 1.0)
+        top = np.minimum(values[:, :3].max(0), hi + 0.6 * span) + 0.05 * span
+        ax.set_xlim(lo[0] - 0.08 * span[0], top[0])
+        ax.set_ylim(lo[1] - 0.08 * span[1], top[1])
+        ax.set_zlim(lo[2] - 0.08 * span[2], top[2])
         ax.set_xlabel(names[0])
         ax.set_ylabel(names[1])
         ax.set_zlabel(names[2])
@@ -82,7 +90,7 @@ def plot_pareto_run(run: str | Path, out: str | Path | None = None) -> list[Path
     if state.get("kind") != "nsga2":
         raise ValueError(f"{run} holds a {state.get('kind')} run, not an NSGA-II run")
     names = state["objectives"]
-    rows = read_rows(run)
+    rows = [r for r in read_rows(run) if r["new"]]  # each evaluated genome once (not kept survivors again)
     front = read_rows(run, "front.csv")
     known = read_rows(run, "known_front.csv") if (run / "known_front.csv").is_file() else None
     return plot_pareto(np.array([[r[n] for n in names] for r in rows]), np.array([r["generation"] for r in rows]),
