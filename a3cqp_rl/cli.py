@@ -16,7 +16,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "pareto": ("algorithms.tuning.nsga2:main", "NSGA-II multi-objective tuning; --pick K writes a Pareto solution"),
     "plot": ("a3cqp_rl.plotting.cli:main", "policy maps (Fig. 5), loss curves (Fig. 4), GA and Pareto runs"),
     "demo": ("a3cqp_rl.demo:main", "demos, e.g. `a3cqp demo controller` (Panda QP controller in MuJoCo)"),
-    "bench": ("a3cqp_rl.bench_cli:main", "benchmarks: env | train | qp | controller | all"),
+    "bench": ("a3cqp_rl.bench_cli:main", "benchmarks: env | train | qp | controller | tuning | all"),
 }
 
 

@@ -233,3 +233,18 @@ def test_write_best_names_the_run(tmp_path):
     res = tune(_cfg(1), tmp_path / "ga", fitness=toy_fitness, progress=False, plots=False)
     text = write_best(_cfg(1), res, tmp_path / "b.yaml").read_text()
     assert text.startswith("# Best of the GA run in") and "learning_rate =" in text
+
+
+@pytest.mark.slow
+def test_ray_tasks_give_the_same_result_as_local_workers(tmp_path):
+    """A local Ray instance (2 CPUs) runs the trials: the same evaluations as local worker processes."""
+    ray = pytest.importorskip("ray")
+    local = tune(_cfg(2), tmp_path / "local", fitness=toy_fitness, workers=2, progress=False, plots=False)
+    path = f"{ROOT}:{Path(__file__).parent}"  # this checkout and this test module (toy_fitness) for the workers
+    ray.init(num_cpus=2, include_dashboard=False, runtime_env={"env_vars": {"PYTHONPATH": path}})
+    try:
+        remote = tune(_cfg(2), tmp_path / "ray", fitness=toy_fitness, ray="auto", progress=False, plots=False)
+    finally:
+        ray.shutdown()
+    assert _rows(tmp_path / "ray") == _rows(tmp_path / "local")
+    np.testing.assert_array_equal(remote.values, local.values)

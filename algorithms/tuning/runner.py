@@ -8,7 +8,8 @@ Files in OUT:
   objective value(s), seconds (evaluation wall time in its worker, 0 when reused) and new (1 if evaluated in this
   generation, 0 if an earlier value was reused).
 - ``state.json``: after each finished generation (0 = the initial population): the population (pygad's genes u in
-  [0, 1]), its values, and the states of pygad's two random generators. Written atomically.
+  [0, 1]), its values, the states of pygad's two random generators, and the run time at each finished generation.
+  Written atomically.
 
 Resuming restores the population and the random states of the last finished generation and rebuilds the cache of
 evaluated genomes from evaluations.csv, so pygad's next steps draw the same numbers and see the same values: a
@@ -161,6 +162,7 @@ class _Loop:
         self.p, self.cfg, self.out, self.columns, self.cache = problem, cfg, out, columns, cache
         self.state, self.offset = state, start_gen or 0
         self.seconds0 = float(state["seconds"]) if state else 0.0
+        self.times = list(state.get("times", [])) if state else []  # run time at each finished generation [s]
         self.evaluations = int(state["evaluations"]) if state else 0
         self.saved = start_gen if start_gen is not None else -1
         self.fresh: dict[tuple, float] = {}  # genomes evaluated since the last checkpoint -> seconds
@@ -234,13 +236,14 @@ class _Loop:
             f.flush()
             os.fsync(f.fileno())
         seconds = self.seconds0 + time.perf_counter() - self.t0
+        self.times.append(seconds)
         state = {"format": STATE_FORMAT, "kind": self.p.kind, "generation": gen, "generations": self.p.generations,
                  "genes": spec_cols, "scales": [g.scale for g in self.p.spec.genes for _ in range(g.size)],
                  "objectives": list(self.p.objectives), "maximize": self.p.maximize,
                  "population": pop.tolist(), "values": values.tolist(),
                  "numpy_rng": _plain(ga.numpy_random_generator.get_state()),
                  "python_rng": _plain(ga.python_random_generator.getstate()),
-                 "seconds": seconds, "evaluations": self.evaluations}
+                 "seconds": seconds, "times": self.times, "evaluations": self.evaluations}
         _write_atomic(self.out / "state.json", json.dumps(state))
         self.saved = gen
         self.fresh.clear()
