@@ -5,6 +5,8 @@ generation) with S steps per trial, run once with 1 worker and once with 2 (same
 identical evaluations, which is checked). A bred generation's time is the difference of the run times state.json
 records at consecutive generations; the median over the G bred generations is reported, and the full Table V run
 (50 generations) projected as generation 0 + 50 medians. Generation 0 holds 8 trainings plus the workers' start.
+The CPU time of each run (this process and its workers) shows how much of the 2 cores it got: on a shared machine
+the wall times, and so the 2-worker speed-up, depend on what else runs.
 
 NSGA-II: the seconds per generation of `a3cqp pareto` on ZDT1 (population 100: 200 solutions in pygad) with our
 vectorised non-dominated sort (algorithms/tuning/pygad_ga.py) against pygad's own, the same run otherwise.
@@ -31,6 +33,14 @@ if str(_ROOT) not in sys.path:
     sys.path.insert(0, str(_ROOT))
 
 
+def _cpu_seconds() -> float:
+    """CPU time of this process and its finished children (the pool's workers once shut down) [s]."""
+    import resource
+
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def _ga_run(workers: int, generations: int, steps: int, out: Path) -> tuple[list[float], float]:
     """(seconds per bred generation, generation 0's seconds) of one GA run."""
     from a3cqp_rl.config import load_config
@@ -51,13 +61,14 @@ def bench_ga(generations: int, steps: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         res = {}
         for w in (1, 2):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), _cpu_seconds()
             per_gen, gen0 = _ga_run(w, generations, steps, Path(tmp) / f"w{w}")
-            res[w] = (statistics.median(per_gen), gen0, time.perf_counter() - t0)
+            wall, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
+            res[w] = (statistics.median(per_gen), gen0, wall)
             print(f"  {w} worker{'s' if w > 1 else ' '}: median {res[w][0]:6.1f} s per generation "
                   f"(min {min(per_gen):.1f}, max {max(per_gen):.1f}); generation 0 {gen0:.1f} s; "
-                  f"projected Table V run (gen 0 + 50 generations): {(gen0 + 50 * res[w][0]) / 60:.1f} min",
-                  flush=True)
+                  f"projected Table V run (gen 0 + 50 generations): {(gen0 + 50 * res[w][0]) / 60:.1f} min; "
+                  f"CPU {cpu:.0f} s in {wall:.0f} s wall ({cpu / wall:.2f} cores busy)", flush=True)
         same = _csv_without_seconds(Path(tmp) / "w1") == _csv_without_seconds(Path(tmp) / "w2")
     print(f"  2 workers vs 1: {res[1][0] / res[2][0]:.2f}x per generation; identical evaluations: {same}")
     print(f"  load after: {os.getloadavg()[0]:.2f} (2 cores)")
