@@ -27,6 +27,12 @@ __all__ = [
     "A2CConfig",
     "GAConfig",
     "PointMassConfig",
+    "SensorConfig",
+    "OperatorConfig",
+    "PegInHoleConfig",
+    "PolishingConfig",
+    "GuidanceConfig",
+    "PandaEnvConfig",
     "ExperimentConfig",
     "load_config",
     "config_from_dict",
@@ -316,23 +322,302 @@ class PointMassConfig:
 
 
 @dataclass
+class SensorConfig:
+    """Force sensing on the simulated Panda (section V-A): F/T sensor and joint torque sensors; all off by default.
+
+    Noise is white Gaussian per 1 kHz sample and component; a bias is drawn once per episode (Gaussian, the given
+    standard deviation) and stays constant, in the sensor frame for the F/T sensor and per joint for the torques.
+    """
+
+    ft_force_noise: float = 0.0
+    """F/T force noise standard deviation [N]."""
+    ft_torque_noise: float = 0.0
+    """F/T torque noise standard deviation [N m]."""
+    ft_force_bias: float = 0.0
+    """Standard deviation of the per-episode F/T force bias [N]."""
+    ft_torque_bias: float = 0.0
+    """Standard deviation of the per-episode F/T torque bias [N m]."""
+    joint_torque_noise: float = 0.0
+    """Joint torque sensor noise standard deviation [N m] (enters f_ext = J^T† τ_s)."""
+    joint_torque_bias: float = 0.0
+    """Standard deviation of the per-episode joint torque bias [N m]."""
+
+    def _check(self, err: _Errors) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not (v >= 0 and math.isfinite(v)):
+                err.add(f.name, f"must be a finite number >= 0, got {v}")
+
+
+@dataclass
+class OperatorConfig:
+    """Simulated operator: a bounded, delayed, noisy 6-D spring-damper hand holding the handle above the F/T sensor.
+
+    On a grasp the hand's attractor moves from the handle's position to the intent's goal at `speed`, the force
+    f = K (x_hand − x) − D ẋ (x, ẋ of the handle as seen `delay` s ago) fades in over `grip_time`, is clipped to
+    `max_force`, and the hand keeps the grasp orientation with a rotational spring-damper (clipped to `max_torque`).
+    The hand releases (force fades out) `hold_time` after the handle reached the goal, or at `timeout`.
+    """
+
+    stiffness: float = 300.0
+    """Hand translational stiffness K [N/m]."""
+    damping: float = 30.0
+    """Hand translational damping D [N s/m]."""
+    max_force: float = 15.0
+    """Bound on |f_ope| [N] (Table II's f̄_ope)."""
+    rot_stiffness: float = 3.0
+    """Hand rotational stiffness [N m/rad] (the grip keeps the tool's orientation)."""
+    rot_damping: float = 0.3
+    """Hand rotational damping [N m s/rad]."""
+    max_torque: float = 1.0
+    """Bound on the hand's torque [N m]."""
+    delay: float = 0.1
+    """Reaction delay of the hand [s] (it acts on the handle state this long ago)."""
+    noise: float = 0.2
+    """Standard deviation of the hand's force tremor [N] (white, 1 kHz; 0 = none)."""
+    speed: float = 0.1
+    """Speed of the hand's attractor toward the goal [m/s]."""
+    grip_time: float = 0.2
+    """Force fade-in on grasp and fade-out on release [s]."""
+    hold_time: float = 0.5
+    """Time the hand stays at the goal before releasing [s]."""
+    goal_tolerance: float = 0.01
+    """Distance of the handle to the goal counted as reached [m]."""
+    timeout: float = 8.0
+    """The hand releases this long after grasping even if the goal was not reached [s]."""
+
+    def _check(self, err: _Errors) -> None:
+        for name in ("stiffness", "max_force", "speed", "grip_time", "goal_tolerance", "timeout"):
+            err.positive(self, name)
+        for name in ("damping", "rot_stiffness", "rot_damping", "max_torque", "delay", "noise", "hold_time"):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                err.add(name, f"must be a finite number >= 0, got {v}")
+
+
+@dataclass
+class PegInHoleConfig:
+    """Peg-in-hole scene and procedure (paper 000, section VI-B1, Table VI, Fig. 7); lengths in m, times in s.
+
+    Procedure per cycle: home -> approach pose above the hole, offset by the trial's misalignment (translation in a
+    random horizontal direction, tilt about a random horizontal axis) and reached within `approach_tolerance` ->
+    the reference moves to the contact pose (on the hole axis, aligned, tip at the rim): z over `descent_time`,
+    x-y and orientation over `align_time` (both minimum-jerk), so the peg meets the rim misaligned -> first contact
+    (|f_env| > `contact_force`) -> insertion: the reference then goes on down at `insert_speed` to `insert_depth`
+    below the rim (the inserted pose); success when the peg tip is `success_depth` below the rim, inside the bore,
+    within `time_limit` of the first contact. Insertion time = first contact to success. Then the operator
+    disengages the peg (pulls the handle `disengage_lift` up; the reference stays, as in Fig. 7) and, if cycles
+    remain, the reference returns home over `return_time` and the next cycle starts.
+    """
+
+    hole_center: tuple[float, float] = (0.45, 0.0)
+    """Hole axis (x, y) in the arm's base frame [m] (the "known table position")."""
+    hole_top: float = 0.30
+    """Height of the rim [m]."""
+    hole_diameter: float = 0.0205
+    """Hole diameter [m] (paper: Ø 20.5 mm; the peg tool is Ø 20.0 mm)."""
+    hole_depth: float = 0.04
+    """Bore depth [m]."""
+    hole_segments: int = 32
+    """Boxes forming the bore (a3cqp_rl.robot.scenes.HoleGeometry)."""
+    friction: float = 0.3
+    """Sliding friction of the block."""
+    misalign_translation: tuple[float, float] = (0.0123, 0.00424)
+    """Mean and standard deviation of the approach pose's horizontal offset from the hole axis [m] (Table VI)."""
+    misalign_rotation_deg: tuple[float, float] = (3.66, 0.45)
+    """Mean and standard deviation of the approach pose's tilt [deg] (Table VI)."""
+    approach_height: float = 0.03
+    """Peg tip above the rim at the approach pose [m]."""
+    settle_time: float = 0.5
+    """Time at home before the approach [s]."""
+    approach_time: float = 2.0
+    """Minimum-jerk time from home to the approach pose [s]."""
+    approach_tolerance: float = 0.003
+    """Position error [m] below which the approach pose counts as reached (lenient: the pose is misaligned anyway)."""
+    descent_time: float = 1.0
+    """Minimum-jerk time of the reference's descent to the contact pose [s]."""
+    align_time: float = 8.0
+    """Minimum-jerk time of the reference's horizontal and angular alignment with the hole [s]."""
+    insert_speed: float = 0.004
+    """Speed of the reference's descent below the rim after the contact pose [m/s] (a slow ramp: the force an IK
+    reference behind the rim builds is what the agents feel as the first contact)."""
+    insert_depth: float = 0.025
+    """Depth of the inserted pose's tip below the rim, where the reference's descent stops [m]."""
+    contact_force: float = 1.0
+    """Sensed |f_env| [N] that counts as the first contact."""
+    success_depth: float = 0.02
+    """Peg tip depth below the rim that counts as inserted [m]."""
+    time_limit: float = 15.0
+    """Time from the first contact within which the insertion must succeed [s]."""
+    cycles: int = 1
+    """Insertions per episode (Fig. 7 shows three)."""
+    operator_disengage: bool = True
+    """After each insertion the operator pulls the peg out at the handle (else the reference alone returns home)."""
+    disengage_lift: float = 0.12
+    """How far up the operator pulls the handle [m]."""
+    return_time: float = 2.0
+    """Minimum-jerk time of the reference back home between cycles [s]."""
+
+    def _check(self, err: _Errors) -> None:
+        for name in ("hole_top", "hole_diameter", "hole_depth", "approach_height", "approach_time",
+                     "approach_tolerance", "descent_time", "align_time", "contact_force", "success_depth",
+                     "time_limit", "cycles", "return_time", "disengage_lift", "insert_speed", "insert_depth"):
+            err.positive(self, name)
+        if self.insert_depth >= self.hole_depth:
+            err.add("insert_depth", f"must be < hole_depth ({self.hole_depth}), got {self.insert_depth}")
+        for name in ("friction", "settle_time"):
+            if getattr(self, name) < 0:
+                err.add(name, f"must be >= 0, got {getattr(self, name)}")
+        if self.hole_segments < 8:
+            err.add("hole_segments", f"must be >= 8, got {self.hole_segments}")
+        if self.success_depth >= self.hole_depth:
+            err.add("success_depth", f"must be < hole_depth ({self.hole_depth}), got {self.success_depth}")
+        for name in ("misalign_translation", "misalign_rotation_deg"):
+            if any(v < 0 for v in getattr(self, name)):
+                err.add(name, f"mean and standard deviation must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass
+class PolishingConfig:
+    """Polishing scene and procedure (paper 000, section VI-B2, Fig. 8); lengths in m, times in s.
+
+    A disc tool on a plate: rest -> down to the polishing pose (`preload` below the plate's top) -> the x-y
+    reference traces a circle of `circle_radius` for `polish_time` -> the operator relocates the working zone
+    (grasps the handle, lifts by `lift` and moves by the next offset of `relocations`; while grasped the reference
+    follows the tool, as in Fig. 8) -> released, the robot holds the taught pose for `hold_time` -> back down at the
+    new place; one polishing period per relocation.
+    """
+
+    plate_center: tuple[float, float] = (0.45, 0.0)
+    """Plate centre (x, y) [m]."""
+    plate_top: float = 0.25
+    """Height of the plate's top face [m]."""
+    plate_half_size: tuple[float, float] = (0.2, 0.3)
+    """Plate half sides (x, y) [m]."""
+    friction: float = 0.3
+    """Sliding friction of the plate."""
+    start_offset: tuple[float, float] = (0.0, 0.0)
+    """First working zone relative to the plate centre (x, y) [m]."""
+    relocations: tuple[tuple[float, float], ...] = ((0.0, -0.12), (0.0, 0.24), (0.0, -0.12))
+    """Operator moves of the working zone (dx, dy) [m], one after each polishing period."""
+    circle_radius: float = 0.03
+    """Radius of the circular x-y reference [m]."""
+    circle_period: float = 4.0
+    """Period of one circle [s]."""
+    preload: float = 0.005
+    """Polishing pose: disc this far below the plate's top [m]."""
+    rest_time: float = 1.0
+    """Time at rest before the first approach [s]."""
+    approach_time: float = 2.0
+    """Minimum-jerk time down to the polishing pose [s]."""
+    polish_time: float = 10.0
+    """Time on each zone after the approach [s]."""
+    lift: float = 0.06
+    """How far the operator lifts the tool while relocating [m]."""
+    hold_time: float = 1.5
+    """Time the robot holds the taught pose after the operator releases [s]."""
+    contact_force: float = 1.0
+    """Sensed |f_env| [N] that counts as contact."""
+
+    def _check(self, err: _Errors) -> None:
+        for name in ("plate_top", "circle_radius", "circle_period", "approach_time", "polish_time", "contact_force"):
+            err.positive(self, name)
+        for name in ("preload", "rest_time", "lift", "hold_time", "friction"):
+            if getattr(self, name) < 0:
+                err.add(name, f"must be >= 0, got {getattr(self, name)}")
+        if any(h <= 0 for h in self.plate_half_size):
+            err.add("plate_half_size", f"must be > 0, got {self.plate_half_size}")
+        if not self.relocations:
+            err.add("relocations", "needs at least one (dx, dy)")
+
+
+@dataclass
+class GuidanceConfig:
+    """Free guidance: the operator moves the tool to each waypoint and releases it there; the reference is the last
+    released ("taught") pose, so between grasps IK holds it. Lengths in m, times in s."""
+
+    waypoints: tuple[tuple[float, float, float], ...] = ((0.10, 0.10, -0.05), (0.05, -0.15, 0.0),
+                                                          (-0.05, 0.0, 0.05))
+    """Handle goals relative to the handle's position at home (x, y, z) [m], visited in order."""
+    pause: float = 1.5
+    """Time between a release and the next grasp (and before the first) [s]."""
+
+    def _check(self, err: _Errors) -> None:
+        if not self.waypoints:
+            err.add("waypoints", "needs at least one (x, y, z)")
+        if self.pause < 0:
+            err.add("pause", f"must be >= 0, got {self.pause}")
+
+
+@dataclass
+class PandaEnvConfig:
+    """N simulated Pandas with the A3CQP controller and six per-axis agents (paper 000, eq. 25-29, section VI).
+
+    Translational axes use Table II's bounds (AdaptationConfig); Table II has none for the rotational axes of the
+    local frame L, so these are chosen here: ē = 1 rad (the same number as 1 m: "reasonably high"), and torque
+    bounds = Table II's force bounds times a 0.1 m lever (a hand or a contact about 10 cm from the tool tip).
+    """
+
+    scene: Literal["peg_in_hole", "polishing", "guidance"] = "peg_in_hole"
+    """Which scene and procedure (envs/scenarios.py)."""
+    e_max_rot: float = 1.0
+    """ē for the rotational axes [rad]."""
+    f_env_max_rot: float = 3.0
+    """f̄_env for the rotational axes [N m]."""
+    f_ope_max_rot: float = 1.5
+    """f̄_ope for the rotational axes [N m]."""
+    fd_axes: tuple[str, ...] = ("x", "y", "z")
+    """Local translational axes whose agent sets a desired force f_d (eq. 29d); the others, and every rotational
+    axis, keep f_d = 0 (desired torques are zero)."""
+    initial_weights: Literal["ik", "random"] = "ik"
+    """Start of each episode: pure IK with f_d = 0 (w̌ = (σw/2, −σw/2, −σw/2)), or random like the point mass."""
+    max_episode_time: float = 120.0
+    """Episodes are truncated after this simulated time [s] even if the procedure has not finished."""
+    state_leak: Literal["per_axis", "controller"] = "per_axis"
+    """How the controller's integrated references q*, q̇* (eq. 6-7) relax toward the measured state where IK does
+    not lead: "controller" = ControllerOptions.desired_state_leak as is (one rate for all joints, set by the
+    smallest w1 of the six axes); "per_axis" = the same rate times (1 − w1) of each local axis, so that force control
+    on z leaves the integral action of eq. 5-7 on the axes IK still tracks (without it the peg stays on the rim,
+    held by friction: docs/panda.md)."""
+    divergence_speed_factor: float = 3.0
+    """A robot whose joint speed exceeds this multiple of its datasheet limit counts as diverged."""
+    divergence_penetration: float = 0.01
+    """A robot with a contact deeper than this [m] counts as diverged."""
+    operator: OperatorConfig = field(default_factory=OperatorConfig)
+    sensors: SensorConfig = field(default_factory=SensorConfig)
+    peg_in_hole: PegInHoleConfig = field(default_factory=PegInHoleConfig)
+    polishing: PolishingConfig = field(default_factory=PolishingConfig)
+    guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
+
+    def _check(self, err: _Errors) -> None:
+        for name in ("e_max_rot", "f_env_max_rot", "f_ope_max_rot", "max_episode_time", "divergence_speed_factor",
+                     "divergence_penetration"):
+            err.positive(self, name)
+        bad = [a for a in self.fd_axes if a not in ("x", "y", "z")]
+        if bad or len(set(self.fd_axes)) != len(self.fd_axes):
+            err.add("fd_axes", f"must be distinct names among x, y, z, got {list(self.fd_axes)}")
+
+
+@dataclass
 class ExperimentConfig:
     """One experiment: environment, adaptation law, reward, learner, GA and controller settings."""
 
     seed: int = 0
     """Random seed (torch, numpy, environments)."""
     env: str = "point_mass"
-    """Environment name (``point_mass``)."""
+    """Environment name (``point_mass`` or ``panda``)."""
     point_mass: PointMassConfig = field(default_factory=PointMassConfig)
     adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
     a2c: A2CConfig = field(default_factory=A2CConfig)
     ga: GAConfig = field(default_factory=GAConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
+    panda: PandaEnvConfig = field(default_factory=PandaEnvConfig)
+    """The simulated Panda env (envs/panda.py): scene, operator, sensing, the rotational-axis bounds."""
 
     def _check(self, err: _Errors) -> None:
-        if self.env not in ("point_mass",):
-            err.add("env", f"unknown environment {self.env!r}; choose from ['point_mass']")
+        if self.env not in ("point_mass", "panda"):
+            err.add("env", f"unknown environment {self.env!r}; choose from ['point_mass', 'panda']")
         if self.point_mass.episode_steps < self.a2c.n_steps:
             # fused rollouts draw one pending episode per env per iteration
             err.add("point_mass.episode_steps", f"must be >= a2c.n_steps ({self.a2c.n_steps}), got {self.point_mass.episode_steps}")
