@@ -134,7 +134,7 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
     n = env.num_envs
     latched, since = np.zeros(n, dtype=bool), np.zeros(n)
     rec_arms = np.arange(len(controllers)) * trials  # trial 0 of each controller
-    episodes = {c: {k: [] for k in RECORD_KEYS + env.signal_keys} for c in controllers}
+    episodes = {c: {k: [] for k in RECORD_KEYS + env.signal_keys + ("q",)} for c in controllers}
     td = env.reset()
     finished = np.zeros(n, dtype=bool)
     t_wall = time.perf_counter()
@@ -155,7 +155,7 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
         for c, arm in zip(controllers, rec_arms):
             if not finished[arm]:
                 for k in episodes[c]:
-                    episodes[c][k].append(td[k][arm].numpy().copy())
+                    episodes[c][k].append(env.q[arm].copy() if k == "q" else td[k][arm].numpy().copy())
         finished |= td["done"].reshape(n).numpy()
         if steps % 100 == 0:
             bar.update(min(1.0, max(0.0, limit - bar.n)))
@@ -169,7 +169,9 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
         m = {k: np.asarray(v)[sl] for k, v in metrics.items()}
         summary[c] = _summarise(env.scene.name, m)
         per_trial[c] = {k: _json_list(v) for k, v in m.items()}
-    eps = {c: {k: np.asarray(v) for k, v in rec.items()} for c, rec in episodes.items()}
+    meta = {"scene": env.scene.name, "tool": env.scene.tool, "scene_xml": env.scene.mjcf(),
+            "phase_names": np.array(env.scene.phase_names), "phase_task": np.array(env.scene.phase_task)}
+    eps = {c: {**{k: np.asarray(v) for k, v in rec.items()}, **meta} for c, rec in episodes.items()}
     return EvalResult(scene=env.scene.name, summary=summary, per_trial=per_trial, episodes=eps, seconds=seconds,
                       sim_seconds=float(steps * env.adapt.dt * n))
 
@@ -334,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
         out = Path(args.out)
         _write_json(out / "results.json", doc)
         for c, ep in res.episodes.items():
-            np.savez_compressed(out / f"episode_{c}.npz", scene=res.scene, **ep)
+            np.savez_compressed(out / f"episode_{c}.npz", **ep)
         print(f"wrote {out}/results.json and {out}/episode_<controller>.npz (plot: a3cqp plot episode {out})")
     return 0
 
