@@ -359,10 +359,11 @@ class OperatorConfig:
     The hand releases (force fades out) `hold_time` after the handle reached the goal, or at `timeout`.
     """
 
-    stiffness: float = 300.0
+    stiffness: float = 200.0
     """Hand translational stiffness K [N/m]."""
-    damping: float = 30.0
-    """Hand translational damping D [N s/m]."""
+    damping: float = 60.0
+    """Hand translational damping D [N s/m] (with the 0.1 s delay, K = 300 / D = 30 sets the admittance of Table I
+    oscillating; a human arm holding a handle is well damped)."""
     max_force: float = 15.0
     """Bound on |f_ope| [N] (Table II's f̄_ope)."""
     rot_stiffness: float = 3.0

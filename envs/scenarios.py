@@ -430,6 +430,8 @@ class Polishing(Scene):
     phase_task = ("IK", "IK", "FC", "AC", "IK", "IK")
     RAMP = 1.0
     """Seconds over which the circle's radius grows from 0 (so the reference starts where the tool is)."""
+    DISC_RADIUS = 0.0625
+    """Radius of the polishing disc of tool_disc.xml [m]."""
 
     def __init__(self, n: int, operator: Operator, home_pos: np.ndarray, home_rot: np.ndarray,
                  cfg: PolishingConfig) -> None:
@@ -487,7 +489,7 @@ class Polishing(Scene):
             self.pos_d[a, 1] = self.zone[a, 1] + rho * (1.0 - np.cos(ang))
             self.pos_d[a, 2] = self._polish_z()
             steady = tau >= self.RAMP  # metrics on the full circle only
-            fz, fdz = -inp.f_env[a, 2], inp.f_d[a, 2]  # force the plate pushes up = pressing force along local z
+            fz, fdz = inp.f_env[a, 2], inp.f_d[a, 2]  # the plate pushes the disc up (world +z): the pressing force
             con = fz > c.contact_force
             acc = self._acc
             acc["n_pol"][a] += steady
@@ -527,7 +529,11 @@ class Polishing(Scene):
                 em = np.isin(arms, end)
                 self.period[end] += 1
                 more = em & (self.period < len(c.relocations))
-                self.zone[more] = self.pos_d[more, :2]
+                # the new working zone is where the operator left the tool, kept on the plate (disc and circle inside)
+                margin = np.array(c.plate_half_size) - (self.DISC_RADIUS + c.circle_radius + 0.01)
+                centre = np.array(c.plate_center)
+                self.zone[more] = np.clip(self.pos_d[more, :2], centre - np.maximum(margin, 0.0),
+                                          centre + np.maximum(margin, 0.0))
                 self.from_pos[more] = self.pos_d[more]
                 self._enter(more, self.APPROACH, t)
                 self._enter(em & ~more, self.DONE, t)
@@ -541,7 +547,6 @@ class Polishing(Scene):
                 "contact_force": np.where(a["n_con"] > 0, a["f_con"] / n_con, np.nan),
                 "tracking_error": np.sqrt(a["trk2"] / np.maximum(a["n_pol"], 1.0)),
                 "relocation_force": np.where(a["n_rel"] > 0, a["f_rel"] / np.maximum(a["n_rel"], 1.0), np.nan),
-                "relocation_force_peak": a["f_rel_max"].copy(),
                 "zones_reached": self.zone_reached.mean(axis=1)}
 
     def signals(self, inp: SceneInput) -> dict[str, np.ndarray]:
