@@ -449,6 +449,11 @@ def train(
         raise ValueError(f"total_steps must be > 0, got {total}")
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
+    if env is None and cfg.env == "panda":  # the six per-axis agents of num_envs simulated Pandas, one shared policy
+        from envs.panda import PandaAxisAgents
+
+        env = PandaAxisAgents(hp.num_envs, cfg, seed=cfg.seed)
+        env.reset()
     if env is None:
         from envs.point_mass import PointMassEnv
 

@@ -40,7 +40,7 @@ from a3cqp_rl.control.frames import pose_error
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaModel, PandaSim
 from envs.scenarios import Operator, Scene, SceneInput, make_scene, rotvec_to_matrix
 
-__all__ = ["PandaEnv", "AXES", "INFO_KEYS"]
+__all__ = ["PandaEnv", "PandaAxisAgents", "AXES", "INFO_KEYS"]
 
 logger = logging.getLogger(__name__)
 
@@ -468,3 +468,54 @@ class PandaEnv(EnvBase):
 def _softmax(x: np.ndarray) -> np.ndarray:
     z = np.exp(x - x.max(-1, keepdims=True))
     return z / z.sum(-1, keepdims=True)
+
+
+class PandaAxisAgents(EnvBase):
+    """PandaEnv seen as N·6 independent agents (batch_size=[N·6]): obs [N·6, 3], action [N·6, 4], reward [N·6, 1].
+
+    The six per-axis agents of every arm share one policy (paper 000, section IV), so a learner that treats them as
+    a batch of separate environments (algorithms.a2c through a TorchRL collector) trains that shared policy. An arm's
+    episode ends for all six of its agents; a reset request for any of them resets the arm.
+    """
+
+    _has_dynamic_specs = False
+
+    def __init__(self, num_envs: int, config: ExperimentConfig | None = None, seed: int | None = None,
+                 **kwargs) -> None:
+        inner = PandaEnv(num_envs, config, seed=seed, **kwargs)
+        n = num_envs * 6
+        super().__init__(device=inner.device, batch_size=torch.Size([n]))
+        self.inner = inner
+        self.num_arms = num_envs
+        f32, dev = torch.float32, self.device
+        self.observation_spec = Composite(observation=Bounded(0.0, 1.0, shape=(n, 3), dtype=f32, device=dev),
+                                          shape=(n,))
+        self.action_spec = Bounded(-1.0, 1.0, shape=(n, 4), dtype=f32, device=dev)
+        self.reward_spec = Unbounded(shape=(n, 1), dtype=f32, device=dev)
+        flag = Categorical(2, shape=(n, 1), dtype=torch.bool, device=dev)
+        self.done_spec = Composite(done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=(n,))
+
+    def _flat(self, td: TensorDictBase, reward: bool) -> TensorDictBase:
+        n = self.batch_size[0]
+        out = {"observation": td["observation"].reshape(n, 3)}
+        for k in ("done", "terminated", "truncated"):
+            out[k] = td[k].repeat_interleave(6, dim=0)
+        if reward:
+            out["reward"] = td["reward"].reshape(n, 1)
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        inner = None
+        if mask is not None:
+            arms = mask.reshape(self.num_arms, 6).any(-1, keepdim=True)
+            inner = TensorDict({"_reset": arms}, batch_size=self.inner.batch_size)
+        return self._flat(self.inner._reset(inner), reward=False)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action").reshape(self.num_arms, 6, 4)
+        td = TensorDict({"action": action}, batch_size=self.inner.batch_size)
+        return self._flat(self.inner._step(td), reward=True)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.inner._set_seed(seed)

@@ -242,3 +242,25 @@ def test_joint_and_torque_limits_hold_under_random_actions() -> None:
 def test_joint_and_torque_limits_hold_over_many_random_episodes(seed: int) -> None:
     worst_q, worst_tau, diverged = _random_episodes(8, 3000, seed=seed)
     assert worst_q < 0.0 and worst_tau <= 1.0 + 1e-12 and diverged == 0
+
+
+def test_axis_agents_view_trains_one_shared_policy_with_a2c(tmp_path) -> None:  # noqa: ANN001
+    from a3cqp_rl.config import load_config
+    from algorithms.a2c import train
+    from envs.panda import PandaAxisAgents
+
+    env = PandaAxisAgents(2, _cfg(), seed=0)
+    check_env_specs(env)
+    td = env.reset()
+    assert td["observation"].shape == (12, 3)
+    td["action"] = torch.zeros(12, 4)
+    out = env.step(td)["next"]
+    assert out["reward"].shape == (12, 1) and out["done"].shape == (12, 1)
+    # a reset request for one agent resets its arm (all six agents)
+    env.inner.t[:] = 5.0
+    env.reset(out.empty().set("_reset", torch.tensor([[False]] * 6 + [[True]] + [[False]] * 5)))
+    assert env.inner.t.tolist() == [5.0, 0.0]
+    cfg = load_config("configs/panda_a2c.yaml", {"a2c": {"num_envs": 1, "n_steps": 4, "compile": False,
+                                                          "region_checks": 0}})
+    res = train(cfg, tmp_path / "run", total_steps=240)
+    assert res.steps == 240 and load_policy(res.policy_path)(torch.zeros(6, 3)).shape == (6, 4)
