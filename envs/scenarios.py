@@ -421,8 +421,10 @@ class PegInHole(Scene):
 
 
 class Polishing(Scene):
-    """Polishing (paper 000, Fig. 8); see PolishingConfig. Metrics: contact-force error and contact fraction while
-    polishing, circle tracking error, |f_ope| while the operator relocates the zone."""
+    """Polishing (paper 000, Fig. 8); see PolishingConfig. Metrics over the full circles of the polishing phases:
+    fraction of samples in contact, mean pressing force and mean |pressing force − f_d| (every sample, in contact or
+    not), x-y tracking error (RMS); mean |f_ope| while the operator relocates the zone, and how often the hand
+    reached its relocation goal."""
 
     name, tool = "polishing", "disc"
     REST, APPROACH, POLISH, RELOCATE, HOLD, DONE = range(6)
@@ -494,8 +496,8 @@ class Polishing(Scene):
             acc = self._acc
             acc["n_pol"][a] += steady
             acc["n_con"][a] += steady & con
-            acc["f_err"][a] += np.where(steady & con, np.abs(fz - fdz), 0.0)
-            acc["f_con"][a] += np.where(steady & con, fz, 0.0)
+            acc["f_err"][a] += np.where(steady, np.abs(fz - fdz), 0.0)  # every polishing sample, in contact or not
+            acc["f_con"][a] += np.where(steady, fz, 0.0)
             acc["trk2"][a] += np.where(steady, np.sum((inp.pos[a, :2] - self.pos_d[a, :2]) ** 2, axis=1), 0.0)
             end = a[tau >= c.polish_time]
             if len(end):
@@ -541,10 +543,10 @@ class Polishing(Scene):
 
     def metrics(self) -> dict[str, np.ndarray]:
         a = self._acc
-        n_con = np.maximum(a["n_con"], 1.0)
-        return {"contact_fraction": a["n_con"] / np.maximum(a["n_pol"], 1.0),
-                "force_error": np.where(a["n_con"] > 0, a["f_err"] / n_con, np.nan),
-                "contact_force": np.where(a["n_con"] > 0, a["f_con"] / n_con, np.nan),
+        n_pol = np.maximum(a["n_pol"], 1.0)
+        return {"contact_fraction": a["n_con"] / n_pol,
+                "force_error": np.where(a["n_pol"] > 0, a["f_err"] / n_pol, np.nan),
+                "contact_force": np.where(a["n_pol"] > 0, a["f_con"] / n_pol, np.nan),
                 "tracking_error": np.sqrt(a["trk2"] / np.maximum(a["n_pol"], 1.0)),
                 "relocation_force": np.where(a["n_rel"] > 0, a["f_rel"] / np.maximum(a["n_rel"], 1.0), np.nan),
                 "zones_reached": self.zone_reached.mean(axis=1)}
