@@ -329,7 +329,8 @@ def _backward_torch(P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Te
         if bool((info == 0).all()):
             x_u = torch.cholesky_solve(gx.unsqueeze(-1), L).squeeze(-1)
             wx, wnu, res = kkt_schur(L, x_u, Ps, -gx, C, zr, mask)
-    if res is None or not bool((res <= tol_w * (1.0 + wnu.abs().amax(-1, initial=0.0) if wnu.numel() else tol_w)).all()):
+    nu_max = wnu.abs().amax(-1) if wnu is not None and wnu.shape[-1] else 0.0
+    if res is None or not bool((res <= tol_w * (1.0 + nu_max)).all()):
         # Singular KKT (dependent active rows, P singular on their null space): the augmented
         # Lagrangian is exact in the limit and stays well posed.
         wx, wnu, _, _ = eq_solve_alm(Ps, -gx, C, zr, mask, zr, torch.zeros_like(x), 0.1 * tol_w)
