@@ -100,9 +100,34 @@ def _ipm_polished(
     return xi, yi, zi, si, ii, polished
 
 
+def _farkas(A: Tensor, b: Tensor, G: Tensor, h: Tensor, tol: float, max_iter: int) -> tuple[Tensor, Tensor]:
+    """Instances proven infeasible by a Farkas certificate [B] (bool), and the iterations spent.
+
+    The certificate (z ≥ 0, y) with Gᵀz + Aᵀy = 0 and hᵀz + bᵀy = −1 exists exactly when no x satisfies
+    Ax = b, Gx ≤ h; the one of least norm solves the strictly convex QP
+    min ½(|z|² + |y|²) s.t. those n + 1 equalities, z ≥ 0 — solved by this route (rows scaled to unit
+    norm first).  Its equalities held to tol mean every feasible x would need |x|₁ ≳ 1 / tol."""
+    B, m, n = G.shape
+    p = A.shape[1]
+    nG = G.norm(dim=-1)
+    nG = torch.where(nG > 0, nG, torch.ones((), dtype=G.dtype))
+    nA = A.norm(dim=-1).clamp_min(1e-30)
+    Gs, hs, As, bs = G / nG.unsqueeze(-1), h / nG, A / nA.unsqueeze(-1), b / nA
+    k = m + p
+    Mt = torch.cat([Gs, As], 1).mT  # (B, n, k): Gᵀz + Aᵀy
+    top = torch.cat([hs, bs], 1).unsqueeze(1)  # (B, 1, k): hᵀz + bᵀy
+    Aeq = torch.cat([Mt, top], 1)
+    beq = torch.cat([G.new_zeros(B, n), G.new_full((B, 1), -1.0)], 1)
+    eye = torch.eye(k, dtype=G.dtype, device=G.device).expand(B, k, k)
+    Gin = -eye[:, :m]  # −z ≤ 0
+    _, _, _, st, it = solve_torch(eye, G.new_zeros(B, k), Aeq, beq, Gin, G.new_zeros(B, m), None, tol, max_iter, None,
+                                  farkas=False)
+    return st == int(QPStatus.SOLVED), it
+
+
 def _solve_convex(
     P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
-    tol: float, max_iter: int, active_set_iter: int | None,
+    tol: float, max_iter: int, active_set_iter: int | None, farkas: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Active-set stage on the whole batch, interior point for what it leaves; x, y, z, status, iterations."""
     B, n = q.shape
@@ -125,15 +150,28 @@ def _solve_convex(
     if redo.numel():
         xr, yr, zr, sr, ir, _ = _ipm_polished(*(t.index_select(0, redo) for t in sub), tol, tol, max_iter)
         xi[redo], yi[redo], zi[redo], si[redo], ii[redo] = xr, yr, zr, sr, ii[redo] + ir
+    # Without a verdict, or with a recession direction: is there a feasible point at all?  An LP can
+    # be both infeasible and have a recession direction (infeasible is then the answer, as
+    # Clarabel's), and an interior point can stall on an infeasible instance without its Farkas
+    # certificate; `_farkas` looks for that certificate directly.
+    again = ((si == int(QPStatus.MAX_ITER)) | (si == int(QPStatus.DUAL_INFEASIBLE))).nonzero().squeeze(-1)
+    if again.numel() and farkas:
+        A_, b_, G_, h_ = (t.index_select(0, again) for t in sub[2:6])
+        infeasible, itf = _farkas(A_, b_, G_, h_, tol, max_iter)
+        si[again] = torch.where(infeasible, int(QPStatus.PRIMAL_INFEASIBLE), si[again])
+        ii[again] += itf
     x[bad], y[bad], z[bad], status[bad], iters[bad] = xi, yi, zi, si, iters[bad] + ii
     return x, y, z, status, iters
 
 
 def solve_torch(
     P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
-    tol: float, max_iter: int, active_set_iter: int | None,
+    tol: float, max_iter: int, active_set_iter: int | None, farkas: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Solve a canonical float64 batch (see the module docstring); returns x, y, z, status, iterations.
+
+    `farkas`: look for a Farkas certificate where the interior point ends without a verdict or with a
+    recession direction (False inside that search itself).
 
     Instances not SOLVED get x = 0, y = 0, z = 0 unless they stopped at MAX_ITER or
     TOLERANCE_NOT_MET (then x is the last iterate, finite)."""
@@ -160,7 +198,7 @@ def solve_torch(
             zw = None
             if z_warm is not None and G.shape[1]:
                 zw = z_warm if go_all else z_warm.index_select(0, idx)
-            xs, ys, zs, ss, its = _solve_convex(Ps, qs, As, bs, Gs, hs, zw, tol, max_iter, active_set_iter)
+            xs, ys, zs, ss, its = _solve_convex(Ps, qs, As, bs, Gs, hs, zw, tol, max_iter, active_set_iter, farkas)
             zs = zs[:, : G.shape[1]]
             # Never hand NaN/inf to the caller: a failed instance keeps a finite (if meaningless) x.
             xs, ys = torch.nan_to_num(xs, nan=0.0, posinf=0.0, neginf=0.0), torch.nan_to_num(ys, nan=0.0, posinf=0.0, neginf=0.0)

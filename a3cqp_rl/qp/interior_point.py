@@ -12,6 +12,15 @@ from a3cqp_rl.qp.status import QPStatus
 __all__ = ["NormalEquations", "max_step", "interior_point"]
 
 
+STATIC_REG = 1e-9
+"""Static regularisation of the Newton matrix P + GᵀDG, relative to 1 + max diag(P) (rows are unit-norm
+here).  Where P is singular along directions no row fixes (LPs, optimal faces), the matrix is singular
+there; a regularisation tied to P's mean curvature (zero for an LP) left those directions to rounding
+and the steps collapsed (measured: 6 of 30 random LPs with unbounded optimal faces stalled at
+MAX_ITER); relative to the whole matrix (whose diagonal grows as z/s ~ 1/μ on active rows) it swamped
+the inactive directions and the dual residual stalled instead."""
+
+
 class NormalEquations:
     """Factorisation of [[H, Aᵀ], [A, 0]] via H + ρAᵀA (kept SPD) and a p × p Schur complement."""
 
@@ -56,7 +65,9 @@ def interior_point(
     dt = q.dtype
     eye = torch.eye(n, dtype=dt, device=q.device)
     scale = diag_scale(P)
-    reg = (1e-10 * scale)[:, None, None] * eye
+    # Static regularisation on the scale of the data (unit-norm rows, P's largest curvature), not of
+    # the Newton matrix, whose diagonal grows with the barrier weights z/s of the active rows.
+    reg = (STATIC_REG * (1.0 + P.diagonal(dim1=-2, dim2=-1).abs().amax(-1)))[:, None, None] * eye
     _, sd = residual_scales(q, b, h)
     tol_d = tol * sd  # complementarity (μ), per instance
 
