@@ -66,25 +66,43 @@ _F64 = torch.float64
 class QPSolution:
     """Solution of a batch of QPs; duals follow L = ½xᵀPx + qᵀx + yᵀ(Ax − b) + zᵀ(Gx − h) + z_lbᵀ(lb − x) + z_ubᵀ(x − ub).
 
-    Fields are tensors in the dtype of `q` (status and iterations int64); on the C route they are
-    made from the solver's numpy buffers when first read (each tensor costs ~1 µs at B = 1).
+    Fields are tensors in the dtype of `q` (status and iterations int64).  On the C route they are views
+    of the solver's output buffer, made when first read (a tensor costs ~1 µs at B = 1).
     """
 
-    __slots__ = ("_x", "_y", "_z", "_z_lb", "_z_ub", "_status", "_iterations", "_dtype", "_duals")
+    __slots__ = ("_x", "_y", "_z", "_z_lb", "_z_ub", "_status", "_iterations", "_dtype", "_buf", "_addr", "_dims")
 
     def __init__(self, x: Tensor, y: Tensor, z: Tensor, z_lb: Tensor, z_ub: Tensor, status: Tensor,
                  iterations: Tensor) -> None:
         self._x, self._y, self._z, self._z_lb, self._z_ub = x, y, z, z_lb, z_ub
         self._status, self._iterations = status, iterations
-        self._dtype = x.dtype if isinstance(x, Tensor) else _F64
-        self._duals = None
+        self._dtype = x.dtype
+        self._buf = None
+
+    @classmethod
+    def _from_buffer(cls, buf: np.ndarray, addr: int, B: int, n: int, p: int, m: int) -> "QPSolution":
+        """A solution over gi_qp_solve's output buffer: x [B·n] | duals [B·(p + m + 2n)] | status [B] | solves [B]."""
+        sol = cls.__new__(cls)
+        sol._buf, sol._addr, sol._dims, sol._dtype = buf, addr, (B, n, p, m), _F64
+        sol._x = sol._y = sol._z = sol._z_lb = sol._z_ub = sol._status = sol._iterations = None
+        return sol
+
+    def _np(self, name: str) -> np.ndarray:
+        """numpy view of one field of the output buffer."""
+        B, n, p, m = self._dims
+        buf, nout = self._buf, p + m + 2 * n
+        if name == "_x":
+            return buf[: B * n].reshape(B, n)
+        if name in ("_status", "_iterations"):
+            k = B * (n + nout) + (B if name == "_iterations" else 0)
+            return buf[k : k + B].view(np.int64)
+        lo, hi = {"_y": (0, p), "_z": (p, p + m), "_z_lb": (p + m, p + m + n), "_z_ub": (p + m + n, nout)}[name]
+        return buf[B * n : B * (n + nout)].reshape(B, nout)[:, lo:hi]
 
     def _get(self, name: str) -> Tensor:
         v = getattr(self, name)
-        if isinstance(v, np.ndarray):
-            v = torch.from_numpy(v)
-            if v.is_floating_point() and self._dtype != _F64:
-                v = v.to(self._dtype)
+        if v is None:
+            v = torch.from_numpy(self._np(name))
             setattr(self, name, v)
         return v
 
@@ -247,8 +265,8 @@ def _forward_c(
     lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Tensor | None, G: Tensor | None,
     h: Tensor | None, lb: Tensor | None, ub: Tensor | None, B: int, n: int, p: int, m: int,
     warm: tuple[np.ndarray, int, int] | None, tol: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One gi_qp_solve call on float64 CPU tensors; returns numpy x [B, n], duals [B, p + m + 2n], status, solves."""
+) -> tuple[np.ndarray, int, int]:
+    """One gi_qp_solve call on float64 CPU tensors (any batch layout); returns (output buffer, its address, worst status)."""
     keep = [_c_arg(P, 3, B), _c_arg(q, 2, B), _c_arg(A, 3, B), _c_arg(b, 2, B), _c_arg(G, 3, B), _c_arg(h, 2, B),
             _c_arg(lb, 2, B), _c_arg(ub, 2, B)]
     nout = p + m + 2 * n
@@ -256,17 +274,17 @@ def _forward_c(
     o = address(out)
     z0, z0_stride = (warm[1], warm[2]) if warm is not None else (0, 0)
     stride = _strides((*(k[2] for k in keep), z0_stride))
-    lib.solve(B, n, p, m, *(k[1] for k in keep), z0, address(stride), tol, MAX_STEPS,
-              o, o + 8 * B * n, o + 8 * B * (n + nout), o + 8 * B * (n + nout + 1))
-    codes = out[B * (n + nout):].view(np.int64)
-    return out[: B * n].reshape(B, n), out[B * n : B * (n + nout)].reshape(B, nout), codes[:B], codes[B:]
+    worst = lib.solve(B, n, p, m, *(k[1] for k in keep), z0, address(stride), tol, MAX_STEPS,
+                      o, o + 8 * B * n, o + 8 * B * (n + nout), o + 8 * B * (n + nout + 1))
+    if worst < 0:
+        raise MemoryError("a3cqp_rl.qp: the C route could not allocate its workspace")
+    return out, o, worst
 
 
 def _warm_duals(warm_start: "QPSolution", B: int, n: int, p: int, m: int) -> tuple[np.ndarray, int, int]:
     """Warm-start multipliers for the C route as (array kept alive, address of z | z_lb | z_ub, stride)."""
-    d = warm_start._duals
-    if d is not None and d.shape == (B, p + m + 2 * n):  # the previous C solve's own buffer: no copies
-        return d, address(d) + 8 * p, p + m + 2 * n
+    if warm_start._buf is not None and warm_start._dims == (B, n, p, m):  # a C solve's own buffer: no copies
+        return warm_start._buf, warm_start._addr + 8 * (B * n + p), p + m + 2 * n
     parts = [warm_start.z, warm_start.z_lb, warm_start.z_ub]
     want = ((B, m), (B, n), (B, n))
     for t, w, nm in zip(parts, want, ("z", "z_lb", "z_ub")):
@@ -274,6 +292,60 @@ def _warm_duals(warm_start: "QPSolution", B: int, n: int, p: int, m: int) -> tup
             raise QPShapeError(f"warm_start.{nm} has shape {tuple(t.shape)}, expected {w}")
     z0 = np.ascontiguousarray(torch.cat([t.detach().to(_F64).cpu() for t in parts], 1).numpy())
     return z0, address(z0), m + 2 * n
+
+
+def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Tensor | None, G: Tensor | None,
+            h: Tensor | None, lb: Tensor | None, ub: Tensor | None, warm_start: QPSolution | None, tol: float,
+            max_iter: int, active_set_iter: int | None) -> QPSolution | None:
+    """The C route for the common call (every argument a batched, contiguous float64 CPU tensor of one batch
+    size, no gradients), straight from the tensors' data to gi_qp_solve and back; None when the call does
+    not fit (the general path then checks, explains and converts)."""
+    if type(P) is not Tensor or q.dim() != 2 or P.dtype is not _F64 or not (P.is_cpu and q.is_contiguous() and P.is_contiguous()):
+        return None
+    B, n = q.shape
+    if P.shape != (B, n, n):
+        return None
+    p = m = 0
+    pA = pb = pG = ph = pl = pu = 0
+    if A is not None:
+        if type(A) is not Tensor or type(b) is not Tensor or A.dtype is not _F64 or b.dtype is not _F64 or A.dim() != 3:
+            return None
+        p = A.shape[1]
+        if A.shape != (B, p, n) or b.shape != (B, p) or not (A.is_cpu and b.is_cpu and A.is_contiguous() and b.is_contiguous()):
+            return None
+        pA, pb = A.data_ptr(), b.data_ptr()
+    if G is not None:
+        if type(G) is not Tensor or type(h) is not Tensor or G.dtype is not _F64 or h.dtype is not _F64 or G.dim() != 3:
+            return None
+        m = G.shape[1]
+        if G.shape != (B, m, n) or h.shape != (B, m) or not (G.is_cpu and h.is_cpu and G.is_contiguous() and h.is_contiguous()):
+            return None
+        pG, ph = G.data_ptr(), h.data_ptr()
+    if lb is not None:
+        if type(lb) is not Tensor or lb.dtype is not _F64 or lb.shape != (B, n) or not (lb.is_cpu and lb.is_contiguous()):
+            return None
+        pl = lb.data_ptr()
+    if ub is not None:
+        if type(ub) is not Tensor or ub.dtype is not _F64 or ub.shape != (B, n) or not (ub.is_cpu and ub.is_contiguous()):
+            return None
+        pu = ub.data_ptr()
+    nout = p + m + 2 * n
+    z0 = zs = 0
+    keep = None
+    if warm_start is not None:
+        keep, z0, zs = _warm_duals(warm_start, B, n, p, m)
+    stride = _strides((n * n, n, p * n, p, m * n, m, n, n, zs))
+    buf = np.empty(B * (n + nout + 2))
+    o = address(buf)
+    worst = lib.solve(B, n, p, m, P.data_ptr(), q.data_ptr(), pA, pb, pG, ph, pl, pu, z0, address(stride), tol, MAX_STEPS,
+                      o, o + 8 * B * n, o + 8 * B * (n + nout), o + 8 * B * (n + nout + 1))
+    del keep
+    sol = QPSolution._from_buffer(buf, o, B, n, p, m)
+    if worst >= native.HANDED_ON:  # some instances need the torch route
+        _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
+    elif worst < 0:
+        raise MemoryError("a3cqp_rl.qp: the C route could not allocate its workspace")
+    return sol
 
 
 # ----------------------------------------------------------------------------------------------
@@ -295,9 +367,10 @@ def _solve_canonical(
     if z_warm is not None:
         z0 = np.ascontiguousarray(torch.cat([z_warm.detach(), z_warm.new_zeros(B, 2 * n)], 1).numpy())
         warm = (z0, address(z0), m + 2 * n)
-    xn, dn, st, it = _forward_c(lib, P, q, A, b, G, h, None, None, B, n, p, m, warm, tol)
-    x, y, z = torch.from_numpy(xn), torch.from_numpy(dn[:, :p]), torch.from_numpy(dn[:, p : p + m])
-    status, iters = torch.from_numpy(st), torch.from_numpy(it)
+    buf, addr, _ = _forward_c(lib, P, q, A, b, G, h, None, None, B, n, p, m, warm, tol)
+    c = QPSolution._from_buffer(buf, addr, B, n, p, m)
+    st = c._np("_status")
+    x, y, z, status, iters = c.x, c.y, c.z, c.status, c.iterations
     left = np.flatnonzero(st >= native.HANDED_ON)
     if left.size == 0:
         return x, y, z, status, iters, bool((st == 0).all())
@@ -424,10 +497,8 @@ def solve_qp(
     through x (implicit differentiation of the KKT system).  Returns a `QPSolution` whose `status`
     says per instance whether x is an answer (never raises on a bad instance; see `status.py`).
     """
-    if not isinstance(q, Tensor):
-        P, q, A, b, G, h, lb, ub = (_as_tensor(t, nm) for t, nm in zip((P, q, A, b, G, h, lb, ub), "P q A b G h lb ub".split()))
-    elif not isinstance(P, Tensor) or any(t is not None and not isinstance(t, Tensor) for t in (A, b, G, h, lb, ub)):
-        P, A, b, G, h, lb, ub = (_as_tensor(t, nm) for t, nm in zip((P, A, b, G, h, lb, ub), "P A b G h lb ub".split()))
+    if type(q) is not Tensor:
+        q = _as_tensor(q, "q")
     qd = q.dim()
     if qd not in (1, 2):
         raise QPShapeError(f"q must be [B, n] or [n], got shape {tuple(q.shape)}")
@@ -437,14 +508,22 @@ def solve_qp(
     if (A is None) != (b is None) or (G is None) != (h is None):
         raise QPShapeError("A and b (and G and h) must be given together")
     lib = _resolve_backend(backend, q) if backend != "torch" else None
-    if tol is None:
-        tol = 1e-9 if dtype == _F64 else 1e-5
-    tol = float(tol)
-    grad = torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in (P, q, A, b, G, h, lb, ub))
+    tol = float(tol) if tol is not None else (1e-9 if dtype is _F64 else 1e-5)
+    grad = torch.is_grad_enabled() and (
+        q.requires_grad or getattr(P, "requires_grad", False) or (A is not None and getattr(A, "requires_grad", False))
+        or (b is not None and getattr(b, "requires_grad", False)) or (G is not None and getattr(G, "requires_grad", False))
+        or (h is not None and getattr(h, "requires_grad", False)) or (lb is not None and getattr(lb, "requires_grad", False))
+        or (ub is not None and getattr(ub, "requires_grad", False)))
 
-    # B = 1 and other float64 CPU calls without gradients: straight to the C routine (no stacking,
-    # no intermediate tensors; shapes are checked here and in `_c_arg`).
     if lib is not None and not grad and dtype == _F64:
+        # The control loop's call (batched contiguous float64 tensors): straight to the C routine.
+        sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
+        if sol is not None:
+            return sol
+    P, A, b, G, h, lb, ub = (t if t is None or isinstance(t, Tensor) else _as_tensor(t, nm)
+                             for t, nm in zip((P, A, b, G, h, lb, ub), ("P", "A", "b", "G", "h", "lb", "ub")))
+    if lib is not None and not grad and dtype == _F64:
+        # Other float64 CPU layouts (unbatched or expanded arguments): the same C call with strides.
         n = q.shape[-1]
         B = q.shape[0] if qd == 2 else 1
         if B == 1:  # q shared or of batch 1: P or G may carry the batch (any other layout: the general path)
@@ -456,11 +535,10 @@ def solve_qp(
         m = G.shape[-2] if G is not None else 0
         if _fast_shapes_ok(P, q, A, b, G, h, lb, ub, B, n, p, m):
             warm = _warm_duals(warm_start, B, n, p, m) if warm_start is not None else None
-            xn, dn, st, it = _forward_c(lib, P, q, A, b, G, h, lb, ub, B, n, p, m, warm, tol)
-            sol = QPSolution(xn, dn[:, :p], dn[:, p : p + m], dn[:, p + m : p + m + n], dn[:, p + m + n :], st, it)
-            sol._duals = dn
-            if st[st.argmax()] >= native.HANDED_ON:  # some instances need the torch route
-                _finish_on_torch(sol, st, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
+            buf, addr, worst = _forward_c(lib, P, q, A, b, G, h, lb, ub, B, n, p, m, warm, tol)
+            sol = QPSolution._from_buffer(buf, addr, B, n, p, m)
+            if worst >= native.HANDED_ON:
+                _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
             return sol
     return _solve_general(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter, dtype, grad)
 
@@ -482,9 +560,10 @@ def _fast_shapes_ok(P, q, A, b, G, h, lb, ub, B: int, n: int, p: int, m: int) ->
     return True
 
 
-def _finish_on_torch(sol: QPSolution, st: np.ndarray, P, q, A, b, G, h, lb, ub, B: int, n: int, p: int, m: int,  # noqa: ANN001
+def _finish_on_torch(sol: QPSolution, P, q, A, b, G, h, lb, ub, B: int, n: int, p: int, m: int,  # noqa: ANN001
                      warm_start: QPSolution | None, tol: float, max_iter: int, active_set_iter: int | None) -> None:
-    """Solve the instances the C route handed on with the torch route, writing into sol's buffers."""
+    """Solve the instances the C route handed on with the torch route, writing into sol's buffer."""
+    st = sol._np("_status")
     left = np.flatnonzero(st >= native.HANDED_ON)
     idx = torch.from_numpy(left)
 
@@ -506,7 +585,8 @@ def _finish_on_torch(sol: QPSolution, st: np.ndarray, P, q, A, b, G, h, lb, ub, 
         parts += [warm_start.z_ub] if ubs is not None else []
         zw = torch.cat([t.detach().to(_F64) for t in parts], 1).index_select(0, idx)
     xs, ys, zs, ss, its = solve_torch(Ps, qs, As, bs, G_all, h_all, zw, tol, max_iter, active_set_iter)
-    xn, dn = sol._x, sol._duals
+    xn = sol._np("_x")
+    dn = sol._buf[B * n : B * (n + p + m + 2 * n)].reshape(B, p + m + 2 * n)
     xn[left] = xs.numpy()
     dn[left, :p] = ys.numpy()
     zsn = zs.numpy()
@@ -520,7 +600,7 @@ def _finish_on_torch(sol: QPSolution, st: np.ndarray, P, q, A, b, G, h, lb, ub, 
     if ubs is not None:
         dn[left, p + m + n :] = zsn[:, off : off + n]
     st[left] = ss.numpy()
-    sol._iterations[left] += its.numpy()
+    sol._np("_iterations")[left] += its.numpy()
 
 
 def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_start: QPSolution | None,  # noqa: ANN001

@@ -562,8 +562,9 @@ static double *ws_alloc(gi_ws *w, int64_t n, int64_t p, int64_t m, int64_t rmax)
  * h [B, m], lb, ub [B, n] or NULL (no bounds), z0 [B, m + 2n] or NULL (warm-start multipliers z | z_lb | z_ub).
  * stride[9]: the distance in doubles between consecutive instances of P, q, A, b, G, h, lb, ub, z0 (0: one
  * array shared by the whole batch).  Outputs x [B, n], duals [B, p + m + 2n] (y | z | z_lb | z_ub), status [B]
- * (QP_* / GI_* codes above), solves [B] (k × k factorisations).  Returns 0, or -1 if the workspace could not
- * be allocated (statuses then say GI_NO_MEMORY).
+ * (QP_* / GI_* codes above), solves [B] (k × k factorisations).  Returns the largest status of the batch (so
+ * the caller knows without reading them whether any instance was handed on), or -1 if the workspace could
+ * not be allocated (statuses then say GI_NO_MEMORY).
  */
 int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
                 const double *P, const double *q, const double *A, const double *b, const double *G, const double *h,
@@ -571,6 +572,7 @@ int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
                 int64_t max_steps, double *x, double *duals, int64_t *status, int64_t *solves) {
     gi_ws w;
     const int64_t nout = p + m + 2 * n;
+    int worst = 0;
     double *mem = ws_alloc(&w, n, p, m, p + m + 2 * n);
     if (!mem) {
         for (int64_t i = 0; i < B; ++i) status[i] = GI_NO_MEMORY, solves[i] = 0;
@@ -590,9 +592,10 @@ int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
             memset(oi, 0, (size_t)nout * sizeof(double));
         }
         status[i] = st;
+        if (st > worst) worst = st;
     }
     free(mem);
-    return 0;
+    return worst;
 }
 
 /*
