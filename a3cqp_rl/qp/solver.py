@@ -109,7 +109,8 @@ class QPSolution:
     @property
     def x(self) -> Tensor:
         """Primal solution [B, n] (zero where no answer exists: see `status`)."""
-        return self._get("_x")
+        v = self._x
+        return v if v is not None else self._get("_x")
 
     @property
     def y(self) -> Tensor:
@@ -231,17 +232,22 @@ def _stack_rows(G: Tensor | None, h: Tensor | None, lb: Tensor | None, ub: Tenso
 # The C route
 # ----------------------------------------------------------------------------------------------
 
-_STRIDES: dict[tuple[int, ...], np.ndarray] = {}
+_STRIDES: dict[tuple[int, ...], tuple[np.ndarray, int]] = {}
+_RETIRED: list[dict] = []
 
 
-def _strides(key: tuple[int, ...]) -> np.ndarray:
-    """The int64 stride array of a call (cached: the same few layouts recur every control step)."""
-    arr = _STRIDES.get(key)
-    if arr is None:
-        if len(_STRIDES) > 256:
+def _strides(key: tuple[int, ...]) -> int:
+    """Address of the int64 stride array of a call (cached, arrays kept alive: the same few layouts recur
+    every control step)."""
+    hit = _STRIDES.get(key)
+    if hit is None:
+        if len(_STRIDES) > 256:  # addresses handed out stay valid: old arrays are kept, only not found again
+            _RETIRED.append(_STRIDES.copy())
             _STRIDES.clear()
-        arr = _STRIDES[key] = np.array(key, dtype=np.int64)
-    return arr
+            _FAST_STRIDES.clear()
+        arr = np.array(key, dtype=np.int64)
+        hit = _STRIDES[key] = (arr, address(arr))
+    return hit[1]
 
 
 def _c_arg(t: Tensor | None, ndim: int, B: int) -> tuple[Tensor | None, int, int]:
@@ -273,9 +279,8 @@ def _forward_c(
     out = np.empty(B * (n + nout + 2))
     o = address(out)
     z0, z0_stride = (warm[1], warm[2]) if warm is not None else (0, 0)
-    stride = _strides((*(k[2] for k in keep), z0_stride))
-    worst = lib.solve(B, n, p, m, *(k[1] for k in keep), z0, address(stride), tol, MAX_STEPS,
-                      o, o + 8 * B * n, o + 8 * B * (n + nout), o + 8 * B * (n + nout + 1))
+    worst = lib.solve(B, n, p, m, *(k[1] for k in keep), z0, _strides((*(k[2] for k in keep), z0_stride)), tol,
+                      MAX_STEPS, o)
     if worst < 0:
         raise MemoryError("a3cqp_rl.qp: the C route could not allocate its workspace")
     return out, o, worst
@@ -292,6 +297,10 @@ def _warm_duals(warm_start: "QPSolution", B: int, n: int, p: int, m: int) -> tup
             raise QPShapeError(f"warm_start.{nm} has shape {tuple(t.shape)}, expected {w}")
     z0 = np.ascontiguousarray(torch.cat([t.detach().to(_F64).cpu() for t in parts], 1).numpy())
     return z0, address(z0), m + 2 * n
+
+
+_FAST_STRIDES: dict[tuple[int, ...], int] = {}
+"""(n, p, m, warm stride) -> address of the stride array of `_fast_c`'s layout (batched contiguous arguments)."""
 
 
 def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Tensor | None, G: Tensor | None,
@@ -334,11 +343,13 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
     keep = None
     if warm_start is not None:
         keep, z0, zs = _warm_duals(warm_start, B, n, p, m)
-    stride = _strides((n * n, n, p * n, p, m * n, m, n, n, zs))
     buf = np.empty(B * (n + nout + 2))
     o = address(buf)
-    worst = lib.solve(B, n, p, m, P.data_ptr(), q.data_ptr(), pA, pb, pG, ph, pl, pu, z0, address(stride), tol, MAX_STEPS,
-                      o, o + 8 * B * n, o + 8 * B * (n + nout), o + 8 * B * (n + nout + 1))
+    key = (n, p, m, zs)
+    sa = _FAST_STRIDES.get(key)
+    if sa is None:
+        sa = _FAST_STRIDES[key] = _strides((n * n, n, p * n, p, m * n, m, n, n, zs))
+    worst = lib.solve(B, n, p, m, P.data_ptr(), q.data_ptr(), pA, pb, pG, ph, pl, pu, z0, sa, tol, MAX_STEPS, o)
     del keep
     sol = QPSolution._from_buffer(buf, o, B, n, p, m)
     if worst >= native.HANDED_ON:  # some instances need the torch route
@@ -509,12 +520,7 @@ def solve_qp(
         raise QPShapeError("A and b (and G and h) must be given together")
     lib = _resolve_backend(backend, q) if backend != "torch" else None
     tol = float(tol) if tol is not None else (1e-9 if dtype is _F64 else 1e-5)
-    grad = torch.is_grad_enabled() and (
-        q.requires_grad or getattr(P, "requires_grad", False) or (A is not None and getattr(A, "requires_grad", False))
-        or (b is not None and getattr(b, "requires_grad", False)) or (G is not None and getattr(G, "requires_grad", False))
-        or (h is not None and getattr(h, "requires_grad", False)) or (lb is not None and getattr(lb, "requires_grad", False))
-        or (ub is not None and getattr(ub, "requires_grad", False)))
-
+    grad = torch.is_grad_enabled() and _needs_grad(P, q, A, b, G, h, lb, ub)
     if lib is not None and not grad and dtype == _F64:
         # The control loop's call (batched contiguous float64 tensors): straight to the C routine.
         sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
@@ -541,6 +547,15 @@ def solve_qp(
                 _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
             return sol
     return _solve_general(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter, dtype, grad)
+
+
+def _needs_grad(P, q, A, b, G, h, lb, ub) -> bool:  # noqa: ANN001
+    """Whether any argument requires a gradient."""
+    return bool(q.requires_grad or getattr(P, "requires_grad", False)
+                or (G is not None and getattr(G, "requires_grad", False)) or (h is not None and getattr(h, "requires_grad", False))
+                or (A is not None and (getattr(A, "requires_grad", False) or getattr(b, "requires_grad", False)))
+                or (lb is not None and getattr(lb, "requires_grad", False))
+                or (ub is not None and getattr(ub, "requires_grad", False)))
 
 
 def _fast_shapes_ok(P, q, A, b, G, h, lb, ub, B: int, n: int, p: int, m: int) -> bool:  # noqa: ANN001

@@ -39,7 +39,7 @@ class NativeQP(NamedTuple):
     """The bound C entry points (ctypes functions taking data addresses) and a numpy-level adjoint."""
 
     solve: Callable
-    """gi_qp_solve(B, n, p, m, P, q, A, b, G, h, lb, ub, z0, strides, tol, max_steps, x, duals, status, solves)."""
+    """gi_qp_solve(B, n, p, m, P, q, A, b, G, h, lb, ub, z0, strides, tol, max_steps, out) -> worst status."""
     adjoint: Callable
     """(P, A, G, h, x, y, z, gx) numpy float64 -> (gP, gq, gA, gb, gG, gh) or None where an instance is declined."""
 
@@ -49,7 +49,7 @@ def _bind(path: Path) -> NativeQP:
     lib = ctypes.CDLL(str(path))
     fn, fn_adj = lib.gi_qp_solve, lib.gi_qp_adjoint
     i64, dbl, ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
-    fn.argtypes = [i64, i64, i64, i64, *[ptr] * 10, dbl, i64, ptr, ptr, ptr, ptr]
+    fn.argtypes = [i64, i64, i64, i64, *[ptr] * 10, dbl, i64, ptr]
     fn_adj.argtypes = [i64, i64, i64, i64, *[ptr] * 15]
     fn.restype = fn_adj.restype = ctypes.c_int
     f64 = np.float64

@@ -321,11 +321,7 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
     bwd_sub_t(w->L, w->Linv, n, w->t, w->x0);
     memset(w->have, 0, (size_t)r);
     memset(w->W, 0, (size_t)r);
-    for (int i = 0; i < r; ++i) {
-        const double *Ci = crow(w, i);
-        for (int c = 0; c < n; ++c) w->Ct[(size_t)c * r + i] = Ci[c];
-    }
-    mtv(w->Ct, n, r, w->x0, w->v0);
+    for (int i = 0; i < r; ++i) w->v0[i] = dot(crow(w, i), w->x0, n);
     int violated = 0;
     for (int i = 0; i < r; ++i) {
         w->v0[i] -= w->d[i];
@@ -340,6 +336,10 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
         /* The unconstrained minimiser is feasible (the easy cold case): certify it, skip S. */
         *solves_out = 1;
         return certify(w, 0, w->lw, tol, x_out, out, nout);
+    }
+    for (int i = 0; i < r; ++i) {
+        const double *Ci = crow(w, i);
+        for (int c = 0; c < n; ++c) w->Ct[(size_t)c * r + i] = Ci[c];
     }
     /* Mt = L⁻¹ Cᵀ, forward substitution on all r right-hand sides at once (row a of Mt is an
      * axpy combination of the rows above it). */
@@ -518,14 +518,24 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
     return certify(w, k, lw, tol, x_out, out, nout);
 }
 
-/* The workspace of one instance (reused across the batch): one allocation carved into the arrays of
- * gi_ws; NULL if out of memory.  rmax: the most rows an instance can have.  The adjoint uses a subset. */
+/* One workspace per thread, kept between calls and grown when a call needs more: a malloc and free of
+ * ~80 kB per call cost as much as a whole small solve (the heap top is trimmed and faulted in again). */
+static __thread double *tls_mem = NULL;
+static __thread size_t tls_bytes = 0;
+
+/* The workspace of one instance (reused across the batch): one block carved into the arrays of gi_ws;
+ * NULL if out of memory.  rmax: the most rows an instance can have.  The adjoint uses a subset. */
 static double *ws_alloc(gi_ws *w, int64_t n, int64_t p, int64_t m, int64_t rmax) {
     const int64_t r = rmax;
     const size_t nd = (size_t)(3 * n * n + r * n + r + r + 2 * r * n + r * r + 4 * r + 4 * (r + 1) + (r + 1) * (r + 1)
                                + 3 * n + (r > n ? r : n) + 8);
-    double *mem = (double *)malloc(nd * sizeof(double) + (size_t)(2 * r + 8) + (size_t)(2 * r + 4) * sizeof(int));
-    if (!mem) return NULL;
+    const size_t bytes = nd * sizeof(double) + (size_t)(2 * r + 8) + (size_t)(2 * r + 4) * sizeof(int);
+    if (bytes > tls_bytes) {
+        double *grown = (double *)realloc(tls_mem, bytes);
+        if (!grown) return NULL;
+        tls_mem = grown, tls_bytes = bytes;
+    }
+    double *mem = tls_mem;
     w->n = (int)n, w->p = (int)p, w->m = (int)m, w->r = (int)r;
     double *cur = mem;
     w->Ps = cur, cur += n * n;
@@ -561,15 +571,17 @@ static double *ws_alloc(gi_ws *w, int64_t n, int64_t p, int64_t m, int64_t rmax)
  * Batch entry point.  Row-major float64 arrays: P [B, n, n], q [B, n], A [B, p, n], b [B, p], G [B, m, n],
  * h [B, m], lb, ub [B, n] or NULL (no bounds), z0 [B, m + 2n] or NULL (warm-start multipliers z | z_lb | z_ub).
  * stride[9]: the distance in doubles between consecutive instances of P, q, A, b, G, h, lb, ub, z0 (0: one
- * array shared by the whole batch).  Outputs x [B, n], duals [B, p + m + 2n] (y | z | z_lb | z_ub), status [B]
- * (QP_* / GI_* codes above), solves [B] (k × k factorisations).  Returns the largest status of the batch (so
- * the caller knows without reading them whether any instance was handed on), or -1 if the workspace could
- * not be allocated (statuses then say GI_NO_MEMORY).
+ * array shared by the whole batch).  Output, one buffer: x [B, n] | duals [B, p + m + 2n] (y | z | z_lb | z_ub) |
+ * status [B] (QP_* / GI_* codes above, as int64) | solves [B] (k × k factorisations, int64).  Returns the largest
+ * status of the batch (so the caller knows without reading them whether any instance was handed on), or -1 if
+ * the workspace could not be allocated (statuses then say GI_NO_MEMORY).
  */
 int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
                 const double *P, const double *q, const double *A, const double *b, const double *G, const double *h,
                 const double *lb, const double *ub, const double *z0, const int64_t *stride, double tol,
-                int64_t max_steps, double *x, double *duals, int64_t *status, int64_t *solves) {
+                int64_t max_steps, double *out) {
+    double *x = out, *duals = out + B * n;
+    int64_t *status = (int64_t *)(out + B * (n + p + m + 2 * n)), *solves = status + B;
     gi_ws w;
     const int64_t nout = p + m + 2 * n;
     int worst = 0;
@@ -594,7 +606,6 @@ int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
         status[i] = st;
         if (st > worst) worst = st;
     }
-    free(mem);
     return worst;
 }
 
@@ -699,6 +710,5 @@ int gi_qp_adjoint(int64_t B, int64_t n, int64_t p, int64_t m,
             for (int c = 0; c < ni; ++c) gGa[c] = -(za * wx[c] + wz * xi[c]);
         }
     }
-    free(mem);
     return 0;
 }
