@@ -174,7 +174,7 @@ def _batched(t: Tensor | None, name: str, ndim: int, batch: int, dtype: torch.dt
         return None
     if t.dtype != dtype:
         raise QPShapeError(f"{name} has dtype {t.dtype}, expected {dtype} (the dtype of q)")
-    if t.device != device:
+    if (t.is_cpu and device.type != "cpu") or (not t.is_cpu and t.device != device):
         raise QPShapeError(f"{name} is on {t.device}, expected {device} (the device of q)")
     if t.dim() == ndim - 1:
         t = t.unsqueeze(0)
@@ -204,6 +204,20 @@ def _resolve_backend(backend: str, q: Tensor) -> native.NativeQP | None:
         raise QPBackendError("backend='c' is unavailable: the C routine did not build (no C compiler, or "
                              "A3CQP_NATIVE_QP=0); use 'torch' or 'auto'")
     return lib
+
+
+_EMPTY_EQ: dict[tuple, tuple[Tensor, Tensor]] = {}
+
+
+def _no_equalities(B: int, n: int, like: Tensor) -> tuple[Tensor, Tensor]:
+    """Empty A [B, 0, n] and b [B, 0], cached per shape/dtype/device (a tensor without elements cannot change)."""
+    key = (B, n, like.dtype, like.device)
+    eq = _EMPTY_EQ.get(key)
+    if eq is None:
+        if len(_EMPTY_EQ) > 64:
+            _EMPTY_EQ.clear()
+        eq = _EMPTY_EQ[key] = (like.new_zeros(B, 0, n), like.new_zeros(B, 0))
+    return eq
 
 
 def _stack_rows(G: Tensor | None, h: Tensor | None, lb: Tensor | None, ub: Tensor | None, B: int, n: int,
@@ -382,9 +396,9 @@ def _solve_canonical(
     c = QPSolution._from_buffer(buf, addr, B, n, p, m)
     st = c._np("_status")
     x, y, z, status, iters = c.x, c.y, c.z, c.status, c.iterations
+    if st[st.argmax()] < native.HANDED_ON:
+        return x, y, z, status, iters, not st.any()
     left = np.flatnonzero(st >= native.HANDED_ON)
-    if left.size == 0:
-        return x, y, z, status, iters, bool((st == 0).all())
     idx = torch.from_numpy(left)
     sub = [t.index_select(0, idx) for t in (P, q, A, b, G, h)]
     zw = z_warm.index_select(0, idx) if z_warm is not None else None
@@ -452,15 +466,15 @@ class _QPFunction(torch.autograd.Function):
             gx = torch.zeros_like(x)
         need = ctx.needs_input_grad[1:7]
         # Gradients only flow through x of solved instances (duals are outputs for information and warm starts).
-        ok = status == QPStatus.SOLVED
-        if not bool(ok.all()):
-            gx = torch.where(ok.unsqueeze(-1), gx, torch.zeros((), dtype=gx.dtype))
         grads = None
         if ctx.lib is not None:  # the C route certified every instance: its range-space adjoint
-            g = ctx.lib.adjoint(*(t.detach().numpy() for t in (P, A, G, h, x, y, z, gx)))
+            g = ctx.lib.adjoint(P.detach(), A.detach(), G.detach(), h.detach(), x, y, z, gx)
             if g is not None:
-                grads = tuple(torch.from_numpy(v) if need[k] or k % 2 else None for k, v in enumerate(g))
+                grads = tuple(v if need[k] or k % 2 else None for k, v in enumerate(g))
         if grads is None:
+            ok = status == QPStatus.SOLVED
+            if not bool(ok.all()):
+                gx = torch.where(ok.unsqueeze(-1), gx, torch.zeros((), dtype=gx.dtype))
             grads = _backward_torch(P, A, G, h, x, y, z, gx, need)
         return (None, *grads, None, None, None, None)
 
@@ -648,7 +662,7 @@ def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_s
         P, q, A, b, G, h, lb, ub = (None if t is None else t.to(_F64) for t in (P, q, A, b, G, h, lb, ub))
     m = G.shape[1] if G is not None else 0
     if A is None:
-        A, b = q.new_zeros(B, 0, n), q.new_zeros(B, 0)
+        A, b = _no_equalities(B, n, q)
     G_all, h_all = _stack_rows(G, h, lb, ub, B, n, q)
     z_warm = None
     if warm_start is not None and G_all.shape[1]:
@@ -665,7 +679,7 @@ def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_s
         x, y, z_all, status, iters, _ = _solve_canonical(lib, P, q, A, b, G_all, h_all, *args)
     zero = q.new_zeros(B, n)
     has_lb, has_ub = lb is not None, ub is not None
-    z = z_all[:, :m]
+    z = z_all if not (has_lb or has_ub) else z_all[:, :m]
     z_lb = z_all[:, m : m + n] if has_lb else zero
     z_ub = z_all[:, m + n * has_lb :] if has_ub else zero
     if low:

@@ -20,6 +20,8 @@ from pathlib import Path
 from typing import Callable, NamedTuple
 
 import numpy as np
+import torch
+from torch import Tensor
 
 from a3cqp_rl.native_build import LazyLibrary, address
 
@@ -41,7 +43,7 @@ class NativeQP(NamedTuple):
     solve: Callable
     """gi_qp_solve(B, n, p, m, P, q, A, b, G, h, lb, ub, z0, strides, tol, max_steps, out) -> worst status."""
     adjoint: Callable
-    """(P, A, G, h, x, y, z, gx) numpy float64 -> (gP, gq, gA, gb, gG, gh) or None where an instance is declined."""
+    """(P, A, G, h, x, y, z, gx) float64 CPU tensors -> (gP, gq, gA, gb, gG, gh) or None if an instance is declined."""
 
 
 def _bind(path: Path) -> NativeQP:
@@ -52,29 +54,27 @@ def _bind(path: Path) -> NativeQP:
     fn.argtypes = [i64, i64, i64, i64, *[ptr] * 10, dbl, i64, ptr]
     fn_adj.argtypes = [i64, i64, i64, i64, *[ptr] * 15]
     fn.restype = fn_adj.restype = ctypes.c_int
-    f64 = np.float64
 
-    def adjoint(
-        P: np.ndarray, A: np.ndarray, G: np.ndarray, h: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, gx: np.ndarray,
-    ) -> tuple[np.ndarray, ...] | None:
+    def adjoint(P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Tensor, z: Tensor, gx: Tensor) -> tuple[Tensor, ...] | None:
         """Gradients (gP, gq, gA, gb, gG, gh) of Σ gx·x by the range-space adjoint (`gi_qp_adjoint`), or None.
 
-        None when some instance's system is not accepted (the caller then uses the torch backward)."""
+        Float64 CPU tensors (made contiguous here); None when some instance's system is not accepted (the
+        caller then uses the torch backward)."""
         B, n = x.shape
         p, m = A.shape[1], G.shape[1]
-        P, A, G, h, x, y, z, gx = (np.ascontiguousarray(t, dtype=f64) for t in (P, A, G, h, x, y, z, gx))
+        ts = [t.contiguous() for t in (P, A, G, h, x, y, z, gx)]
         sizes = (n * n, n, p * n, p, m * n, m)
-        out = np.empty(B * (sum(sizes) + 1))
-        o, offs = address(out), [0]
+        offs = [0]
         for s_ in sizes:
             offs.append(offs[-1] + B * s_)
+        out = np.empty(offs[-1] + B)
+        o = address(out)
+        fn_adj(B, n, p, m, *(t.data_ptr() for t in ts), *(o + 8 * e for e in offs))
         status = out[offs[-1]:].view(np.int64)
-        fn_adj(B, n, p, m, address(P), address(A), address(G), address(h), address(x), address(y), address(z), address(gx),
-               *(o + 8 * e for e in offs))
         if status[status.argmax()]:  # any instance not accepted
             return None
         shapes = ((B, n, n), (B, n), (B, p, n), (B, p), (B, m, n), (B, m))
-        return tuple(out[offs[i] : offs[i + 1]].reshape(shapes[i]) for i in range(6))
+        return tuple(torch.from_numpy(out[offs[i] : offs[i + 1]].reshape(shapes[i])) for i in range(6))
 
     return NativeQP(fn, adjoint)
 
