@@ -63,6 +63,19 @@ instances need 10-30, so the budget only stops numerical cycling."""
 _F64 = torch.float64
 
 
+class _Field:
+    """A QPSolution field read through `_get` (made from the C route's output buffer when first read)."""
+
+    def __init__(self, doc: str) -> None:
+        self.__doc__ = doc
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.slot = "_" + name
+
+    def __get__(self, sol: "QPSolution | None", owner: type | None = None):  # noqa: ANN204
+        return self if sol is None else sol._get(self.slot)
+
+
 class QPSolution:
     """Solution of a batch of QPs; duals follow L = ½xᵀPx + qᵀx + yᵀ(Ax − b) + zᵀ(Gx − h) + z_lbᵀ(lb − x) + z_ubᵀ(x − ub).
 
@@ -112,35 +125,12 @@ class QPSolution:
         v = self._x
         return v if v is not None else self._get("_x")
 
-    @property
-    def y(self) -> Tensor:
-        """Multipliers of A x = b [B, p]."""
-        return self._get("_y")
-
-    @property
-    def z(self) -> Tensor:
-        """Multipliers (≥ 0) of G x ≤ h [B, m]."""
-        return self._get("_z")
-
-    @property
-    def z_lb(self) -> Tensor:
-        """Multipliers (≥ 0) of lb ≤ x [B, n] (zero where lb is absent or −inf)."""
-        return self._get("_z_lb")
-
-    @property
-    def z_ub(self) -> Tensor:
-        """Multipliers (≥ 0) of x ≤ ub [B, n] (zero where ub is absent or +inf)."""
-        return self._get("_z_ub")
-
-    @property
-    def status(self) -> Tensor:
-        """QPStatus code per instance [B] (int64)."""
-        return self._get("_status")
-
-    @property
-    def iterations(self) -> Tensor:
-        """KKT factorisations (active-set steps + interior-point iterations) per instance [B] (int64)."""
-        return self._get("_iterations")
+    y = _Field("Multipliers of A x = b [B, p].")
+    z = _Field("Multipliers (≥ 0) of G x ≤ h [B, m].")
+    z_lb = _Field("Multipliers (≥ 0) of lb ≤ x [B, n] (zero where lb is absent or −inf).")
+    z_ub = _Field("Multipliers (≥ 0) of x ≤ ub [B, n] (zero where ub is absent or +inf).")
+    status = _Field("QPStatus code per instance [B] (int64).")
+    iterations = _Field("KKT factorisations (active-set steps + interior-point iterations) per instance [B] (int64).")
 
     @property
     def solved(self) -> Tensor:
@@ -313,6 +303,16 @@ def _warm_duals(warm_start: "QPSolution", B: int, n: int, p: int, m: int) -> tup
     return z0, address(z0), m + 2 * n
 
 
+def _fast_rows(M: Tensor, r: Tensor, B: int, n: int) -> tuple[int, int, int] | None:
+    """(row count, data addresses) of a batched contiguous float64 CPU pair (A, b) or (G, h), else None."""
+    if type(M) is not Tensor or type(r) is not Tensor or M.dtype is not _F64 or r.dtype is not _F64 or M.dim() != 3:
+        return None
+    k = M.shape[1]
+    if M.shape != (B, k, n) or r.shape != (B, k) or not (M.is_cpu and r.is_cpu and M.is_contiguous() and r.is_contiguous()):
+        return None
+    return k, M.data_ptr(), r.data_ptr()
+
+
 _FAST_STRIDES: dict[tuple[int, ...], int] = {}
 """(n, p, m, warm stride) -> address of the stride array of `_fast_c`'s layout (batched contiguous arguments)."""
 
@@ -331,19 +331,15 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
     p = m = 0
     pA = pb = pG = ph = pl = pu = 0
     if A is not None:
-        if type(A) is not Tensor or type(b) is not Tensor or A.dtype is not _F64 or b.dtype is not _F64 or A.dim() != 3:
+        rows = _fast_rows(A, b, B, n)
+        if rows is None:
             return None
-        p = A.shape[1]
-        if A.shape != (B, p, n) or b.shape != (B, p) or not (A.is_cpu and b.is_cpu and A.is_contiguous() and b.is_contiguous()):
-            return None
-        pA, pb = A.data_ptr(), b.data_ptr()
+        p, pA, pb = rows
     if G is not None:
-        if type(G) is not Tensor or type(h) is not Tensor or G.dtype is not _F64 or h.dtype is not _F64 or G.dim() != 3:
+        rows = _fast_rows(G, h, B, n)
+        if rows is None:
             return None
-        m = G.shape[1]
-        if G.shape != (B, m, n) or h.shape != (B, m) or not (G.is_cpu and h.is_cpu and G.is_contiguous() and h.is_contiguous()):
-            return None
-        pG, ph = G.data_ptr(), h.data_ptr()
+        m, pG, ph = rows
     if lb is not None:
         if type(lb) is not Tensor or lb.dtype is not _F64 or lb.shape != (B, n) or not (lb.is_cpu and lb.is_contiguous()):
             return None
