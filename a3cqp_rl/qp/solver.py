@@ -585,6 +585,14 @@ def _fast_shapes_ok(P, q, A, b, G, h, lb, ub, B: int, n: int, p: int, m: int) ->
     return True
 
 
+def _warm_rows(warm_start: QPSolution | None, has_G: bool, has_lb: bool, has_ub: bool, h_all: Tensor) -> Tensor | None:
+    """Warm-start multipliers of the stacked rows (G, then lb, then ub) as one float64 tensor, or None."""
+    if warm_start is None or not h_all.shape[1]:
+        return None
+    parts = ([warm_start.z] if has_G else []) + ([warm_start.z_lb] if has_lb else []) + ([warm_start.z_ub] if has_ub else [])
+    return torch.cat([t.detach().to(device=h_all.device, dtype=_F64) for t in parts], 1)
+
+
 def _finish_on_torch(sol: QPSolution, P, q, A, b, G, h, lb, ub, B: int, n: int, p: int, m: int,  # noqa: ANN001
                      warm_start: QPSolution | None, tol: float, max_iter: int, active_set_iter: int | None) -> None:
     """Solve the instances the C route handed on with the torch route, writing into sol's buffer."""
@@ -603,12 +611,8 @@ def _finish_on_torch(sol: QPSolution, P, q, A, b, G, h, lb, ub, B: int, n: int, 
     if As is None:
         As, bs = qs.new_zeros(k, 0, n), qs.new_zeros(k, 0)
     G_all, h_all = _stack_rows(Gs, hs, lbs, ubs, k, n, qs)
-    zw = None
-    if warm_start is not None and G_all.shape[1]:
-        parts = [warm_start.z] if Gs is not None else []
-        parts += [warm_start.z_lb] if lbs is not None else []
-        parts += [warm_start.z_ub] if ubs is not None else []
-        zw = torch.cat([t.detach().to(_F64) for t in parts], 1).index_select(0, idx)
+    zw = _warm_rows(warm_start, Gs is not None, lbs is not None, ubs is not None, h_all)
+    zw = zw.index_select(0, idx) if zw is not None else None
     xs, ys, zs, ss, its = solve_torch(Ps, qs, As, bs, G_all, h_all, zw, tol, max_iter, active_set_iter)
     xn = sol._np("_x")
     dn = sol._buf[B * n : B * (n + p + m + 2 * n)].reshape(B, p + m + 2 * n)
@@ -660,14 +664,9 @@ def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_s
     if A is None:
         A, b = _no_equalities(B, n, q)
     G_all, h_all = _stack_rows(G, h, lb, ub, B, n, q)
-    z_warm = None
-    if warm_start is not None and G_all.shape[1]:
-        parts = [warm_start.z] if G is not None else []
-        parts += [warm_start.z_lb] if lb is not None else []
-        parts += [warm_start.z_ub] if ub is not None else []
-        z_warm = torch.cat([t.detach().to(device=device, dtype=_F64) for t in parts], 1)
-        if z_warm.shape != h_all.shape:
-            raise QPShapeError(f"warm_start duals have shape {tuple(z_warm.shape)}, expected {tuple(h_all.shape)}")
+    z_warm = _warm_rows(warm_start, G is not None, lb is not None, ub is not None, h_all)
+    if z_warm is not None and z_warm.shape != h_all.shape:
+        raise QPShapeError(f"warm_start duals have shape {tuple(z_warm.shape)}, expected {tuple(h_all.shape)}")
     args = (z_warm, tol, int(max_iter), None if active_set_iter is None else int(active_set_iter))
     if grad:
         x, y, z_all, status, iters = _QPFunction.apply(lib, P, q, A, b, G_all, h_all, *args)
