@@ -16,8 +16,10 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
+from a3cqp_rl.control.arrays import Array, const, mm, mv
 from a3cqp_rl.control.exceptions import InvalidLevelError
 from a3cqp_rl.qp import QPSolution, solve_qp
 
@@ -137,12 +139,14 @@ class CascadeSolution:
     """Each level's QPSolution (in its own variable; the warm starts of the next step)."""
 
 
-def _null_projector(H: torch.Tensor, rank_tol: float) -> torch.Tensor:
+def _null_projector(H: Array, rank_tol: float) -> Array:
     """I − Q Qᵀ [B, n, n] with Q an orthonormal basis of range(H) (symmetric PSD H [B, n, n], numerical rank)."""
-    evals, V = torch.linalg.eigh(H)
-    cut = rank_tol * evals[:, -1:].clamp_min(0.0)
-    Vn = V * (evals <= cut).to(V.dtype)[:, None, :]  # the eigenvectors of the (numerically) zero eigenvalues
-    return Vn @ Vn.mT
+    evals, V = torch.linalg.eigh(torch.as_tensor(H))  # (torch's batched eigh: ~2x numpy's at B = 64)
+    if isinstance(H, np.ndarray):
+        evals, V = evals.numpy(), V.numpy()
+    cut = rank_tol * evals[:, -1:].clip(0.0, None)
+    Vn = V * (evals <= cut)[:, None, :]  # the eigenvectors of the (numerically) zero eigenvalues
+    return mm(Vn, Vn.mT)
 
 
 def solve_cascade(costs: Sequence[tuple[torch.Tensor, torch.Tensor]], G: torch.Tensor, h: torch.Tensor,
@@ -169,34 +173,39 @@ def solve_cascade(costs: Sequence[tuple[torch.Tensor, torch.Tensor]], G: torch.T
     (r zᵀ(I − N)z is added to make the Hessian definite; it only sets the part of z that N removes to 0.)
     z = 0 is feasible (x_{k−1} satisfies the limits), so a lower level cannot be infeasible; the max(·, 0) keeps
     x_{k−1}'s solver-tolerance violations from making it so. Rows G N that vanish are made inert.
+    CPU tensors are handled as numpy views in between the solves (small ops: see control/arrays.py).
     """
     if not costs:
         raise InvalidLevelError("solve_cascade needs at least one level")
     warm = list(warm) if warm is not None else []
     warm += [None] * (len(costs) - len(warm))
+    on_cpu = G.device.type == "cpu"
+    arr = (lambda t: t.numpy()) if on_cpu else (lambda t: t)  # noqa: E731
+    ten = torch.as_tensor
     sols: list[QPSolution] = []
     x = status = iterations = H_above = None
+    G_, h_ = arr(G), arr(h)
     for k, (P, c) in enumerate(costs):
         w = warm[k] if warm[k] is not None and warm[k].z.shape == h.shape else None
         if k == 0:
             sol = solve_qp(P, c, G=G, h=h, warm_start=w, max_iter=max_iter)
-            x, status, iterations = sol.x, sol.status, sol.iterations
+            x, status, iterations = arr(sol.x), sol.status, sol.iterations
         else:
-            eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
-            H_prev = costs[k - 1][0] - regularization * eye
+            P_, c_ = arr(P), arr(c)
+            r_eye = const(regularization * torch.eye(P.shape[-1], dtype=P.dtype), P_)
+            H_prev = arr(costs[k - 1][0]) - r_eye
             H_above = H_prev if H_above is None else H_above + H_prev
             N = _null_projector(H_above, rank_tol)  # (B, n, n)
-            Hz = N @ (P - regularization * eye) @ N
-            Pz = 0.5 * (Hz + Hz.mT) + regularization * eye
-            cz = (N @ ((P @ x[..., None])[..., 0] + c)[..., None])[..., 0]
-            Gz = G @ N
-            keep = Gz.norm(dim=-1) > _ROW_TOL * G.norm(dim=-1)
-            Gz = Gz * keep[..., None].to(Gz.dtype)
-            hz = (h - (G @ x[..., None])[..., 0]).clamp_min(0.0)
-            sol = solve_qp(Pz, cz, G=Gz, h=hz, warm_start=w, max_iter=max_iter)
-            x = x + (N @ sol.x[..., None])[..., 0]
+            Hz = mm(mm(N, P_ - r_eye), N)
+            Pz = 0.5 * (Hz + Hz.mT) + r_eye
+            cz = mv(N, mv(P_, x) + c_)
+            Gz = mm(G_, N)
+            keep = ((Gz * Gz).sum(-1) > _ROW_TOL ** 2 * (G_ * G_).sum(-1))[..., None]
+            Gz = Gz * keep
+            hz = (h_ - mv(G_, x)).clip(0.0, None)
+            sol = solve_qp(ten(Pz), ten(cz), G=ten(Gz), h=ten(hz), warm_start=w, max_iter=max_iter)
+            x = x + mv(N, arr(sol.x))
             status = torch.where(status != 0, status, sol.status)
             iterations = iterations + sol.iterations
         sols.append(sol)
-    return CascadeSolution(x=x, status=status, iterations=iterations, solutions=tuple(sols))
-
+    return CascadeSolution(x=ten(x), status=status, iterations=iterations, solutions=tuple(sols))
