@@ -169,8 +169,9 @@ def solve_cascade(costs: Sequence[tuple[torch.Tensor, torch.Tensor]], G: torch.T
     are often dependent, which the solver would have to detect) x = x_{k−1} + N z with N the orthogonal projector
     on the null space of H_{<k} (eigendecomposition with a rank tolerance), so that every level has the same n
     variables and m rows for all robots:
-        min_z ½ zᵀ (N H_k N + r I) z + (N (P_k x_{k−1} + c_k))ᵀ z   s.t.   G N z ≤ max(h − G x_{k−1}, 0).
-    (r zᵀ(I − N)z is added to make the Hessian definite; it only sets the part of z that N removes to 0.)
+        min_z ½ zᵀ (N H_k N + r N + ρ (I − N)) z + (N (P_k x_{k−1} + c_k))ᵀ z   s.t.   G N z ≤ max(h − G x_{k−1}, 0).
+    (ρ zᵀ(I − N)z, ρ = P_k's mean diagonal, makes the Hessian definite; it only sets the part of z that N removes
+    to 0.)
     z = 0 is feasible (x_{k−1} satisfies the limits), so a lower level cannot be infeasible; the max(·, 0) keeps
     x_{k−1}'s solver-tolerance violations from making it so. Rows G N that vanish are made inert.
     CPU tensors are handled as numpy views in between the solves (small ops: see control/arrays.py).
@@ -192,12 +193,15 @@ def solve_cascade(costs: Sequence[tuple[torch.Tensor, torch.Tensor]], G: torch.T
             x, status, iterations = arr(sol.x), sol.status, sol.iterations
         else:
             P_, c_ = arr(P), arr(c)
-            r_eye = const(regularization * torch.eye(P.shape[-1], dtype=P.dtype), P_)
-            H_prev = arr(costs[k - 1][0]) - r_eye
+            eye = const(torch.eye(P.shape[-1], dtype=P.dtype), P_)
+            H_prev = arr(costs[k - 1][0]) - regularization * eye
             H_above = H_prev if H_above is None else H_above + H_prev
             N = _null_projector(H_above, rank_tol)  # (B, n, n)
-            Hz = mm(mm(N, P_ - r_eye), N)
-            Pz = 0.5 * (Hz + Hz.mT) + r_eye
+            Hz = mm(mm(N, P_ - regularization * eye), N)
+            # on range(I − N) any definite weight sets z's part there to 0; P_k's mean diagonal ρ rather than r keeps
+            # the Hessian as well conditioned as P_k (with r = 1e-6 the solver failed on degenerate instances)
+            rho = P_.diagonal(0, -2, -1).mean(-1)[:, None, None]
+            Pz = 0.5 * (Hz + Hz.mT) + regularization * N + rho * (eye - N)
             cz = mv(N, mv(P_, x) + c_)
             Gz = mm(G_, N)
             keep = ((Gz * Gz).sum(-1) > _ROW_TOL ** 2 * (G_ * G_).sum(-1))[..., None]
