@@ -251,6 +251,8 @@ def test_levels_from_selectors_feeds_the_controller() -> None:
     levels = levels_from_selectors(dict(ik=0.1, ac=0.4, fc=0.6, jc=0.9, cartesian_regularizer=0.2))
     assert levels == dict(ik=1, ac=2, fc=3, jc=None, cartesian_regularizer=1)
     assert str(Hierarchy.of(TASKS, levels)) == "(ik + cartesian_regularizer) / (ac) / (fc); off: jc"
+    assert Hierarchy.of(TASKS, [np.int64(2), 1, None, 3, 1]).levels == (("ac", "cartesian_regularizer"), ("ik",),
+                                                                         ("jc",))
     with pytest.raises(InvalidLevelError, match="task 'jc'"):
         levels_from_selectors(dict(ik=0.1, jc=1.5))
 
@@ -335,3 +337,36 @@ def test_ik_above_jc_tracks_as_ik_alone_while_jc_acts_in_the_null_space() -> Non
     home = np.array(PANDA_HOME)
     dist_ik, dist_h = np.linalg.norm(q_ik[-1] - home), np.linalg.norm(q_h[-1] - home)
     assert dist_h < 0.7 * dist_ik  # JC brought the elbow back toward the ready pose in IK's null space
+
+
+def test_a_three_level_stack_under_random_switching_weights_stays_within_the_limits() -> None:
+    """4 arms, 1.5 s of weights and desired forces switching every 5-50 ms (as test_control_behaviour does for the
+    weighted QP): the cascade never falls back and the joints stay inside their position and velocity limits."""
+    from a3cqp_rl.robot import PANDA_LIMITS
+
+    n, gen = 4, torch.Generator().manual_seed(7)
+    sim = PandaSim(n)
+    ctrl = A3CQPController(n, levels=STACKS["ik/wrench/jc"])
+    pos0, rot0 = ctrl.model.fk(torch.tensor([PANDA_HOME] * n, dtype=F64))
+    pos_d = pos0 + 0.3 * (torch.rand(n, 3, generator=gen, dtype=F64) - 0.5)
+    w, f_d = torch.full((n, 6, 3), 1.0 / 3.0, dtype=F64), torch.zeros(n, 6, dtype=F64)
+    switch_at = torch.zeros(n, dtype=torch.long)
+    s = sim.observe()
+    q_log, qd_log = [], []
+    for k in range(1500):
+        switch = switch_at <= k
+        if bool(switch.any()):
+            m = int(switch.sum())
+            w[switch] = torch.softmax(6.0 * (torch.rand(m, 6, 3, generator=gen, dtype=F64) - 0.5), dim=-1)
+            f_d[switch] = 20.0 * torch.rand(m, 6, generator=gen, dtype=F64)
+            switch_at[switch] = k + torch.randint(5, 50, (m,), generator=gen)
+        out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, f_d, pos_d, rot0, f_env=s.f_env, kin=s.kin)
+        assert torch.isfinite(out.tau).all()
+        sim.step(out.tau)
+        s = sim.observe()
+        q_log.append(s.q.numpy().copy())
+        qd_log.append(s.qd.numpy().copy())
+    q, qd = np.array(q_log), np.array(qd_log)
+    assert ctrl.fallback_count == 0
+    assert (q >= np.array(PANDA_LIMITS.q_min)).all() and (q <= np.array(PANDA_LIMITS.q_max)).all()
+    assert (np.abs(qd) <= np.array(PANDA_LIMITS.dq_max)).all() and np.abs(qd).max() > 0.3  # and the arms moved

@@ -13,6 +13,7 @@ l ∈ [0, 1] to a level or off). The controller takes `levels=` and runs `solve_
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -76,10 +77,10 @@ class Hierarchy:
         """Validate `levels` against the controller's tasks: a mapping {task name: 1..3 or None}, a sequence in
         task order, or None (every task in level 1: the single weighted QP)."""
         names = list(task_names)
-        if len(set(names)) != len(names):
-            raise InvalidLevelError(f"task names must be unique to be given levels, got {names}")
         if levels is None:
             return cls(levels=(tuple(names),))
+        if len(set(names)) != len(names):
+            raise InvalidLevelError(f"task names must be unique to be given levels, got {names}")
         if isinstance(levels, Mapping):
             unknown = [k for k in levels if k not in names]
             missing = [k for k in names if k not in levels]
@@ -96,7 +97,7 @@ class Hierarchy:
             raise InvalidLevelError(f"levels must be a mapping task name -> level, a sequence or None, "
                                     f"got {type(levels).__name__}")
         for name, level in by_name.items():
-            if level is not None and (isinstance(level, bool) or not isinstance(level, int)
+            if level is not None and (isinstance(level, bool) or not isinstance(level, numbers.Integral)
                                       or not 1 <= level <= MAX_LEVEL):
                 raise InvalidLevelError(f"task {name!r}: level must be an integer 1-{MAX_LEVEL} or None (off), "
                                         f"got {level!r}")
