@@ -199,6 +199,31 @@ def test_cascade_on_a_small_problem_with_a_known_answer() -> None:
     assert torch.equal(solve_cascade([level1], G, h, r).x, solve_qp(*level1, G=G, h=h).x)
 
 
+def test_a_lower_level_the_warm_solver_fails_on_is_solved_again_cold(states: dict,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """(The warm-started batched solver once hit MAX_ITER on a level-3 QP that it certifies cold in 5 iterations.)"""
+    from a3cqp_rl.qp import QPStatus, solve_qp
+
+    ctrl, costs, G, h = level_problems(STACKS["ik/wrench/jc"], states, 48)
+    reg = ctrl.options.regularization
+    first = solve_cascade(costs, G, h, reg)
+    expected = solve_cascade(costs, G, h, reg, warm=first.solutions)
+    calls = []
+
+    def flaky(P, q, **kw):  # noqa: ANN001, ANN003, ANN202
+        sol = solve_qp(P, q, **kw)
+        calls.append(kw.get("warm_start") is not None)
+        if kw.get("warm_start") is not None and len(calls) > 1:  # a warm lower level: instance 5 "fails"
+            sol.status[5], sol.x[5] = QPStatus.MAX_ITER, 1e3
+        return sol
+
+    monkeypatch.setattr(hierarchy_module, "solve_qp", flaky)
+    got = solve_cascade(costs, G, h, reg, warm=first.solutions)
+    assert calls == [True, True, False, True, False]  # levels 2 and 3 each retried cold
+    assert (got.status == 0).all()
+    assert torch.allclose(got.x, expected.x, atol=1e-7 * (1 + expected.x.abs().max().item()))
+
+
 def test_an_infeasible_first_level_falls_back_for_that_robot(caplog: pytest.LogCaptureFixture) -> None:
     class Contradiction(Limit):
         """x₀ ≤ −1 and x₀ ≥ 1 for robot 1: an infeasible QP."""

@@ -150,6 +150,24 @@ def _null_projector(H: Array, rank_tol: float) -> Array:
     return mm(Vn, Vn.mT)
 
 
+def _solve_feasible(P: torch.Tensor, c: torch.Tensor, G: torch.Tensor, h: torch.Tensor, warm: QPSolution | None,
+                    max_iter: int) -> QPSolution:
+    """solve_qp for a QP known to be feasible (z = 0 is): instances it fails on are solved once more cold.
+
+    (Seen: a warm-started batch of 64 that hit MAX_ITER on an instance the cold solve certifies in 5 iterations.)"""
+    sol = solve_qp(P, c, G=G, h=h, warm_start=warm, max_iter=max_iter)
+    bad = (sol.status != 0).nonzero().flatten()
+    if warm is None or bad.numel() == 0:
+        return sol
+    again = solve_qp(P[bad], c[bad], G=G[bad], h=h[bad], max_iter=max_iter)
+    fields = {}
+    for f in ("x", "y", "z", "z_lb", "z_ub", "status", "iterations"):
+        t = getattr(sol, f).clone()
+        t[bad] = getattr(again, f) + (getattr(sol, f)[bad] if f == "iterations" else 0)
+        fields[f] = t
+    return QPSolution(**fields)
+
+
 def solve_cascade(costs: Sequence[tuple[torch.Tensor, torch.Tensor]], G: torch.Tensor, h: torch.Tensor,
                   regularization: float, *, warm: Sequence[QPSolution | None] | None = None, max_iter: int = 50,
                   rank_tol: float = RANK_TOL) -> CascadeSolution:
@@ -174,7 +192,8 @@ def solve_cascade(costs: Sequence[tuple[torch.Tensor, torch.Tensor]], G: torch.T
     (ρ zᵀ(I − N)z, ρ = P_k's mean diagonal, makes the Hessian definite; it only sets the part of z that N removes
     to 0.)
     z = 0 is feasible (x_{k−1} satisfies the limits), so a lower level cannot be infeasible; the max(·, 0) keeps
-    x_{k−1}'s solver-tolerance violations from making it so. Rows G N that vanish are made inert.
+    x_{k−1}'s solver-tolerance violations from making it so. Rows G N that vanish are made inert. A lower level
+    the warm-started solver fails on is solved once more cold (its failure cannot be infeasibility).
     CPU tensors are handled as numpy views in between the solves (small ops: see control/arrays.py).
     """
     if not costs:
@@ -208,7 +227,7 @@ def solve_cascade(costs: Sequence[tuple[torch.Tensor, torch.Tensor]], G: torch.T
             keep = ((Gz * Gz).sum(-1) > _ROW_TOL ** 2 * (G_ * G_).sum(-1))[..., None]
             Gz = Gz * keep
             hz = (h_ - mv(G_, x)).clip(0.0, None)
-            sol = solve_qp(ten(Pz), ten(cz), G=ten(Gz), h=ten(hz), warm_start=w, max_iter=max_iter)
+            sol = _solve_feasible(ten(Pz), ten(cz), ten(Gz), ten(hz), w, max_iter)
             x = x + mv(N, arr(sol.x))
             status = torch.where(status != 0, status, sol.status)
             iterations = iterations + sol.iterations
