@@ -1,4 +1,4 @@
-"""Strict priority levels (paper 002, eq. 2-4): the cascade of QPs against references, in the controller and closed loop."""
+"""Strict priority levels (paper 002, eq. 2-4): the QP cascade against references, in the controller, in closed loop."""
 
 from __future__ import annotations
 
@@ -58,7 +58,8 @@ def states() -> dict:
 
 
 # ---------------------------------------------------------------------------------------------- the guarantees
-def level_problems(levels, inputs: dict, n: int, **kw) -> tuple[A3CQPController, list, torch.Tensor, torch.Tensor]:  # noqa: ANN001
+def level_problems(levels, inputs: dict, n: int,  # noqa: ANN001
+                   **kw) -> tuple[A3CQPController, list, torch.Tensor, torch.Tensor]:
     """A controller's per-level QPs (P_k, c_k) and limit rows at `inputs` (q* = q), as tensors."""
     ctrl = A3CQPController(n, model=inputs["model"], levels=levels, **kw)
     ctrl.reset(inputs["q"], inputs["qd"])
