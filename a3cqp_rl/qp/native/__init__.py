@@ -1,15 +1,16 @@
-"""The C route of `solve_qp` (`gi_qp.c`: dense Goldfarb-Idnani per instance, and its adjoint), through ctypes.
+"""The C route of `solve_qp` (`gi_qp.c`: dense Goldfarb-Idnani per instance, and its adjoint, built at install
+time), through ctypes.
 
 Why C: at the controller's size (n = 13, m = 30) a whole solve is a few µs of arithmetic, while any
 interpreted loop pays ~1 µs per call (numpy) or ~5 µs per op (eager torch) many times per active-set
 step.  One C call runs the whole batch: input checks, bound handling, the active set and its certificate.
 
 `load()` returns a `NativeQP` with the raw ctypes functions (the B = 1 path of `solver.py` calls them with
-tensor data pointers, no conversions) or None: without a compiler, when the build fails (one warning),
-or when the environment variable A3CQP_NATIVE_QP=0 switches the C code off; `solve_qp(backend="auto")`
-then takes the torch route and `backend="c"` raises.
+tensor data pointers, no conversions) or None: when the library was not built (no C compiler at install
+time) or is older than its source (one warning), or when the environment variable A3CQP_NATIVE_QP=0
+switches the C code off; `solve_qp(backend="auto")` then takes the torch route and `backend="c"` raises.
 
-Build: `a3cqp_rl.native_build.LazyLibrary` (the system C compiler, -O3, cached).
+Build: setup.py at install time (flags in `a3cqp_rl.native_sources`); loading: `a3cqp_rl.native_build`.
 """
 
 from __future__ import annotations
