@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from a3cqp_rl.qp.kkt import LU_MAX_BATCH, RHO_FAST, eq_solve_alm, kkt_certified, kkt_lu, kkt_schur, mv
+from a3cqp_rl.qp.kkt import LU_MAX_BATCH, RHO_FAST, eq_solve_alm, kkt_certified, kkt_lu, kkt_schur, mv, row_thresholds
 
 __all__ = ["residual_scales", "active_set_stage"]
 
@@ -31,7 +31,6 @@ def active_set_stage(
     p, m = A.shape[1], G.shape[1]
     C = torch.cat([A, G], 1) if p else G  # (B, p + m, n)
     d = torch.cat([b, h], 1) if p else h
-    thr_h = tol * (1.0 + h.abs())  # (B, m) per-row threshold of "violated" for the working-set update
     W = z0 > 0  # (B, m) working set
     z = torch.cat([q.new_zeros(B, p), z0], 1) if p else z0
     x = row_sq = L = x_u = None
@@ -94,12 +93,13 @@ def active_set_stage(
             break
         # Semismooth Newton step on min(z, h − Gx) = 0: keep working rows with positive
         # multipliers, add the violated rows.
-        W = (W & (zG > 0)) | (~W & (vG > thr_h))
+        # "Violated" as in the certificate: beyond the row's own tolerance at the current point.
+        W = (W & (zG > 0)) | (~W & (vG > row_thresholds(G, h, x, tol)))
         if n_ok:
             # Drop certified instances (one integer index, reused; C and d alias G and h if p = 0).
             keep = (~ok).nonzero().squeeze(-1)
-            idx, P, q, G, h, x, z, W, thr_h, tol_r = (
-                t.index_select(0, keep) for t in (idx, P, q, G, h, x, z, W, thr_h, tol_r)
+            idx, P, q, G, h, x, z, W, tol_r = (
+                t.index_select(0, keep) for t in (idx, P, q, G, h, x, z, W, tol_r)
             )
             A, b = A.index_select(0, keep), b.index_select(0, keep)
             C, d = (torch.cat([A, G], 1), torch.cat([b, h], 1)) if p else (G, h)

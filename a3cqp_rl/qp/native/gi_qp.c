@@ -62,6 +62,8 @@ enum {
 /* A Cholesky pivot of S_WW below this fraction of its diagonal entry means dependent working rows
  * (rows at an angle below ~3e-7 rad). */
 #define DEP_REL 1e-13
+/* Relative rounding of a row value computed in the range space (a few hundred ulps of its terms). */
+#define ROUND_REL 1e-13
 /* |bound| at and above which a bound or right-hand side means "none" (peers write 1e20 for it). */
 #define NO_BOUND 1e20
 
@@ -72,13 +74,15 @@ typedef struct {
     double *Ps;          /* n × n: ½(P + Pᵀ) */
     double *C, *d;       /* r × n assembled rows and their right-hand sides */
     int *rowmap;         /* assembled row -> output slot: y[0..p) | z[0..m) | z_lb[0..n) | z_ub[0..n) */
-    double *thr;         /* per-row violation threshold of the active-set decisions, tol (1 + |d_i|) */
+    double *thr;         /* per-row violation threshold of the active-set decisions (`thresholds`) */
+    double tol;
     double *L, *Linv;    /* n × n Cholesky factor of P (lower), 1 / its diagonal */
     double *Ct;          /* n × r: Cᵀ (row-value products C x in axpy form: no reduction chains) */
     double *Mt;          /* n × r: M = L⁻¹Cᵀ */
     double *S;           /* r × r, rows (and the matching columns) filled on demand */
     unsigned char *have; /* have[i]: row i of S computed */
     unsigned char *W;    /* working-set membership */
+    unsigned char *skip; /* rows found satisfied to within their certificate tolerance but dependent on the working set */
     int *buf;            /* working rows buf[0..k) (equalities first), buf[k] = row on trial */
     double *x0, *v0, *v, *ginv, *lw, *lwj, *dl, *rhs, *K, *Kinv, *x, *g, *t;
 } gi_ws;
@@ -180,13 +184,40 @@ static int solve_working(gi_ws *w, int k, double *lw) {
     return solve_rows(w, w->buf, k, w->rhs, lw);
 }
 
-/* Row values at the KKT point of buf[0..k): v = v0 − Σ λ_a S[buf_a, :]. */
-static void row_values(gi_ws *w, int k, const double *lw) {
-    const int r = w->r;
-    memcpy(w->v, w->v0, (size_t)r * sizeof(double));
+/* The point of working set buf[0..k) with multipliers lw: x = x₀ − P⁻¹ C_Wᵀ λ_W (into w->x; x₀ itself at k = 0). */
+static const double *point_at(gi_ws *w, int k, const double *lw) {
+    const int n = w->n;
+    if (!k) return w->x0;
+    memset(w->g, 0, (size_t)n * sizeof(double));
     for (int a = 0; a < k; ++a) {
-        const double *Sa = w->S + (size_t)w->buf[a] * r, la = lw[a];
-        for (int c = 0; c < r; ++c) w->v[c] -= la * Sa[c];
+        const double *Ca = w->C + (size_t)w->buf[a] * n;
+        for (int c = 0; c < n; ++c) w->g[c] += lw[a] * Ca[c];
+    }
+    fwd_sub(w->L, w->Linv, n, w->g, w->t);
+    bwd_sub_t(w->L, w->Linv, n, w->t, w->x);
+    for (int c = 0; c < n; ++c) w->x[c] = w->x0[c] - w->x[c];
+    return w->x;
+}
+
+/* Row values v = v0 − Σ λ_a S[buf_a, :] at the point of buf[0..k), and the decision thresholds there: row i
+ * counts as violated when v_i exceeds tol (1 + |d_i| + Σ_c |C_ic x_c|), the certificate's own tolerance for it,
+ * plus the rounding of v_i itself, ROUND_REL (|v0_i| + Σ_a |λ_a S_ai|) (where P is nearly singular, x₀ is large and
+ * v_i a small difference of large terms), so that neither adds a (nearly dependent) row the certificate accepts. */
+static void row_values(gi_ws *w, int k, const double *lw) {
+    const int r = w->r, n = w->n;
+    double *err = w->ginv + r; /* scratch: r entries after ginv */
+    memcpy(w->v, w->v0, (size_t)r * sizeof(double));
+    for (int i = 0; i < r; ++i) err[i] = fabs(w->v0[i]);
+    for (int a = 0; a < k; ++a) {
+        const double *Sa = w->S + (size_t)w->buf[a] * r, la = lw[a], al = fabs(la);
+        for (int c = 0; c < r; ++c) w->v[c] -= la * Sa[c], err[c] += al * fabs(Sa[c]);
+    }
+    const double *x = point_at(w, k, lw);
+    for (int i = 0; i < r; ++i) {
+        const double *Ci = w->C + (size_t)i * n;
+        double mag = 1.0 + fabs(w->d[i]);
+        for (int c = 0; c < n; ++c) mag += fabs(Ci[c] * x[c]);
+        w->thr[i] = w->tol * mag + ROUND_REL * err[i];
     }
 }
 
@@ -204,7 +235,7 @@ static int most_violated(const gi_ws *w) {
     int j = -1;
     double best = -INFINITY;
     for (int i = w->p; i < w->r; ++i) {
-        if (!(w->v[i] > w->thr[i])) continue;
+        if (!(w->v[i] > w->thr[i]) || w->skip[i]) continue;
         double rel = w->v[i] * w->ginv[i];
         if (rel > best) best = rel, j = i;
     }
@@ -256,7 +287,7 @@ static int assemble(gi_ws *w, const double *P, const double *q, const double *A,
         }
     }
     w->r = r;
-    for (int i = 0; i < r; ++i) w->thr[i] = tol * (1.0 + fabs(w->d[i]));
+    w->tol = tol;
     return 0;
 }
 
@@ -306,6 +337,15 @@ static int certify(gi_ws *w, int k, const double *lw, double tol, double *x_out,
     return QP_SOLVED;
 }
 
+/* Σ_c |C_jc x_c| at the point of working set buf[0..k) with multipliers lw: the size of row j's terms, which
+ * scales its tolerance in the certificate. */
+static double row_terms_at(gi_ws *w, int k, const double *lw, int j) {
+    const double *x = point_at(w, k, lw), *Cj = crow(w, j);
+    double mag = 0.0;
+    for (int c = 0; c < w->n; ++c) mag += fabs(Cj[c] * x[c]);
+    return mag;
+}
+
 /* One instance.  z0: warm-start multipliers (z | z_lb | z_ub; working set {z0 > 0}) or NULL. */
 static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, double *x_out, double *out, int nout,
                      int64_t *solves_out) {
@@ -321,12 +361,11 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
     bwd_sub_t(w->L, w->Linv, n, w->t, w->x0);
     memset(w->have, 0, (size_t)r);
     memset(w->W, 0, (size_t)r);
-    for (int i = 0; i < r; ++i) w->v0[i] = dot(crow(w, i), w->x0, n);
+    memset(w->skip, 0, (size_t)r);
+    for (int i = 0; i < r; ++i) w->v0[i] = dot(crow(w, i), w->x0, n) - w->d[i];
+    row_values(w, 0, NULL); /* v = v0 and the thresholds at x₀ */
     int violated = 0;
-    for (int i = 0; i < r; ++i) {
-        w->v0[i] -= w->d[i];
-        if (i >= p && w->v0[i] > w->thr[i]) violated = 1;
-    }
+    for (int i = p; i < r && !violated; ++i) violated = w->v0[i] > w->thr[i];
     int k = p;
     for (int i = 0; i < p; ++i) w->buf[i] = i, w->W[i] = 1;
     int nwarm = 0;
@@ -381,15 +420,14 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
             k = kk;
         }
         if (warm_done) {
-            if (k) row_values(w, k, lw);
-            else memcpy(w->v, w->v0, (size_t)r * sizeof(double));
+            row_values(w, k, lw);
         }
     }
     if (!warm_done) {
         /* Cold start: add the rows the current point violates (the
          * most violated relative to their norms, up to n − k working rows), then trim the set to
          * positive multipliers, so the start is dual feasible; COLD_ROUNDS times from the new point. */
-        memcpy(w->v, w->v0, (size_t)r * sizeof(double));
+        row_values(w, 0, NULL);
         int have_lw = 0;
         for (int rnd = 0; rnd < COLD_ROUNDS; ++rnd) {
             if (rnd) {
@@ -439,8 +477,7 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
                 ++solves;
                 have_lw = 0;
             }
-            if (k && have_lw) row_values(w, k, lw);
-            else memcpy(w->v, w->v0, (size_t)r * sizeof(double));
+            row_values(w, have_lw ? k : 0, lw);
         }
         if (solves < 1) solves = 1;
     }
@@ -489,7 +526,17 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
                 curv = Sjj;
             }
             double t2 = curv > 1e-12 * Sjj ? vj / curv : INFINITY;
-            if (t1 == INFINITY && t2 == INFINITY) return GI_INFEASIBLE;
+            if (t1 == INFINITY && t2 == INFINITY) {
+                /* Row j is (numerically) a combination of the working rows.  Violated beyond the
+                 * certificate's own tolerance for it, the instance is infeasible (the torch route then
+                 * looks for the certificate); within it, it is a dependent row that rounding put just
+                 * over the decision threshold: it is left out of the search (the certificate checks it). */
+                if (vj <= tol * (1.0 + fabs(w->d[j]) + row_terms_at(w, k, lw, j))) {
+                    w->skip[j] = 1;
+                    break;
+                }
+                return GI_INFEASIBLE;
+            }
             double t = t1 < t2 ? t1 : t2;
             for (int a = 0; a < k; ++a) lw[a] -= t * w->dl[a];
             lam_j += t;
@@ -527,9 +574,9 @@ static __thread size_t tls_bytes = 0;
  * NULL if out of memory.  rmax: the most rows an instance can have.  The adjoint uses a subset. */
 static double *ws_alloc(gi_ws *w, int64_t n, int64_t p, int64_t m, int64_t rmax) {
     const int64_t r = rmax;
-    const size_t nd = (size_t)(3 * n * n + r * n + r + r + 2 * r * n + r * r + 4 * r + 4 * (r + 1) + (r + 1) * (r + 1)
+    const size_t nd = (size_t)(3 * n * n + r * n + r + r + 2 * r * n + r * r + 5 * r + 4 * (r + 1) + (r + 1) * (r + 1)
                                + 3 * n + (r > n ? r : n) + 8);
-    const size_t bytes = nd * sizeof(double) + (size_t)(2 * r + 8) + (size_t)(2 * r + 4) * sizeof(int);
+    const size_t bytes = nd * sizeof(double) + (size_t)(3 * r + 8) + (size_t)(2 * r + 4) * sizeof(int);
     if (bytes > tls_bytes) {
         double *grown = (double *)realloc(tls_mem, bytes);
         if (!grown) return NULL;
@@ -551,7 +598,7 @@ static double *ws_alloc(gi_ws *w, int64_t n, int64_t p, int64_t m, int64_t rmax)
     w->x0 = cur, cur += n;
     w->v0 = cur, cur += r;
     w->v = cur, cur += r;
-    w->ginv = cur, cur += r;
+    w->ginv = cur, cur += 2 * r; /* (and r doubles of scratch after it: row_values) */
     w->rhs = cur, cur += r + 1;
     w->lw = cur, cur += r + 1;
     w->lwj = cur, cur += r + 1;
@@ -564,6 +611,7 @@ static double *ws_alloc(gi_ws *w, int64_t n, int64_t p, int64_t m, int64_t rmax)
     w->rowmap = w->buf + r + 2;
     w->have = (unsigned char *)(w->rowmap + r + 2);
     w->W = w->have + r + 1;
+    w->skip = w->W + r + 1;
     return mem;
 }
 
