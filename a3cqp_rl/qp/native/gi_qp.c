@@ -84,7 +84,7 @@ typedef struct {
     unsigned char *W;    /* working-set membership */
     unsigned char *skip; /* rows found satisfied to within their certificate tolerance but dependent on the working set */
     int *buf;            /* working rows buf[0..k) (equalities first), buf[k] = row on trial */
-    double *x0, *v0, *v, *ginv, *lw, *lwj, *dl, *rhs, *K, *Kinv, *x, *g, *t;
+    double *x0, *v0, *v, *ginv, *lw, *lwj, *dl, *rhs, *K, *Kinv, *x, *g, *t, *r1, *err_mag;
 } gi_ws;
 
 static const double *crow(const gi_ws *w, int i) { return w->C + (size_t)i * w->n; }
@@ -291,28 +291,24 @@ static int assemble(gi_ws *w, const double *P, const double *q, const double *A,
     return 0;
 }
 
-/* Certificate on the original KKT system (per row, see the header) and the outputs of working set
- * buf[0..k): x, and the multipliers scattered into out (y | z | z_lb | z_ub, zero elsewhere). */
-static int certify(gi_ws *w, int k, const double *lw, double tol, double *x_out, double *out, int nout) {
+/* The KKT conditions of working set buf[0..k) at (w->x, lw), per row (see the header); the residuals of the
+ * working set's equations go to w->r1 (stationarity, n) and w->rhs (C_W x − d_W, k).  1 when all hold. */
+static int kkt_holds(gi_ws *w, int k, const double *lw, double tol) {
     const int n = w->n, p = w->p, r = w->r;
-    /* x = x₀ − P⁻¹ C_Wᵀ λ_W */
-    memset(w->g, 0, (size_t)n * sizeof(double));
+    int ok = 1;
     double lmax = 0.0;
-    for (int a = 0; a < k; ++a) {
-        const double *Ca = crow(w, w->buf[a]);
-        for (int c = 0; c < n; ++c) w->g[c] += lw[a] * Ca[c];
-        lmax = fmax(lmax, fabs(lw[a]));
-    }
-    fwd_sub(w->L, w->Linv, n, w->g, w->t);
-    bwd_sub_t(w->L, w->Linv, n, w->t, w->x);
-    for (int c = 0; c < n; ++c) w->x[c] = w->x0[c] - w->x[c];
+    for (int a = 0; a < k; ++a) lmax = fmax(lmax, fabs(lw[a]));
     /* Stationarity, component by component, against the magnitude of its terms. */
     for (int c = 0; c < n; ++c) {
         const double *Pc = w->Ps + (size_t)c * n;
-        double s = w->q[c] + w->g[c], mag = 1.0 + fabs(w->q[c]);
+        double s = w->q[c], mag = 1.0 + fabs(w->q[c]);
         for (int j = 0; j < n; ++j) s += Pc[j] * w->x[j], mag += fabs(Pc[j] * w->x[j]);
-        for (int a = 0; a < k; ++a) mag += fabs(lw[a] * crow(w, w->buf[a])[c]);
-        if (!(fabs(s) <= tol * mag)) return GI_UNCERTIFIED;
+        for (int a = 0; a < k; ++a) {
+            const double t = lw[a] * crow(w, w->buf[a])[c];
+            s += t, mag += fabs(t);
+        }
+        w->r1[c] = s;
+        ok &= fabs(s) <= tol * mag;
     }
     /* Row values: the working rows tight, every row feasible, each against its own terms. */
     for (int i = 0; i < r; ++i) {
@@ -320,16 +316,43 @@ static int certify(gi_ws *w, int k, const double *lw, double tol, double *x_out,
         double s = -w->d[i], mag = 1.0 + fabs(w->d[i]);
         for (int c = 0; c < n; ++c) s += Ci[c] * w->x[c], mag += fabs(Ci[c] * w->x[c]);
         w->t[i] = s;
-        if (!(s <= tol * mag)) return GI_UNCERTIFIED;
-        if (i < p && !(-s <= tol * mag)) return GI_UNCERTIFIED;
+        ok &= s <= tol * mag && (i >= p || -s <= tol * mag);
+        w->err_mag[i] = mag;
     }
-    for (int a = p; a < k; ++a) {
+    for (int a = 0; a < k; ++a) {
         const int i = w->buf[a];
-        const double *Ci = crow(w, i);
-        double mag = 1.0 + fabs(w->d[i]);
-        for (int c = 0; c < n; ++c) mag += fabs(Ci[c] * w->x[c]);
-        if (!(fabs(w->t[i]) <= tol * mag)) return GI_UNCERTIFIED;
-        if (!(lw[a] >= -tol * (1.0 + lmax))) return GI_UNCERTIFIED;
+        w->rhs[a] = w->t[i];
+        ok &= fabs(w->t[i]) <= tol * w->err_mag[i] && (a < p || lw[a] >= -tol * (1.0 + lmax));
+    }
+    return ok;
+}
+
+/* Certificate on the original KKT system and the outputs of working set buf[0..k): x = x₀ − P⁻¹ C_Wᵀ λ_W, and
+ * the multipliers scattered into out (y | z | z_lb | z_ub, zero elsewhere).  Where P is ill-conditioned the
+ * range-space x is a small difference of large terms; up to two steps of iterative refinement on the working
+ * set's KKT system (same factors: S_WW dλ = r_W − C_W P⁻¹ r₁, dx = −P⁻¹(r₁ + C_Wᵀ dλ)) recover the digits
+ * before the certificate is given up. */
+static int certify(gi_ws *w, int k, double *lw, double tol, double *x_out, double *out, int nout) {
+    const int n = w->n;
+    memcpy(w->x, point_at(w, k, lw), (size_t)n * sizeof(double));
+    for (int pass = 0;; ++pass) {
+        if (kkt_holds(w, k, lw, tol)) break;
+        if (pass == 2) return GI_UNCERTIFIED;
+        /* u = P⁻¹ r₁ (into g); dλ from S_WW; dx = −u − P⁻¹ C_Wᵀ dλ */
+        fwd_sub(w->L, w->Linv, n, w->r1, w->t);
+        bwd_sub_t(w->L, w->Linv, n, w->t, w->g);
+        for (int a = 0; a < k; ++a) w->rhs[a] -= dot(crow(w, w->buf[a]), w->g, n);
+        if (k && solve_rows(w, w->buf, k, w->rhs, w->dl)) return GI_UNCERTIFIED;
+        memcpy(w->r1, w->g, (size_t)n * sizeof(double)); /* u */
+        memset(w->g, 0, (size_t)n * sizeof(double));
+        for (int a = 0; a < k; ++a) {
+            const double *Ca = crow(w, w->buf[a]);
+            for (int c = 0; c < n; ++c) w->g[c] += w->dl[a] * Ca[c];
+            lw[a] += w->dl[a];
+        }
+        fwd_sub(w->L, w->Linv, n, w->g, w->t);
+        bwd_sub_t(w->L, w->Linv, n, w->t, w->g);
+        for (int c = 0; c < n; ++c) w->x[c] -= w->r1[c] + w->g[c];
     }
     memcpy(x_out, w->x, (size_t)n * sizeof(double));
     memset(out, 0, (size_t)nout * sizeof(double));
@@ -575,7 +598,7 @@ static __thread size_t tls_bytes = 0;
 static double *ws_alloc(gi_ws *w, int64_t n, int64_t p, int64_t m, int64_t rmax) {
     const int64_t r = rmax;
     const size_t nd = (size_t)(3 * n * n + r * n + r + r + 2 * r * n + r * r + 5 * r + 4 * (r + 1) + (r + 1) * (r + 1)
-                               + 3 * n + (r > n ? r : n) + 8);
+                               + 4 * n + r + (r > n ? r : n) + 8);
     const size_t bytes = nd * sizeof(double) + (size_t)(3 * r + 8) + (size_t)(2 * r + 4) * sizeof(int);
     if (bytes > tls_bytes) {
         double *grown = (double *)realloc(tls_mem, bytes);
@@ -607,6 +630,8 @@ static double *ws_alloc(gi_ws *w, int64_t n, int64_t p, int64_t m, int64_t rmax)
     w->x = cur, cur += n;
     w->g = cur, cur += n;
     w->t = cur, cur += (r > n ? r : n) + 1;
+    w->r1 = cur, cur += n;
+    w->err_mag = cur, cur += r;
     w->buf = (int *)(mem + nd);
     w->rowmap = w->buf + r + 2;
     w->have = (unsigned char *)(w->rowmap + r + 2);
