@@ -15,7 +15,8 @@ import pytest
 import torch
 
 from a3cqp_rl.qp import QPStatus, native, solve_qp
-from a3cqp_rl.qp.problems import QPProblem, companion, max_violation, objective, peer_problems, reference
+from a3cqp_rl.qp.problems import (RANDOM_FAMILIES, QPProblem, companion, max_violation, objective, peer_problems,
+                                  random_problem, reference)
 
 PROBLEMS = {p.name: p for p in peer_problems()}
 BACKENDS = ["c", "torch"]
@@ -81,3 +82,24 @@ def test_the_suite_covers_every_family_and_status() -> None:
     assert {QPStatus.SOLVED, QPStatus.PRIMAL_INFEASIBLE, QPStatus.DUAL_INFEASIBLE, QPStatus.NON_CONVEX,
             QPStatus.INVALID_INPUT} <= statuses
     assert len([p for p in PROBLEMS.values() if p.source]) >= 30  # published problems, rebuilt
+
+
+@pytest.mark.parametrize("family", RANDOM_FAMILIES)
+def test_random_members_of_each_family(family: str) -> None:
+    # Seeds no other test or tuning used; `bench/qp.py --check --sweep 30` runs 30 per family.
+    rng = np.random.default_rng(777)
+    for _ in range(4):
+        p = random_problem(family, rng)
+        st_ref, _, f_ref = reference(p)
+        for backend in BACKENDS:
+            if backend == "c" and native.load() is None:
+                continue
+            sol = solve_qp(*_tensors(p.args(), torch.float64), backend=backend)
+            status, x = int(sol.status[0]), sol.x[0].numpy()
+            assert status != QPStatus.SOLVED or st_ref == QPStatus.SOLVED, f"{family} [{backend}]: SOLVED, reference {st_ref.name}"
+            if status == QPStatus.SOLVED:
+                assert abs(objective(p, x) - f_ref) <= 1e-6 * (1 + abs(f_ref)) and max_violation(p, x) <= 1e-6
+            elif family == "infeasible":  # an LP can also have a recession direction: infeasible is the answer
+                assert status == QPStatus.PRIMAL_INFEASIBLE
+            else:
+                assert status == st_ref or status == QPStatus.TOLERANCE_NOT_MET, f"{family} [{backend}]: {QPStatus(status).name}"

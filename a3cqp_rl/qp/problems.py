@@ -22,7 +22,8 @@ import numpy as np
 
 from a3cqp_rl.qp.status import QPStatus
 
-__all__ = ["QPProblem", "peer_problems", "reference", "companion", "objective", "max_violation", "NO_BOUND"]
+__all__ = ["QPProblem", "peer_problems", "reference", "companion", "objective", "max_violation", "NO_BOUND",
+           "RANDOM_FAMILIES", "random_problem"]
 
 NO_BOUND = 1e20
 """|bound| at and above which a bound or right-hand side means "none" (peers write 1e20 for it)."""
@@ -381,6 +382,60 @@ def _defined() -> list[QPProblem]:
 def peer_problems() -> list[QPProblem]:
     """Every problem of this module (published problems first), numpy float64."""
     return _qpsolvers() + _maros_meszaros() + _proxsuite() + _lps() + _singular_unbounded_infeasible() + _ill_scaled() + _defined()
+
+
+RANDOM_FAMILIES = ("LP optimal face", "LP box+rows", "LP unbounded", "singular P", "degenerate", "equality-heavy",
+                   "infeasible", "ill-scaled")
+"""Families of `random_problem`: random members of the failure families, for sweeps on instances no test tuned."""
+
+
+def random_problem(family: str, rng: np.random.Generator) -> QPProblem:
+    """One random problem of `family` (2-13 variables; see RANDOM_FAMILIES)."""
+    n = int(rng.integers(2, 14))
+    if family == "LP optimal face":  # P = 0, |Cx| ≤ 1 with C k × n, k < n: the optimum is attained on an unbounded face
+        k = int(rng.integers(1, n))
+        C = rng.standard_normal((k, n))
+        return QPProblem(family, family, np.zeros((n, n)), C.T @ rng.standard_normal(k), G=np.vstack([C, -C]), h=np.ones(2 * k))
+    if family == "LP box+rows":
+        m = int(rng.integers(1, 2 * n))
+        G, x0 = rng.standard_normal((m, n)), rng.uniform(-0.5, 0.5, n)
+        return QPProblem(family, family, np.zeros((n, n)), rng.standard_normal(n), G=G, h=G @ x0 + rng.uniform(0, 1, m),
+                         lb=-np.ones(n), ub=np.ones(n))
+    if family == "LP unbounded":  # every row keeps G d ≤ 0 along d, and the cost decreases along d
+        m = int(rng.integers(1, n + 1))
+        G, d = rng.standard_normal((m, n)), rng.standard_normal(n)
+        G = G - np.outer((G @ d + np.abs(rng.standard_normal(m))) / (d @ d), d)
+        return QPProblem(family, family, np.zeros((n, n)), -d, G=G, h=rng.uniform(0, 1, m))
+    if family == "singular P":
+        r, m = int(rng.integers(0, n)), int(rng.integers(1, 2 * n))
+        M, G, x0 = rng.standard_normal((n, r)), rng.standard_normal((m, n)), rng.standard_normal(n)
+        return QPProblem(family, family, M @ M.T, rng.standard_normal(n), G=G, h=G @ x0 + rng.uniform(0, 1, m), lb=x0 - 2, ub=x0 + 2)
+    if family == "degenerate":  # many rows through one point, some repeated or scaled
+        M = rng.standard_normal((n, n))
+        P, q = M @ M.T + 0.1 * np.eye(n), rng.standard_normal(n)
+        m = int(rng.integers(2, 2 * n))
+        G = rng.standard_normal((m, n))
+        h = G @ (-np.linalg.solve(P, q) + 0.3 * rng.standard_normal(n))
+        G, h = np.vstack([G, G[: m // 2], 2 * G[: m // 3]]), np.concatenate([h, h[: m // 2], 2 * h[: m // 3]])
+        return QPProblem(family, family, P, q, G=G, h=h)
+    if family == "equality-heavy":  # p = n − 2 … n equalities, P definite, nearly singular or zero
+        p, m = int(rng.integers(max(1, n - 2), n + 1)), int(rng.integers(1, n))
+        M, x0, A, G = rng.standard_normal((n, n)), rng.standard_normal(n), rng.standard_normal((p, n)), rng.standard_normal((m, n))
+        P = M @ M.T * float(rng.integers(0, 2)) + 1e-3 * float(rng.integers(0, 2)) * np.eye(n)
+        return QPProblem(family, family, P, rng.standard_normal(n), A, A @ x0, G, G @ x0 + rng.uniform(0, 1, m), x0 - 3, x0 + 3)
+    if family == "infeasible":  # g x ≤ −½ and −g x ≤ −½ among random rows; P definite or zero
+        M, m = rng.standard_normal((n, n)), int(rng.integers(1, n))
+        G, g = rng.standard_normal((m, n)), rng.standard_normal(n)
+        G, h = np.vstack([G, g, -g]), np.concatenate([rng.uniform(0, 1, m), [-0.5, -0.5]])
+        return QPProblem(family, family, M @ M.T * float(rng.integers(0, 2)), rng.standard_normal(n), G=G, h=h)
+    if family == "ill-scaled":  # rows scaled 1e-4 … 1e4, variables 1e-2 … 1e2, P and q 1e-3 … 1e3
+        M, m = rng.standard_normal((n, n)), int(rng.integers(1, 2 * n))
+        P, G, x0 = M @ M.T + 1e-2 * np.eye(n), rng.standard_normal((m, n)), rng.standard_normal(n)
+        h = G @ x0 + rng.uniform(0, 1, m)
+        s, d = 10.0 ** rng.uniform(-4, 4, m), 10.0 ** rng.uniform(-2, 2, n)
+        return QPProblem(family, family, 10.0 ** rng.uniform(-3, 3) * d[:, None] * P * d[None, :],
+                         10.0 ** rng.uniform(-3, 3) * d * rng.standard_normal(n), G=s[:, None] * G * d[None, :], h=s * h)
+    raise KeyError(f"unknown family {family!r}; one of {RANDOM_FAMILIES}")
 
 
 def companion(p: QPProblem) -> QPProblem:
