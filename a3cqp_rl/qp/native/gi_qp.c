@@ -293,7 +293,7 @@ static int assemble(gi_ws *w, const double *P, const double *q, const double *A,
 
 /* The KKT conditions of working set buf[0..k) at (w->x, lw), per row (see the header); the residuals of the
  * working set's equations go to w->r1 (stationarity, n) and w->rhs (C_W x − d_W, k).  1 when all hold. */
-static int kkt_holds(gi_ws *w, int k, const double *lw, double tol) {
+static int kkt_holds(gi_ws *w, int k, const double *lw, double tol, int rows_at_x0) {
     const int n = w->n, p = w->p, r = w->r;
     int ok = 1;
     double lmax = 0.0;
@@ -310,14 +310,20 @@ static int kkt_holds(gi_ws *w, int k, const double *lw, double tol) {
         w->r1[c] = s;
         ok &= fabs(s) <= tol * mag;
     }
-    /* Row values: the working rows tight, every row feasible, each against its own terms. */
+    /* Row values: the working rows tight, every row feasible, each against its own terms (at x = x₀ they
+     * were computed with the thresholds: v0 and err_mag). */
     for (int i = 0; i < r; ++i) {
-        const double *Ci = crow(w, i);
-        double s = -w->d[i], mag = 1.0 + fabs(w->d[i]);
-        for (int c = 0; c < n; ++c) s += Ci[c] * w->x[c], mag += fabs(Ci[c] * w->x[c]);
+        double s, mag;
+        if (rows_at_x0) {
+            s = w->v0[i], mag = w->err_mag[i];
+        } else {
+            const double *Ci = crow(w, i);
+            s = -w->d[i], mag = 1.0 + fabs(w->d[i]);
+            for (int c = 0; c < n; ++c) s += Ci[c] * w->x[c], mag += fabs(Ci[c] * w->x[c]);
+            w->err_mag[i] = mag;
+        }
         w->t[i] = s;
         ok &= s <= tol * mag && (i >= p || -s <= tol * mag);
-        w->err_mag[i] = mag;
     }
     for (int a = 0; a < k; ++a) {
         const int i = w->buf[a];
@@ -331,12 +337,12 @@ static int kkt_holds(gi_ws *w, int k, const double *lw, double tol) {
  * the multipliers scattered into out (y | z | z_lb | z_ub, zero elsewhere).  Where P is ill-conditioned the
  * range-space x is a small difference of large terms; up to two steps of iterative refinement on the working
  * set's KKT system (same factors: S_WW dλ = r_W − C_W P⁻¹ r₁, dx = −P⁻¹(r₁ + C_Wᵀ dλ)) recover the digits
- * before the certificate is given up. */
-static int certify(gi_ws *w, int k, double *lw, double tol, double *x_out, double *out, int nout) {
+ * before the certificate is given up.  x0_rows: x is x₀ and v0 / err_mag hold its row values and terms. */
+static int certify(gi_ws *w, int k, double *lw, double tol, double *x_out, double *out, int nout, int x0_rows) {
     const int n = w->n;
     memcpy(w->x, point_at(w, k, lw), (size_t)n * sizeof(double));
     for (int pass = 0;; ++pass) {
-        if (kkt_holds(w, k, lw, tol)) break;
+        if (kkt_holds(w, k, lw, tol, x0_rows && pass == 0)) break;
         if (pass == 2) return GI_UNCERTIFIED;
         /* u = P⁻¹ r₁ (into g); dλ from S_WW; dx = −u − P⁻¹ C_Wᵀ dλ */
         fwd_sub(w->L, w->Linv, n, w->r1, w->t);
@@ -385,8 +391,19 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
     memset(w->have, 0, (size_t)r);
     memset(w->W, 0, (size_t)r);
     memset(w->skip, 0, (size_t)r);
-    for (int i = 0; i < r; ++i) w->v0[i] = dot(crow(w, i), w->x0, n) - w->d[i];
-    row_values(w, 0, NULL); /* v = v0 and the thresholds at x₀ */
+    /* Row values at x₀ and the decision thresholds there (as row_values at k = 0), in one pass; the terms'
+     * sizes stay in err_mag for the certificate of x₀ itself. */
+    for (int i = 0; i < r; ++i) {
+        const double *Ci = crow(w, i);
+        double s = 0.0, mag = 1.0 + fabs(w->d[i]);
+        for (int c = 0; c < n; ++c) {
+            const double t = Ci[c] * w->x0[c];
+            s += t, mag += fabs(t);
+        }
+        w->v0[i] = w->v[i] = s - w->d[i];
+        w->err_mag[i] = mag;
+        w->thr[i] = tol * mag + ROUND_REL * fabs(w->v0[i]);
+    }
     int violated = 0;
     for (int i = p; i < r && !violated; ++i) violated = w->v0[i] > w->thr[i];
     int k = p;
@@ -397,7 +414,7 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
     if (p == 0 && nwarm == 0 && !violated) {
         /* The unconstrained minimiser is feasible (the easy cold case): certify it, skip S. */
         *solves_out = 1;
-        return certify(w, 0, w->lw, tol, x_out, out, nout);
+        return certify(w, 0, w->lw, tol, x_out, out, nout, 1);
     }
     for (int i = 0; i < r; ++i) {
         const double *Ci = crow(w, i);
@@ -585,7 +602,7 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
         if (solve_working(w, k, lw)) return GI_DEPENDENT;
     }
     *solves_out = solves;
-    return certify(w, k, lw, tol, x_out, out, nout);
+    return certify(w, k, lw, tol, x_out, out, nout, 0);
 }
 
 /* One workspace per thread, kept between calls and grown when a call needs more: a malloc and free of
