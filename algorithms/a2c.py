@@ -475,8 +475,8 @@ class TrainResult:
     """Totals of the loop's named blocks [s]: iterate (rollout + update), log, regions, checkpoint."""
     startup_seconds: float = float("nan")
     """Process start to the end of this run's first update [s] (the first update's compile included)."""
-    region_checked: bool = False
-    """Whether the run logged Fig. 5 region checks (point mass only)."""
+    fig5_applies: bool = False
+    """Whether the env is the point mass, whose eq. 26 observation the Fig. 5 regions and policy maps are drawn in."""
 
 
 def train(
@@ -572,7 +572,7 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
         steps_per_second=(num_updates - start) * per_update / max(elapsed - compile_s, 1e-9),
         out_dir=folder.path if folder else None, policy_path=policy_path, final_metrics=last,
         episode_returns=[r for r, _ in runner.finished], timings=dict(timer.totals), startup_seconds=startup_s,
-        region_checked=regions is not None and regions.stride > 0,
+        fig5_applies=regions is not None,
     )
 
 
