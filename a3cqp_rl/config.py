@@ -119,6 +119,8 @@ class A2CConfig:
 
     learning_rate: float = 4.25339846e-6
     """λη: RMSProp learning rate."""
+    lr_schedule: Literal["constant", "linear"] = "constant"
+    """'constant' (the paper); 'linear': λη·(1 − fraction of the run done), SB3's linear schedule (TorchRL rollout)."""
     ent_coef: float = 3.371768978e-4
     """λβ: entropy bonus weight (eq. 31d)."""
     n_steps: int = 4

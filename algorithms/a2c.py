@@ -92,8 +92,11 @@ def gae_advantages(rewards: Tensor, terminated: Tensor, truncated: Tensor, value
     return torch.stack(out[::-1])
 
 
-def a2c_update(layout: ParamLayout, flat: Tensor, square_avg: Tensor, batch: Batch, hp: A2CConfig) -> Tensor:
-    """One A2C step in place on `flat` and the RMSProp accumulator; returns METRICS as a tensor [5]."""
+def a2c_update(layout: ParamLayout, flat: Tensor, square_avg: Tensor, batch: Batch, hp: A2CConfig,
+               lr: Tensor | None = None) -> Tensor:
+    """One A2C step in place on `flat` and the RMSProp accumulator; returns METRICS as a tensor [5].
+
+    `lr`: a 0-d tensor overriding hp.learning_rate (a2c.lr_schedule), else the constant λη."""
     T, N = batch.rewards.shape
     B = T * N
     obs, actions = batch.obs.reshape(B, -1), batch.actions.reshape(B, -1)
@@ -127,7 +130,7 @@ def a2c_update(layout: ParamLayout, flat: Tensor, square_avg: Tensor, batch: Bat
     g_value = (2.0 * hp.vf_coef / B) * (values - returns)
     grad = backward(layout, flat, cache, g_mu, g_log_std, g_value)
     grad_norm = clip_grad_norm_([grad], hp.max_grad_norm)  # λζ
-    rmsprop_step_([flat], [grad], [square_avg], hp.learning_rate, hp.rms_alpha, hp.rms_eps)  # eq. 32
+    rmsprop_step_([flat], [grad], [square_avg], hp.learning_rate if lr is None else lr, hp.rms_alpha, hp.rms_eps)  # eq. 32
     explained_var = 1.0 - (returns - values).var() / (returns.var() + 1e-8)
     return torch.stack([policy_loss, value_loss, entropy, grad_norm, explained_var]).detach()
 
@@ -420,6 +423,13 @@ class TorchRLRollout:
         self.ep_return = torch.zeros(self.streams)
         self.ep_length = torch.zeros(self.streams, dtype=torch.int64)
         self.finished: list[tuple[float, int]] = []
+        self.lr = torch.tensor(hp.learning_rate) if hp.lr_schedule == "linear" else None
+        """The scheduled learning rate (a2c.lr_schedule: linear), set by `set_progress`; None = constant."""
+
+    def set_progress(self, fraction: float) -> None:
+        """Tell the rollout which fraction of the run's updates is done (the learning-rate schedule reads it)."""
+        if self.lr is not None:
+            self.lr.fill_(self.hp.learning_rate * (1.0 - fraction))
 
     def _per_stream(self, x: Tensor) -> Tensor:
         """[n, N, (*agents), (1)] -> [n, N·A]: values without the agent dims hold for all of an env's agents."""
@@ -441,7 +451,9 @@ class TorchRLRollout:
         key = "critic_observation" if self.hp.critic == "privileged" else "observation"  # [obs; privileged]
         obs = td[key].reshape(n, S, -1).float()
         batch = Batch(obs, td["action_raw"].reshape(n, S, -1).float(), r, term, trunc, td["next", key].reshape(n, S, -1).float())
-        return self._update(self.layout, flat, square_avg, batch, self.hp)
+        if self.lr is None:
+            return self._update(self.layout, flat, square_avg, batch, self.hp)
+        return self._update(self.layout, flat, square_avg, batch, self.hp, self.lr)
 
     def state_dict(self) -> dict:
         """Collector-driven envs cannot be snapshotted in general; resume restarts their episodes."""
@@ -518,7 +530,11 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     layout = ParamLayout(spec.obs_dim, spec.act_dim, hp.hidden, hp.network, _critic_input_dim(env, hp, fused, spec.obs_dim))
     flat = layout.init(gen, hp.log_std_init)
     square_avg = torch.full_like(flat, hp.rms_init)
+    if fused and hp.lr_schedule != "constant":
+        raise ValueError("a2c.lr_schedule: linear runs on the TorchRL rollout (a2c.rollout: torchrl); the fused "
+                         "point-mass iteration has a constant learning rate")
     runner = FusedRollout(env, layout, gen, hp) if fused else TorchRLRollout(env, layout, spec, gen, hp)
+    scheduled = hp.lr_schedule != "constant"
     per_update = hp.n_steps * runner.num_envs
     num_updates = math.ceil(total / per_update)
 
@@ -535,6 +551,8 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     with SigintCheckpoint(enabled=folder is not None) as sigint:
         for u in range(start, num_updates):
             t0 = time.perf_counter()
+            if scheduled:  # SB3's linear schedule: λη·(1 − progress) at the start of each update
+                runner.set_progress(u / num_updates)
             with timer("iterate"):
                 ckpt.add_metrics(runner.iterate(flat, square_avg))
             done = u + 1

@@ -28,9 +28,9 @@ class RunLog:
         """Open the log of a run that starts (or resumes) after update `start_update`."""
         self.path = out / "metrics.csv" if out is not None else None
         self.tb = None
+        self._tb_args = (out, start_update * per_update + 1)  # the writer is made on the first row: start-up stays short
         if out is not None:
             truncate_csv(self.path, keep_until_update=start_update, log_every=log_every)
-            self.tb = _tensorboard(out, start_update * per_update + 1)
 
     def write(self, row: dict[str, float]) -> None:
         """Append `row` (CSV_COLUMNS) to metrics.csv and its finite values to TensorBoard under a2c/."""
@@ -45,6 +45,8 @@ class RunLog:
                 w.writerow(row)
         except OSError as exc:
             raise RunFolderError(f"cannot write {self.path}: {exc.strerror or exc}") from None
+        if self._tb_args is not None:
+            self.tb, self._tb_args = _tensorboard(*self._tb_args), None
         if self.tb is not None:
             for k, v in row.items():
                 if k not in ("step", "update") and math.isfinite(v):

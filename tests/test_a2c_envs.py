@@ -158,3 +158,27 @@ def test_cli_trains_a_gymnasium_task_by_name(tmp_path, capsys):
     assert torch.load(out / "policy.pt", weights_only=True)["env"] == "Pendulum-v1"
     assert main(["train", "--env", "NoSuchEnv-v9", "--steps", "128", "--out", str(tmp_path / "x")]) == 2
     assert "NoSuchEnv-v9" in capsys.readouterr().err
+
+
+def test_linear_learning_rate_schedule_on_the_torchrl_rollout():
+    import pytest
+
+    cfg = config_from_dict({"env": "Pendulum-v1", "a2c": {**FAST, "num_envs": 2, "lr_schedule": "linear",
+                                                          "learning_rate": 1e-2}})
+    seen = []
+    from algorithms import a2c
+
+    original = a2c.TorchRLRollout.iterate
+
+    def spy(self, flat, sq):
+        seen.append(float(self.lr))
+        return original(self, flat, sq)
+
+    a2c.TorchRLRollout.iterate = spy
+    try:
+        train(cfg, None, total_steps=2 * 4 * 4)
+    finally:
+        a2c.TorchRLRollout.iterate = original
+    assert seen == pytest.approx([1e-2, 0.75e-2, 0.5e-2, 0.25e-2])
+    with pytest.raises(ValueError, match="lr_schedule"):  # the fused point-mass iteration keeps λη constant
+        train(config_from_dict({"a2c": {**FAST, "lr_schedule": "linear"}}), None, total_steps=32)
