@@ -319,6 +319,9 @@ class FusedRollout:
         self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
         self.finished: list[tuple[float, int]] = []
 
+    def set_progress(self, fraction: float) -> None:
+        """The fused iteration's learning rate is constant (a2c.lr_schedule is refused before it is built)."""
+
     def iterate(self, flat: Tensor, square_avg: Tensor) -> Tensor:
         """Collect n steps in every env and update `flat`/`square_avg` in place; returns METRICS [5]."""
         noise = self.noise.draw(self.hp.n_steps)
@@ -534,7 +537,6 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
         raise ValueError("a2c.lr_schedule: linear runs on the TorchRL rollout (a2c.rollout: torchrl); the fused "
                          "point-mass iteration has a constant learning rate")
     runner = FusedRollout(env, layout, gen, hp) if fused else TorchRLRollout(env, layout, spec, gen, hp)
-    scheduled = hp.lr_schedule != "constant"
     per_update = hp.n_steps * runner.num_envs
     num_updates = math.ceil(total / per_update)
 
@@ -543,27 +545,21 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     start = ckpt.restore(override) if resume else 0
     log = RunLog(folder.path if folder else None, start, per_update, hp.log_every)
     regions = RegionChecks(layout, flat, average, num_updates, hp) if _fig5_applies(env) else None
-    bar = _progress(num_updates * per_update, start * per_update, progress)
+    bar = _ProgressBar(num_updates * per_update, start * per_update, progress, runner.compiles and start < num_updates)
     timer, compile_s, startup_s, last = Timer(), 0.0, float("nan"), {}
     t_start = time.perf_counter()
-    if runner.compiles and start < num_updates:
-        bar.set_description("A2C (compiling the step, one-time)")
     with SigintCheckpoint(enabled=folder is not None) as sigint:
         for u in range(start, num_updates):
             t0 = time.perf_counter()
-            if scheduled:  # SB3's linear schedule: λη·(1 − progress) at the start of each update
-                runner.set_progress(u / num_updates)
+            runner.set_progress(u / num_updates)  # the learning-rate schedule's clock
             with timer("iterate"):
                 ckpt.add_metrics(runner.iterate(flat, square_avg))
             done = u + 1
             average.update(done, flat)
             if u == start:  # the first iteration pays for torch.compile
                 startup_s = process_age()
-                if runner.compiles:
-                    compile_s = time.perf_counter() - t0
-                    bar.set_description("A2C")
-                    bar.reset(total=num_updates * per_update)  # restart the rate estimate after compiling
-                    bar.update(start * per_update)
+                compile_s = time.perf_counter() - t0 if runner.compiles else 0.0
+                bar.compiled()
             if done % hp.log_every == 0 or done == num_updates:
                 with timer("regions"):
                     row_regions = regions(done) if regions else {}
@@ -678,8 +674,20 @@ def _compile(fn: Callable) -> Callable:
     return run
 
 
-def _progress(total: int, initial: int, enabled: bool):
-    from tqdm.auto import tqdm
+class _ProgressBar:
+    """tqdm over agent steps; says when the first update compiles, and restarts its rate estimate after it."""
 
-    return tqdm(total=total, initial=initial, disable=not enabled, unit="step", unit_scale=True,
-                dynamic_ncols=True, desc="A2C")
+    def __init__(self, total: int, initial: int, enabled: bool, compiling: bool) -> None:
+        from tqdm.auto import tqdm
+
+        self.initial, self.compiling = initial, compiling
+        self.bar = tqdm(total=total, initial=initial, disable=not enabled, unit="step", unit_scale=True,
+                        dynamic_ncols=True, desc="A2C (compiling the step, one-time)" if compiling else "A2C")
+        self.update, self.set_postfix, self.close = self.bar.update, self.bar.set_postfix, self.bar.close
+
+    def compiled(self) -> None:
+        """The first update is done."""
+        if self.compiling:
+            self.bar.set_description("A2C")
+            self.bar.reset(total=self.bar.total)
+            self.bar.update(self.initial)
