@@ -159,6 +159,9 @@ class A2CConfig:
     """Agent steps each exploration-noise draw is held (1 = white noise, SB3/paper; k > 1 like gSDE's sde_sample_freq)."""
     normalize_advantage: bool = False
     """Normalise advantages per batch (SB3 default: off)."""
+    reward_scale: float = 1.0
+    """Factor on the rewards the update learns from (TorchRL rollout; the logged returns stay unscaled): brings values
+    of tasks with large returns (Pendulum: down to ~ −100 at γ 0.9) near the networks' initial output scale."""
     average_last: float = 0.0
     """Fraction in [0, 1) of the run, at its end, whose parameters policy.pt averages uniformly (stochastic weight
     averaging, Izmailov et al. 2018; for A2C, Nikishin et al. 2018). 0 = the last parameters (the paper). Training
@@ -181,7 +184,7 @@ class A2CConfig:
 
     def _check(self, err: _Errors) -> None:
         for name in ("learning_rate", "rms_eps", "max_grad_norm", "n_steps", "num_envs", "total_steps",
-                     "checkpoint_every", "log_every", "noise_hold"):
+                     "checkpoint_every", "log_every", "noise_hold", "reward_scale"):
             err.positive(self, name)
         for name in ("ent_coef", "vf_coef", "rms_init", "bound_coef", "region_checks"):
             if getattr(self, name) < 0:

@@ -453,6 +453,8 @@ class TorchRLRollout:
         _count_episodes(self, r, term | trunc)
         key = "critic_observation" if self.hp.critic == "privileged" else "observation"  # [obs; privileged]
         obs = td[key].reshape(n, S, -1).float()
+        if self.hp.reward_scale != 1.0:
+            r = r * self.hp.reward_scale
         batch = Batch(obs, td["action_raw"].reshape(n, S, -1).float(), r, term, trunc, td["next", key].reshape(n, S, -1).float())
         if self.lr is None:
             return self._update(self.layout, flat, square_avg, batch, self.hp)
@@ -533,9 +535,9 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     layout = ParamLayout(spec.obs_dim, spec.act_dim, hp.hidden, hp.network, _critic_input_dim(env, hp, fused, spec.obs_dim))
     flat = layout.init(gen, hp.log_std_init)
     square_avg = torch.full_like(flat, hp.rms_init)
-    if fused and hp.lr_schedule != "constant":
-        raise ValueError("a2c.lr_schedule: linear runs on the TorchRL rollout (a2c.rollout: torchrl); the fused "
-                         "point-mass iteration has a constant learning rate")
+    if fused and (hp.lr_schedule != "constant" or hp.reward_scale != 1.0):
+        raise ValueError("a2c.lr_schedule and a2c.reward_scale apply to the TorchRL rollout (a2c.rollout: torchrl); "
+                         "the fused point-mass iteration has a constant learning rate and unscaled rewards")
     runner = FusedRollout(env, layout, gen, hp) if fused else TorchRLRollout(env, layout, spec, gen, hp)
     per_update = hp.n_steps * runner.num_envs
     num_updates = math.ceil(total / per_update)

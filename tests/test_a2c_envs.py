@@ -182,3 +182,22 @@ def test_linear_learning_rate_schedule_on_the_torchrl_rollout():
     assert seen == pytest.approx([1e-2, 0.75e-2, 0.5e-2, 0.25e-2])
     with pytest.raises(ValueError, match="lr_schedule"):  # the fused point-mass iteration keeps λη constant
         train(config_from_dict({"a2c": {**FAST, "lr_schedule": "linear"}}), None, total_steps=32)
+
+
+def test_reward_scale_scales_what_the_update_learns_from_not_the_logged_returns():
+    from algorithms import a2c
+
+    rewards, original = [], a2c.a2c_update
+
+    def spy(layout, flat, sq, batch, hp, lr=None):
+        rewards.append(batch.rewards.clone())
+        return original(layout, flat, sq, batch, hp, lr)
+
+    a2c.a2c_update = spy
+    try:
+        runs = [train(config_from_dict({"env": "Pendulum-v1", "a2c": {**FAST, "num_envs": 2, "reward_scale": s}}), None,
+                      total_steps=2 * 4) for s in (1.0, 0.25)]
+    finally:
+        a2c.a2c_update = original
+    assert torch.allclose(rewards[1], 0.25 * rewards[0]) and bool((rewards[0] < -0.01).any())
+    assert runs[0].final_metrics["step"] == runs[1].final_metrics["step"] == 8
