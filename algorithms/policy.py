@@ -21,7 +21,7 @@ from a3cqp_rl.checkpoint import load_checkpoint
 from a3cqp_rl.exceptions import CheckpointError
 from algorithms.networks import ParamLayout, policy_mean
 
-__all__ = ["A2CPolicy", "load_policy", "load_actor", "layout_key"]
+__all__ = ["A2CPolicy", "load_policy", "load_actor", "layout_key", "first_episode_returns"]
 
 
 def layout_key(key: list) -> list:
@@ -109,3 +109,17 @@ def load_actor(path: str | Path, sample: bool = False):
     return ProbabilisticActor(module, in_keys=["loc", "scale"], out_keys=["action"], spec=spec, safe=policy.bounded,
                               distribution_class=IndependentNormal,
                               default_interaction_type=InteractionType.RANDOM if sample else InteractionType.DETERMINISTIC)
+
+
+@torch.no_grad()
+def first_episode_returns(policy_path: str | Path, env, max_steps: int, sample: bool = False) -> Tensor:
+    """Return of each env's first episode [num_envs] under the policy of `policy_path` (its mean action unless
+    `sample`), from `env`'s reset; ValueError if an env's episode outlasts `max_steps`."""
+    td = env.rollout(max_steps, policy=load_actor(policy_path, sample), break_when_any_done=False)
+    reward = td["next", "reward"].reshape(*env.batch_size, max_steps, -1).sum(-1)  # [N, T]
+    done = td["next", "done"].reshape(*env.batch_size, max_steps, -1).any(-1)
+    if not bool(done.any(-1).all()):
+        raise ValueError(f"an episode lasted more than max_steps={max_steps}")
+    first = done.int().argmax(-1, keepdim=True)  # index of each env's first done
+    steps = torch.arange(max_steps).expand_as(reward)
+    return (reward * (steps <= first)).sum(-1).reshape(-1)

@@ -60,15 +60,10 @@ def run_ours(cfg, steps: int) -> tuple[float, float, dict]:
 
 def evaluate(policy_path: Path, seed: int, episodes: int = 20) -> float:
     """Mean return of the policy's mean action over `episodes` fresh Pendulum-v1 episodes (seeded 1000 + seed)."""
-    import torch
-
-    from algorithms.a2c import load_actor
     from algorithms.make_env import gym_env
+    from algorithms.policy import first_episode_returns
 
-    env = gym_env("Pendulum-v1", episodes, seed=1000 + seed)
-    with torch.no_grad():
-        td = env.rollout(200, policy=load_actor(policy_path))
-    return float(td["next", "reward"].sum(1).mean())
+    return float(first_episode_returns(policy_path, gym_env("Pendulum-v1", episodes, seed=1000 + seed), 200).mean())
 
 
 def learn(cfg_path: Path, seeds: list[int], out: Path) -> None:

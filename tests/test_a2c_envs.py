@@ -11,6 +11,7 @@ from torchrl.envs import EnvBase
 
 from a3cqp_rl.config import config_from_dict
 from algorithms.a2c import EnvLayout, load_actor, load_policy, read_env_layout, train
+from algorithms.policy import first_episode_returns
 
 FAST = {"compile": False, "log_every": 4, "region_checks": 5}
 
@@ -201,3 +202,17 @@ def test_reward_scale_scales_what_the_update_learns_from_not_the_logged_returns(
         a2c.a2c_update = original
     assert torch.allclose(rewards[1], 0.25 * rewards[0]) and bool((rewards[0] < -0.01).any())
     assert runs[0].final_metrics["step"] == runs[1].final_metrics["step"] == 8
+
+
+def test_first_episode_returns_sums_each_envs_first_episode(tmp_path):
+    cfg = config_from_dict({"env": "Pendulum-v1", "a2c": {**FAST, "num_envs": 2}})
+    res = train(cfg, tmp_path / "run", total_steps=64)
+    from algorithms.make_env import gym_env
+
+    env = gym_env("Pendulum-v1", 3, seed=5)
+    returns = first_episode_returns(res.policy_path, env, 250)  # Pendulum: 200 steps, then auto-reset
+    env2 = gym_env("Pendulum-v1", 3, seed=5)
+    td = env2.rollout(200, policy=load_actor(res.policy_path))
+    assert torch.allclose(returns, td["next", "reward"].sum((1, 2)))
+    with pytest.raises(ValueError, match="max_steps"):
+        first_episode_returns(res.policy_path, gym_env("Pendulum-v1", 3, seed=5), 150)
