@@ -37,12 +37,20 @@ def point_mass(cfg: ExperimentConfig, num_envs: int, seed: int):
 
 def gym_env(env_id: str, num_envs: int, seed: int):
     """gymnasium `env_id` × num_envs as one TorchRL env, batch_size [num_envs], seeded."""
+    import logging
+
     import gymnasium as gym
     from torchrl.envs import GymWrapper
 
     # TorchRL reads the final observation of an episode (for bootstrapping at truncation) only in SAME_STEP mode
     vec = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="sync",
                        vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
-    env = GymWrapper(vec)
+    log = logging.getLogger("torchrl")
+    level = log.level
+    log.setLevel(logging.WARNING)  # GymWrapper logs its spec probing at INFO on every construction
+    try:
+        env = GymWrapper(vec)
+    finally:
+        log.setLevel(level)
     env.set_seed(seed)
     return env
