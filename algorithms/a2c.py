@@ -566,7 +566,7 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
 
     average = ParameterAverage(num_updates, hp.average_last)
     ckpt = Checkpoints(folder, cfg, layout, spec, flat, square_avg, gen, runner, average)
-    start = ckpt.restore(override) if resume else 0
+    start = ckpt.begin(resume, override)
     log = RunLog(folder.path if folder else None, start, per_update, hp.log_every)
     regions = RegionChecks(layout, flat, average, num_updates, hp) if _fig5_applies(env) else None
     bar = _ProgressBar(num_updates * per_update, start * per_update, progress, runner.compiles and start < num_updates)

@@ -86,8 +86,14 @@ class Checkpoints:
         self.metric_count = 0
         self.episodes_before = 0
         """Episodes that ended before the checkpoint this run resumed from, beyond the ones `runner.finished` holds."""
-        if folder is not None:
+
+    def begin(self, resume: bool, override: bool) -> int:
+        """Restore the checkpoint if `resume` (see `restore`), then record the run's config in OUT/config.yaml; returns
+        the update to continue after (0 for a new run)."""
+        start = self.restore(override) if resume else 0
+        if self.folder is not None:
             self._write_config()
+        return start
 
     @property
     def path(self) -> Path:

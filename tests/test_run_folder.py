@@ -50,11 +50,13 @@ def test_one_writer_per_folder(tmp_path):
 def test_resume_refuses_a_changed_config_unless_overridden_and_records_it(tmp_path):
     cfg = config_from_dict(BASE)
     train(cfg, tmp_path / "run", total_steps=16 * 10)
+    config_before = (tmp_path / "run" / "config.yaml").read_text()
     for change, text in (({"seed": 1}, "seed: 0 -> 1"), ({"a2c": {"learning_rate": 1e-3}}, "a2c.learning_rate")):
         other = config_from_dict({**BASE, **change, "a2c": {**BASE["a2c"], **change.get("a2c", {})}})
         with pytest.raises(CheckpointError, match=text):
             train(other, tmp_path / "run", total_steps=16 * 20, resume=True)
     assert not (tmp_path / "run" / "overrides.log").exists()
+    assert (tmp_path / "run" / "config.yaml").read_text() == config_before  # a refused resume relabels nothing
     # more steps and --no-compile are no change of the experiment
     train(config_from_dict({**BASE, "a2c": {**BASE["a2c"], "total_steps": 5}}), tmp_path / "run", total_steps=16 * 12,
           resume=True)
