@@ -1,7 +1,7 @@
 """`a3cqp bench NAME [args]`: run a benchmark script from the repository's bench/ folder.
 
 NAME: env (bench/env_throughput.py), train (bench/train_speed.py), pendulum (bench/pendulum.py), qp (bench/qp.py),
-controller (bench/controller.py), or all (each with --quick unless args are given).
+controller (bench/controller.py), hierarchy (bench/hierarchy.py), or all (each with --quick unless args are given).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 BENCHES = {"env": "env_throughput.py", "train": "train_speed.py", "pendulum": "pendulum.py", "qp": "qp.py",
-           "controller": "controller.py"}
+           "controller": "controller.py", "hierarchy": "hierarchy.py"}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,10 +1,10 @@
-"""The small-batch dual active set in C (`gi_qp.c`), built on first use and called through ctypes.
+"""The small-batch dual active set in C (`gi_qp.c`, built at install time), called through ctypes.
 
 Why native: at B = 1 the numpy range-space Goldfarb-Idnani of `small_batch.py` spends its time in
 call overhead, ~12 active-set steps × ~10 numpy/LAPACK calls at 0.5-3 µs each, while the
 arithmetic of a whole controller-sized solve (n = 13, m = 30) is a few µs.  One C call per batch
 does the same steps with the same decisions and certificate (see `gi_qp.c`); the numpy code stays
-as the fallback (no compiler, failed build, `A3CQP_NATIVE_QP=0`) and as the reference in tests.
+as the fallback (not built: no compiler at install time; `A3CQP_NATIVE_QP=0`) and as the reference in tests.
 Measured on the shared 2-core box (controller-sized instance of bench/qp.py, B = 1):
 `active_set_small` cold 259 → 38 µs (default instance), 471 → 41 µs (spread 0.35, 12 solves);
 of the native call, ~2.5 µs is ctypes, ~5-15 µs the C code, the rest the array handling here.
@@ -12,9 +12,8 @@ The backward (`gi_qp_adjoint`: adjoint solve and closed-form gradients) replaces
 (~100 µs) the same way.  `solve_qp` at B = 1, medians of 3 bench runs: forward cold 348 → 163 µs
 (default), 614 → 222 µs (heavy); forward+backward 654 → 434, 942 → 481 µs.
 
-Build: `a3cqp_rl.native_build` (the system C compiler, -O3, a per-user cache written atomically;
-see there).  A failure logs one warning and `load()` returns None for the rest of the
-process.
+Build: setup.py at install time (flags in `a3cqp_rl.native_sources`); loading: `a3cqp_rl.native_build`.  A missing
+or stale library logs one warning and `load()` returns None for the rest of the process.
 """
 
 from __future__ import annotations
@@ -96,7 +95,7 @@ def _bind(path: Path) -> tuple[Callable, Callable]:
 
 
 def load() -> Callable | None:
-    """The native batch solver, or None (disabled by A3CQP_NATIVE_QP=0, or no compiler / build failed: one warning)."""
+    """The native batch solver, or None (disabled by A3CQP_NATIVE_QP=0, or not built / stale: one warning)."""
     fns = _library.get()
     return None if fns is None else fns[0]
 
