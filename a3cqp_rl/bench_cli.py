@@ -1,6 +1,6 @@
 """`a3cqp bench NAME [args]`: run a benchmark script from the repository's bench/ folder.
 
-NAME: env (bench/env_throughput.py), train (bench/train_speed.py), qp (bench/qp.py),
+NAME: env (bench/env_throughput.py), train (bench/train_speed.py), pendulum (bench/pendulum.py), qp (bench/qp.py),
 controller (bench/controller.py), hierarchy (bench/hierarchy.py), or all (each with --quick unless args are given).
 """
 
@@ -10,8 +10,8 @@ import runpy
 import sys
 from pathlib import Path
 
-BENCHES = {"env": "env_throughput.py", "train": "train_speed.py", "qp": "qp.py", "controller": "controller.py",
-           "hierarchy": "hierarchy.py"}
+BENCHES = {"env": "env_throughput.py", "train": "train_speed.py", "pendulum": "pendulum.py", "qp": "qp.py",
+           "controller": "controller.py", "hierarchy": "hierarchy.py"}
 
 
 def main(argv: list[str] | None = None) -> int:
