@@ -12,7 +12,10 @@ OUT ?= runs/point_mass_default
 
 .PHONY: install train test test-slow bench clean
 
-$(STAMP): pyproject.toml constraints.txt
+NATIVE := setup.py a3cqp_rl/native_sources.py $(wildcard a3cqp_rl/*/native/*.c algorithms/native/*.c envs/native/*.c)
+
+# (re)installs when the dependencies or a C source change: pip builds the C libraries in place
+$(STAMP): pyproject.toml constraints.txt $(NATIVE)
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 	$(BIN)/pip install -q -c constraints.txt -e '.[dev]'
@@ -20,8 +23,9 @@ $(STAMP): pyproject.toml constraints.txt
 
 install: $(STAMP)
 
+# a second `make train` continues (here: just reports) the run in $(OUT) instead of refusing to overwrite it
 train: $(STAMP)
-	$(BIN)/a3cqp train --config $(TRAIN_CONFIG) --steps $(STEPS) --out $(OUT)
+	$(BIN)/a3cqp train --config $(TRAIN_CONFIG) --steps $(STEPS) --out $(OUT) $(if $(wildcard $(OUT)/checkpoint.pt),--resume)
 
 test: $(STAMP)
 	@# pytest exit 5 (no tests collected) is success only while tests/ has no test files.

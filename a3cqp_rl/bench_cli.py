@@ -1,7 +1,8 @@
 """`a3cqp bench NAME [args]`: run a benchmark script from the repository's bench/ folder.
 
-NAME: env (bench/env_throughput.py), train (bench/train_speed.py), qp (bench/qp.py),
-controller (bench/controller.py), panda (bench/panda_env.py), or all (each with --quick unless args are given).
+NAME: env (bench/env_throughput.py), train (bench/train_speed.py), pendulum (bench/pendulum.py), qp (bench/qp.py),
+controller (bench/controller.py), hierarchy (bench/hierarchy.py), panda (bench/panda_env.py), or all (each with
+--quick unless args are given).
 """
 
 from __future__ import annotations
@@ -10,8 +11,8 @@ import runpy
 import sys
 from pathlib import Path
 
-BENCHES = {"env": "env_throughput.py", "train": "train_speed.py", "qp": "qp.py", "controller": "controller.py",
-           "panda": "panda_env.py"}
+BENCHES = {"env": "env_throughput.py", "train": "train_speed.py", "pendulum": "pendulum.py", "qp": "qp.py",
+           "controller": "controller.py", "hierarchy": "hierarchy.py"}
 
 
 def main(argv: list[str] | None = None) -> int:

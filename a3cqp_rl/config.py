@@ -37,7 +37,17 @@ __all__ = [
     "load_config",
     "config_from_dict",
     "config_to_dict",
+    "ENV_FACTORIES",
+    "estimate_memory_bytes",
+    "check_memory",
 ]
+
+ENV_FACTORIES: dict[str, str] = {
+    "point_mass": "algorithms.make_env:point_mass",
+    "panda": "envs.panda:axis_agents",
+}
+"""Registered env names -> "module:function" building a seeded TorchRL env from (cfg, num_envs, seed). `env:` also
+accepts any gymnasium id (run through TorchRL's GymWrapper)."""
 
 
 @dataclass
@@ -116,6 +126,8 @@ class A2CConfig:
 
     learning_rate: float = 4.25339846e-6
     """λη: RMSProp learning rate."""
+    lr_schedule: Literal["constant", "linear"] = "constant"
+    """'constant' (the paper); 'linear': λη·(1 − fraction of the run done), SB3's linear schedule (TorchRL rollout)."""
     ent_coef: float = 3.371768978e-4
     """λβ: entropy bonus weight (eq. 31d)."""
     n_steps: int = 4
@@ -154,6 +166,9 @@ class A2CConfig:
     """Agent steps each exploration-noise draw is held (1 = white noise, SB3/paper; k > 1 like gSDE's sde_sample_freq)."""
     normalize_advantage: bool = False
     """Normalise advantages per batch (SB3 default: off)."""
+    reward_scale: float = 1.0
+    """Factor on the rewards the update learns from (TorchRL rollout; the logged returns stay unscaled): brings values
+    of tasks with large returns (Pendulum: down to ~ −100 at γ 0.9) near the networks' initial output scale."""
     average_last: float = 0.0
     """Fraction in [0, 1) of the run, at its end, whose parameters policy.pt averages uniformly (stochastic weight
     averaging, Izmailov et al. 2018; for A2C, Nikishin et al. 2018). 0 = the last parameters (the paper). Training
@@ -176,7 +191,7 @@ class A2CConfig:
 
     def _check(self, err: _Errors) -> None:
         for name in ("learning_rate", "rms_eps", "max_grad_norm", "n_steps", "num_envs", "total_steps",
-                     "checkpoint_every", "log_every", "noise_hold"):
+                     "checkpoint_every", "log_every", "noise_hold", "reward_scale"):
             err.positive(self, name)
         for name in ("ent_coef", "vf_coef", "rms_init", "bound_coef", "region_checks"):
             if getattr(self, name) < 0:
@@ -606,7 +621,8 @@ class ExperimentConfig:
     seed: int = 0
     """Random seed (torch, numpy, environments)."""
     env: str = "point_mass"
-    """Environment name (``point_mass`` or ``panda``)."""
+    """Environment: a registered name (``point_mass``, ``panda``; `ENV_FACTORIES`) or any gymnasium id (e.g.
+    ``Pendulum-v1``)."""
     point_mass: PointMassConfig = field(default_factory=PointMassConfig)
     adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
@@ -617,11 +633,60 @@ class ExperimentConfig:
     """The simulated Panda env (envs/panda.py): scene, operator, sensing, the rotational-axis bounds."""
 
     def _check(self, err: _Errors) -> None:
-        if self.env not in ("point_mass", "panda"):
-            err.add("env", f"unknown environment {self.env!r}; choose from ['point_mass', 'panda']")
-        if self.point_mass.episode_steps < self.a2c.n_steps:
+        if self.env not in ENV_FACTORIES and not _is_gym_id(self.env):
+            err.add("env", f"unknown environment {self.env!r}: neither a registered env ({sorted(ENV_FACTORIES)}) "
+                           "nor a gymnasium id (e.g. Pendulum-v1)")
+        if self.env == "point_mass" and self.point_mass.episode_steps < self.a2c.n_steps:
             # fused rollouts draw one pending episode per env per iteration
             err.add("point_mass.episode_steps", f"must be >= a2c.n_steps ({self.a2c.n_steps}), got {self.point_mass.episode_steps}")
+
+
+def _is_gym_id(name: str) -> bool:
+    """Whether gymnasium knows `name` (gymnasium is imported only for names that are not registered here)."""
+    try:
+        import gymnasium
+    except ImportError:  # pragma: no cover - a runtime dependency
+        return False
+    return name in gymnasium.registry
+
+
+# --------------------------------------------------------------------------------------------
+# Memory
+
+
+def estimate_memory_bytes(cfg: ExperimentConfig) -> int:
+    """Rough peak memory of training `cfg` [bytes], dominated by per-env state for many envs.
+
+    Per point-mass env: the double-buffered operator schedule (2 × (episode_steps + 1) float64), the state and its
+    pending episode; per sample of a rollout (n_steps × num_envs): observations, actions, rewards, flags and each
+    hidden layer's activations (float32), about three times over (the update's forward, backward and copies).
+    """
+    a = cfg.a2c
+    obs, act = 16, 8  # generous for the point mass (3 / 4; 3 + privileged critic input) and small gym tasks
+    per_env = 2 * (cfg.point_mass.episode_steps + 1) * 8 + 40 * 8 if cfg.env == "point_mass" else 64 * 8
+    per_sample = 4 * (2 * obs + act + 4 + 2 * sum(a.hidden)) * 3
+    return int(a.num_envs * (per_env + a.n_steps * per_sample))
+
+
+def _available_memory() -> int | None:
+    """MemAvailable of /proc/meminfo [bytes], or None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_memory(cfg: ExperimentConfig, source: str = "config", available: int | None = None) -> None:
+    """ConfigError naming a2c.num_envs when `estimate_memory_bytes(cfg)` exceeds 80 % of the available memory."""
+    need = estimate_memory_bytes(cfg)
+    have = _available_memory() if available is None else available
+    if have is not None and need > 0.8 * have:
+        raise ConfigError(f"{source}: a2c.num_envs: {cfg.a2c.num_envs} envs need about {need / 2**30:.1f} GiB, "
+                          f"more than 80 % of the {have / 2**30:.1f} GiB available; use fewer envs")
 
 
 # --------------------------------------------------------------------------------------------
@@ -713,9 +778,28 @@ def _build(cls: type, data: dict, prefix: str, source: str) -> Any:
     return cls(**kwargs)
 
 
+NON_FINITE_OK: frozenset[str] = frozenset()
+"""Dotted float fields that may be NaN or inf (none today): every other float must be finite."""
+
+
+def _non_finite(obj: Any, prefix: str) -> list[str]:
+    """Messages for float fields (also inside tuples, dicts, optionals) of `obj` holding NaN or inf."""
+    out = []
+    for f in dataclasses.fields(obj):
+        key, value = f"{prefix}{f.name}", getattr(obj, f.name)
+        items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, tuple) else [(None, value)]
+        for i, v in items:
+            if isinstance(v, float) and not math.isfinite(v) and key not in NON_FINITE_OK:
+                where = key if i is None else f"{key}.{i}" if isinstance(value, dict) else f"{key}[{i}]"
+                out.append(f"{where}: must be a finite number, got {v}")
+    return out
+
+
 def _validate(obj: Any, prefix: str, source: str) -> None:
     err = _Errors(prefix)
-    obj._check(err)
+    err.messages += _non_finite(obj, prefix)
+    if not err.messages:  # range checks on NaN would only repeat the message
+        obj._check(err)
     if err.messages:
         raise ConfigError(f"{source}: invalid value(s):\n  " + "\n  ".join(err.messages))
     for f in dataclasses.fields(obj):
@@ -741,9 +825,14 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
         if not path.is_file():
             raise ConfigError(f"{source}: config file not found")
         try:
-            loaded = yaml.safe_load(path.read_text())
+            loaded = yaml.safe_load(path.read_bytes().decode("utf-8"))
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"{source}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset {exc.start}); "
+                              "expected a YAML file") from None
+        except OSError as exc:
+            raise ConfigError(f"{source}: cannot read: {exc.strerror or exc}") from None
         except yaml.YAMLError as exc:
-            raise ConfigError(f"{source}: not valid YAML: {exc}") from None
+            raise ConfigError(f"{source}: not valid YAML: {' '.join(str(exc).split())}") from None
         if loaded is not None and not isinstance(loaded, dict):
             raise ConfigError(f"{source}: top level must be a mapping, got {type(loaded).__name__}")
         data = loaded or {}

@@ -1,94 +1,45 @@
-"""Build one of the package's C sources with the system compiler, once, into a per-user cache.
+"""Find and load the package's C libraries, which setuptools compiles at install time (setup.py,
+`a3cqp_rl.native_sources`).
 
-Shared by the native QP (`a3cqp_rl.qp.native`) and the native controller step (`a3cqp_rl.control.native`).
-Compiler: `A3CQP_CC`, else `CC`, else `cc`/`gcc` on PATH; an explicit one that does not exist is an error (no
-silent substitute).  Cache: `A3CQP_CACHE_DIR`, else `$XDG_CACHE_HOME/a3cqp_rl` or `~/.cache/a3cqp_rl`, one file
-per hash of (source, compiler, flags, platform).  The library is written to a temporary file in that directory and
-moved into place with `os.replace`, so concurrent processes (pytest-xdist workers, two trainers) never load half a
-file; at worst both compile.
+Each C source `dir/name.c` is built by `pip install` into `dir/_name<extension suffix>` (in place for an editable
+install).  The libraries are plain C called through ctypes, not Python extension modules: they hold no Python
+state and are loaded with `ctypes.CDLL`.  Where a library is absent (no compiler at install time: setuptools
+skips the optional extension with a warning), switched off by its environment variable, or older than its source
+(edited after the build), the caller's pure-Python route runs after one warning naming the reason.
 """
 
 from __future__ import annotations
 
 import ctypes
-import hashlib
+import importlib.machinery
 import logging
 import os
-import platform
-import shlex
-import shutil
-import subprocess
-import sys
-import tempfile
 import threading
 from pathlib import Path
 from typing import Callable, Generic, TypeVar
 
 import numpy as np
 
-__all__ = ["cache_dir", "compiler", "build", "enabled", "address", "LazyLibrary", "CFLAGS"]
+__all__ = ["library_path", "enabled", "address", "LazyLibrary", "REBUILD_HINT"]
 
 T = TypeVar("T")
 
-CFLAGS = ["-std=c99", "-O3", "-fPIC", "-shared"]
-"""-O3: loop unswitching and vectorised axpy loops (the controller's QP at B = 64: 716 → 500 µs per batch against
--O2); IEEE semantics unchanged (no -ffast-math: reductions are not reassociated).  No -march=native: results must
-not depend on the machine that built the library."""
+REBUILD_HINT = ("rebuild with `pip install -e .` (or, in a source checkout, `python setup.py build_ext --inplace`) where a "
+                "C compiler is available")
 
 
-def cache_dir() -> Path:
-    """Directory of the compiled libraries."""
-    env = os.environ.get("A3CQP_CACHE_DIR")
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "a3cqp_rl"
-
-
-def compiler() -> list[str] | None:
-    """The compiler command (an explicit A3CQP_CC / CC may carry flags), or None when there is none."""
-    for var in ("A3CQP_CC", "CC"):
-        cmd = shlex.split(os.environ.get(var, ""))
-        if cmd:
-            exe = shutil.which(cmd[0])
-            return [exe, *cmd[1:]] if exe else None
-    exe = shutil.which("cc") or shutil.which("gcc")
-    return [exe] if exe else None
+def library_path(source: Path) -> Path | None:
+    """The compiled library of C file `source` (`_<stem>` plus this interpreter's extension suffix), or None."""
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        candidate = source.with_name(f"_{source.stem}{suffix}")
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 def enabled(var: str) -> bool:
     """False when the environment variable `var` switches the native code off (0, false, no, off)."""
     return os.environ.get(var, "1").strip().lower() not in ("0", "false", "no", "off")
-
-
-def build(source: Path, cflags: list[str] = CFLAGS) -> Path:
-    """Path of the shared library compiled from `source`, compiling it if this source/compiler/flags is not cached.
-
-    Raises RuntimeError when there is no compiler or it fails (callers log one warning and use their numpy path).
-    """
-    cc = compiler()
-    if cc is None:
-        raise RuntimeError("no C compiler found (set A3CQP_CC or CC, or install cc/gcc)")
-    src = source.read_bytes()
-    key = hashlib.sha256(b"\0".join([src, " ".join(cc + cflags).encode(), platform.machine().encode(),
-                                     sys.platform.encode()])).hexdigest()[:16]
-    cache = cache_dir()
-    lib = cache / f"{source.stem}-{key}.so"
-    if lib.exists():
-        return lib
-    cache.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{source.stem}-", suffix=".so", dir=cache)
-    os.close(fd)
-    try:
-        proc = subprocess.run([*cc, *cflags, "-o", tmp, str(source), "-lm"], capture_output=True, text=True,
-                              timeout=120)
-        if proc.returncode != 0:
-            raise RuntimeError(f"{cc[0]} failed ({proc.returncode}): {proc.stderr.strip()[:500]}")
-        os.replace(tmp, lib)  # atomic: readers see the old name absent or the whole file
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return lib
 
 
 def address(a: np.ndarray) -> int:
@@ -105,18 +56,28 @@ def address(a: np.ndarray) -> int:
         return a.__array_interface__["data"][0]
 
 
-class LazyLibrary(Generic[T]):
-    """A C source built, loaded and bound once per process, on first `get()`.
+def _find(source: Path) -> Path:
+    """The built library of `source`; RuntimeError saying why there is none usable."""
+    lib = library_path(source)
+    if lib is None:
+        raise RuntimeError(f"{source.name} was not compiled at install time; {REBUILD_HINT}")
+    if source.is_file() and source.stat().st_mtime > lib.stat().st_mtime:
+        # an edited source with the old library would run old code next to new Python bindings
+        raise RuntimeError(f"{lib.name} is older than {source.name}; {REBUILD_HINT}")
+    return lib
 
-    `bind(path)` turns the compiled library into what callers use (ctypes functions, wrappers). `get()` returns it,
-    or None when the environment variable `switch` turns the native code off, or after one warning on `log` when
-    there is no compiler or the build or binding fails (the caller then takes its `fallback` path).
+
+class LazyLibrary(Generic[T]):
+    """A C library loaded and bound once per process, on first `get()`.
+
+    `bind(path)` turns the library into what callers use (ctypes functions, wrappers). `get()` returns it, or None
+    when the environment variable `switch` turns the native code off, or after one warning on `log` when the library
+    is missing, stale or fails to bind (the caller then takes its `fallback` path).
     """
 
     def __init__(self, source: Path, switch: str, bind: Callable[[Path], T], log: logging.Logger, what: str,
-                 fallback: str, cflags: list[str] = CFLAGS) -> None:
+                 fallback: str) -> None:
         self.source, self.switch, self.bind, self.log, self.what, self.fallback = source, switch, bind, log, what, fallback
-        self.cflags = cflags
         self._lock = threading.Lock()
         self._state: tuple[bool, T | None] = (False, None)
 
@@ -130,8 +91,8 @@ class LazyLibrary(Generic[T]):
                 value = None
                 if enabled(self.switch):
                     try:
-                        value = self.bind(build(self.source, self.cflags))
-                    except Exception as exc:  # no compiler, build error, unwritable cache, load error
+                        value = self.bind(_find(self.source))
+                    except Exception as exc:  # missing, stale, or a layout mismatch found by `bind`
                         self.log.warning("%s unavailable (%s); using %s", self.what, exc, self.fallback)
                 self._state = (True, value)
         return self._state[1]

@@ -40,7 +40,7 @@ from a3cqp_rl.control.frames import pose_error
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaModel, PandaSim
 from envs.scenarios import Operator, Scene, SceneInput, make_scene, rotvec_to_matrix
 
-__all__ = ["PandaEnv", "PandaAxisAgents", "AXES", "INFO_KEYS"]
+__all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS"]
 
 logger = logging.getLogger(__name__)
 
@@ -519,3 +519,10 @@ class PandaAxisAgents(EnvBase):
 
     def _set_seed(self, seed: int | None) -> None:
         self.inner._set_seed(seed)
+
+
+def axis_agents(cfg: ExperimentConfig, num_envs: int, seed: int) -> PandaAxisAgents:
+    """`env: panda` for training (a3cqp_rl.config.ENV_FACTORIES): `num_envs` arms as num_envs × 6 agents, reset."""
+    env = PandaAxisAgents(num_envs, cfg, seed=seed)
+    env.reset()
+    return env

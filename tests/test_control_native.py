@@ -157,7 +157,7 @@ def test_custom_composition_keeps_python_and_native_backend_says_why() -> None:
 
     auto = A3CQPController(2, tasks=[MyIK(), ForceControl()])
     assert auto._native is None
-    with pytest.raises(InvalidGainError, match="not one of the default tasks"):
+    with pytest.raises(InvalidGainError, match="MyIK is not one of the default task"):
         A3CQPController(2, tasks=[MyIK(), ForceControl()], options=ControllerOptions(backend="native"))
     with pytest.raises(InvalidGainError, match="limits"):
         A3CQPController(2, extra_limits=[WrenchBox(5.0, 1.0)], options=ControllerOptions(backend="native"))
@@ -179,9 +179,78 @@ def test_env_switch_disables_the_native_step(monkeypatch) -> None:
     native._reset()
     try:
         assert A3CQPController(1)._native is None
-        with pytest.raises(InvalidGainError, match="did not build"):
+        with pytest.raises(InvalidGainError, match="C library is not available"):
             A3CQPController(1, options=ControllerOptions(backend="native"))
     finally:
         monkeypatch.undo()
         native._reset()
     assert A3CQPController(1)._native is not None
+
+
+def test_parameters_come_from_the_objects_and_the_c_table() -> None:
+    ctrl = A3CQPController(1)
+    lib = native.load()
+    c_names = [name for name, _ in lib.Params._fields_]
+    assert len(c_names) == len(set(c_names)) == 38
+    # every C field is set by exactly one owner: a task, a limit or the step
+    owners = {}
+    for piece in [*ctrl.tasks, *ctrl.limits]:
+        kind, fields = piece.c_params()
+        for name in fields:
+            if name != "anchor":
+                assert name not in owners, f"{name} set by {owners.get(name)} and {kind}"
+                owners[name] = kind
+    assert ctrl.tasks[0].c_params()[1]["kp"].tolist() == [150.0] * 3 + [20.0] * 3
+    assert ctrl._native.params.kv[5] == pytest.approx(2.0 * 20.0 ** 0.5)
+    assert ctrl._native.params.mu == ctrl.limits[2].mu
+    fields, _ = ctrl._native_fields()
+    assert set(fields) == set(c_names)
+    with pytest.raises(ValueError, match=r"missing \['dt'\]"):
+        native.NativeStep(lib, {k: v for k, v in fields.items() if k != "dt"})
+    with pytest.raises(ValueError, match=r"unknown \['not_a_field'\]"):
+        native.NativeStep(lib, {**fields, "not_a_field": 1.0})
+
+
+def test_the_c_layout_is_checked_field_by_field() -> None:
+    table = [("a", 0, 1), ("b", 1, 6), ("c", 7, 1)]
+    assert [f[0] for f in native._struct(table, 64)._fields_] == ["a", "b", "c"]
+    with pytest.raises(RuntimeError, match=r"a3cqp_params.c: C offset 64"):
+        native._struct([("a", 0, 1), ("b", 1, 6), ("c", 8, 1)], 72)
+    with pytest.raises(RuntimeError, match="C size 72"):
+        native._struct(table, 72)
+
+
+def test_subclasses_and_foreign_anchors_keep_the_python_objects() -> None:
+    from a3cqp_rl.control.limits import JointLimitsViability, TorqueLimits
+
+    class Scaled(ForceControl):  # may change the math: C must not claim it
+        pass
+
+    assert Scaled().c_params() is None and ForceControl().c_params() == ("fc", {})
+    ctrl = A3CQPController(1)
+    jl = ctrl.joint_limits
+    other = JointLimitsViability(jl.q_min, jl.q_max, jl.dq_max + 0.5, jl.ddq_max, jl.dt)
+    ctrl2 = A3CQPController(1, extra_limits=[])
+    ctrl2.limits[3] = TorqueLimits(ctrl.tau_max, safe=other)
+    step, why = ctrl2._make_native_step()
+    assert step is None and "anchored to other joint limits" in why
+
+
+@pytest.mark.parametrize("backend", ["auto", "python"])
+def test_non_finite_state_on_the_first_call_brakes_with_gravity_compensation(backend: str, caplog) -> None:
+    sim = PandaSim(2)
+    s = sim.observe()
+    ctrl = A3CQPController(2, options=ControllerOptions(backend=backend))
+    w = torch.zeros(2, 6, 3, dtype=torch.float64)
+    w[..., 0] = 1.0
+    kin = ctrl.model.kinematics(s.q, s.qd)
+    q = s.q.clone()
+    q[1, 2] = float("nan")
+    with caplog.at_level(logging.WARNING):
+        out = ctrl.step(q, s.qd, s.mass, s.bias, w, torch.zeros(2, 6, dtype=torch.float64), kin.pos, kin.rot)
+    assert out.status.tolist()[1] == controller_module.INVALID_INPUT and out.fallback.tolist() == [False, True]
+    assert torch.isfinite(ctrl.q_des).all() and torch.isfinite(out.tau).all()
+    assert torch.allclose(out.tau[1], s.bias[1], atol=1e-9)  # at rest the brake is pure gravity compensation
+    out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, torch.zeros(2, 6, dtype=torch.float64), kin.pos, kin.rot)
+    assert out.status.tolist() == [0, 0] and not out.fallback.any() and torch.isfinite(out.tau).all()
+    assert out.tau[1].abs().max() < 100.0

@@ -7,7 +7,8 @@ import functools
 import logging
 import operator
 from dataclasses import dataclass, field
-from typing import Literal
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -18,6 +19,7 @@ from a3cqp_rl.control.arrays import Array, cat, const, inv, mm, mv, solve_spd, z
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import ControlShapeError, InvalidGainError
 from a3cqp_rl.control.frames import block_rotation, pose_error, weights_to_world
+from a3cqp_rl.control.hierarchy import Hierarchy, solve_cascade
 from a3cqp_rl.control.limits import (FrictionPyramid, Inequality, JointLimitsViability, Limit, TorqueLimits,
                                      WrenchBox)
 from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer, CartesianIK, ForceControl,
@@ -133,6 +135,28 @@ def wrench_from_joint_torques(tau_ext: torch.Tensor, jac: torch.Tensor, mass: to
     return torch.linalg.solve(lam_inv, jac @ binv_tau).squeeze(-1)
 
 
+@dataclass
+class _StepInputs:
+    """One step's inputs after the checks of `A3CQPController._prepare`: float64, numpy views on the CPU path."""
+
+    q: Array
+    qd: Array
+    mass: Array
+    bias: Array
+    weights: Array
+    f_d: Array
+    pos_d: Array
+    rot_d: Array
+    f_ext: Array
+    in_contact: Array
+    kin: Kinematics | None
+    valid: Array
+    """Bool [N]: every input of the robot is finite."""
+    all_valid: bool
+    xp: Any
+    """numpy or torch: the kind of the arrays above."""
+
+
 def _np(t: torch.Tensor) -> np.ndarray:
     """numpy view of a CPU tensor (no copy)."""
     return (t.detach() if t.requires_grad else t).numpy()
@@ -189,8 +213,11 @@ class A3CQPController:
     weights w^𝓛 [6, 3] (columns IK, AC, FC), the local desired contact wrench f_d^𝓛 [6], the Cartesian reference
     (position, rotation) and the measured external wrench f_ext at the control site.
 
-    On CPU the default composition (these tasks and limits, float64) runs as a C translation of the objects
-    (control/native, `ControllerOptions.backend`); any other composition runs the objects themselves.
+    On CPU the default composition (these tasks and limits, float64, one level) runs as a C translation of the
+    objects (control/native, `ControllerOptions.backend`); any other composition runs the objects themselves.
+
+    Strict priorities (paper 002, eq. 2-3): `levels` puts each task in level 1..3 (1 highest) or off (None); soft
+    weights act inside a level, and each level is solved in the optimal set of the levels above (hierarchy.py).
 
     Args:
         n: number of robots N.
@@ -199,11 +226,15 @@ class A3CQPController:
         options: the choices the paper leaves open (ControllerOptions).
         limits: joint limits (datasheet).
         tasks, extra_limits: replace the default tasks / append limits (mink-style composition).
+        levels: strict priority of each task: {task name: 1..3 or None (off)} naming every task (default names
+            "ik", "ac", "fc", "jc", "cartesian_regularizer"), or a list in the order of `tasks`; default None, every
+            task in level 1 (the single weighted QP of eq. 1). See `Hierarchy`, `hierarchy.level_from_selector`.
     """
 
     def __init__(self, n: int = 1, model: PandaModel | None = None, config: ControllerConfig | None = None,
                  options: ControllerOptions | None = None, limits: PandaLimits = PANDA_LIMITS,
-                 tasks: list[Task] | None = None, extra_limits: list[Limit] | None = None) -> None:
+                 tasks: list[Task] | None = None, extra_limits: list[Limit] | None = None,
+                 levels: Mapping[str, int | None] | Sequence[int | None] | None = None) -> None:
         self.n = n
         self.model = model or PandaModel()
         self.config = config or ControllerConfig()
@@ -236,9 +267,11 @@ class A3CQPController:
             self.limits.append(TorqueLimits(lim["tau_max"], safe=self.joint_limits))
         self.limits += list(extra_limits or [])
         self.f_d_max = getattr(cfg, "f_d_max", 20.0)
+        self._q_center = torch.tensor(opt.q_center, dtype=torch.float64)  # stand-in for a non-finite first state
         self.q_des: torch.Tensor | None = None  # q*, eq. 7 [N, 7]
         self.qd_des: torch.Tensor | None = None  # q̇*, eq. 6 [N, 7]
         self._warm: QPSolution | None = None
+        self._warm_levels: tuple[QPSolution, ...] = ()  # each level's solution of the last step (strict hierarchy)
         self._const: dict[tuple, dict[str, Array]] = {}
         # numpy steps need every task and limit to accept numpy contexts (a user's torch-only one keeps torch)
         self._numpy_ok = all(getattr(p, "numpy_capable", False) for p in [*self.tasks, *self.limits])
@@ -251,14 +284,42 @@ class A3CQPController:
         if opt.backend not in ("auto", "python", "native"):
             raise InvalidGainError(f"backend must be 'auto', 'python' or 'native', got {opt.backend!r}")
         if opt.backend != "python":
-            params, why = native.native_params(self)
-            lib = native.load() if params is not None else None
-            if lib is not None:
-                self._native = native.NativeStep(lib, params)
-            elif opt.backend == "native":
-                raise InvalidGainError(f"backend='native' is not available: {why or 'the C library did not build'}")
+            self._native, why = self._make_native_step()
+            if self._native is None and opt.backend == "native":
+                raise InvalidGainError(f"backend='native' is not available: {why}")
         # the composition the native step was made for (a task or limit swapped in later turns it off)
         self._native_for = (tuple(map(id, self.tasks)), tuple(map(id, self.limits)))
+        self.hierarchy = Hierarchy(levels=((),))
+        self.set_levels(levels)
+
+    def set_levels(self, levels: Mapping[str, int | None] | Sequence[int | None] | None) -> None:
+        """Put each task in a strict level 1..3 or off (None); None: every task in level 1 (see `__init__`)."""
+        hierarchy = Hierarchy.of([t.name for t in self.tasks], levels)
+        if not hierarchy.is_flat and self.options.backend == "native":
+            raise InvalidGainError(f"backend='native' translates one level with every task active, not {hierarchy}")
+        self.hierarchy = hierarchy
+        self._warm, self._warm_levels = None, ()
+
+    def _make_native_step(self) -> tuple[native.NativeStep | None, str]:
+        """The C step for this composition, or (None, why)."""
+        fields, why = self._native_fields()
+        if fields is None:
+            return None, why
+        lib = native.load()
+        if lib is None:
+            return None, "the C library is not available (see the warning above)"
+        return native.NativeStep(lib, fields), ""
+
+    def _native_fields(self) -> tuple[dict | None, str]:
+        """The C step's parameters: each task and limit hands its own, the step-level ones come from here."""
+        cfg, opt = self.config, self.options
+        step_fields = {"dt": self.dt, "cv": cfg.cv, "cp": cfg.cp, "f_d_max": self.f_d_max,
+                       "wrench_ff": float(opt.ik_wrench_feedforward), "pd_pinv": float(opt.pd_projection == "pinv"),
+                       "reg": opt.regularization, "pinv_damping": opt.pinv_damping,
+                       "nullspace_damping": opt.nullspace_damping, "tau_clip": self.tau_max.numpy(),
+                       "leak": self.dt * opt.desired_state_leak}
+        return native.compose_params([(type(t).__name__, t.c_params()) for t in self.tasks],
+                                     [(type(x).__name__, x.c_params()) for x in self.limits], step_fields)
 
     # ------------------------------------------------------------------ state
     def reset(self, q: torch.Tensor, qd: torch.Tensor | None = None, idx: torch.Tensor | list[int] | None = None) -> None:
@@ -267,7 +328,7 @@ class A3CQPController:
         qd = torch.zeros_like(q) if qd is None else torch.as_tensor(qd, dtype=torch.float64)
         if self.q_des is None or idx is None:
             self.q_des, self.qd_des = q.clone().reshape(self.n, N_QDD), qd.clone().reshape(self.n, N_QDD)
-            self._warm = None
+            self._warm, self._warm_levels = None, ()
         else:
             self.q_des[idx], self.qd_des[idx] = q, qd
 
@@ -348,23 +409,27 @@ class A3CQPController:
         den = w.sum(-1) + self.options.regularization
         return mv(ctx.D, num / den)
 
-    def build_qp(self, ctx: ControlContext) -> tuple[Array, Array, Array, Array]:
-        """Stack the task costs and limit rows: (P [B, 13, 13], c [B, 13], G [B, m, 13], h [B, m]) (eq. 1, 24).
+    def task_residuals(self, ctx: ControlContext) -> dict[str, Residual]:
+        """Residuals of the active tasks by name (kept in `self.residuals`; their b are the references f_adm, ...).
 
-        The wrench tasks are evaluated first so that IK can feed their wrench forward (ik_wrench_feedforward);
-        the residuals of this call are kept in `self.residuals` (their b are the references f_adm, f_ctc, ...).
-        """
-        residuals = {t.name: t.residual(ctx) for t in self.tasks if isinstance(t, (Admittance, ForceControl))}
+        The wrench tasks are evaluated first so that IK can feed their wrench forward (ik_wrench_feedforward)."""
+        active = self.tasks if self.hierarchy.is_flat else [t for t in self.tasks if t.name in self.hierarchy.active]
+        residuals = {t.name: t.residual(ctx) for t in active if isinstance(t, (Admittance, ForceControl))}
         if self.options.ik_wrench_feedforward and residuals:
             f_ff = self.wrench_feedforward(ctx, residuals) * (~ctx.in_contact)[:, None]
             ctx = dataclasses.replace(ctx, wrench_feedforward=f_ff)
-        for task in self.tasks:
+        for task in active:
             if task.name not in residuals:
                 residuals[task.name] = task.residual(ctx)
+        self.residuals = residuals
+        return residuals
+
+    def task_cost(self, ctx: ControlContext, residuals: list[Residual]) -> tuple[Array, Array]:
+        """(P [B, 13, 13], c [B, 13]) of Σ ‖A_i x − b_i‖²_{W_i} + r‖x‖² over `residuals` (halved, eq. 1, 24)."""
         # residuals sharing the same rows A (e.g. IK and the Cartesian regularizer on J) are merged first:
         # Σ Aᵀ W_i (A x − b_i) = Aᵀ (Σ W_i) A x − Aᵀ Σ W_i b_i, one pair of products per distinct A
         groups: dict[tuple[int, int], list[Residual]] = {}
-        for res in residuals.values():
+        for res in residuals:
             groups.setdefault((id(res.A), res.col), []).append(res)
         # blocks of P on the diagonal, summed per block (col, size); assembled once below
         blocks: dict[tuple[int, int], list[Array]] = {}
@@ -380,10 +445,27 @@ class A3CQPController:
             blk = blocks.setdefault((first.col, first.size), [H, g])
             if blk[0] is not H:
                 blk[0], blk[1] = blk[0] + H, blk[1] + g
-        self.residuals = residuals
-        P, c = self._assemble(ctx, blocks)
+        return self._assemble(ctx, blocks)
+
+    def limit_rows(self, ctx: ControlContext) -> tuple[Array, Array]:
+        """The limits stacked: (G [B, m, 13], h [B, m])."""
         rows: list[Inequality] = [lim.rows(ctx) for lim in self.limits]
-        return P, c, cat([r.G for r in rows], 1), cat([r.h for r in rows], 1)
+        return cat([r.G for r in rows], 1), cat([r.h for r in rows], 1)
+
+    def build_qp(self, ctx: ControlContext) -> tuple[Array, Array, Array, Array]:
+        """Stack the active task costs and limit rows: (P [B, 13, 13], c [B, 13], G [B, m, 13], h [B, m]) (eq. 1, 24).
+
+        This is the QP of one level: with a strict hierarchy it merges the levels (soft priorities only); the
+        cascade uses `build_levels`."""
+        residuals = self.task_residuals(ctx)
+        P, c = self.task_cost(ctx, list(residuals.values()))
+        return P, c, *self.limit_rows(ctx)
+
+    def build_levels(self, ctx: ControlContext) -> tuple[list[tuple[Array, Array]], Array, Array]:
+        """Each level's cost (P_k, c_k), highest priority first, and the limit rows (G, h) (paper 002, eq. 2)."""
+        residuals = self.task_residuals(ctx)
+        costs = [self.task_cost(ctx, [residuals[name] for name in level]) for level in self.hierarchy.levels]
+        return costs, *self.limit_rows(ctx)
 
     def _assemble(self, ctx: ControlContext, blocks: dict[tuple[int, int], list[Array]]) -> tuple[Array, Array]:
         """P = r I + Σ blocks (symmetrised), c = Σ blocks, on x = (q̈, f)."""
@@ -411,10 +493,28 @@ class A3CQPController:
             self._warm = sol
             return sol.x, sol.status, sol.iterations
         except Exception:  # a solver bug must not take the arms down: brake every robot and say so loudly
-            logger.exception("A3CQP: solve_qp raised; every robot of the batch falls back")
-            self._warm = None
-            return (P.new_zeros(n, N_VARS), torch.full((n,), SOLVER_ERROR, dtype=torch.long),
-                    torch.zeros(n, dtype=torch.long))
+            return self._solver_raised(P)
+
+    def _solve_levels(self, costs: list[tuple[torch.Tensor, torch.Tensor]], G: torch.Tensor,
+                      h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The cascade of `solve_cascade`, each level warm-started from the last step; as `_solve`, never raises.
+
+        A robot whose QP fails at any level gets that status (and the fallback brake in `_apply`)."""
+        try:
+            sol = solve_cascade(costs, G, h, self.options.regularization, warm=self._warm_levels,
+                                max_iter=self.options.qp_max_iter)
+            self._warm_levels = sol.solutions
+            return sol.x, sol.status, sol.iterations
+        except Exception:
+            return self._solver_raised(G)
+
+    def _solver_raised(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What `_solve` returns when solve_qp raised: status SOLVER_ERROR for every robot (all fall back)."""
+        n = self.n
+        logger.exception("A3CQP: solve_qp raised; every robot of the batch falls back")
+        self._warm, self._warm_levels = None, ()
+        return (like.new_zeros(n, N_VARS), torch.full((n,), SOLVER_ERROR, dtype=torch.long),
+                torch.zeros(n, dtype=torch.long))
 
     def _report_fallback(self, ok: Array, qp_status: torch.Tensor, valid: Array) -> None:
         """Count and log the robots that fell back this step (and drop the warm start)."""
@@ -422,36 +522,7 @@ class A3CQPController:
         self.fallback_count += len(bad)
         logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s, valid input %s",
                        bad, qp_status[bad].tolist(), [bool(valid[i]) for i in bad])
-        self._warm = None
-
-    def assemble_native(self, q: np.ndarray, qd: np.ndarray, mass: np.ndarray, bias: np.ndarray,
-                        weights: np.ndarray, f_d: np.ndarray, pos_d: np.ndarray, rot_d: np.ndarray,
-                        f_ext: np.ndarray, in_contact: np.ndarray, kin: Kinematics) -> native.Assembled:
-        """`build_context` + `build_qp` by the C step (numpy arrays; the default composition only, see `backend`)."""
-        if self._native is None:
-            raise RuntimeError("this controller has no native step (backend='python' or not the default composition)")
-        return self._native.assemble(q, qd, mass, bias, kin.jac, kin.jdot_qdot, kin.twist, kin.pos, kin.rot, weights,
-                                     f_d, pos_d, rot_d, f_ext, in_contact, _np(self.q_des), _np(self.qd_des))
-
-    def _step_native(self, q: np.ndarray, qd: np.ndarray, mass: np.ndarray, bias: np.ndarray, weights: np.ndarray,
-                     f_d: np.ndarray, pos_d: np.ndarray, rot_d: np.ndarray, f_ext: np.ndarray,
-                     in_contact: np.ndarray, kin: Kinematics | None) -> ControlOutput:
-        """`step` by the C translation of the default tasks, limits and torque law (finite numpy inputs)."""
-        if kin is None:
-            kin = _model_kinematics(self.model, q, qd)
-        asm = self.assemble_native(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, kin)
-        x, qp_status, iterations = self._solve(*(torch.from_numpy(a) for a in (asm.P, asm.c, asm.G, asm.h)))
-        xn = _np(x)
-        ok = (_np(qp_status) == 0) & np.isfinite(xn).all(axis=1)
-        tau, qdd, f, qdd_pd, q_des, qd_des, saturated = self._native.torque(xn, ok, asm)
-        if not ok.all():
-            self._report_fallback(ok, qp_status, np.ones(self.n, dtype=bool))
-        self.q_des, self.qd_des = torch.from_numpy(q_des), torch.from_numpy(qd_des)
-        self.residuals = {}
-        t = torch.from_numpy
-        return ControlOutput(tau=t(tau), qdd=t(qdd), wrench=t(f), qdd_pd=t(qdd_pd), pose_error=t(asm.pose_error),
-                             f_adm=t(asm.f_adm), f_ctc=t(asm.f_ctc), status=qp_status, fallback=t(~ok),
-                             saturated=t(saturated), iterations=iterations)
+        self._warm, self._warm_levels = None, ()
 
     # ------------------------------------------------------------------ step
     @torch.no_grad()
@@ -472,103 +543,139 @@ class A3CQPController:
             f_env: measured environment (F/T) wrench [N, 6], world frame, only used to infer `in_contact`.
             kin: kinematics of the control site at (q, q̇) if the caller has them (PandaSim's `SimState.kin`, from
                 MuJoCo's step: same values as `self.model.kinematics` to ~1e-8); default computed by `self.model`.
+
+        A robot whose inputs are not finite (or whose QP fails) gets the safe fallback: a viable brake with gravity
+        compensation, `fallback` True and status INVALID_INPUT (or the QP's status).
         """
+        inp = self._prepare(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, f_env, kin)
+        if inp.all_valid and inp.xp is np and self._native is not None and self.hierarchy.is_flat and (
+                self._native_for == (tuple(map(id, self.tasks)), tuple(map(id, self.limits)))):
+            return self._step_native(inp)
+        if not inp.all_valid:
+            inp = self._stand_ins(inp)
+        ctx = self.build_context(inp.q, inp.qd, inp.mass, inp.weights, inp.f_d, inp.pos_d, inp.rot_d, inp.f_ext,
+                                 inp.in_contact, inp.bias, kin=inp.kin)
+        if self.hierarchy.strict:  # paper 002 eq. 2: one QP per level
+            costs, G, h = self.build_levels(ctx)
+            t = torch.as_tensor
+            x, qp_status, iterations = self._solve_levels([(t(P), t(c)) for P, c in costs], t(G), t(h))
+        else:
+            P, c, G, h = (torch.as_tensor(a) for a in self.build_qp(ctx))
+            x, qp_status, iterations = self._solve(P, c, G, h)
+        return self._apply(inp, ctx, x, qp_status, iterations)
+
+    def _prepare(self, q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, f_env,  # noqa: ANN001
+                 kin) -> _StepInputs:  # noqa: ANN001
+        """Stage 1: shapes, float64, contact flag, per-robot finiteness, first-call references, numpy views on CPU."""
         n = self.n
-        q = self._check("q", q, (n, 7))
-        qd = self._check("qd", qd, (n, 7))
-        mass = self._check("mass", mass, (n, 7, 7))
-        bias = self._check("bias", bias, (n, 7))
-        weights = self._check("weights", weights, (n, 6, 3))
-        f_d = self._check("f_d", f_d, (n, 6))
-        pos_d = self._check("pos_d", pos_d, (n, 3))
-        rot_d = self._check("rot_d", rot_d, (n, 3, 3))
-        f_ext = q.new_zeros(n, 6) if f_ext is None else self._check("f_ext", f_ext, (n, 6))
+        t = {name: self._check(name, v, shape) for name, v, shape in (
+            ("q", q, (n, 7)), ("qd", qd, (n, 7)), ("mass", mass, (n, 7, 7)), ("bias", bias, (n, 7)),
+            ("weights", weights, (n, 6, 3)), ("f_d", f_d, (n, 6)), ("pos_d", pos_d, (n, 3)),
+            ("rot_d", rot_d, (n, 3, 3)),
+            ("f_ext", q.new_zeros(n, 6) if f_ext is None else f_ext, (n, 6)))}
         if in_contact is None:
-            thr = self.options.contact_force_threshold
-            if f_env is None:
-                in_contact = torch.zeros(n, dtype=torch.bool)
-            elif f_env.device.type == "cpu":  # |f| > thr as a squared norm in numpy (two µs instead of ~20)
-                in_contact = torch.from_numpy(np.square(_np(f_env)[:, :3]).sum(axis=1) > thr * thr)
-            else:
-                in_contact = f_env[:, :3].norm(dim=-1) > thr
-        if self.q_des is None:
-            self.reset(q, qd)
-
-        # the CPU path: everything below on numpy views (same code; ~3x less overhead per op, see arrays.py)
-        inputs = [q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext]
-        on_cpu = all(t.device.type == "cpu" for t in inputs)
-        use_np = on_cpu and self._numpy_ok
+            in_contact = self._contact_from(f_env)
+        on_cpu = all(v.device.type == "cpu" for v in t.values())
         if on_cpu:  # (numpy for the finiteness check in any case: ~1 µs per op instead of ~5)
-            arrays = [_np(t) for t in inputs]
-            valid_np = np.isfinite(np.concatenate([a.reshape(n, -1) for a in arrays], axis=1)).all(axis=1)
-            valid, all_valid = torch.from_numpy(valid_np), bool(valid_np.all())
+            flat = np.concatenate([_np(v).reshape(n, -1) for v in t.values()], axis=1)
+            valid = np.isfinite(flat).all(axis=1)
         else:
-            valid = torch.isfinite(torch.cat([t.reshape(n, -1) for t in inputs], dim=1)).all(-1)  # (N,)
-            all_valid = bool(valid.all())
-        if use_np:
-            q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext = arrays
-            in_contact = _np(in_contact)
-            if kin is not None:
-                kin = _kin_numpy(kin)
-        if use_np and all_valid and self._native is not None and self._native_for == (
-                tuple(map(id, self.tasks)), tuple(map(id, self.limits))):
-            return self._step_native(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, kin)
-        xp = np if use_np else torch
-        if not all_valid:
-            # invalid robots (non-finite inputs) are computed on a harmless stand-in and replaced by the fallback
-            # below (a caller's kin is not checked: non-finite kinematics make x non-finite, which falls back too)
-            def keep(t: Array, default: Array | float) -> Array:
-                ok = xp.isfinite(t.reshape(n, -1)).all(-1).reshape(-1, *([1] * (t.ndim - 1)))
-                return xp.where(ok, t, default)
+            valid = torch.isfinite(torch.cat([v.reshape(n, -1) for v in t.values()], dim=1)).all(-1)
+        if self.q_des is None:  # first call: q*, q̇* from the measured state, a harmless stand-in where not finite
+            ok = torch.as_tensor(valid)[:, None]
+            self.reset(torch.where(ok, t["q"], self._q_center.to(t["q"])), torch.where(ok, t["qd"], 0.0))
+        if on_cpu and self._numpy_ok:  # the objects on numpy views: ~3x less overhead per op (arrays.py)
+            arrays = {k: _np(v) for k, v in t.items()}
+            return _StepInputs(**arrays, in_contact=_np(in_contact), kin=None if kin is None else _kin_numpy(kin),
+                               valid=valid, all_valid=bool(valid.all()), xp=np)
+        return _StepInputs(**t, in_contact=in_contact, kin=kin, valid=torch.as_tensor(valid),
+                           all_valid=bool(valid.all()), xp=torch)
 
-            eye7 = self._constants(q)["eye7"]
-            q, qd = keep(q, const(self.q_des, q)), keep(qd, 0.0)
-            mass, bias = keep(mass, eye7), keep(bias, 0.0)
-            weights, f_d, f_ext = keep(weights, 1.0 / 3.0), keep(f_d, 0.0), keep(f_ext, 0.0)
-            pos_d, rot_d = keep(pos_d, 0.0), keep(rot_d, eye7[:3, :3])
-            kin = None  # recomputed from the stand-in q, q̇
+    def _contact_from(self, f_env: torch.Tensor | None) -> torch.Tensor:
+        """in_contact [N] from the measured F/T force: |f| > ControllerOptions.contact_force_threshold."""
+        thr = self.options.contact_force_threshold
+        if f_env is None:
+            return torch.zeros(self.n, dtype=torch.bool)
+        if f_env.device.type == "cpu":  # |f| > thr as a squared norm in numpy (two µs instead of ~20)
+            return torch.from_numpy(np.square(_np(f_env)[:, :3]).sum(axis=1) > thr * thr)
+        return f_env[:, :3].norm(dim=-1) > thr
 
-        ctx = self.build_context(q, qd, mass, weights, f_d, pos_d, rot_d, f_ext, in_contact, bias, kin=kin)
-        P, c, G, h = self.build_qp(ctx)
-        if use_np:
-            P, c, G, h = torch.from_numpy(P), torch.from_numpy(c), torch.from_numpy(G), torch.from_numpy(h)
-        x, qp_status, iterations = self._solve(P, c, G, h)
-        dt, cfg, opt = self.dt, self.config, self.options
-        tau_max = self._constants(q)["tau_max"]
-        if use_np:
+    def _stand_ins(self, inp: _StepInputs) -> _StepInputs:
+        """Stage 2: robots with non-finite inputs computed on a harmless stand-in (replaced by the fallback later).
+
+        A caller's kin is not checked: non-finite kinematics make x non-finite, which falls back too; it is
+        recomputed here from the stand-in q, q̇."""
+        xp, n = inp.xp, self.n
+
+        def keep(t: Array, default: Array | float) -> Array:
+            ok = xp.isfinite(t.reshape(n, -1)).all(-1).reshape(-1, *([1] * (t.ndim - 1)))
+            return xp.where(ok, t, default)
+
+        eye7 = self._constants(inp.q)["eye7"]
+        return dataclasses.replace(
+            inp, q=keep(inp.q, const(self.q_des, inp.q)), qd=keep(inp.qd, 0.0), mass=keep(inp.mass, eye7),
+            bias=keep(inp.bias, 0.0), weights=keep(inp.weights, 1.0 / 3.0), f_d=keep(inp.f_d, 0.0),
+            f_ext=keep(inp.f_ext, 0.0), pos_d=keep(inp.pos_d, 0.0), rot_d=keep(inp.rot_d, eye7[:3, :3]), kin=None)
+
+    def _apply(self, inp: _StepInputs, ctx: ControlContext, x: torch.Tensor, qp_status: torch.Tensor,
+               iterations: torch.Tensor) -> ControlOutput:
+        """Stage 4: computed torque (eq. 4-7) where the QP succeeded, the safe brake elsewhere, then the clip."""
+        xp = inp.xp
+        if xp is np:
             x = _np(x)
-            ok = (_np(qp_status) == 0) & valid_np & np.isfinite(x).all(axis=1)
+            ok = (_np(qp_status) == 0) & inp.valid & np.isfinite(x).all(axis=1)
         else:
-            ok = (qp_status == 0) & valid & torch.isfinite(x).all(-1)
-        all_ok = bool(ok.all())
-        q_des, qd_des = const(self.q_des, q), const(self.qd_des, q)
-        tau, qdd, f, qdd_pd, q_des, qd_des = _torque_law(x, q, qd, mass, bias, ctx.kin.jac, ctx.pd_matrix, q_des,
-                                                         qd_des, dt, cfg.cv, cfg.cp)
-        if not all_ok:
-            # safe fallback for failed QPs / invalid inputs: a damped joint-space brake inside the viable bounds,
-            # which always respect the acceleration limits (Del Prete 2017; limits._acc_bounds), so that with
-            # gravity compensation it is torque-realisable; zero wrench
+            ok = (qp_status == 0) & inp.valid & torch.isfinite(x).all(-1)
+        cfg, dt = self.config, self.dt
+        q_des, qd_des = const(self.q_des, inp.q), const(self.qd_des, inp.q)
+        tau, qdd, f, qdd_pd, q_des, qd_des = _torque_law(x, inp.q, inp.qd, inp.mass, inp.bias, ctx.kin.jac,
+                                                         ctx.pd_matrix, q_des, qd_des, dt, cfg.cv, cfg.cp)
+        if not bool(ok.all()):
+            # a damped joint-space brake inside the viable bounds, which always respect the acceleration limits
+            # (Del Prete 2017; limits._acc_bounds), so that with gravity compensation it is torque-realisable
             qdd_fb = self.joint_limits.safe_acceleration(ctx)
-            tau_fb = mv(mass, qdd_fb) + bias
             o1 = ok[:, None]
-            tau = xp.where(o1, tau, tau_fb)
-            qdd, f = xp.where(o1, qdd, qdd_fb), xp.where(o1, f, 0.0)
-            qdd_pd = xp.where(o1, qdd_pd, 0.0)
-            q_des, qd_des = xp.where(o1, q_des, q), xp.where(o1, qd_des, qd)
-            self._report_fallback(ok, qp_status, valid)
-        out = _finish(xp, tau, qdd, f, qdd_pd, q_des, qd_des, q, qd, weights, tau_max, dt * opt.desired_state_leak)
-        if use_np:
-            out = tuple(torch.from_numpy(np.ascontiguousarray(a)) for a in out)
-        tau, qdd, f, qdd_pd, q_des, qd_des, saturated = out
-        self.q_des, self.qd_des = q_des, qd_des
-        status = qp_status if all_valid else torch.where(valid, qp_status, torch.full_like(qp_status, INVALID_INPUT))
-        f_adm = self.residuals["ac"].b if "ac" in self.residuals else None
-        f_ctc = self.residuals["fc"].b if "fc" in self.residuals else None
-        pose_err, ok = ctx.pose_error, torch.as_tensor(ok)
-        if use_np:
-            f_adm, f_ctc, pose_err = (None if a is None else torch.from_numpy(a) for a in (f_adm, f_ctc, pose_err))
-        f_adm = torch.zeros_like(f) if f_adm is None else f_adm
-        f_ctc = torch.zeros_like(f) if f_ctc is None else f_ctc
+            tau = xp.where(o1, tau, mv(inp.mass, qdd_fb) + inp.bias)
+            qdd, f, qdd_pd = xp.where(o1, qdd, qdd_fb), xp.where(o1, f, 0.0), xp.where(o1, qdd_pd, 0.0)
+            q_des, qd_des = xp.where(o1, q_des, inp.q), xp.where(o1, qd_des, inp.qd)
+            self._report_fallback(ok, qp_status, inp.valid)
+        out = _finish(xp, tau, qdd, f, qdd_pd, q_des, qd_des, inp.q, inp.qd, inp.weights,
+                      self._constants(inp.q)["tau_max"], dt * self.options.desired_state_leak)
+        f_adm = self.residuals["ac"].b if "ac" in self.residuals else xp.zeros_like(out[2])
+        f_ctc = self.residuals["fc"].b if "fc" in self.residuals else xp.zeros_like(out[2])
+        out = [torch.as_tensor(np.ascontiguousarray(a) if xp is np else a)
+               for a in (*out, ctx.pose_error, f_adm, f_ctc, ok)]
+        tau, qdd, f, qdd_pd, self.q_des, self.qd_des, saturated, pose_err, f_adm, f_ctc, ok = out
+        status = qp_status if inp.all_valid else torch.where(
+            torch.as_tensor(inp.valid), qp_status, torch.full_like(qp_status, INVALID_INPUT))
         return ControlOutput(tau=tau, qdd=qdd, wrench=f, qdd_pd=qdd_pd, pose_error=pose_err, f_adm=f_adm,
-                             f_ctc=f_ctc, status=status, fallback=~ok, saturated=saturated,
-                             iterations=iterations)
+                             f_ctc=f_ctc, status=status, fallback=~ok, saturated=saturated, iterations=iterations)
+
+    def assemble_native(self, q: np.ndarray, qd: np.ndarray, mass: np.ndarray, bias: np.ndarray,
+                        weights: np.ndarray, f_d: np.ndarray, pos_d: np.ndarray, rot_d: np.ndarray,
+                        f_ext: np.ndarray, in_contact: np.ndarray, kin: Kinematics | None = None) -> native.Assembled:
+        """`build_context` + `build_qp` by the C step (numpy arrays, shapes as `step`; the default composition only)."""
+        if self._native is None:
+            raise RuntimeError("this controller has no native step (backend='python' or not the default composition)")
+        kin = kin if kin is not None else _model_kinematics(self.model, q, qd)
+        return self._native.assemble(
+            q=q, qd=qd, mass=mass, bias=bias, jac=kin.jac, jdot_qdot=kin.jdot_qdot, twist=kin.twist, pos=kin.pos,
+            rot=kin.rot, weights=weights, f_d=f_d, pos_d=pos_d, rot_d=rot_d, f_ext=f_ext, in_contact=in_contact,
+            q_des=_np(self.q_des), qd_des=_np(self.qd_des))
+
+    def _step_native(self, inp: _StepInputs) -> ControlOutput:
+        """Stages 3-4 by the C translation of the default tasks, limits and torque law (finite numpy inputs)."""
+        asm = self.assemble_native(inp.q, inp.qd, inp.mass, inp.bias, inp.weights, inp.f_d, inp.pos_d, inp.rot_d,
+                                   inp.f_ext, inp.in_contact, inp.kin)
+        x, qp_status, iterations = self._solve(*(torch.from_numpy(a) for a in (asm.P, asm.c, asm.G, asm.h)))
+        xn = _np(x)
+        ok = (_np(qp_status) == 0) & np.isfinite(xn).all(axis=1)
+        tau, qdd, f, qdd_pd, q_des, qd_des, saturated = self._native.torque(xn, ok, asm)
+        if not ok.all():
+            self._report_fallback(ok, qp_status, np.ones(self.n, dtype=bool))
+        self.q_des, self.qd_des = torch.from_numpy(q_des), torch.from_numpy(qd_des)
+        self.residuals = {}
+        t = torch.from_numpy
+        return ControlOutput(tau=t(tau), qdd=t(qdd), wrench=t(f), qdd_pd=t(qdd_pd), pose_error=t(asm.pose_error),
+                             f_adm=t(asm.f_adm), f_ctc=t(asm.f_ctc), status=qp_status, fallback=t(~ok),
+                             saturated=t(saturated), iterations=iterations)

@@ -16,6 +16,7 @@ import torch
 from a3cqp_rl.control.arrays import Array, cat, const, mm, mv
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import InvalidGainError
+from a3cqp_rl.control.piece import QPPiece
 
 __all__ = ["Inequality", "Limit", "JointLimitsViability", "WrenchBox", "FrictionPyramid", "TorqueLimits",
            "joint_acceleration_bounds"]
@@ -59,12 +60,10 @@ class Inequality:
     """[B, m]."""
 
 
-class Limit(ABC):
+class Limit(QPPiece, ABC):
     """A QP limit: inequality rows from the step's context."""
 
     name: str = "limit"
-    numpy_capable: bool = False
-    """True when `rows` also runs on a context of numpy arrays (see Task.numpy_capable)."""
 
     @abstractmethod
     def rows(self, ctx: ControlContext) -> Inequality:
@@ -211,6 +210,15 @@ class JointLimitsViability(Limit):
         self.torque_share, self.min_stop_fraction = torque_share, min_stop_fraction
         self._np_limits = tuple(t.numpy() for t in (self.q_min, self.q_max, self.dq_max, self.ddq_max))
 
+    def _c_params(self) -> tuple[str, dict]:
+        q_min, q_max, dq_max, ddq_max = self._np_limits
+        return "joint_limits", {
+            "q_min": q_min, "q_max": q_max, "dq_max": dq_max, "ddq_max": ddq_max, "horizon": self.horizon,
+            "target_total": float(self.target == "total"), "include_f_ext": float(self.include_f_ext),
+            "brake_gain": self.brake_gain, "has_tau_stop": float(self.tau_max is not None),
+            "tau_stop_max": np.zeros(7) if self.tau_max is None else self.tau_max.numpy(),
+            "torque_share": self.torque_share, "min_stop_fraction": self.min_stop_fraction}
+
     def bounds(self, q: Array, qd: Array, ddq_stop: Array | None = None) -> tuple[Array, Array]:
         """Viable acceleration bounds (lb, ub) [B, 7] (rad/s²) at state (q, q̇), arrays of q's kind.
 
@@ -297,6 +305,9 @@ class WrenchBox(Limit):
         self.limit = torch.tensor([force_limit] * 3 + [torque_limit] * 3, dtype=torch.float64)
         self._rows: dict[tuple, tuple[Array, Array]] = {}
 
+    def _c_params(self) -> tuple[str, dict]:
+        return "wrench_box", {"wrench_max": self.limit.numpy()}
+
     def rows(self, ctx: ControlContext) -> Inequality:
         B, like = ctx.batch, ctx.q
 
@@ -329,6 +340,9 @@ class FrictionPyramid(Limit):
         self.mu = mu
         self.U = torch.tensor([[1.0, 0.0, -mu], [-1.0, 0.0, -mu], [0.0, 1.0, -mu], [0.0, -1.0, -mu]],
                               dtype=torch.float64)  # (4, 3) on the local force
+
+    def _c_params(self) -> tuple[str, dict]:
+        return "friction", {"mu": self.mu}
 
     def rows(self, ctx: ControlContext) -> Inequality:
         B, like = ctx.batch, ctx.q
@@ -367,6 +381,12 @@ class TorqueLimits(Limit):
             raise InvalidGainError(f"scale must be in (0, 1], got {scale!r}")
         self.tau_max = scale * torch.as_tensor(tau_max, dtype=torch.float64)
         self.safe = safe
+
+    def _c_params(self) -> tuple[str, dict] | None:
+        # C anchors the rows to the brake of the step's own joint limits: "anchor" lets it check that they are these
+        anchor = None if self.safe is None else self.safe.c_params()
+        return "torque_limits", {"torque_max": self.tau_max.numpy(), "torque_safe": float(self.safe is not None),
+                                 "anchor": anchor}
 
     def rows(self, ctx: ControlContext) -> Inequality:
         xp = ctx.xp

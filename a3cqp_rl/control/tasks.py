@@ -17,6 +17,7 @@ import torch
 from a3cqp_rl.control.arrays import Array, const, mm, mv, zeros
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import InvalidGainError
+from a3cqp_rl.control.piece import QPPiece
 
 __all__ = ["Residual", "Task", "CartesianIK", "Admittance", "ForceControl", "JointCentering",
            "CartesianAccelerationRegularizer"]
@@ -73,13 +74,10 @@ def _check_positive(**values: float) -> None:
             raise InvalidGainError(f"{name} must be finite and >= 0, got {value!r}")
 
 
-class Task(ABC):
+class Task(QPPiece, ABC):
     """A QP task: its residual and weight from the step's context."""
 
     name: str = "task"
-    numpy_capable: bool = False
-    """True when `residual` also runs on a context of numpy arrays (arrays.py); the controller's CPU step uses numpy
-    only when every task and limit is (a task written with torch calls keeps working: that step runs on torch)."""
 
     @abstractmethod
     def residual(self, ctx: ControlContext) -> Residual:
@@ -107,6 +105,9 @@ class CartesianIK(Task):
         """Diagonals of K_p and K_v [6] (eq. 11)."""
         kp, kv = self._gains
         return const(kp, like), const(kv, like)
+
+    def _c_params(self) -> tuple[str, dict]:
+        return "ik", {"kp": self._gains[0].numpy(), "kv": self._gains[1].numpy()}
 
     def desired_acceleration(self, ctx: ControlContext) -> Array:
         """ẍ_d = K_p e_x − K_v ẋ [B, 6] (eq. 10), world frame (m/s², rad/s²)."""
@@ -143,6 +144,9 @@ class Admittance(Task):
             raise InvalidGainError(f"form must be 'consistent' or 'paper', got {form!r}")
         self.lambda_d, self.c_d, self.form = lambda_d, c_d, form
 
+    def _c_params(self) -> tuple[str, dict]:
+        return "ac", {"lambda_d": self.lambda_d, "c_d": self.c_d, "ac_paper": float(self.form == "paper")}
+
     def admittance_wrench(self, ctx: ControlContext) -> Array:
         """f_adm [B, 6] (N, N m), world frame (eq. 18)."""
         lam = ctx.cart_inertia  # Λ (B, 6, 6)
@@ -164,6 +168,9 @@ class ForceControl(Task):
 
     name = "fc"
     numpy_capable = True
+
+    def _c_params(self) -> tuple[str, dict]:
+        return "fc", {}
 
     def contact_wrench(self, ctx: ControlContext) -> Array:
         """f_ctc = D f_d^𝓛 [B, 6] (N, N m), world frame (eq. 20)."""
@@ -197,6 +204,10 @@ class JointCentering(Task):
         self.q_center = torch.as_tensor(q_center, dtype=torch.float64)
         self.kq, self.epsilon, self.nullspace_weight = kq, epsilon, nullspace_weight
 
+    def _c_params(self) -> tuple[str, dict]:
+        return "jc", {"q_center": self.q_center.numpy(), "kq": self.kq, "jc_eps": self.epsilon,
+                      "jc_eps_n": self.nullspace_weight}
+
     def desired_acceleration(self, ctx: ControlContext) -> Array:
         """q̈_d [B, 7] (rad/s²), eq. 23."""
         e_q = const(self.q_center, ctx.q) - ctx.q
@@ -224,6 +235,9 @@ class CartesianAccelerationRegularizer(Task):
         _check_positive(gamma=gamma)
         self.gamma = gamma
         self._gamma_eye = gamma * torch.eye(6, dtype=torch.float64)
+
+    def _c_params(self) -> tuple[str, dict]:
+        return "creg", {"creg_gamma": self.gamma}
 
     def residual(self, ctx: ControlContext) -> Residual:
         return Residual(A=ctx.kin.jac, b=zeros((ctx.batch, 6), ctx.q),

@@ -6,10 +6,20 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from pathlib import Path
 
 from a3cqp_rl.exceptions import A3CQPError
+
+POLICY_LOADER = "algorithms.a2c:load_policy"
+"""'module:function' turning a policy file into obs [..., 3] -> action [..., 4] (resolved on use: plotting does not
+import the algorithms)."""
+
+
+def _load_policy(path: Path):
+    module, func = POLICY_LOADER.split(":")
+    return getattr(importlib.import_module(module), func)(path)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -52,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
                 src = src / "policy.pt"
             levels = [float(v) for v in args.levels.split(",")]
             out = Path(args.out) if args.out else src.with_name("policy_map" + ext)
-            plot_policy_map(src, out, args.x, args.y, args.fixed, levels)
+            plot_policy_map(_load_policy(src), out, args.x, args.y, args.fixed, levels, title=str(src))
         elif args.what == "loss-curves":
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
 

@@ -1,4 +1,4 @@
-"""One A2C iteration on the point-mass surrogate in C (`a2c_iteration.c`), built on first use, via ctypes.
+"""One A2C iteration on the point-mass surrogate in C (`a2c_iteration.c`, built at install time), via ctypes.
 
 Why native: at the paper's settings (4 envs, n = 4) an iteration is ~0.6 M multiply-adds, but the compiled torch
 graph spends most of its ~0.4 ms in fixed costs: 26 tiny GEMM calls, 30 kernels, and the dynamo/AOT wrappers
@@ -10,7 +10,7 @@ each path is deterministic on its own.
 
 `FusedRollout` takes it when `a2c.backend` allows (`auto`: PointMassEnv on the CPU and at most
 `AUTO_MAX_BATCH` samples per update, where it is faster; bigger batches are GEMM-bound, where MKL wins).
-`A3CQP_NATIVE_A2C=0` switches it off; no compiler or a failed build logs one warning and the torch path runs.
+`A3CQP_NATIVE_A2C=0` switches it off; a library not built at install time (no compiler) or stale logs one warning and the torch path runs.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from a3cqp_rl.native_build import CFLAGS, LazyLibrary
+from a3cqp_rl.native_build import LazyLibrary
 
 __all__ = ["Params", "NativeIteration", "load", "unsupported", "SOURCE", "AUTO_MAX_BATCH", "MAX_DEPTH"]
 
@@ -76,12 +76,11 @@ def _bind(path: Path) -> ctypes.CDLL:
     return lib
 
 
-_library = LazyLibrary(SOURCE, "A3CQP_NATIVE_A2C", _bind, _log, "algorithms: native A2C iteration", "the torch path",
-                       cflags=[*CFLAGS, "-fopenmp-simd", "-fno-math-errno"])
+_library = LazyLibrary(SOURCE, "A3CQP_NATIVE_A2C", _bind, _log, "algorithms: native A2C iteration", "the torch path")
 
 
 def load() -> ctypes.CDLL | None:
-    """The compiled library, or None (A3CQP_NATIVE_A2C=0, or no compiler / failed build: one warning)."""
+    """The compiled library, or None (A3CQP_NATIVE_A2C=0, or not built / stale: one warning)."""
     return _library.get()
 
 

@@ -1,4 +1,4 @@
-"""The controller's default step in C (`a3cqp_step.c`): QP assembly and torque law, built on first use, via ctypes.
+"""The controller's default step in C (`a3cqp_step.c`, built at install time): QP assembly and torque law.
 
 Why native: on the CPU a control step of the Python objects is a few hundred numpy calls on 6×7 / 7×7 matrices at
 0.5-3 µs each (and 10-25 µs each for 64 stacked matrices), while its arithmetic is ~20 k flops per arm.  The C file
@@ -8,7 +8,9 @@ the Cartesian regularizer; JointLimitsViability, WrenchBox, FrictionPyramid, Tor
 composition (a custom task or limit, other devices, autograd through `build_context`) runs the Python objects, which
 stay the reference (tests/test_control_native.py: agreement to 1e-9).  The QP itself is still `solve_qp`.
 
-`A3CQP_NATIVE_CONTROL=0` switches it off; no compiler or a failed build logs one warning and the Python path runs.
+The objects hand their own parameters (`Task.c_params`, `Limit.c_params`); `compose_params` checks the composition
+and the C file's field table defines the layout (one declaration).  `A3CQP_NATIVE_CONTROL=0` switches it off; a
+library not built at install time (no compiler) or stale logs one warning and the Python path runs.
 """
 
 from __future__ import annotations
@@ -17,96 +19,95 @@ import ctypes
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from a3cqp_rl.native_build import LazyLibrary, address
 
-if TYPE_CHECKING:
-    from a3cqp_rl.control.controller import A3CQPController
-
-__all__ = ["Params", "NativeStep", "Assembled", "load", "native_params", "SOURCE", "INPUTS"]
+__all__ = ["NativeStep", "Assembled", "load", "compose_params", "SOURCE"]
 
 SOURCE = Path(__file__).with_name("a3cqp_step.c")
 
 _log = logging.getLogger(__name__)
 
-_d = ctypes.c_double
+TASK_KINDS = ("ik", "ac", "fc", "jc")
+"""The tasks C translates, each exactly once (plus the optional "creg", CartesianAccelerationRegularizer)."""
+LIMIT_KINDS = ("joint_limits", "wrench_box", "friction")
+"""The limits C translates, in this order (plus an optional trailing "torque_limits")."""
+_ABSENT = {"creg_gamma": 0.0, "has_torque_limits": 0.0, "torque_max": np.zeros(7), "torque_safe": 0.0}
+"""Fields of the optional pieces when they are absent."""
 
 
-class Params(ctypes.Structure):
-    """`a3cqp_params` of a3cqp_step.c, field by field (flags are 0.0 / 1.0); see the C file for the meaning."""
+def compose_params(tasks: list[tuple[str, tuple[str, dict] | None]], limits: list[tuple[str, tuple[str, dict] | None]],
+                   step: dict) -> tuple[dict | None, str]:
+    """All fields of the C parameters, or (None, why) when the composition is not the one a3cqp_step.c translates.
 
-    _fields_ = [("dt", _d), ("cv", _d), ("cp", _d), ("kp", _d * 6), ("kv", _d * 6),
-                ("lambda_d", _d), ("c_d", _d), ("ac_paper", _d), ("f_d_max", _d), ("wrench_ff", _d), ("pd_pinv", _d),
-                ("creg_gamma", _d), ("q_center", _d * 7), ("kq", _d), ("jc_eps", _d), ("jc_eps_n", _d),
-                ("reg", _d), ("pinv_damping", _d), ("nullspace_damping", _d),
-                ("q_min", _d * 7), ("q_max", _d * 7), ("dq_max", _d * 7), ("ddq_max", _d * 7),
-                ("horizon", _d), ("target_total", _d), ("include_f_ext", _d), ("brake_gain", _d),
-                ("has_tau_stop", _d), ("tau_stop_max", _d * 7), ("torque_share", _d), ("min_stop_fraction", _d),
-                ("wrench_max", _d * 6), ("mu", _d),
-                ("has_torque_limits", _d), ("torque_max", _d * 7), ("torque_safe", _d),
-                ("tau_clip", _d * 7), ("leak", _d)]
+    `tasks`, `limits`: (label, the piece's `c_params()`) in the controller's order; `step`: the step-level fields."""
+    fields = dict(_ABSENT)
+    kinds = []
+    for label, part in [*tasks, *limits]:
+        if part is None:
+            return None, f"{label} is not one of the default task or limit classes (no C translation)"
+    for _, (kind, part) in tasks:
+        kinds.append(kind)
+        fields.update(part)
+    if sorted(kinds) not in (sorted(TASK_KINDS), sorted((*TASK_KINDS, "creg"))):
+        return None, f"tasks {kinds} are not {list(TASK_KINDS)} (+ the Cartesian regularizer), each once"
+    limits = [part for _, part in limits]
+    kinds = [kind for kind, _ in limits]
+    if kinds not in (list(LIMIT_KINDS), [*LIMIT_KINDS, "torque_limits"]):
+        return None, f"limits {kinds} are not {list(LIMIT_KINDS)} (+ torque_limits)"
+    for kind, part in limits:
+        part = dict(part)
+        if kind == "torque_limits":
+            anchor = part.pop("anchor")
+            if anchor is not None and not _same(anchor, limits[0]):
+                return None, "the torque limits are anchored to other joint limits than the step's"
+            part["has_torque_limits"] = 1.0
+        fields.update(part)
+    fields.update(step)
+    return fields, ""
 
 
-def _vec(values, n: int):  # noqa: ANN001, ANN202
-    return (_d * n)(*[float(v) for v in np.asarray(values, dtype=np.float64).reshape(n)])
+def _same(a: tuple[str, dict], b: tuple[str, dict]) -> bool:
+    """Equal (kind, fields) pairs (array fields compared by value)."""
+    return a[0] == b[0] and a[1].keys() == b[1].keys() and all(np.array_equal(a[1][k], b[1][k]) for k in a[1])
 
 
-def native_params(ctrl: A3CQPController) -> tuple[Params | None, str]:
-    """The C parameters of `ctrl`, or (None, why) when its tasks/limits are not the default composition."""
-    from a3cqp_rl.control.limits import FrictionPyramid, JointLimitsViability, TorqueLimits, WrenchBox
-    from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer, CartesianIK, ForceControl,
-                                        JointCentering)
+class _Field(ctypes.Structure):
+    """`a3cqp_field` of a3cqp_step.c: one entry of its parameter or input-row table."""
 
-    by_type: dict[type, object] = {}
-    for t in ctrl.tasks:
-        if type(t) not in (CartesianIK, Admittance, ForceControl, JointCentering, CartesianAccelerationRegularizer) \
-                or type(t) in by_type:
-            return None, f"task {type(t).__name__} is not one of the default tasks (or appears twice)"
-        by_type[type(t)] = t
-    missing = [k.__name__ for k in (CartesianIK, Admittance, ForceControl, JointCentering) if k not in by_type]
-    if missing:
-        return None, f"tasks {missing} are missing"
-    lims = ctrl.limits
-    jl = ctrl.joint_limits
-    expected = [JointLimitsViability, WrenchBox, FrictionPyramid]
-    if not (len(lims) in (3, 4) and [type(x) for x in lims[:3]] == expected and lims[0] is jl
-            and (len(lims) == 3 or (type(lims[3]) is TorqueLimits and lims[3].safe in (None, jl)))):
-        return None, "limits are not (JointLimitsViability, WrenchBox, FrictionPyramid[, TorqueLimits])"
-    ik, ac, jc = by_type[CartesianIK], by_type[Admittance], by_type[JointCentering]
-    creg = by_type.get(CartesianAccelerationRegularizer)
-    cfg, opt = ctrl.config, ctrl.options
-    kp, kv = ik.gains(np.empty(0))  # (numpy arrays: `gains` returns them in the kind of its argument)
-    tl = lims[3] if len(lims) == 4 else None
-    p = Params(
-        dt=ctrl.dt, cv=cfg.cv, cp=cfg.cp, kp=_vec(kp, 6), kv=_vec(kv, 6),
-        lambda_d=ac.lambda_d, c_d=ac.c_d, ac_paper=float(ac.form == "paper"), f_d_max=ctrl.f_d_max,
-        wrench_ff=float(opt.ik_wrench_feedforward), pd_pinv=float(opt.pd_projection == "pinv"),
-        creg_gamma=0.0 if creg is None else creg.gamma,
-        q_center=_vec(jc.q_center, 7), kq=jc.kq, jc_eps=jc.epsilon, jc_eps_n=jc.nullspace_weight,
-        reg=opt.regularization, pinv_damping=opt.pinv_damping, nullspace_damping=opt.nullspace_damping,
-        q_min=_vec(jl.q_min, 7), q_max=_vec(jl.q_max, 7), dq_max=_vec(jl.dq_max, 7), ddq_max=_vec(jl.ddq_max, 7),
-        horizon=jl.horizon, target_total=float(jl.target == "total"), include_f_ext=float(jl.include_f_ext),
-        brake_gain=jl.brake_gain, has_tau_stop=float(jl.tau_max is not None),
-        tau_stop_max=_vec(jl.tau_max if jl.tau_max is not None else np.zeros(7), 7),
-        torque_share=jl.torque_share, min_stop_fraction=jl.min_stop_fraction,
-        wrench_max=_vec(lims[1].limit, 6), mu=lims[2].mu,
-        has_torque_limits=float(tl is not None), torque_max=_vec(tl.tau_max if tl is not None else np.zeros(7), 7),
-        torque_safe=float(tl is not None and tl.safe is not None),
-        tau_clip=_vec(ctrl.tau_max, 7), leak=ctrl.dt * opt.desired_state_leak)
-    return p, ""
+    _fields_ = [("name", ctypes.c_char_p), ("offset", ctypes.c_int64), ("count", ctypes.c_int64)]
+
+
+def _table(fn: ctypes._CFuncPtr) -> list[tuple[str, int, int]]:
+    """(name, offset in doubles, count) of the table a3cqp_param_fields / a3cqp_input_fields returns."""
+    ptr = ctypes.POINTER(_Field)()
+    fn.argtypes, fn.restype = [ctypes.POINTER(ctypes.POINTER(_Field))], ctypes.c_int64
+    n = fn(ctypes.byref(ptr))
+    return [(ptr[i].name.decode(), int(ptr[i].offset), int(ptr[i].count)) for i in range(n)]
+
+
+def _struct(table: list[tuple[str, int, int]], size: int) -> type[ctypes.Structure]:
+    """A ctypes Structure of doubles laid out as the C table says (offsets and size checked field by field)."""
+    d = ctypes.c_double
+    cls = type("Params", (ctypes.Structure,), {"_fields_": [(n, d if c == 1 else d * c) for n, _, c in table]})
+    for name, offset, _ in table:
+        if getattr(cls, name).offset != 8 * offset:
+            raise RuntimeError(f"a3cqp_params.{name}: C offset {8 * offset}, ctypes {getattr(cls, name).offset}")
+    if ctypes.sizeof(cls) != size:
+        raise RuntimeError(f"a3cqp_params: C size {size}, ctypes {ctypes.sizeof(cls)}")
+    return cls
 
 
 def _bind(path: Path) -> ctypes.CDLL:
-    """Load the compiled a3cqp_step and declare its functions (checking the C layouts against Params and INPUTS)."""
+    """Load the compiled a3cqp_step, declare its functions, and read its parameter and input layouts."""
     lib = ctypes.CDLL(str(path))
     lib.a3cqp_params_size.restype = lib.a3cqp_input_size.restype = lib.a3cqp_rows.restype = ctypes.c_int64
-    if lib.a3cqp_params_size() != ctypes.sizeof(Params):
-        raise RuntimeError("a3cqp_params in a3cqp_step.c and native.Params differ")
-    if lib.a3cqp_input_size() != sum(w for _, w in INPUTS):
-        raise RuntimeError("the input row of a3cqp_step.c and native.INPUTS differ")
+    lib.Params = _struct(_table(lib.a3cqp_param_fields), lib.a3cqp_params_size())
+    lib.inputs = [(name, count) for name, _, count in _table(lib.a3cqp_input_fields)]
+    offsets = [offset for _, offset, _ in _table(lib.a3cqp_input_fields)]
+    if offsets != list(np.cumsum([0] + [c for _, c in lib.inputs[:-1]])) or sum(c for _, c in lib.inputs) != lib.a3cqp_input_size():
+        raise RuntimeError("the input row of a3cqp_step.c is not packed in table order")
     lib.a3cqp_rows.argtypes = [ctypes.c_void_p]
     lib.a3cqp_assemble.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 3]
     lib.a3cqp_torque.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 6]
@@ -114,17 +115,12 @@ def _bind(path: Path) -> ctypes.CDLL:
     return lib
 
 
-INPUTS = (("q", 7), ("qd", 7), ("mass", 49), ("bias", 7), ("jac", 42), ("jdot_qdot", 6), ("twist", 6), ("pos", 3),
-          ("rot", 9), ("weights", 18), ("f_d", 6), ("pos_d", 3), ("rot_d", 9), ("f_ext", 6), ("in_contact", 1),
-          ("q_des", 7), ("qd_des", 7))
-"""The per-arm input row of a3cqp_assemble (the IN_* offsets of the C file), in order: (name, width)."""
-
 _library = LazyLibrary(SOURCE, "A3CQP_NATIVE_CONTROL", _bind, _log, "a3cqp_rl.control: native controller step",
                        "the Python path")
 
 
 def load() -> ctypes.CDLL | None:
-    """The compiled a3cqp_step library, or None (A3CQP_NATIVE_CONTROL=0, or no compiler / failed build: one warning)."""
+    """The compiled a3cqp_step library, or None (A3CQP_NATIVE_CONTROL=0, or not built / stale: one warning)."""
     return _library.get()
 
 
@@ -158,9 +154,19 @@ class Assembled:
 class NativeStep:
     """The C step for one controller's parameters (numpy arrays in and out, float64, batch first)."""
 
-    def __init__(self, lib: ctypes.CDLL, params: Params) -> None:
-        self.lib, self.params = lib, params
-        self._p = ctypes.addressof(params)
+    def __init__(self, lib: ctypes.CDLL, fields: dict) -> None:
+        """Bind `fields` (every field of the C parameters, from `compose_params`) for the calls of this step."""
+        names = {name for name, _ in lib.Params._fields_}
+        if fields.keys() != names:
+            raise ValueError(f"C parameters: missing {sorted(names - fields.keys())}, unknown {sorted(fields.keys() - names)}")
+        self.lib, self.params = lib, lib.Params()
+        for name, ctype in lib.Params._fields_:
+            value = fields[name]
+            if ctype is ctypes.c_double:
+                setattr(self.params, name, float(value))
+            else:
+                getattr(self.params, name)[:] = [float(v) for v in np.asarray(value, dtype=np.float64).reshape(-1)]
+        self._p = ctypes.addressof(self.params)
         self.rows = m = int(lib.a3cqp_rows(self._p))
         self._out_widths = (169, 13, 13 * m, m, 49, 6, 6, 6, 7)
         self._out_shapes = ((13, 13), (13,), (m, 13), (m,), (7, 7), (6,), (6,), (6,), (7,))
@@ -177,16 +183,15 @@ class NativeStep:
             self._layout[n] = out
         return out
 
-    def assemble(self, q: np.ndarray, qd: np.ndarray, mass: np.ndarray, bias: np.ndarray, jac: np.ndarray,
-                 jdot_qdot: np.ndarray, twist: np.ndarray, pos: np.ndarray, rot: np.ndarray, weights: np.ndarray,
-                 f_d: np.ndarray, pos_d: np.ndarray, rot_d: np.ndarray, f_ext: np.ndarray, in_contact: np.ndarray,
-                 q_des: np.ndarray, qd_des: np.ndarray) -> Assembled:
-        """build_context + build_qp of the default composition for N arms (shapes as A3CQPController.step)."""
-        n = q.shape[0]
-        # one packed copy of the inputs (order INPUTS): also makes strided views contiguous
-        packed = np.concatenate([q, qd, mass.reshape(n, 49), bias, jac.reshape(n, 42), jdot_qdot, twist, pos,
-                                 rot.reshape(n, 9), weights.reshape(n, 18), f_d, pos_d, rot_d.reshape(n, 9), f_ext,
-                                 in_contact.reshape(n, 1), q_des, qd_des], axis=1, dtype=np.float64)
+    def assemble(self, **inputs: np.ndarray) -> Assembled:
+        """build_context + build_qp of the default composition for N arms.
+
+        `inputs`: the entries of the C input table (`lib.inputs`: q, qd, mass, bias, jac, jdot_qdot, twist, pos, rot,
+        weights, f_d, pos_d, rot_d, f_ext, in_contact, q_des, qd_des), batch first, shapes as A3CQPController.step."""
+        n = inputs["q"].shape[0]
+        # one packed copy of the inputs in the C table's order: also makes strided views contiguous
+        packed = np.concatenate([inputs[name].reshape(n, width) for name, width in self.lib.inputs], axis=1,
+                                dtype=np.float64)
         sl = self._slices(n)
         out = np.empty(sl[-1][1])
         self.lib.a3cqp_assemble(n, self._p, address(packed), address(out))

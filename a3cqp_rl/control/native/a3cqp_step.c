@@ -19,6 +19,7 @@
  * Plain C99 + libm, no allocation.
  */
 #include <math.h>
+#include <stddef.h>
 #include <stdint.h>
 #include <string.h>
 
@@ -26,25 +27,40 @@
 #define NW 6  /* f = x[7:13] */
 #define NV 13
 
-/* Parameters, mirrored field by field by `native.Params` (a ctypes Structure; sizeof checked on load).
- * Flags are doubles (0 or 1) so that the Python side is one list of floats. */
-typedef struct {
-    double dt, cv, cp;                       /* control period [s]; eq. 5 gains c_v, c_p */
-    double kp[6], kv[6];                     /* CartesianIK: K_p, K_v diagonals (eq. 10-11) */
-    double lambda_d, c_d, ac_paper;          /* Admittance: Λd, Cd, eq. 18 as printed (1) or consistent (0) */
-    double f_d_max;                          /* FC: f_d clipped to [0, f̄_d] (eq. 21) */
-    double wrench_ff, pd_pinv;               /* ControllerOptions.ik_wrench_feedforward, pd_projection == "pinv" */
-    double creg_gamma;                       /* CartesianAccelerationRegularizer γ (0: absent) */
-    double q_center[7], kq, jc_eps, jc_eps_n;/* JointCentering q_d, k_q, ε, ε_N (eq. 23) */
-    double reg, pinv_damping, nullspace_damping;
-    double q_min[7], q_max[7], dq_max[7], ddq_max[7]; /* JointLimitsViability (margins applied) */
-    double horizon, target_total, include_f_ext, brake_gain;
-    double has_tau_stop, tau_stop_max[7], torque_share, min_stop_fraction;
-    double wrench_max[6];                    /* WrenchBox */
-    double mu;                               /* FrictionPyramid */
-    double has_torque_limits, torque_max[7], torque_safe; /* TorqueLimits (scaled τ̄), anchored to the brake */
-    double tau_clip[7], leak;                /* torque clip ±τ_max; Δt · desired_state_leak */
-} a3cqp_params;
+/* Parameters: each task and limit of a3cqp_rl/control hands its own fields (their `c_params`), the controller its
+ * step-level ones; Python builds its ctypes view from the field table below, so the layout is declared once, here.
+ * S(name): a scalar; A(name, n): an array of n.  Flags are doubles (0 or 1). */
+#define A3CQP_PARAMS(S, A)                                                                                         \
+    S(dt) S(cv) S(cp)                        /* control period [s]; eq. 5 gains c_v, c_p */                        \
+    A(kp, 6) A(kv, 6)                        /* CartesianIK: K_p, K_v diagonals (eq. 10-11) */                     \
+    S(lambda_d) S(c_d) S(ac_paper)           /* Admittance: Λd, Cd, eq. 18 as printed (1) or consistent (0) */     \
+    S(f_d_max)                               /* FC: f_d clipped to [0, f̄_d] (eq. 21) */                            \
+    S(wrench_ff) S(pd_pinv)                  /* ControllerOptions.ik_wrench_feedforward, pd_projection == "pinv" */\
+    S(creg_gamma)                            /* CartesianAccelerationRegularizer γ (0: absent) */                  \
+    A(q_center, 7) S(kq) S(jc_eps) S(jc_eps_n) /* JointCentering q_d, k_q, ε, ε_N (eq. 23) */                      \
+    S(reg) S(pinv_damping) S(nullspace_damping)                                                                    \
+    A(q_min, 7) A(q_max, 7) A(dq_max, 7) A(ddq_max, 7) /* JointLimitsViability (margins applied) */                \
+    S(horizon) S(target_total) S(include_f_ext) S(brake_gain)                                                      \
+    S(has_tau_stop) A(tau_stop_max, 7) S(torque_share) S(min_stop_fraction)                                        \
+    A(wrench_max, 6)                         /* WrenchBox */                                                       \
+    S(mu)                                    /* FrictionPyramid */                                                 \
+    S(has_torque_limits) A(torque_max, 7) S(torque_safe) /* TorqueLimits (scaled τ̄), anchored to the brake */      \
+    A(tau_clip, 7) S(leak)                   /* torque clip ±τ_max; Δt · desired_state_leak */
+
+#define DECLARE_S(f) double f;
+#define DECLARE_A(f, n) double f[n];
+typedef struct { A3CQP_PARAMS(DECLARE_S, DECLARE_A) } a3cqp_params;
+
+/* (name, offset in doubles, count) of each parameter and of each entry of the per-arm input row, for the bindings. */
+typedef struct { const char *name; int64_t offset, count; } a3cqp_field;
+#define FIELD_S(f) {#f, (int64_t)(offsetof(a3cqp_params, f) / sizeof(double)), 1},
+#define FIELD_A(f, n) {#f, (int64_t)(offsetof(a3cqp_params, f) / sizeof(double)), n},
+static const a3cqp_field PARAM_FIELDS[] = { A3CQP_PARAMS(FIELD_S, FIELD_A) };
+
+int64_t a3cqp_param_fields(const a3cqp_field **out) {
+    *out = PARAM_FIELDS;
+    return (int64_t)(sizeof(PARAM_FIELDS) / sizeof(PARAM_FIELDS[0]));
+}
 
 int64_t a3cqp_params_size(void) { return (int64_t)sizeof(a3cqp_params); }
 
@@ -401,12 +417,25 @@ static void assemble_one(const a3cqp_params *p, const double *q, const double *q
     memcpy(pose_out, cx.pose_err, sizeof cx.pose_err);
 }
 
-/* The packed per-arm input row of a3cqp_assemble (native.INPUTS packs it in this order). */
+/* The packed per-arm input row of a3cqp_assemble: (name, width) in order; the bindings pack by this table. */
+#define A3CQP_INPUTS(A)                                                                                            \
+    A(q, 7) A(qd, 7) A(mass, 49) A(bias, 7) A(jac, 42) A(jdot_qdot, 6) A(twist, 6) A(pos, 3) A(rot, 9)             \
+    A(weights, 18) A(f_d, 6) A(pos_d, 3) A(rot_d, 9) A(f_ext, 6) A(in_contact, 1) A(q_des, 7) A(qd_des, 7)
+typedef struct { A3CQP_INPUTS(DECLARE_A) } a3cqp_input;
+#define IN(f) (int)(offsetof(a3cqp_input, f) / sizeof(double))
 enum {
-    IN_Q = 0, IN_QD = 7, IN_M = 14, IN_BIAS = 63, IN_J = 70, IN_JDQD = 112, IN_TWIST = 118, IN_POS = 124,
-    IN_ROT = 127, IN_W = 136, IN_FD = 154, IN_POSD = 160, IN_ROTD = 163, IN_FEXT = 172, IN_CONTACT = 178,
-    IN_QDES = 179, IN_QDDES = 186, IN_SIZE = 193
+    IN_Q = IN(q), IN_QD = IN(qd), IN_M = IN(mass), IN_BIAS = IN(bias), IN_J = IN(jac), IN_JDQD = IN(jdot_qdot),
+    IN_TWIST = IN(twist), IN_POS = IN(pos), IN_ROT = IN(rot), IN_W = IN(weights), IN_FD = IN(f_d),
+    IN_POSD = IN(pos_d), IN_ROTD = IN(rot_d), IN_FEXT = IN(f_ext), IN_CONTACT = IN(in_contact), IN_QDES = IN(q_des),
+    IN_QDDES = IN(qd_des), IN_SIZE = (int)(sizeof(a3cqp_input) / sizeof(double))
 };
+#define INPUT_FIELD(f, n) {#f, IN(f), n},
+static const a3cqp_field INPUT_FIELDS[] = { A3CQP_INPUTS(INPUT_FIELD) };
+
+int64_t a3cqp_input_fields(const a3cqp_field **out) {
+    *out = INPUT_FIELDS;
+    return (int64_t)(sizeof(INPUT_FIELDS) / sizeof(INPUT_FIELDS[0]));
+}
 
 int64_t a3cqp_input_size(void) { return IN_SIZE; }
 
