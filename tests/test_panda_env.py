@@ -185,7 +185,18 @@ def test_operator_is_bounded_delayed_and_releases() -> None:
     assert not op.active[0] and op.releases[0] == 1 and op.reached[0]
 
 
-def test_a_diverging_robot_ends_its_own_episode_only(caplog) -> None:  # noqa: ANN001
+@pytest.fixture
+def mujoco_warnings():  # noqa: ANN201
+    """MuJoCo's warnings collected in a list instead of its MUJOCO_LOG.TXT in the working directory."""
+    import mujoco
+
+    seen: list[str] = []
+    mujoco.set_mju_user_warning(seen.append)
+    yield seen
+    mujoco.set_mju_user_warning(None)
+
+
+def test_a_diverging_robot_ends_its_own_episode_only(caplog, mujoco_warnings) -> None:  # noqa: ANN001
     ref = PandaEnv(3, _cfg(), seed=2)
     env = PandaEnv(3, _cfg(), seed=2)
     tds = [ref.reset(), env.reset()]
@@ -201,6 +212,7 @@ def test_a_diverging_robot_ends_its_own_episode_only(caplog) -> None:  # noqa: A
             assert bool(tds[1]["terminated"][1]) and bool(tds[1]["diverged"][1])
             assert not tds[1]["done"][[0, 2]].any()
     assert sum("robot 1 diverged" in r.message for r in caplog.records) == 1
+    assert any("unstable" in w for w in mujoco_warnings)  # MuJoCo saw it too, and did not reset the batch
     assert env.diverged.tolist() == [False, True, False]
     # the other robots did not notice (MuJoCo's own auto-reset of the whole batch is off)
     np.testing.assert_allclose(env.q[[0, 2]], ref.q[[0, 2]], atol=1e-9)
