@@ -426,7 +426,7 @@ class PegInHoleConfig:
     remain, the reference returns home over `return_time` and the next cycle starts.
     """
 
-    hole_center: tuple[float, float] = (0.45, 0.0)
+    hole_center: tuple[float, ...] = (0.45, 0.0)
     """Hole axis (x, y) in the arm's base frame [m] (the "known table position")."""
     hole_top: float = 0.30
     """Height of the rim [m]."""
@@ -438,9 +438,9 @@ class PegInHoleConfig:
     """Boxes forming the bore (a3cqp_rl.robot.scenes.HoleGeometry)."""
     friction: float = 0.3
     """Sliding friction of the block."""
-    misalign_translation: tuple[float, float] = (0.0123, 0.00424)
+    misalign_translation: tuple[float, ...] = (0.0123, 0.00424)
     """Mean and standard deviation of the approach pose's horizontal offset from the hole axis [m] (Table VI)."""
-    misalign_rotation_deg: tuple[float, float] = (3.66, 0.45)
+    misalign_rotation_deg: tuple[float, ...] = (3.66, 0.45)
     """Mean and standard deviation of the approach pose's tilt [deg] (Table VI)."""
     approach_height: float = 0.03
     """Peg tip above the rim at the approach pose [m]."""
@@ -488,6 +488,9 @@ class PegInHoleConfig:
             err.add("hole_segments", f"must be >= 8, got {self.hole_segments}")
         if self.success_depth >= self.hole_depth:
             err.add("success_depth", f"must be < hole_depth ({self.hole_depth}), got {self.success_depth}")
+        for name in ("hole_center", "misalign_translation", "misalign_rotation_deg"):
+            if len(getattr(self, name)) != 2:
+                err.add(name, f"needs 2 values, got {len(getattr(self, name))}")
         for name in ("misalign_translation", "misalign_rotation_deg"):
             if any(v < 0 for v in getattr(self, name)):
                 err.add(name, f"mean and standard deviation must be >= 0, got {getattr(self, name)}")
@@ -504,15 +507,15 @@ class PolishingConfig:
     new place; one polishing period per relocation.
     """
 
-    plate_center: tuple[float, float] = (0.45, 0.0)
+    plate_center: tuple[float, ...] = (0.45, 0.0)
     """Plate centre (x, y) [m]."""
     plate_top: float = 0.25
     """Height of the plate's top face [m]."""
-    plate_half_size: tuple[float, float] = (0.2, 0.3)
+    plate_half_size: tuple[float, ...] = (0.2, 0.3)
     """Plate half sides (x, y) [m]."""
     friction: float = 0.3
     """Sliding friction of the plate."""
-    start_offset: tuple[float, float] = (0.0, 0.0)
+    start_offset: tuple[float, ...] = (0.0, 0.0)
     """First working zone relative to the plate centre (x, y) [m]."""
     relocations: tuple[tuple[float, float], ...] = ((0.0, -0.12), (0.0, 0.24), (0.0, -0.12))
     """Operator moves of the working zone (dx, dy) [m], one after each polishing period."""
@@ -541,6 +544,9 @@ class PolishingConfig:
         for name in ("preload", "rest_time", "lift", "hold_time", "friction"):
             if getattr(self, name) < 0:
                 err.add(name, f"must be >= 0, got {getattr(self, name)}")
+        for name in ("plate_center", "plate_half_size", "start_offset"):
+            if len(getattr(self, name)) != 2:
+                err.add(name, f"needs 2 values (x, y), got {len(getattr(self, name))}")
         if any(h <= 0 for h in self.plate_half_size):
             err.add("plate_half_size", f"must be > 0, got {self.plate_half_size}")
         if not self.relocations:

@@ -180,7 +180,7 @@ class Scene:
     """A scripted procedure for N arms: reference pose, operator intents, phases and per-trial metrics."""
 
     name = "scene"
-    tool = "peg"
+    tool = "peg_mesh"
     phase_names: tuple[str, ...] = ()
     """Phase labels; `phase` holds indices into it."""
     phase_task: tuple[str, ...] = ()
@@ -233,7 +233,7 @@ class Scene:
 class PegInHole(Scene):
     """Peg-in-hole (paper 000, Fig. 7, Table VI); see PegInHoleConfig for the procedure."""
 
-    name, tool = "peg_in_hole", "peg"
+    name, tool = "peg_in_hole", "peg_mesh"
     SETTLE, APPROACH, INSERT, DISENGAGE, RETURN, DONE = range(6)
     phase_names = ("settle", "approach", "insert", "disengage", "return", "done")
     phase_task = ("IK", "IK", "FC", "AC", "IK", "IK")
@@ -426,14 +426,14 @@ class Polishing(Scene):
     not), x-y tracking error (RMS); mean |f_ope| while the operator relocates the zone, and how often the hand
     reached its relocation goal."""
 
-    name, tool = "polishing", "disc"
+    name, tool = "polishing", "disc_mesh"
     REST, APPROACH, POLISH, RELOCATE, HOLD, DONE = range(6)
     phase_names = ("rest", "approach", "polish", "relocate", "hold", "done")
     phase_task = ("IK", "IK", "FC", "AC", "IK", "IK")
     RAMP = 1.0
     """Seconds over which the circle's radius grows from 0 (so the reference starts where the tool is)."""
     DISC_RADIUS = 0.0625
-    """Radius of the polishing disc of tool_disc.xml [m]."""
+    """Radius of the polishing disc of tool_disc_mesh.xml [m]."""
 
     def __init__(self, n: int, operator: Operator, home_pos: np.ndarray, home_rot: np.ndarray,
                  cfg: PolishingConfig) -> None:
@@ -561,7 +561,7 @@ class Guidance(Scene):
     Metrics: |f_ope| while guiding (mean, peak: the effort), the hand's distance to its goal at release, the time
     to reach the goal, and how far the robot drifts from the taught pose after the release."""
 
-    name, tool = "guidance", "peg"
+    name, tool = "guidance", "peg_mesh"
     PAUSE, GUIDE, DONE = range(3)
     phase_names = ("pause", "guide", "done")
     phase_task = ("IK", "AC", "IK")

@@ -19,7 +19,7 @@ def _episode(T: int = 300) -> dict[str, np.ndarray]:
     return {"time": t, "phase": (t > 1.0).astype(np.int64) + (t > 2.0), "e_local": np.zeros((T, 6)),
             "f_env_local": np.zeros((T, 6)), "f_ope_local": np.zeros((T, 6)), "weights": w, "f_d": np.zeros((T, 6)),
             "misalign_translation": np.full(T, 0.01), "misalign_rotation": np.full(T, 0.05), "depth": np.zeros(T),
-            "q": np.tile(PANDA_HOME, (T, 1)), "scene": np.array("peg_in_hole"), "tool": np.array("peg"),
+            "q": np.tile(PANDA_HOME, (T, 1)), "scene": np.array("peg_in_hole"), "tool": np.array("peg_mesh"),
             "scene_xml": np.array(hole_block_xml(HoleGeometry())),
             "phase_names": np.array(["approach", "insert", "disengage"]), "phase_task": np.array(["IK", "FC", "AC"])}
 

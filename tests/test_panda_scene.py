@@ -16,7 +16,7 @@ GEOM = HoleGeometry(center=(0.0, 0.0), top=0.1)
 
 
 def _prism(n: int = 32, r: float = 0.01, half: float = 0.05) -> str:
-    """The peg tool's collision mesh (tool_peg.xml): n-sided prism, corners on radius r."""
+    """The peg tool's collision mesh (tool_peg_mesh.xml): n-sided prism, corners on radius r."""
     v = [(r * math.cos(2 * math.pi * (k + 0.5) / n), r * math.sin(2 * math.pi * (k + 0.5) / n), z)
          for z in (-half, half) for k in range(n)]
     return " ".join(f"{x:.7f} {y:.7f} {z:g}" for x, y, z in v)
@@ -106,15 +106,16 @@ def test_polytope_peg_avoids_the_cylinder_epa_problem() -> None:
 
 
 def test_upstream_cylinder_epa_problem_still_present_or_fixed() -> None:
-    """Documents why tool_peg.xml collides with a mesh: the cylinder gets a spurious ~11 mm penetration here."""
+    """Documents why tool_peg_mesh.xml collides with a mesh: the cylinder gets a spurious ~11 mm penetration here."""
     if _deepest_at_recorded_pose("cylinder") < 1e-3:
         pytest.skip("MuJoCo's cylinder-box collision is exact here now; the peg could collide as a cylinder again")
 
 
 def test_scene_composition_moves_tool_assets_and_replicates() -> None:
-    text = compose_mjcf("peg", hole_block_xml(HoleGeometry()))
+    text = compose_mjcf("peg_mesh", hole_block_xml(HoleGeometry()))
     assert text.count("<asset>") == 1 and text.index("<asset>") < text.index("<worldbody>")
-    sim = PandaSim(2, tool="peg", scene=hole_block_xml(HoleGeometry()) + plate_xml(center=(0.45, 0.4)))
+    assert "<asset>" not in compose_mjcf("peg")
+    sim = PandaSim(2, tool="peg_mesh", scene=hole_block_xml(HoleGeometry()) + plate_xml(center=(0.45, 0.4)))
     assert sim.model.nmesh == 2  # one collision mesh per copy
     m = sim.model
     assert m.geom_priority[m.geom("arm0/hole_block_seg0").id] > m.geom_priority[m.geom("arm0/peg").id]

@@ -15,9 +15,10 @@ __all__ = ["ASSETS_DIR", "PANDA_XML", "TOOLS", "DEFAULT_TOOL", "compose_mjcf", "
 ASSETS_DIR = Path(__file__).resolve().parent / "assets"
 PANDA_XML = ASSETS_DIR / "panda.xml"
 """The arm with the default tool (peg) inline; a complete, loadable MJCF file."""
-TOOLS = ("peg", "disc", "none")
+TOOLS = ("peg", "disc", "none", "peg_mesh", "disc_mesh")
 """Tool names; each has assets/tool_<name>.xml (a single <body name="tool"> with a site "tcp", optionally preceded by
-an <asset> block, e.g. a collision mesh, which compose_mjcf moves to the model's top level)."""
+an <asset> block, e.g. a collision mesh, which compose_mjcf moves to the model's top level). "peg_mesh" and
+"disc_mesh" are "peg" and "disc" colliding as 32-sided prisms (the Panda scenes use them: see their files)."""
 DEFAULT_TOOL = "peg"
 
 _TOOL_MARKERS = ("<!-- TOOL BEGIN -->", "<!-- TOOL END -->")
