@@ -140,6 +140,7 @@ class PandaEnv(EnvBase):
         """Per-arm, per-local-axis scale of the IK stiffness (1 = Table I), applied by moving the reference
         (x_d' = x + s (x_d − x) in L): lets a variable-impedance baseline run on the same controller."""
         self._override: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._noise: dict[str, np.ndarray] = {}
         self._ft_bias = np.zeros((n, 6))
         self._tau_bias = np.zeros((n, 7))
         # latest measurements (world frame, at the tool tip)
@@ -267,12 +268,11 @@ class PandaEnv(EnvBase):
         check_finite(action=action)
         self._adapt(action)
         self.max_penetration[:] = 0.0
-        newly = np.zeros(self.num_envs, dtype=bool)
         weights, f_d = torch.from_numpy(self.weights), torch.from_numpy(self.f_d)
         pos_d, rot_d = self._controller_reference()
         self._draw_noise()
         for k in range(self.substeps):
-            newly |= self._tick(k, weights, f_d, pos_d, rot_d)
+            self._tick(k, weights, f_d, pos_d, rot_d)
         if self._leak_rate > 0:
             self._leak_desired_state(self._jac, self.weights)
         self.t += self.adapt.dt
@@ -294,7 +294,7 @@ class PandaEnv(EnvBase):
         """This agent period's random draws, from each arm's own stream: hand tremor (arms the operator holds) and
         sensor noise (when configured), [N, substeps, dim] each."""
         n, K, sen = self.num_envs, self.substeps, self.pcfg.sensors
-        self._noise: dict[str, np.ndarray] = {}
+        self._noise = {}
         held = np.flatnonzero(self.operator.active)
         if self.pcfg.operator.noise > 0 and len(held):
             hand = np.zeros((n, K, 3))
@@ -309,7 +309,7 @@ class PandaEnv(EnvBase):
               rot_d: torch.Tensor) -> np.ndarray:
         """One 1 kHz control period (the k-th of the agent period) for all arms; returns the arms that diverged."""
         s = self._measure(k)
-        bad = self._check_divergence(s)
+        bad = self._check_divergence()
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin)
         self.fallbacks += out.fallback.numpy()
@@ -365,7 +365,7 @@ class PandaEnv(EnvBase):
         the agent period's k-th control period (none for k = None), bias always."""
         s = self.sim.observe()
         sen = self.pcfg.sensors
-        noise = getattr(self, "_noise", {}) if k is not None else {}
+        noise = self._noise if k is not None else {}
         self.q, self.qd = s.q.numpy(), s.qd.numpy()
         self.pos, self.rot = s.kin.pos.numpy().copy(), s.kin.rot.numpy().copy()
         self._jac = s.kin.jac.numpy()
@@ -385,7 +385,7 @@ class PandaEnv(EnvBase):
         self.handle_pos = self.pos + self.rot @ self._o_handle
         return s
 
-    def _check_divergence(self, s) -> np.ndarray:  # noqa: ANN001
+    def _check_divergence(self) -> np.ndarray:
         """Arms newly diverged: non-finite state, joint speed > factor × limit, or a too deep contact."""
         p = self.pcfg
         finite = np.isfinite(self.q).all(1) & np.isfinite(self.qd).all(1)
