@@ -595,12 +595,11 @@ class PandaEnvConfig:
     """Start of each episode: pure IK with f_d = 0 (w̌ = (σw/2, −σw/2, −σw/2)), or random like the point mass."""
     max_episode_time: float = 120.0
     """Episodes are truncated after this simulated time [s] even if the procedure has not finished."""
-    state_leak: Literal["per_axis", "controller"] = "per_axis"
-    """How the controller's integrated references q*, q̇* (eq. 6-7) relax toward the measured state where IK does
-    not lead: "controller" = ControllerOptions.desired_state_leak as is (one rate for all joints, set by the
-    smallest w1 of the six axes); "per_axis" = the same rate times (1 − w1) of each local axis, so that force control
-    on z leaves the integral action of eq. 5-7 on the axes IK still tracks (without it the peg stays on the rim,
-    held by friction: docs/panda.md)."""
+    state_leak: Literal["per_axis", "min_w1"] = "per_axis"
+    """ControllerOptions.leak_axes of the env's controller: how the integrated references q*, q̇* (eq. 6-7) relax
+    toward the measured state where IK does not lead. "per_axis" (per local axis, so force control on z leaves the
+    integral action of eq. 5-7 on the axes IK still tracks; without it the peg stays on the rim, held by friction:
+    docs/panda.md) or "min_w1" (one rate for all joints, set by the smallest w1 of the six axes)."""
     divergence_speed_factor: float = 3.0
     """A robot whose joint speed exceeds this multiple of its datasheet limit counts as diverged."""
     divergence_penetration: float = 0.01

@@ -116,11 +116,7 @@ class PandaEnv(EnvBase):
         self.sim = PandaSim(n, tool=tool, scene=self.scene.mjcf(), q0=PANDA_HOME, timestep=self.dt, control_site="tcp")
         # one diverging arm must not make MuJoCo reset the whole batch (its default on bad qpos/qvel/qacc)
         self.sim.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
-        opts = controller_options or ControllerOptions()
-        self._leak_rate = 0.0
-        if self.pcfg.state_leak == "per_axis":  # the env relaxes q*, q̇* itself (see _leak_desired_state)
-            self._leak_rate = opts.desired_state_leak
-            opts = dataclasses.replace(opts, desired_state_leak=0.0)
+        opts = dataclasses.replace(controller_options or ControllerOptions(), leak_axes=self.pcfg.state_leak)
         self.ctrl = A3CQPController(n, model=self.model, config=cfg.controller, options=opts)
         self._geom_arm = self._geom_arms()
         lim = PANDA_LIMITS
@@ -273,8 +269,6 @@ class PandaEnv(EnvBase):
         self._draw_noise()
         for k in range(self.substeps):
             self._tick(k, weights, f_d, pos_d, rot_d)
-        if self._leak_rate > 0:
-            self._leak_desired_state(self._jac, self.weights)
         self.t += self.adapt.dt
         self._update_scene()
         truncated = self.scene.done | (self.t >= self.pcfg.max_episode_time - 1e-9)
@@ -328,37 +322,6 @@ class PandaEnv(EnvBase):
         if bad.any():
             self._end_diverged(bad)
         return bad
-
-    def _leak_desired_state(self, jac: np.ndarray, weights: np.ndarray) -> None:
-        """Relax the controller's integrated references q*, q̇* (eq. 6-7) toward the measured q, q̇ per local axis.
-
-        Rate ControllerOptions.desired_state_leak × `_leak_share` along each axis of L (the task-space part of
-        q* − q, through J and D), the null-space part at the full rate (PandaEnvConfig.state_leak = "per_axis"). The controller's own leak (ControllerOptions.desired_state_leak) uses the
-        smallest w1 of all six axes for every joint: once force control takes one axis it also removes the integral
-        action that eq. 5-7 give the axes IK still tracks, and the peg then stays on the rim, held by friction.
-        """
-        c = self.ctrl
-        # once per agent period (the exact decay over its control periods: ~10x cheaper than every 1 ms)
-        rate = 1.0 - np.exp(-self.adapt.dt * self._leak_rate * self._leak_share(weights))  # [N, 6]
-        full = 1.0 - np.exp(-self.adapt.dt * self._leak_rate)
-        jt = np.swapaxes(jac, 1, 2)
-        jpinv = jt @ np.linalg.inv(jac @ jt + 1e-6 * np.eye(6))  # J⁺ [N, 7, 6]
-        R = self.rot
-        for name, meas in (("q_des", self.q), ("qd_des", self.qd)):
-            cur = getattr(c, name).numpy()
-            dq = cur - meas
-            dx = (jac @ dq[..., None])[..., 0]
-            dxl = to_local(R, dx) * rate
-            back = np.concatenate([(R @ dxl[:, :3, None])[..., 0], (R @ dxl[:, 3:, None])[..., 0]], axis=1)
-            task = (jpinv @ dx[..., None])[..., 0]
-            new = cur - (jpinv @ back[..., None])[..., 0] - full * (dq - task)
-            setattr(c, name, torch.from_numpy(new))
-
-    def _leak_share(self, weights: np.ndarray) -> np.ndarray:
-        """Per local axis [N, 6]: the weight of the wrench tasks that move the tool off the IK reference, w2 + w3 ·
-        min(1, f_d / 1 N): admittance always, force control only where it pushes (with f_d = 0 the wrench of that
-        axis is zero and IK, with its integral action, keeps the axis)."""
-        return weights[..., 1] + weights[..., 2] * np.clip(self.f_d, 0.0, 1.0)
 
     def _measure(self, k: int | None = None):  # noqa: ANN202
         """mj_step1 and the sensed quantities at the tool tip (world frame): pose, f_env, f_ext, f_ope; sensor noise of
