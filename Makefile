@@ -23,8 +23,9 @@ $(STAMP): pyproject.toml constraints.txt $(NATIVE)
 
 install: $(STAMP)
 
+# a second `make train` continues (here: just reports) the run in $(OUT) instead of refusing to overwrite it
 train: $(STAMP)
-	$(BIN)/a3cqp train --config $(TRAIN_CONFIG) --steps $(STEPS) --out $(OUT)
+	$(BIN)/a3cqp train --config $(TRAIN_CONFIG) --steps $(STEPS) --out $(OUT) $(if $(wildcard $(OUT)/checkpoint.pt),--resume)
 
 test: $(STAMP)
 	@# pytest exit 5 (no tests collected) is success only while tests/ has no test files.

@@ -1,17 +1,18 @@
-"""`a3cqp bench NAME [args]`: run a benchmark script from the repository's bench/ folder.
+"""`a3cqp bench NAME [args]`: run one benchmark of the installed `bench` package (the repository's bench/ folder).
 
-NAME: env (bench/env_throughput.py), train (bench/train_speed.py), qp (bench/qp.py),
-controller (bench/controller.py), tuning (bench/tuning.py), or all (each with --quick unless args are given).
+NAME: env, train, pendulum, qp, controller, hierarchy, panda, tuning, or all (each with --quick unless args are
+given). Each benchmark also runs as a script, `python bench/<file>.py --help`.
 """
 
 from __future__ import annotations
 
-import runpy
+import importlib
 import sys
-from pathlib import Path
 
-BENCHES = {"env": "env_throughput.py", "train": "train_speed.py", "qp": "qp.py", "controller": "controller.py",
-           "tuning": "tuning.py"}
+BENCHES = {"env": "bench.env_throughput", "train": "bench.train_speed", "pendulum": "bench.pendulum",
+           "qp": "bench.qp", "controller": "bench.controller", "hierarchy": "bench.hierarchy",
+           "panda": "bench.panda_env", "tuning": "bench.tuning"}
+"""Benchmark name -> module with a `main(argv) -> int` (dispatched by name: a3cqp_rl imports nothing from bench)."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -20,20 +21,16 @@ def main(argv: list[str] | None = None) -> int:
     if not argv or argv[0] in ("-h", "--help") or argv[0] not in (*BENCHES, "all"):
         print(__doc__)
         return 0 if argv and argv[0] in ("-h", "--help") else 2
-    bench_dir = Path(__file__).resolve().parents[1] / "bench"
-    if not bench_dir.is_dir():
-        print(f"error: {bench_dir} not found; benchmarks run from a source checkout (pip install -e .)", file=sys.stderr)
-        return 2
     names = list(BENCHES) if argv[0] == "all" else [argv[0]]
     rest = argv[1:] or (["--quick"] if argv[0] == "all" else [])
     rc = 0
-    sys.path.insert(0, str(bench_dir))
     for name in names:
-        script = bench_dir / BENCHES[name]
-        if not script.is_file():
-            print(f"[{name}] {script.name} is not in this checkout yet; skipped")
+        try:
+            module = importlib.import_module(BENCHES[name])
+        except ImportError as exc:
+            print(f"error: benchmark {name!r} needs {exc.name!r}: pip install -e '.[bench]'", file=sys.stderr)
+            rc = max(rc, 2)
             continue
-        print(f"=== a3cqp bench {name} ({script.name} {' '.join(rest)}) ===", flush=True)
-        module = runpy.run_path(str(script), run_name="a3cqp_bench")
-        rc = max(rc, int(module["main"](rest) or 0))
+        print(f"=== a3cqp bench {name} ({BENCHES[name]} {' '.join(rest)}) ===", flush=True)
+        rc = max(rc, int(module.main(rest) or 0))
     return rc

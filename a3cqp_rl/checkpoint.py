@@ -30,6 +30,9 @@ def save_atomic(obj: Any, path: str | Path) -> Path:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as exc:  # a full disk, a folder made read-only: name the file, no traceback
+        Path(tmp).unlink(missing_ok=True)
+        raise CheckpointError(f"cannot write {path}: {exc.strerror or exc}") from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
@@ -44,10 +47,20 @@ def load_checkpoint(path: str | Path, required: tuple[str, ...] = ()) -> dict:
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # truncated zip, wrong format, pickled code...
-        raise CheckpointError(f"checkpoint {path} is corrupt or not a weights-only torch file: {exc}") from None
+        raise CheckpointError(f"checkpoint {path} is corrupt or not a weights-only torch file "
+                              f"(tensors, numbers, strings, lists, dicts): {_reason(exc)}") from None
     if not isinstance(data, dict):
         raise CheckpointError(f"checkpoint {path} holds a {type(data).__name__}, expected a dict")
     missing = [k for k in required if k not in data]
     if missing:
         raise CheckpointError(f"checkpoint {path} lacks {missing}; was it written by another program?")
     return data
+
+
+def _reason(exc: Exception) -> str:
+    """torch's load error in one line, without its advice to load with weights_only=False (arbitrary code)."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    useful = [ln for ln in lines if "weights_only" not in ln and "Weights only load failed" not in ln
+              and not ln.startswith(("(1)", "(2)", "Please", "Check the documentation"))]
+    first = (useful or lines or ["no detail"])[0].split(" Please ")[0]
+    return f"{type(exc).__name__}: {first}"[:200]

@@ -29,11 +29,27 @@ __all__ = [
     "GeneConfig",
     "NSGA2Config",
     "PointMassConfig",
+    "SensorConfig",
+    "OperatorConfig",
+    "PegInHoleConfig",
+    "PolishingConfig",
+    "GuidanceConfig",
+    "PandaEnvConfig",
     "ExperimentConfig",
     "load_config",
     "config_from_dict",
     "config_to_dict",
+    "ENV_FACTORIES",
+    "estimate_memory_bytes",
+    "check_memory",
 ]
+
+ENV_FACTORIES: dict[str, str] = {
+    "point_mass": "algorithms.make_env:point_mass",
+    "panda": "envs.panda:axis_agents",
+}
+"""Registered env names -> "module:function" building a seeded TorchRL env from (cfg, num_envs, seed). `env:` also
+accepts any gymnasium id (run through TorchRL's GymWrapper)."""
 
 
 @dataclass
@@ -112,6 +128,8 @@ class A2CConfig:
 
     learning_rate: float = 4.25339846e-6
     """λη: RMSProp learning rate."""
+    lr_schedule: Literal["constant", "linear"] = "constant"
+    """'constant' (the paper); 'linear': λη·(1 − fraction of the run done), SB3's linear schedule (TorchRL rollout)."""
     ent_coef: float = 3.371768978e-4
     """λβ: entropy bonus weight (eq. 31d)."""
     n_steps: int = 4
@@ -150,6 +168,9 @@ class A2CConfig:
     """Agent steps each exploration-noise draw is held (1 = white noise, SB3/paper; k > 1 like gSDE's sde_sample_freq)."""
     normalize_advantage: bool = False
     """Normalise advantages per batch (SB3 default: off)."""
+    reward_scale: float = 1.0
+    """Factor on the rewards the update learns from (TorchRL rollout; the logged returns stay unscaled): brings values
+    of tasks with large returns (Pendulum: down to ~ −100 at γ 0.9) near the networks' initial output scale."""
     average_last: float = 0.0
     """Fraction in [0, 1) of the run, at its end, whose parameters policy.pt averages uniformly (stochastic weight
     averaging, Izmailov et al. 2018; for A2C, Nikishin et al. 2018). 0 = the last parameters (the paper). Training
@@ -172,7 +193,7 @@ class A2CConfig:
 
     def _check(self, err: _Errors) -> None:
         for name in ("learning_rate", "rms_eps", "max_grad_norm", "n_steps", "num_envs", "total_steps",
-                     "checkpoint_every", "log_every", "noise_hold"):
+                     "checkpoint_every", "log_every", "noise_hold", "reward_scale"):
             err.positive(self, name)
         for name in ("ent_coef", "vf_coef", "rms_init", "bound_coef", "region_checks"):
             if getattr(self, name) < 0:
@@ -488,13 +509,297 @@ class PointMassConfig:
 
 
 @dataclass
+class SensorConfig:
+    """Force sensing on the simulated Panda (section V-A): F/T sensor and joint torque sensors; all off by default.
+
+    Noise is white Gaussian per 1 kHz sample and component; a bias is drawn once per episode (Gaussian, the given
+    standard deviation) and stays constant, in the sensor frame for the F/T sensor and per joint for the torques.
+    """
+
+    ft_force_noise: float = 0.0
+    """F/T force noise standard deviation [N]."""
+    ft_torque_noise: float = 0.0
+    """F/T torque noise standard deviation [N m]."""
+    ft_force_bias: float = 0.0
+    """Standard deviation of the per-episode F/T force bias [N]."""
+    ft_torque_bias: float = 0.0
+    """Standard deviation of the per-episode F/T torque bias [N m]."""
+    joint_torque_noise: float = 0.0
+    """Joint torque sensor noise standard deviation [N m] (enters f_ext = J^T† τ_s)."""
+    joint_torque_bias: float = 0.0
+    """Standard deviation of the per-episode joint torque bias [N m]."""
+
+    def _check(self, err: _Errors) -> None:
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if not (v >= 0 and math.isfinite(v)):
+                err.add(f.name, f"must be a finite number >= 0, got {v}")
+
+
+@dataclass
+class OperatorConfig:
+    """Simulated operator: a bounded, delayed, noisy 6-D spring-damper hand holding the handle above the F/T sensor.
+
+    On a grasp the hand's attractor moves from the handle's position to the intent's goal at `speed`, the force
+    f = K (x_hand − x) − D ẋ (x, ẋ of the handle as seen `delay` s ago) fades in over `grip_time`, is clipped to
+    `max_force`, and the hand keeps the grasp orientation with a rotational spring-damper (clipped to `max_torque`).
+    The hand releases (force fades out) `hold_time` after the handle reached the goal, or at `timeout`.
+    """
+
+    stiffness: float = 200.0
+    """Hand translational stiffness K [N/m]."""
+    damping: float = 60.0
+    """Hand translational damping D [N s/m] (with the 0.1 s delay, K = 300 / D = 30 sets the admittance of Table I
+    oscillating; a human arm holding a handle is well damped)."""
+    max_force: float = 15.0
+    """Bound on |f_ope| [N] (Table II's f̄_ope)."""
+    rot_stiffness: float = 3.0
+    """Hand rotational stiffness [N m/rad] (the grip keeps the tool's orientation)."""
+    rot_damping: float = 0.3
+    """Hand rotational damping [N m s/rad]."""
+    max_torque: float = 1.0
+    """Bound on the hand's torque [N m]."""
+    delay: float = 0.1
+    """Reaction delay of the hand [s] (it acts on the handle state this long ago)."""
+    noise: float = 0.2
+    """Standard deviation of the hand's force tremor [N] (white, 1 kHz; 0 = none)."""
+    speed: float = 0.1
+    """Speed of the hand's attractor toward the goal [m/s]."""
+    grip_time: float = 0.2
+    """Force fade-in on grasp and fade-out on release [s]."""
+    hold_time: float = 0.5
+    """Time the hand stays at the goal before releasing [s]."""
+    goal_tolerance: float = 0.01
+    """Distance of the handle to the goal counted as reached [m]."""
+    timeout: float = 8.0
+    """The hand releases this long after grasping even if the goal was not reached [s]."""
+
+    def _check(self, err: _Errors) -> None:
+        for name in ("stiffness", "max_force", "speed", "grip_time", "goal_tolerance", "timeout"):
+            err.positive(self, name)
+        for name in ("damping", "rot_stiffness", "rot_damping", "max_torque", "delay", "noise", "hold_time"):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                err.add(name, f"must be a finite number >= 0, got {v}")
+
+
+@dataclass
+class PegInHoleConfig:
+    """Peg-in-hole scene and procedure (paper 000, section VI-B1, Table VI, Fig. 7); lengths in m, times in s.
+
+    Procedure per cycle: home -> approach pose above the hole, offset by the trial's misalignment (translation in a
+    random horizontal direction, tilt about a random horizontal axis) and reached within `approach_tolerance` ->
+    the reference moves to the contact pose (on the hole axis, aligned, tip at the rim): z over `descent_time`,
+    x-y and orientation over `align_time` (both minimum-jerk), so the peg meets the rim misaligned -> first contact
+    (|f_env| > `contact_force`) -> insertion: the reference then goes on down at `insert_speed` to `insert_depth`
+    below the rim (the inserted pose); success when the peg tip is `success_depth` below the rim, inside the bore,
+    within `time_limit` of the first contact. Insertion time = first contact to success. Then the operator
+    disengages the peg (pulls the handle `disengage_lift` up; the reference stays, as in Fig. 7) and, if cycles
+    remain, the reference returns home over `return_time` and the next cycle starts.
+    """
+
+    hole_center: tuple[float, ...] = (0.45, 0.0)
+    """Hole axis (x, y) in the arm's base frame [m] (the "known table position")."""
+    hole_top: float = 0.30
+    """Height of the rim [m]."""
+    hole_diameter: float = 0.0205
+    """Hole diameter [m] (paper: Ø 20.5 mm; the peg tool is Ø 20.0 mm)."""
+    hole_depth: float = 0.04
+    """Bore depth [m]."""
+    hole_segments: int = 32
+    """Boxes forming the bore (a3cqp_rl.robot.scenes.HoleGeometry)."""
+    friction: float = 0.3
+    """Sliding friction of the block."""
+    misalign_translation: tuple[float, ...] = (0.0123, 0.00424)
+    """Mean and standard deviation of the approach pose's horizontal offset from the hole axis [m] (Table VI)."""
+    misalign_rotation_deg: tuple[float, ...] = (3.66, 0.45)
+    """Mean and standard deviation of the approach pose's tilt [deg] (Table VI)."""
+    approach_height: float = 0.03
+    """Peg tip above the rim at the approach pose [m]."""
+    settle_time: float = 0.5
+    """Time at home before the approach [s]."""
+    approach_time: float = 2.0
+    """Minimum-jerk time from home to the approach pose [s]."""
+    approach_tolerance: float = 0.003
+    """Position error [m] below which the approach pose counts as reached (lenient: the pose is misaligned anyway)."""
+    descent_time: float = 1.0
+    """Minimum-jerk time of the reference's descent to the contact pose [s]."""
+    align_time: float = 8.0
+    """Minimum-jerk time of the reference's horizontal and angular alignment with the hole [s]."""
+    insert_speed: float = 0.004
+    """Speed of the reference's descent below the rim after the contact pose [m/s] (a slow ramp: the force an IK
+    reference behind the rim builds is what the agents feel as the first contact)."""
+    insert_depth: float = 0.025
+    """Depth of the inserted pose's tip below the rim, where the reference's descent stops [m]."""
+    contact_force: float = 1.0
+    """Sensed |f_env| [N] that counts as the first contact."""
+    success_depth: float = 0.02
+    """Peg tip depth below the rim that counts as inserted [m]."""
+    time_limit: float = 15.0
+    """Time from the first contact within which the insertion must succeed [s]."""
+    cycles: int = 1
+    """Insertions per episode (Fig. 7 shows three)."""
+    operator_disengage: bool = True
+    """After each insertion the operator pulls the peg out at the handle (else the reference alone returns home)."""
+    disengage_lift: float = 0.12
+    """How far up the operator pulls the handle [m]."""
+    return_time: float = 2.0
+    """Minimum-jerk time of the reference back home between cycles [s]."""
+
+    def _check(self, err: _Errors) -> None:
+        for name in ("hole_top", "hole_diameter", "hole_depth", "approach_height", "approach_time",
+                     "approach_tolerance", "descent_time", "align_time", "contact_force", "success_depth",
+                     "time_limit", "cycles", "return_time", "disengage_lift", "insert_speed", "insert_depth"):
+            err.positive(self, name)
+        if self.insert_depth >= self.hole_depth:
+            err.add("insert_depth", f"must be < hole_depth ({self.hole_depth}), got {self.insert_depth}")
+        for name in ("friction", "settle_time"):
+            if getattr(self, name) < 0:
+                err.add(name, f"must be >= 0, got {getattr(self, name)}")
+        if self.hole_segments < 8:
+            err.add("hole_segments", f"must be >= 8, got {self.hole_segments}")
+        if self.success_depth >= self.hole_depth:
+            err.add("success_depth", f"must be < hole_depth ({self.hole_depth}), got {self.success_depth}")
+        for name in ("hole_center", "misalign_translation", "misalign_rotation_deg"):
+            if len(getattr(self, name)) != 2:
+                err.add(name, f"needs 2 values, got {len(getattr(self, name))}")
+        for name in ("misalign_translation", "misalign_rotation_deg"):
+            if any(v < 0 for v in getattr(self, name)):
+                err.add(name, f"mean and standard deviation must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass
+class PolishingConfig:
+    """Polishing scene and procedure (paper 000, section VI-B2, Fig. 8); lengths in m, times in s.
+
+    A disc tool on a plate: rest -> down to the polishing pose (`preload` below the plate's top) -> the x-y
+    reference traces a circle of `circle_radius` for `polish_time` -> the operator relocates the working zone
+    (grasps the handle, lifts by `lift` and moves by the next offset of `relocations`; while grasped the reference
+    follows the tool, as in Fig. 8) -> released, the robot holds the taught pose for `hold_time` -> back down at the
+    new place; one polishing period per relocation.
+    """
+
+    plate_center: tuple[float, ...] = (0.45, 0.0)
+    """Plate centre (x, y) [m]."""
+    plate_top: float = 0.25
+    """Height of the plate's top face [m]."""
+    plate_half_size: tuple[float, ...] = (0.2, 0.3)
+    """Plate half sides (x, y) [m]."""
+    friction: float = 0.3
+    """Sliding friction of the plate."""
+    start_offset: tuple[float, ...] = (0.0, 0.0)
+    """First working zone relative to the plate centre (x, y) [m]."""
+    relocations: tuple[tuple[float, float], ...] = ((0.0, -0.12), (0.0, 0.24), (0.0, -0.12))
+    """Operator moves of the working zone (dx, dy) [m], one after each polishing period."""
+    circle_radius: float = 0.03
+    """Radius of the circular x-y reference [m]."""
+    circle_period: float = 4.0
+    """Period of one circle [s]."""
+    preload: float = 0.005
+    """Polishing pose: disc this far below the plate's top [m]."""
+    rest_time: float = 1.0
+    """Time at rest before the first approach [s]."""
+    approach_time: float = 2.0
+    """Minimum-jerk time down to the polishing pose [s]."""
+    polish_time: float = 10.0
+    """Time on each zone after the approach [s]."""
+    lift: float = 0.06
+    """How far the operator lifts the tool while relocating [m]."""
+    hold_time: float = 1.5
+    """Time the robot holds the taught pose after the operator releases [s]."""
+    contact_force: float = 1.0
+    """Sensed |f_env| [N] that counts as contact."""
+
+    def _check(self, err: _Errors) -> None:
+        for name in ("plate_top", "circle_radius", "circle_period", "approach_time", "polish_time", "contact_force"):
+            err.positive(self, name)
+        for name in ("preload", "rest_time", "lift", "hold_time", "friction"):
+            if getattr(self, name) < 0:
+                err.add(name, f"must be >= 0, got {getattr(self, name)}")
+        for name in ("plate_center", "plate_half_size", "start_offset"):
+            if len(getattr(self, name)) != 2:
+                err.add(name, f"needs 2 values (x, y), got {len(getattr(self, name))}")
+        if any(h <= 0 for h in self.plate_half_size):
+            err.add("plate_half_size", f"must be > 0, got {self.plate_half_size}")
+        if not self.relocations:
+            err.add("relocations", "needs at least one (dx, dy)")
+
+
+@dataclass
+class GuidanceConfig:
+    """Free guidance: the operator moves the tool to each waypoint and releases it there; the reference is the last
+    released ("taught") pose, so between grasps IK holds it. Lengths in m, times in s."""
+
+    waypoints: tuple[tuple[float, float, float], ...] = ((0.10, 0.10, -0.05), (0.05, -0.15, 0.0),
+                                                          (-0.05, 0.0, 0.05))
+    """Handle goals relative to the handle's position at home (x, y, z) [m], visited in order."""
+    pause: float = 1.5
+    """Time between a release and the next grasp (and before the first) [s]."""
+
+    def _check(self, err: _Errors) -> None:
+        if not self.waypoints:
+            err.add("waypoints", "needs at least one (x, y, z)")
+        if self.pause < 0:
+            err.add("pause", f"must be >= 0, got {self.pause}")
+
+
+@dataclass
+class PandaEnvConfig:
+    """N simulated Pandas with the A3CQP controller and six per-axis agents (paper 000, eq. 25-29, section VI).
+
+    Translational axes use Table II's bounds (AdaptationConfig); Table II has none for the rotational axes of the
+    local frame L, so these are chosen here: ē = 1 rad (the same number as 1 m: "reasonably high"), and torque
+    bounds = Table II's force bounds times a 0.1 m lever (a hand or a contact about 10 cm from the tool tip).
+    """
+
+    scene: Literal["peg_in_hole", "polishing", "guidance"] = "peg_in_hole"
+    """Which scene and procedure (envs/scenarios.py)."""
+    e_max_rot: float = 1.0
+    """ē for the rotational axes [rad]."""
+    f_env_max_rot: float = 3.0
+    """f̄_env for the rotational axes [N m]."""
+    f_ope_max_rot: float = 1.5
+    """f̄_ope for the rotational axes [N m]."""
+    fd_axes: tuple[str, ...] = ("x", "y", "z")
+    """Local translational axes whose agent sets a desired force f_d (eq. 29d); the others, and every rotational
+    axis, keep f_d = 0 (desired torques are zero)."""
+    initial_weights: Literal["ik", "random"] = "ik"
+    """Start of each episode: pure IK with f_d = 0 (w̌ = (σw/2, −σw/2, −σw/2)), or random like the point mass."""
+    max_episode_time: float = 120.0
+    """Episodes are truncated after this simulated time [s] even if the procedure has not finished."""
+    state_leak: Literal["per_axis", "min_w1"] = "per_axis"
+    """ControllerOptions.leak_axes of the env's controller: how the integrated references q*, q̇* (eq. 6-7) relax
+    toward the measured state where IK does not lead. "per_axis" (per local axis, so force control on z leaves the
+    integral action of eq. 5-7 on the axes IK still tracks; without it the peg stays on the rim, held by friction:
+    docs/panda.md) or "min_w1" (one rate for all joints, set by the smallest w1 of the six axes)."""
+    divergence_speed_factor: float = 3.0
+    """A robot whose joint speed exceeds this multiple of its datasheet limit counts as diverged."""
+    divergence_penetration: float = 0.01
+    """A robot with a contact deeper than this [m] counts as diverged."""
+    operator: OperatorConfig = field(default_factory=OperatorConfig)
+    sensors: SensorConfig = field(default_factory=SensorConfig)
+    peg_in_hole: PegInHoleConfig = field(default_factory=PegInHoleConfig)
+    polishing: PolishingConfig = field(default_factory=PolishingConfig)
+    guidance: GuidanceConfig = field(default_factory=GuidanceConfig)
+
+    def _check(self, err: _Errors) -> None:
+        for name in ("e_max_rot", "f_env_max_rot", "f_ope_max_rot", "max_episode_time", "divergence_speed_factor",
+                     "divergence_penetration"):
+            err.positive(self, name)
+        bad = [a for a in self.fd_axes if a not in ("x", "y", "z")]
+        if bad or len(set(self.fd_axes)) != len(self.fd_axes):
+            err.add("fd_axes", f"must be distinct names among x, y, z, got {list(self.fd_axes)}")
+
+
+@dataclass
 class ExperimentConfig:
     """One experiment: environment, adaptation law, reward, learner, GA and controller settings."""
 
     seed: int = 0
     """Random seed (torch, numpy, environments)."""
     env: str = "point_mass"
-    """Environment name (``point_mass``)."""
+    """Environment: a registered name (``point_mass``, ``panda``; `ENV_FACTORIES`) or any gymnasium id (e.g.
+    ``Pendulum-v1``)."""
     point_mass: PointMassConfig = field(default_factory=PointMassConfig)
     adaptation: AdaptationConfig = field(default_factory=AdaptationConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
@@ -502,13 +807,64 @@ class ExperimentConfig:
     ga: GAConfig = field(default_factory=GAConfig)
     nsga2: NSGA2Config = field(default_factory=NSGA2Config)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
+    panda: PandaEnvConfig = field(default_factory=PandaEnvConfig)
+    """The simulated Panda env (envs/panda.py): scene, operator, sensing, the rotational-axis bounds."""
 
     def _check(self, err: _Errors) -> None:
-        if self.env not in ("point_mass",):
-            err.add("env", f"unknown environment {self.env!r}; choose from ['point_mass']")
-        if self.point_mass.episode_steps < self.a2c.n_steps:
+        if self.env not in ENV_FACTORIES and not _is_gym_id(self.env):
+            err.add("env", f"unknown environment {self.env!r}: neither a registered env ({sorted(ENV_FACTORIES)}) "
+                           "nor a gymnasium id (e.g. Pendulum-v1)")
+        if self.env == "point_mass" and self.point_mass.episode_steps < self.a2c.n_steps:
             # fused rollouts draw one pending episode per env per iteration
             err.add("point_mass.episode_steps", f"must be >= a2c.n_steps ({self.a2c.n_steps}), got {self.point_mass.episode_steps}")
+
+
+def _is_gym_id(name: str) -> bool:
+    """Whether gymnasium knows `name` (gymnasium is imported only for names that are not registered here)."""
+    try:
+        import gymnasium
+    except ImportError:  # pragma: no cover - a runtime dependency
+        return False
+    return name in gymnasium.registry
+
+
+# --------------------------------------------------------------------------------------------
+# Memory
+
+
+def estimate_memory_bytes(cfg: ExperimentConfig) -> int:
+    """Rough peak memory of training `cfg` [bytes], dominated by per-env state for many envs.
+
+    Per point-mass env: the double-buffered operator schedule (2 × (episode_steps + 1) float64), the state and its
+    pending episode; per sample of a rollout (n_steps × num_envs): observations, actions, rewards, flags and each
+    hidden layer's activations (float32), about three times over (the update's forward, backward and copies).
+    """
+    a = cfg.a2c
+    obs, act = 16, 8  # generous for the point mass (3 / 4; 3 + privileged critic input) and small gym tasks
+    per_env = 2 * (cfg.point_mass.episode_steps + 1) * 8 + 40 * 8 if cfg.env == "point_mass" else 64 * 8
+    per_sample = 4 * (2 * obs + act + 4 + 2 * sum(a.hidden)) * 3
+    return int(a.num_envs * (per_env + a.n_steps * per_sample))
+
+
+def _available_memory() -> int | None:
+    """MemAvailable of /proc/meminfo [bytes], or None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_memory(cfg: ExperimentConfig, source: str = "config", available: int | None = None) -> None:
+    """ConfigError naming a2c.num_envs when `estimate_memory_bytes(cfg)` exceeds 80 % of the available memory."""
+    need = estimate_memory_bytes(cfg)
+    have = _available_memory() if available is None else available
+    if have is not None and need > 0.8 * have:
+        raise ConfigError(f"{source}: a2c.num_envs: {cfg.a2c.num_envs} envs need about {need / 2**30:.1f} GiB, "
+                          f"more than 80 % of the {have / 2**30:.1f} GiB available; use fewer envs")
 
 
 # --------------------------------------------------------------------------------------------
@@ -600,9 +956,28 @@ def _build(cls: type, data: dict, prefix: str, source: str) -> Any:
     return cls(**kwargs)
 
 
+NON_FINITE_OK: frozenset[str] = frozenset()
+"""Dotted float fields that may be NaN or inf (none today): every other float must be finite."""
+
+
+def _non_finite(obj: Any, prefix: str) -> list[str]:
+    """Messages for float fields (also inside tuples, dicts, optionals) of `obj` holding NaN or inf."""
+    out = []
+    for f in dataclasses.fields(obj):
+        key, value = f"{prefix}{f.name}", getattr(obj, f.name)
+        items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, tuple) else [(None, value)]
+        for i, v in items:
+            if isinstance(v, float) and not math.isfinite(v) and key not in NON_FINITE_OK:
+                where = key if i is None else f"{key}.{i}" if isinstance(value, dict) else f"{key}[{i}]"
+                out.append(f"{where}: must be a finite number, got {v}")
+    return out
+
+
 def _validate(obj: Any, prefix: str, source: str) -> None:
     err = _Errors(prefix)
-    obj._check(err)
+    err.messages += _non_finite(obj, prefix)
+    if not err.messages:  # range checks on NaN would only repeat the message
+        obj._check(err)
     if err.messages:
         raise ConfigError(f"{source}: invalid value(s):\n  " + "\n  ".join(err.messages))
     for f in dataclasses.fields(obj):
@@ -628,9 +1003,14 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
         if not path.is_file():
             raise ConfigError(f"{source}: config file not found")
         try:
-            loaded = yaml.safe_load(path.read_text())
+            loaded = yaml.safe_load(path.read_bytes().decode("utf-8"))
+        except UnicodeDecodeError as exc:
+            raise ConfigError(f"{source}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset {exc.start}); "
+                              "expected a YAML file") from None
+        except OSError as exc:
+            raise ConfigError(f"{source}: cannot read: {exc.strerror or exc}") from None
         except yaml.YAMLError as exc:
-            raise ConfigError(f"{source}: not valid YAML: {exc}") from None
+            raise ConfigError(f"{source}: not valid YAML: {' '.join(str(exc).split())}") from None
         if loaded is not None and not isinstance(loaded, dict):
             raise ConfigError(f"{source}: top level must be a mapping, got {type(loaded).__name__}")
         data = loaded or {}

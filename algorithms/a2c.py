@@ -1,11 +1,14 @@
 """Synchronous n-step advantage actor-critic (A2C), paper 000 eq. 31-32, hand-written.
 
 Reads top to bottom: n-step returns → `a2c_update` (eq. 31 loss, hand-derived gradients, λζ
-clipping, eq. 32 RMSProp) → two rollout sources → `train` (loop, logging, atomic checkpoints, resume).
+clipping, eq. 32 RMSProp) → what the env's specs say (`EnvLayout`) → two rollout sources → `train` (the loop;
+checkpoints, resume, logs and region checks are small objects in algorithms/a2c_run.py and run_log.py).
 
 Conventions (those of Stable-Baselines3's A2C, the paper's library; defaults = Table IV):
-  * Gaussian policy on the raw action; the env receives it clipped to [-1, 1] and the update
-    uses the log-probability of the unclipped sample.
+  * Gaussian policy on a normalised action; the env receives it clipped to [-1, 1] and mapped onto the action
+    spec's bounds [low, high] (the identity for the point mass), and the update uses the log-probability of the
+    unclipped sample. Observation and action sizes come from the env's specs; dims between the env's batch dims
+    and the features (e.g. [N, 6, 3]: six agents sharing the policy) are more samples of the same policy.
   * Loss L = −mean(A·log π(a|s)) + λv·mean((R − V)²) − λβ·H(π). Paper eq. 31d prints "+λβ H"; as in
     A3C (Mnih et al. 2016) and SB3 the entropy is a bonus, so it enters with a minus sign.
   * n-step returns bootstrap from V(s') at the end of a rollout and at truncation (time limit),
@@ -18,16 +21,15 @@ Conventions (those of Stable-Baselines3's A2C, the paper's library; defaults = T
     policy is the mean of the parameters over the run's final fraction (stochastic weight averaging).
 Data comes from either (a) the env's fused API (`fused_functions`: a pure step with auto-reset, PointMassEnv), rollout
 and update compiled together into one graph (or, for small batches, the same iteration in C: algorithms/native), or
-(b) any TorchRL EnvBase through a TorchRL `Collector` (ParallelEnv/SerialEnv, MuJoCo Panda).
+(b) any TorchRL EnvBase through a TorchRL `Collector` (gymnasium tasks via GymWrapper, ParallelEnv/SerialEnv).
 """
 
 from __future__ import annotations
 
-import csv
+import functools
 import math
 import time
 import types
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -35,20 +37,19 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from a3cqp_rl.checkpoint import load_checkpoint, save_atomic
-from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_to_dict
-from a3cqp_rl.exceptions import CheckpointError
-from a3cqp_rl.regions import REGION_COLUMNS, region_row
-from algorithms.networks import LOG_2PI, ParamLayout, backward, forward, policy_forward, policy_mean
+from a3cqp_rl.config import A2CConfig, ExperimentConfig
+from a3cqp_rl.timing import Timer, process_age
+from algorithms.a2c_run import Checkpoints, ParameterAverage, RegionChecks, SigintCheckpoint, open_run_folder
+from algorithms.networks import LOG_2PI, ParamLayout, backward, forward, policy_forward
+from algorithms.policy import load_actor, load_policy
 from algorithms.rmsprop import clip_grad_norm_, rmsprop_step_
+from a3cqp_rl.regions import REGION_COLUMNS
+from algorithms.run_log import CSV_COLUMNS, METRICS, RunLog, truncate_csv
 
-__all__ = ["Batch", "HeldNoise", "ParameterAverage", "nstep_returns", "gae_advantages", "a2c_update", "train", "TrainResult",
-           "load_policy", "METRICS"]
+__all__ = ["Batch", "HeldNoise", "ParameterAverage", "EnvLayout", "read_env_layout", "nstep_returns", "gae_advantages",
+           "a2c_update", "train", "TrainResult", "load_policy", "load_actor", "METRICS", "CSV_COLUMNS"]
 
-METRICS = ("policy_loss", "value_loss", "entropy", "grad_norm", "explained_variance")
-CSV_COLUMNS = ("step", "update", *METRICS, "episode_reward", "episodes", "steps_per_second", *REGION_COLUMNS)
-"""metrics.csv columns. The region columns check the policy policy.pt would hold at that row (with `a2c.average_last`,
-the running average once it has begun); NaN on rows without a Fig. 5 check (`a2c.region_checks`)."""
+_truncate_csv = truncate_csv  # the name tests and older callers use
 
 
 @dataclass
@@ -92,8 +93,11 @@ def gae_advantages(rewards: Tensor, terminated: Tensor, truncated: Tensor, value
     return torch.stack(out[::-1])
 
 
-def a2c_update(layout: ParamLayout, flat: Tensor, square_avg: Tensor, batch: Batch, hp: A2CConfig) -> Tensor:
-    """One A2C step in place on `flat` and the RMSProp accumulator; returns METRICS as a tensor [5]."""
+def a2c_update(layout: ParamLayout, flat: Tensor, square_avg: Tensor, batch: Batch, hp: A2CConfig,
+               lr: Tensor | None = None) -> Tensor:
+    """One A2C step in place on `flat` and the RMSProp accumulator; returns METRICS as a tensor [5].
+
+    `lr`: a 0-d tensor overriding hp.learning_rate (a2c.lr_schedule), else the constant λη."""
     T, N = batch.rewards.shape
     B = T * N
     obs, actions = batch.obs.reshape(B, -1), batch.actions.reshape(B, -1)
@@ -127,9 +131,74 @@ def a2c_update(layout: ParamLayout, flat: Tensor, square_avg: Tensor, batch: Bat
     g_value = (2.0 * hp.vf_coef / B) * (values - returns)
     grad = backward(layout, flat, cache, g_mu, g_log_std, g_value)
     grad_norm = clip_grad_norm_([grad], hp.max_grad_norm)  # λζ
-    rmsprop_step_([flat], [grad], [square_avg], hp.learning_rate, hp.rms_alpha, hp.rms_eps)  # eq. 32
+    rmsprop_step_([flat], [grad], [square_avg], hp.learning_rate if lr is None else lr, hp.rms_alpha, hp.rms_eps)  # eq. 32
     explained_var = 1.0 - (returns - values).var() / (returns.var() + 1e-8)
     return torch.stack([policy_loss, value_loss, entropy, grad_norm, explained_var]).detach()
+
+
+# ------------------------------------------------------------------------------ what the env's specs say
+
+
+@dataclass(frozen=True)
+class EnvLayout:
+    """Sizes and bounds read from a TorchRL env's specs.
+
+    Observation [*batch, *agents, obs_dim], action [*batch, *agents, act_dim]; `agents` (possibly empty) are dims
+    whose entries all run the same policy. `low`/`high`: the action bounds per action dim (None: unbounded).
+    """
+
+    obs_dim: int
+    act_dim: int
+    num_envs: int
+    agents: tuple[int, ...] = ()
+    low: tuple[float, ...] | None = None
+    high: tuple[float, ...] | None = None
+
+    @property
+    def samples(self) -> int:
+        """Policy evaluations per env step: num_envs × prod(agents)."""
+        return self.num_envs * math.prod(self.agents)
+
+    def to_env(self, raw: Tensor) -> Tensor:
+        """Normalised raw actions [..., act] -> the env's units: clipped to [-1, 1], then mid + half·a (bounded)."""
+        if self.low is None:
+            return raw
+        lo, hi = torch.tensor(self.low, dtype=raw.dtype), torch.tensor(self.high, dtype=raw.dtype)
+        return (hi + lo) / 2 + (hi - lo) / 2 * raw.clamp(-1.0, 1.0)
+
+    def unit_bounds(self) -> bool:
+        """Whether the action bounds are [-1, 1] in every dim (the fused path's, and the point mass's)."""
+        return self.low is not None and all(v == -1.0 for v in self.low) and all(v == 1.0 for v in self.high)
+
+
+def read_env_layout(env) -> EnvLayout:
+    """`EnvLayout` of a TorchRL env; ValueError naming what is missing or unsupported."""
+    batch = tuple(env.batch_size)
+    keys = list(env.observation_spec.keys())
+    if "observation" not in keys:
+        raise ValueError(f"the env's observation_spec has no 'observation' entry (it has {keys}); the policy reads "
+                         "'observation' [*batch, obs] (wrap the env with a TorchRL transform that writes it)")
+    obs_shape = tuple(env.observation_spec["observation"].shape)
+    act_spec = env.action_spec
+    act_shape = tuple(act_spec.shape)
+    if len(obs_shape) <= len(batch) or obs_shape[: len(batch)] != batch:
+        raise ValueError(f"observation shape {list(obs_shape)} does not start with the env's batch size {list(batch)}")
+    agents = obs_shape[len(batch):-1]
+    if act_shape[: len(batch)] != batch or tuple(act_shape[len(batch):-1]) != agents or len(act_shape) < len(batch) + 1:
+        raise ValueError(f"action shape {list(act_shape)} does not match the observation's {list(obs_shape)} "
+                         f"([*batch, *agents, act] with batch {list(batch)}, agents {list(agents)})")
+    if getattr(act_spec, "domain", "continuous") != "continuous":
+        raise ValueError(f"A2C here has a Gaussian policy: it needs a continuous action spec, got {type(act_spec).__name__}")
+    act_dim = act_shape[-1]
+    low = high = None
+    space = getattr(act_spec, "space", None)
+    if hasattr(space, "low") and hasattr(space, "high"):
+        lo, hi = space.low.reshape(-1, act_dim).double(), space.high.reshape(-1, act_dim).double()
+        if not (bool((lo == lo[0]).all()) and bool((hi == hi[0]).all())):
+            raise ValueError("action bounds differ between envs/agents; the shared policy needs the same bounds")
+        if bool(torch.isfinite(lo[0]).all() and torch.isfinite(hi[0]).all()):
+            low, high = tuple(lo[0].tolist()), tuple(hi[0].tolist())
+    return EnvLayout(obs_shape[-1], act_dim, math.prod(batch), tuple(agents), low, high)
 
 
 # ------------------------------------------------------------------------------ rollout sources
@@ -251,6 +320,9 @@ class FusedRollout:
         self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
         self.finished: list[tuple[float, int]] = []
 
+    def set_progress(self, fraction: float) -> None:
+        """The fused iteration's learning rate is constant (a2c.lr_schedule is refused before it is built)."""
+
     def iterate(self, flat: Tensor, square_avg: Tensor) -> Tensor:
         """Collect n steps in every env and update `flat`/`square_avg` in place; returns METRICS [5]."""
         noise = self.noise.draw(self.hp.n_steps)
@@ -319,51 +391,96 @@ def _count_episodes(runner, rewards: Tensor, dones: Tensor) -> None:
             runner.ep_length[done] = 0
 
 
-class TorchRLRollout:
-    """n-step rollouts of any TorchRL EnvBase (batched, ParallelEnv, SerialEnv) through a `Collector`."""
+@functools.cache
+def _sampling_policy_class() -> type:
+    """`SamplingPolicy`, made on first use (tensordict is imported only by the TorchRL rollout)."""
+    from tensordict.nn import TensorDictModuleBase
 
-    def __init__(self, env, layout: ParamLayout, generator: torch.Generator, hp: A2CConfig) -> None:
-        """`env` must expose `observation` [*, obs] and accept `action` [*, act]; batch size [N]."""
-        from tensordict.nn import TensorDictModule
+    class SamplingPolicy(TensorDictModuleBase):
+        """The collector's policy: "observation" -> "action" (env units) and "action_raw" (the unclipped sample).
+
+        It writes its two entries itself: tensordict 0.14's `TensorDictModule` passes each output through
+        `TensorDict.from_any`, which calls `importlib.util.find_spec("pandas")` on every plain tensor (~1 ms per step
+        here, a third of a Pendulum-v1 step with 16 envs).
+        """
+
+        def __init__(self, layout: ParamLayout, flat: Tensor, spec: EnvLayout, noise: HeldNoise, dtype: torch.dtype):
+            super().__init__()
+            self.in_keys, self.out_keys = ["observation"], ["action", "action_raw"]
+            self.layout, self.flat, self.env_layout, self.noise, self.dtype = layout, flat, spec, noise, dtype
+
+        def forward(self, td):
+            obs = td.get("observation")
+            noise = self.noise.draw(1)[0].reshape(obs.shape[:-1] + (self.layout.act_dim,))
+            raw, _ = _sample_action(self.layout, self.flat, obs.reshape(-1, obs.shape[-1]).float(),
+                                    noise.reshape(-1, self.layout.act_dim))
+            raw = raw.reshape(noise.shape)
+            td.set("action", self.env_layout.to_env(raw).to(self.dtype))
+            td.set("action_raw", raw)
+            return td
+
+    return SamplingPolicy
+
+
+class TorchRLRollout:
+    """n-step rollouts of any TorchRL EnvBase (GymWrapper, batched envs, ParallelEnv, SerialEnv) through a `Collector`.
+
+    Every (env, agent) entry is one sample stream of the shared policy: rewards and done flags without the agent
+    dims apply to all of an env's agents.
+    """
+
+    def __init__(self, env, layout: ParamLayout, spec: EnvLayout, generator: torch.Generator, hp: A2CConfig) -> None:
+        """Drive `env` (read into `spec`) with actions sampled from `layout` params; noise from `generator`."""
         from torchrl.collectors import Collector
 
-        self.layout, self.gen, self.flat, self.hp, self.n = layout, generator, layout.init(), hp, hp.n_steps
+        self.layout, self.spec, self.gen, self.flat, self.hp, self.n = layout, spec, generator, layout.init(), hp, hp.n_steps
         self._update = _compile(a2c_update) if hp.compile else a2c_update
         self.compiles = hp.compile
-        self.num_envs = int(env.batch_size.numel())
-        held = HeldNoise(generator, self.num_envs, layout.act_dim, hp.noise_hold)
-
-        def policy(obs: Tensor) -> tuple[Tensor, Tensor]:
-            noise = held.draw(1)[0].reshape(obs.shape[:-1] + (layout.act_dim,))
-            raw, _ = _sample_action(layout, self.flat, obs.reshape(-1, layout.obs_dim), noise.reshape(-1, layout.act_dim))
-            raw = raw.reshape(noise.shape)
-            return raw.clamp(-1.0, 1.0).to(env.action_spec.dtype), raw
-
-        module = TensorDictModule(policy, in_keys=["observation"], out_keys=["action", "action_raw"])
+        self.num_envs = spec.num_envs
+        self.streams = spec.samples
+        module = _sampling_policy_class()(layout, self.flat, spec, HeldNoise(generator, self.streams, layout.act_dim, hp.noise_hold),
+                                 env.action_spec.dtype)
         # The policy is feed-forward and needs no env transforms; torchrl 0.14 still flags a missing InitTracker
         # with a FutureWarning (0.15 would append it to the user's env). False keeps the env as given, silently.
         self.collector = Collector(env, module, frames_per_batch=self.n * self.num_envs, total_frames=-1,
                                    auto_register_policy_transforms=False)
         self._iter = iter(self.collector)
-        self.ep_return = torch.zeros(self.num_envs)
-        self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
+        self.ep_return = torch.zeros(self.streams)
+        self.ep_length = torch.zeros(self.streams, dtype=torch.int64)
         self.finished: list[tuple[float, int]] = []
+        self.lr = torch.tensor(hp.learning_rate) if hp.lr_schedule == "linear" else None
+        """The scheduled learning rate (a2c.lr_schedule: linear), set by `set_progress`; None = constant."""
+
+    def set_progress(self, fraction: float) -> None:
+        """Tell the rollout which fraction of the run's updates is done (the learning-rate schedule reads it)."""
+        if self.lr is not None:
+            self.lr.fill_(self.hp.learning_rate * (1.0 - fraction))
+
+    def _per_stream(self, x: Tensor) -> Tensor:
+        """[n, N, (*agents), (1)] -> [n, N·A]: values without the agent dims hold for all of an env's agents."""
+        n, N, A = self.n, self.num_envs, self.streams // self.num_envs
+        if x.numel() == n * N * A:
+            return x.reshape(n, N * A)
+        return x.reshape(n, N, 1).expand(n, N, A).reshape(n, N * A)
 
     def iterate(self, flat: Tensor, square_avg: Tensor) -> Tensor:
-        """Next batch from the collector (time-major [n, N]), then one `a2c_update`; returns METRICS [5]."""
-        n = self.n
+        """Next batch from the collector (time-major [n, N·A]), then one `a2c_update`; returns METRICS [5]."""
+        n, S = self.n, self.streams
         with torch.no_grad():
             self.flat.copy_(flat)
             td = next(self._iter).reshape(self.num_envs, n).transpose(0, 1)  # [T, N]
-        r = td["next", "reward"].reshape(n, self.num_envs).float()
-        term = td["next", "terminated"].reshape(n, self.num_envs)
-        trunc = td["next", "truncated"].reshape(n, self.num_envs) if ("next", "truncated") in td.keys(True) else torch.zeros_like(term)
+        r = self._per_stream(td["next", "reward"]).float()
+        term = self._per_stream(td["next", "terminated"])
+        trunc = self._per_stream(td["next", "truncated"]) if ("next", "truncated") in td.keys(True) else torch.zeros_like(term)
         _count_episodes(self, r, term | trunc)
         key = "critic_observation" if self.hp.critic == "privileged" else "observation"  # [obs; privileged]
-        obs = td[key].reshape(n, self.num_envs, -1).float()
-        batch = Batch(obs, td["action_raw"].reshape(n, self.num_envs, -1).float(), r, term, trunc,
-                      td["next", key].reshape(n, self.num_envs, -1).float())
-        return self._update(self.layout, flat, square_avg, batch, self.hp)
+        obs = td[key].reshape(n, S, -1).float()
+        if self.hp.reward_scale != 1.0:
+            r = r * self.hp.reward_scale
+        batch = Batch(obs, td["action_raw"].reshape(n, S, -1).float(), r, term, trunc, td["next", key].reshape(n, S, -1).float())
+        if self.lr is None:
+            return self._update(self.layout, flat, square_avg, batch, self.hp)
+        return self._update(self.layout, flat, square_avg, batch, self.hp, self.lr)
 
     def state_dict(self) -> dict:
         """Collector-driven envs cannot be snapshotted in general; resume restarts their episodes."""
@@ -380,40 +497,6 @@ class TorchRLRollout:
 # ------------------------------------------------------------------------------ training loop
 
 
-class ParameterAverage:
-    """`a2c.average_last` (stochastic weight averaging): the running uniform mean of the parameters over the last
-    `fraction` of `num_updates` updates, which policy.pt holds instead of the last parameters."""
-
-    def __init__(self, num_updates: int, fraction: float) -> None:
-        """Average the parameters after updates num_updates − ⌈fraction·num_updates⌉ + 1 … num_updates."""
-        self.num_updates, self.first = num_updates, num_updates - math.ceil(fraction * num_updates) + 1
-        self.mean: Tensor | None = None
-        self.count = 0
-
-    def update(self, done_updates: int, flat: Tensor) -> None:
-        """Fold in the parameters after update `done_updates` (1-based) if it is inside the window."""
-        if done_updates >= self.first:
-            self.count += 1
-            self.mean = flat.clone() if self.mean is None else self.mean.lerp_(flat, 1.0 / self.count)
-
-    def policy(self, flat: Tensor) -> Tensor:
-        """The parameters a saved policy gets now: the average once it has begun, else `flat`."""
-        return self.mean if self.count else flat
-
-    def state_dict(self) -> dict:
-        """Checkpoint entry (empty before the window)."""
-        return {"first": self.first, "count": self.count, "mean": self.mean} if self.count else {}
-
-    def load_state_dict(self, d: dict, start: int) -> None:
-        """Restore at checkpoint update `start`; a window moved by another --steps restarts (with a warning if its
-        start has passed)."""
-        if d and d["first"] == self.first:
-            self.count, self.mean = int(d["count"]), d["mean"].clone()
-        elif start >= self.first:
-            warnings.warn(f"a2c.average_last: the average over updates {self.first}-{self.num_updates} cannot be "
-                          f"rebuilt from a checkpoint at update {start}; policy.pt averages {start + 1}-{self.num_updates}")
-
-
 @dataclass
 class TrainResult:
     """What `train` did: steps, timings and where files went."""
@@ -427,9 +510,12 @@ class TrainResult:
     policy_path: Path | None
     final_metrics: dict[str, float] = field(default_factory=dict)
     episode_returns: list[float] = field(default_factory=list)
-
-
-CKPT_KEYS = ("format", "update", "flat", "square_avg", "gen", "rollout", "config", "layout", "metric_sum", "metric_count")
+    timings: dict[str, float] = field(default_factory=dict)
+    """Totals of the loop's named blocks [s]: iterate (rollout + update), log, regions, checkpoint."""
+    startup_seconds: float = float("nan")
+    """Process start to the end of this run's first update [s] (the first update's compile included)."""
+    fig5_applies: bool = False
+    """Whether the env is the point mass, whose eq. 26 observation the Fig. 5 regions and policy maps are drawn in."""
 
 
 def train(
@@ -438,156 +524,133 @@ def train(
     *,
     total_steps: int | None = None,
     resume: bool = False,
+    force: bool = False,
+    override: bool = False,
     progress: bool = False,
     env=None,
     callback: Callable[[int, dict], None] | None = None,
 ) -> TrainResult:
-    """Train the A3CQP adaptation policy with A2C; write metrics.csv, checkpoint.pt and policy.pt under `out_dir`."""
+    """Train a Gaussian policy with A2C on `env` (default: the env `cfg.env` names, a2c.num_envs copies, seeded);
+    write config.yaml, metrics.csv, checkpoint.pt and policy.pt under `out_dir` (see a3cqp_rl.run_folder's rules:
+    `force` starts over in a folder holding a run, `override` lets `resume` change the config)."""
     hp = cfg.a2c
     total = int(total_steps if total_steps is not None else hp.total_steps)
     if total <= 0:
         raise ValueError(f"total_steps must be > 0, got {total}")
+    folder = open_run_folder(out_dir, resume=resume, force=force)
+    try:
+        return _train(cfg, folder, total, resume, override, progress, env, callback)
+    finally:
+        if folder is not None:
+            folder.close()
+
+
+def _train(cfg, folder, total, resume, override, progress, env, callback) -> TrainResult:
+    """`train` in its run folder (locked)."""
+    hp = cfg.a2c
     torch.manual_seed(cfg.seed)
     gen = torch.Generator().manual_seed(cfg.seed)
-    if env is None:
-        from envs.point_mass import PointMassEnv
-
-        env = PointMassEnv(hp.num_envs, cfg, seed=cfg.seed)
-        env.reset()
+    env = _prepare_env(env, cfg)
+    spec = read_env_layout(env)
     # look on the class: batched TorchRL envs forward unknown attributes to their workers
-    fused = getattr(type(env), "fused_functions", None) is not None and hp.rollout == "auto"
-    obs_dim = 3
-    act_dim = 4
-    critic_dim = _critic_input_dim(env, hp, fused, obs_dim)
-    layout = ParamLayout(obs_dim, act_dim, hp.hidden, hp.network, critic_dim)
-    layout_key = [obs_dim, act_dim, list(hp.hidden), hp.network, critic_dim]
+    fused = getattr(type(env), "fused_functions", None) is not None and hp.rollout == "auto" and spec.unit_bounds()
+    layout = ParamLayout(spec.obs_dim, spec.act_dim, hp.hidden, hp.network, _critic_input_dim(env, hp, fused, spec.obs_dim))
     flat = layout.init(gen, hp.log_std_init)
     square_avg = torch.full_like(flat, hp.rms_init)
-    runner = FusedRollout(env, layout, gen, hp) if fused else TorchRLRollout(env, layout, gen, hp)
-    n_envs = runner.num_envs
-    per_update = hp.n_steps * n_envs
+    if fused and (hp.lr_schedule != "constant" or hp.reward_scale != 1.0):
+        raise ValueError("a2c.lr_schedule and a2c.reward_scale apply to the TorchRL rollout (a2c.rollout: torchrl); "
+                         "the fused point-mass iteration has a constant learning rate and unscaled rewards")
+    runner = FusedRollout(env, layout, gen, hp) if fused else TorchRLRollout(env, layout, spec, gen, hp)
+    per_update = hp.n_steps * runner.num_envs
     num_updates = math.ceil(total / per_update)
 
-    out = Path(out_dir) if out_dir is not None else None
-    ckpt_path = out / "checkpoint.pt" if out else None
-    start = 0
-    metric_sum = torch.zeros(len(METRICS))  # running sums since the last logged row
-    metric_count = 0
     average = ParameterAverage(num_updates, hp.average_last)
-    if resume:
-        if ckpt_path is None:
-            raise CheckpointError("--resume needs an output directory holding checkpoint.pt")
-        ck = load_checkpoint(ckpt_path, CKPT_KEYS)
-        if _layout_key(ck["layout"]) != layout_key or ck["flat"].shape != flat.shape:
-            raise CheckpointError(f"{ckpt_path} was written for network {ck['layout']}, config asks for {layout_key}")
-        flat.copy_(ck["flat"])
-        square_avg.copy_(ck["square_avg"])
-        gen.set_state(ck["gen"])
-        runner.load_state_dict(ck["rollout"])
-        runner.finished = [tuple(x) for x in ck.get("finished", [])]
-        start = int(ck["update"])
-        metric_sum, metric_count = ck["metric_sum"].clone(), int(ck["metric_count"])
-        average.load_state_dict(ck.get("average", {}), start)
-    if out:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "config.yaml").write_text(_yaml_dump(config_to_dict(cfg)))
-        _truncate_csv(out / "metrics.csv", keep_until_update=start, log_every=hp.log_every)
-    tb = _tensorboard(out, start * per_update + 1) if out else None
-
-    # Fig. 5 region checks on every `region_stride`-th log row and the last one (a2c.region_checks of them)
-    region_stride = max(1, math.ceil(num_updates // hp.log_every / hp.region_checks)) if hp.region_checks else 0
-    bar = _progress(num_updates * per_update, start * per_update, progress)
-    compile_s = 0.0
+    ckpt = Checkpoints(folder, cfg, layout, spec, flat, square_avg, gen, runner, average)
+    start = ckpt.begin(resume, override)
+    log = RunLog(folder.path if folder else None, start, per_update, hp.log_every)
+    regions = RegionChecks(layout, flat, average, num_updates, hp) if _fig5_applies(env) else None
+    bar = _ProgressBar(num_updates * per_update, start * per_update, progress, runner.compiles and start < num_updates)
+    timer, compile_s, startup_s, last = Timer(), 0.0, float("nan"), {}
     t_start = time.perf_counter()
-    last: dict[str, float] = {}
-    if runner.compiles and start < num_updates:
-        bar.set_description("A2C (compiling the step, one-time)")
-    for u in range(start, num_updates):
-        t0 = time.perf_counter()
-        metric_sum += runner.iterate(flat, square_avg)
-        metric_count += 1
-        done_updates = u + 1
-        average.update(done_updates, flat)
-        if u == start and runner.compiles:  # the first iteration pays for torch.compile
-            compile_s = time.perf_counter() - t0
-            bar.set_description("A2C")
-            bar.reset(total=num_updates * per_update)  # restart the rate estimate after compiling
-            bar.update(start * per_update)
-        boundary = done_updates % hp.log_every == 0
-        if boundary or done_updates == num_updates:
-            check = region_stride and (done_updates == num_updates or (done_updates // hp.log_every) % region_stride == 0)
-            # the policy that policy.pt would hold now
-            regions = region_row(lambda o: policy_mean(layout, average.policy(flat), o).clamp(-1.0, 1.0)) if check else {}
-            last = _log_row(out, done_updates, per_update, metric_sum / metric_count, runner, t_start, compile_s, start,
-                            regions)
-            if not math.isfinite(last["value_loss"]) or not bool(torch.isfinite(flat).all()):
-                raise FloatingPointError(f"training diverged at update {done_updates}: {last}")
-            if boundary:  # a final, partial window stays in the sums so a resumed run re-logs it whole
-                metric_sum.zero_()
-                metric_count = 0
-            if tb is not None:
-                for k, v in last.items():
-                    if k not in ("step", "update") and math.isfinite(v):
-                        tb.add_scalar(f"a2c/{k}", v, done_updates * per_update)
-            if callback:
-                callback(done_updates * per_update, last)
-            bar.set_postfix(ep_reward=f"{last['episode_reward']:.2f}", refresh=False)
-        bar.update(per_update)
-        if ckpt_path and (done_updates % hp.checkpoint_every == 0 or done_updates == num_updates):
-            save_atomic({"format": 1, "update": done_updates, "flat": flat, "square_avg": square_avg,
-                         "gen": gen.get_state(), "rollout": runner.state_dict(), "config": config_to_dict(cfg),
-                         "layout": layout_key,
-                         "finished": [list(x) for x in runner.finished[-1000:]],
-                         "metric_sum": metric_sum, "metric_count": metric_count, "average": average.state_dict()},
-                        ckpt_path)
+    with SigintCheckpoint(enabled=folder is not None) as sigint:
+        for u in range(start, num_updates):
+            t0 = time.perf_counter()
+            runner.set_progress(u / num_updates)  # the learning-rate schedule's clock
+            with timer("iterate"):
+                ckpt.add_metrics(runner.iterate(flat, square_avg))
+            done = u + 1
+            average.update(done, flat)
+            if u == start:  # the first iteration pays for torch.compile
+                startup_s = process_age()
+                compile_s = time.perf_counter() - t0 if runner.compiles else 0.0
+                bar.compiled()
+            if done % hp.log_every == 0 or done == num_updates:
+                with timer("regions"):
+                    row_regions = regions(done) if regions else {}
+                with timer("log"):
+                    last = _log_row(log, ckpt, done, per_update, runner, t_start, compile_s, start, row_regions)
+                if not math.isfinite(last["value_loss"]) or not bool(torch.isfinite(flat).all()):
+                    raise FloatingPointError(f"training diverged at update {done}: {last}")
+                if callback:
+                    callback(done * per_update, last)
+                bar.set_postfix(ep_reward=f"{last['episode_reward']:.2f}", refresh=False)
+            bar.update(per_update)
+            if folder and (done % hp.checkpoint_every == 0 or done == num_updates or sigint.requested):
+                with timer("checkpoint"):
+                    ckpt.save(done)
+            sigint.stop_if_requested(done * per_update, folder)
     bar.close()
-    if tb is not None:
-        tb.close()
+    log.close()
     if isinstance(runner, TorchRLRollout):
         runner.close()
     elapsed = time.perf_counter() - t_start
-    steps_done = (num_updates - start) * per_update
-    policy_path = None
-    if out:
-        policy_path = save_atomic({"format": 1, "flat": average.policy(flat).clone(), "layout": layout_key,
-                                   "config": config_to_dict(cfg), "averaged_updates": average.count}, out / "policy.pt")
+    policy_path = ckpt.save_policy() if folder else None
     return TrainResult(
         steps=num_updates * per_update, updates=num_updates, seconds=elapsed, compile_seconds=compile_s,
-        steps_per_second=steps_done / max(elapsed - compile_s, 1e-9), out_dir=out, policy_path=policy_path,
-        final_metrics=last, episode_returns=[r for r, _ in runner.finished],
+        steps_per_second=(num_updates - start) * per_update / max(elapsed - compile_s, 1e-9),
+        out_dir=folder.path if folder else None, policy_path=policy_path, final_metrics=last,
+        episode_returns=[r for r, _ in runner.finished], timings=dict(timer.totals), startup_seconds=startup_s,
+        fig5_applies=regions is not None,
     )
-
-
-def load_policy(path: str | Path) -> Callable[[Tensor], Tensor]:
-    """Load OUT/policy.pt (or a checkpoint.pt: the raw, never averaged parameters); return f(obs [..., 3]) -> mean
-    action [..., 4] clipped to [-1, 1]."""
-    data = load_checkpoint(path, ("flat", "layout"))
-    obs_dim, act_dim, hidden, network, critic_dim = _layout_key(data["layout"])
-    layout = ParamLayout(obs_dim, act_dim, hidden, network, critic_dim)
-    flat = data["flat"].float()
-    if flat.shape != (layout.size,):
-        raise CheckpointError(f"{path}: parameter vector has {flat.shape[0]} entries, layout needs {layout.size}")
-
-    @torch.no_grad()
-    def policy(obs: Tensor) -> Tensor:
-        if obs.shape[-1] != obs_dim:
-            raise ValueError(f"observations need a last dim of {obs_dim}, got shape {tuple(obs.shape)}")
-        if not bool(torch.isfinite(obs).all()):
-            raise ValueError("observations contain NaN or inf")
-        lead = obs.shape[:-1]
-        mu = policy_mean(layout, flat, obs.reshape(-1, obs_dim).float())
-        return mu.clamp(-1.0, 1.0).reshape(*lead, act_dim)
-
-    return policy
 
 
 # ------------------------------------------------------------------------------ helpers
 
 
-def _layout_key(key: list) -> list:
-    """[obs, act, hidden, network, critic input]; files written before the critic option have 4 entries."""
-    key = list(key)
-    return key if len(key) == 5 else [*key, key[0]]
+def _prepare_env(env, cfg: ExperimentConfig):
+    """The env to train on: `cfg.env` built and seeded, or the caller's, seeded and checked against a2c.num_envs."""
+    if env is None:
+        from a3cqp_rl.config import check_memory
+        from algorithms.make_env import make_env
+
+        check_memory(cfg)
+        return make_env(cfg)
+    n = int(env.batch_size.numel())
+    if n != cfg.a2c.num_envs:
+        raise ValueError(f"a2c.num_envs is {cfg.a2c.num_envs} but the env passed has {n} (batch_size "
+                         f"{list(env.batch_size)}); set a2c.num_envs: {n}")
+    env.set_seed(cfg.seed)
+    return env
+
+
+def _fig5_applies(env) -> bool:
+    """The Fig. 5 regions are boxes in the point mass's eq. 26 observation: checked on PointMassEnv only."""
+    from envs.point_mass import PointMassEnv
+
+    return isinstance(env, PointMassEnv)
+
+
+def _log_row(log: RunLog, ckpt, updates, per_update, runner, t_start, compile_s, start, regions) -> dict[str, float]:
+    """The metric row after `updates` updates (means since the last row), written to `log`."""
+    recent = [r for r, _ in runner.finished[-100:]]
+    row = {"step": updates * per_update, "update": updates,
+           **{k: float(v) for k, v in zip(METRICS, ckpt.metric_means(updates))},
+           "episode_reward": float(sum(recent) / len(recent)) if recent else float("nan"),
+           "episodes": ckpt.episodes_before + len(runner.finished),
+           "steps_per_second": (updates - start) * per_update / max(time.perf_counter() - t_start - compile_s, 1e-9),
+           **{k: regions.get(k, float("nan")) for k in REGION_COLUMNS}}
+    log.write(row)
+    return row
 
 
 def _critic_input_dim(env, hp: A2CConfig, fused: bool, obs_dim: int) -> int:
@@ -635,60 +698,20 @@ def _compile(fn: Callable) -> Callable:
     return run
 
 
+class _ProgressBar:
+    """tqdm over agent steps; says when the first update compiles, and restarts its rate estimate after it."""
 
-def _tensorboard(out: Path, purge_step: int):
-    """A SummaryWriter on OUT/tb when TensorBoard is installed, else None. TensorBoard hides earlier events at steps
-    >= `purge_step`: a resumed run passes its checkpoint's step + 1, dropping what a killed run logged after the
-    checkpoint, as metrics.csv does."""
-    try:
-        from torch.utils.tensorboard import SummaryWriter
-    except ImportError:  # torch's writer needs the tensorboard package (the `tensorboard` extra)
-        return None
-    return SummaryWriter(str(out / "tb"), purge_step=purge_step if purge_step > 1 else None, flush_secs=10)
+    def __init__(self, total: int, initial: int, enabled: bool, compiling: bool) -> None:
+        from tqdm.auto import tqdm
 
+        self.initial, self.compiling = initial, compiling
+        self.bar = tqdm(total=total, initial=initial, disable=not enabled, unit="step", unit_scale=True,
+                        dynamic_ncols=True, desc="A2C (compiling the step, one-time)" if compiling else "A2C")
+        self.update, self.set_postfix, self.close = self.bar.update, self.bar.set_postfix, self.bar.close
 
-def _log_row(out, updates, per_update, means, runner, t_start, compile_s, start, regions) -> dict[str, float]:
-    recent = [r for r, _ in runner.finished[-100:]]
-    row = {"step": updates * per_update, "update": updates,
-           **{k: float(v) for k, v in zip(METRICS, means)},
-           "episode_reward": float(sum(recent) / len(recent)) if recent else float("nan"),
-           "episodes": len(runner.finished),
-           "steps_per_second": (updates - start) * per_update / max(time.perf_counter() - t_start - compile_s, 1e-9),
-           **{k: regions.get(k, float("nan")) for k in REGION_COLUMNS}}
-    if out:
-        path = out / "metrics.csv"
-        new = not path.exists()
-        with path.open("a", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
-            if new:
-                w.writeheader()
-            w.writerow(row)
-    return row
-
-
-def _truncate_csv(path: Path, keep_until_update: int, log_every: int) -> None:
-    """Drop metric rows past the checkpoint we resume from (and its partial final row): no step logged twice."""
-    if not path.exists():
-        return
-    with path.open() as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
-        return
-    keep = [r for r in rows if int(r["update"]) <= keep_until_update and int(r["update"]) % log_every == 0]
-    with path.open("w", newline="") as f:  # files from before a column existed get it, as NaN
-        w = csv.DictWriter(f, fieldnames=CSV_COLUMNS, restval="nan", extrasaction="ignore")
-        w.writeheader()
-        w.writerows(keep)
-
-
-def _progress(total: int, initial: int, enabled: bool):
-    from tqdm.auto import tqdm
-
-    return tqdm(total=total, initial=initial, disable=not enabled, unit="step", unit_scale=True,
-                dynamic_ncols=True, desc="A2C")
-
-
-def _yaml_dump(d: dict) -> str:
-    import yaml
-
-    return yaml.safe_dump(d, sort_keys=False)
+    def compiled(self) -> None:
+        """The first update is done."""
+        if self.compiling:
+            self.bar.set_description("A2C")
+            self.bar.reset(total=self.bar.total)
+            self.bar.update(self.initial)

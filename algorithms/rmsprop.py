@@ -37,14 +37,20 @@ def rmsprop_step_(
     params: Sequence[Tensor],
     grads: Sequence[Tensor],
     square_avg: Sequence[Tensor],
-    lr: float,
+    lr: float | Tensor,
     alpha: float = 0.99,
     eps: float = 1e-5,
 ) -> None:
-    """Eq. 32 in place: square_avg ← α·square_avg + (1−α)·grad²; param ← param − lr·grad/√(square_avg + eps)."""
+    """Eq. 32 in place: square_avg ← α·square_avg + (1−α)·grad²; param ← param − lr·grad/√(square_avg + eps).
+
+    `lr` a 0-d tensor: a learning rate that changes between calls of one compiled graph (a schedule).
+    """
     for p, g, s in zip(params, grads, square_avg):
         s.mul_(alpha).addcmul_(g, g, value=1.0 - alpha)
-        p.addcdiv_(g, (s + eps).sqrt(), value=-lr)
+        if isinstance(lr, Tensor):
+            p.sub_(lr * g / (s + eps).sqrt())
+        else:
+            p.addcdiv_(g, (s + eps).sqrt(), value=-lr)
 
 
 class RMSpropEq32(torch.optim.Optimizer):

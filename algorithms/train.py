@@ -1,12 +1,14 @@
-"""`a3cqp train`: train the adaptation policy with A2C from a YAML config; one seed or a sweep of seeds.
+"""`a3cqp train`: train a policy with A2C from a YAML config, on the point mass or any gymnasium task; one seed or a
+sweep of seeds.
 
-    a3cqp train --config configs/point_mass_a2c.yaml [--steps N] [--seed S | --seeds 0-19]
-                [--out runs/NAME] [--resume] [--no-compile] [--no-plots]
+    a3cqp train [--config configs/point_mass_a2c.yaml] [--env NAME] [--steps N] [--seed S | --seeds 0-19]
+                [--out runs/NAME] [--resume [--override] | --force] [--no-compile] [--no-plots] [--timings] [--debug]
 
-Writes under OUT (per seed OUT/seed_S when sweeping): config.yaml, metrics.csv, checkpoint.pt
-(atomic, every `a2c.checkpoint_every` updates), policy.pt, and the plots policy_map.png,
-loss_curves.png and regions.png (the Fig. 5 regions checked over training). `--resume` continues
-a killed run from OUT/checkpoint.pt with no lost or repeated steps.
+Writes under OUT (per seed OUT/seed_S when sweeping): config.yaml, metrics.csv, checkpoint.pt (atomic, every
+`a2c.checkpoint_every` updates and on Ctrl-C), policy.pt, and plots: loss_curves.png, and on the point mass
+policy_map.png and regions.png (the Fig. 5 regions checked over training). A folder holding a run is not started
+again: `--resume` continues it (no lost or repeated steps; a sweep resumes seed by seed), `--force` starts over,
+`--override` lets a resume change the config (recorded in OUT/overrides.log). One process writes a folder at a time.
 """
 
 from __future__ import annotations
@@ -17,6 +19,9 @@ import sys
 from pathlib import Path
 
 from a3cqp_rl.exceptions import A3CQPError
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "point_mass_a2c.yaml"
+"""The checkout's paper-settings config; where it is absent (an installed wheel) the built-in defaults are the same."""
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -36,71 +41,118 @@ def parse_seeds(text: str) -> list[int]:
     return seeds
 
 
-def main(argv: list[str] | None = None) -> int:
-    """CLI entry: parse arguments, train each seed, plot; returns an exit code."""
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="a3cqp train", description=__doc__.splitlines()[0])
-    p.add_argument("--config", default="configs/point_mass_a2c.yaml", help="YAML config (default: %(default)s)")
+    p.add_argument("--config", default=None, help=f"YAML config (default: {DEFAULT_CONFIG.name}, the paper's settings)")
+    p.add_argument("--env", default=None, help="environment: point_mass or a gymnasium id, e.g. Pendulum-v1 "
+                                               "(default: the config's env)")
     p.add_argument("--steps", type=int, default=None, help="total agent steps (default: a2c.total_steps)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--seed", type=int, default=None, help="random seed (default: the config's)")
     g.add_argument("--seeds", type=parse_seeds, default=None, help="sweep, e.g. 0-19: one run per seed in OUT/seed_S")
     p.add_argument("--out", default=None, help="output folder (default: runs/<config name>)")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt")
+    r = p.add_mutually_exclusive_group()
+    r.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt (a sweep: each seed that "
+                                                         "has one; the others start)")
+    r.add_argument("--force", action="store_true", help="start over in a folder that holds a run (deletes its files)")
+    p.add_argument("--override", action="store_true", help="with --resume: accept a changed config or seed")
     p.add_argument("--no-compile", action="store_true", help="skip torch.compile (slower steps, no compile wait)")
     p.add_argument("--no-plots", action="store_true", help="do not draw policy map / loss curves at the end")
+    p.add_argument("--timings", action="store_true", help="print where the time went (start-up, named loop blocks)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    args = p.parse_args(argv)
+    p.add_argument("--debug", action="store_true", help="show the full traceback of errors")
+    return p
 
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry: parse arguments, train each seed, plot; returns an exit code."""
+    args = _parser().parse_args(argv)
+    if args.override and not args.resume:
+        print("error: --override only applies with --resume", file=sys.stderr)
+        return 2
+    try:
+        return _run(args)
+    except KeyboardInterrupt as exc:
+        print(f"\n{exc or 'interrupted'}", file=sys.stderr)
+        return 130
+    except (A3CQPError, OSError, ValueError) as exc:
+        if args.debug:
+            raise
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+
+
+def _run(args: argparse.Namespace) -> int:
     import torch
 
     from a3cqp_rl.config import load_config
     from algorithms.a2c import train
 
     torch.set_num_threads(1)  # tiny networks: threads cost more than they give
-    try:
-        overrides: dict = {}
-        if args.no_compile:
-            overrides["a2c"] = {"compile": False}
-        cfg = load_config(args.config, overrides)
-        out = Path(args.out or Path("runs") / Path(args.config).stem)
-        seeds = args.seeds if args.seeds is not None else [cfg.seed if args.seed is None else args.seed]
-        run_dirs, passed = [], []
-        for seed in seeds:
-            run_cfg = load_config(args.config, {**overrides, "seed": seed})
-            run_dir = out / f"seed_{seed}" if args.seeds is not None else out
-            if len(seeds) > 1:
-                print(f"[seed {seed}] -> {run_dir}")
-            res = train(run_cfg, run_dir, total_steps=args.steps, resume=args.resume, progress=not args.quiet)
-            run_dirs.append(run_dir)
-            print(f"trained {res.steps:,} steps in {res.seconds:.1f} s ({res.steps_per_second:,.0f} steps/s"
-                  f"{f', plus {res.compile_seconds:.0f} s compiling' if res.compile_seconds else ''}); "
-                  + _reward_text(res.final_metrics.get("episode_reward", float("nan"))))
-            passed.append(_print_regions(res.policy_path))
+    overrides: dict = {}
+    if args.no_compile:
+        overrides["a2c"] = {"compile": False}
+    if args.env:
+        overrides["env"] = args.env
+    config = args.config or (DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() else None)
+    cfg = load_config(config, overrides)
+    name = Path(config).stem if config else "point_mass_a2c"
+    out = Path(args.out or Path("runs") / (name if not args.env else f"{name}_{args.env}"))
+    sweep = args.seeds is not None
+    seeds = args.seeds if sweep else [cfg.seed if args.seed is None else args.seed]
+    run_dirs, results, passed = [], [], []
+    for seed in seeds:
+        run_cfg = load_config(config, {**overrides, "seed": seed})
+        run_dir = out / f"seed_{seed}" if sweep else out
+        # a sweep resumes seed by seed: seeds that never started (no checkpoint) start now
+        resume = args.resume and (not sweep or (run_dir / "checkpoint.pt").is_file())
         if len(seeds) > 1:
-            print(f"Fig. 5 regions: all four on {passed.count(4)} of {len(seeds)} seeds, at least three on "
-                  f"{sum(n >= 3 for n in passed)}")
-        if not args.no_plots:
-            from a3cqp_rl.plotting.loss_curves import plot_loss_curves
-            from a3cqp_rl.plotting.policy_map import plot_policy_map
-            from a3cqp_rl.plotting.region_history import plot_region_history
-
-            for d in run_dirs:
-                plot_policy_map(d / "policy.pt", d / "policy_map.png")
-            plot_loss_curves(run_dirs, out / "loss_curves.png")
-            if cfg.a2c.region_checks:
-                plot_region_history(run_dirs, out / "regions.png")
-        maps = f"{out}/policy_map.png" if args.seeds is None else f"{out}/seed_*/policy_map.png"
-        print(f"results in {out}/: policy.pt (load with algorithms.a2c.load_policy), checkpoint.pt, metrics.csv"
-              + ("" if args.no_plots else f"; plots {out}/loss_curves.png, {maps}"
-                   + (f" and {out}/regions.png (Fig. 5 regions over training)" if cfg.a2c.region_checks else "")))
-    except (A3CQPError, FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+            print(f"[seed {seed}] -> {run_dir}{' (resumed)' if resume else ''}")
+        res = train(run_cfg, run_dir, total_steps=args.steps, resume=resume, force=args.force,
+                    override=args.override, progress=not args.quiet)
+        run_dirs.append(run_dir)
+        results.append(res)
+        print(f"trained {res.steps:,} steps in {res.seconds:.1f} s ({res.steps_per_second:,.0f} steps/s"
+              f"{f', plus {res.compile_seconds:.0f} s compiling' if res.compile_seconds else ''}); "
+              + _reward_text(res.final_metrics.get("episode_reward", float("nan"))))
+        if args.timings:
+            blocks = ", ".join(f"{k} {v:.2f} s" for k, v in res.timings.items())
+            print(f"timings: start-up {res.startup_seconds:.2f} s (process start to the first update); {blocks}")
+        if res.fig5_applies:
+            passed.append(_print_regions(res.policy_path))
+    if len(seeds) > 1 and passed:
+        print(f"Fig. 5 regions: all four on {passed.count(4)} of {len(passed)} seeds, at least three on "
+              f"{sum(k >= 3 for k in passed)}")
+    # Point-mass evaluations of the trained policies (region printouts, closed-loop tables) go here.
+    plots = [] if args.no_plots else _plot(run_dirs, out, results, cfg.a2c.region_checks)
+    print(f"results in {out}/: policy.pt (load with algorithms.a2c.load_policy / load_actor), checkpoint.pt, "
+          f"metrics.csv" + (f"; plots {', '.join(plots)}" if plots else ""))
     return 0
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+def _plot(run_dirs: list[Path], out: Path, results: list, region_checks: int) -> list[str]:
+    """Loss curves of all runs; on the point mass, each run's policy map and the Fig. 5 regions over training."""
+    from a3cqp_rl.plotting.loss_curves import plot_loss_curves
+    from algorithms.a2c import load_policy
+
+    made = [str(plot_loss_curves(run_dirs, out / "loss_curves.png"))]
+    if all(r.fig5_applies for r in results):
+        from a3cqp_rl.plotting.policy_map import plot_policy_map
+
+        for d in run_dirs:
+            plot_policy_map(load_policy(d / "policy.pt"), d / "policy_map.png", title=str(d / "policy.pt"))
+        made.append(f"{out}/policy_map.png" if len(run_dirs) == 1 else f"{out}/seed_*/policy_map.png")
+    if region_checks and all(r.fig5_applies for r in results):
+        from a3cqp_rl.plotting.region_history import plot_region_history
+
+        made.append(f"{plot_region_history(run_dirs, out / 'regions.png')} (Fig. 5 regions over training)")
+    return made
+
+
+def _one_line(exc: BaseException) -> str:
+    """An error as one line (config errors list their fields after a colon)."""
+    text = str(exc) or type(exc).__name__
+    return "; ".join(part.strip() for part in text.splitlines() if part.strip())
 
 
 def _reward_text(r: float) -> str:
@@ -121,3 +173,7 @@ def _print_regions(policy_path: Path) -> int:
     n = sum(r.ok for r in results)
     print(f"Fig. 5 regions {n}/4 (mean action inside/outside each region): " + ", ".join(parts))
     return n
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -9,7 +9,7 @@ and desired forces (no contact). Reported per N (medians over the timed steps):
   sim    MuJoCo (one mj_step1 + mj_step2 for all N arms in one MjData; B(q), site Jacobian/J̇ gathered batched)
   RTF    aggregate real-time factor N · Δt / (ctrl + sim)
 Peer measured in the same run: the same QPs solved one by one by Clarabel (direct API, no cvxpy) -> "qp speed-up".
-Targets (issue 6): N = 1 under 1000 µs per step; N = 64 at least 20x real time in aggregate.
+Targets: N = 1 under 1000 µs per step; N = 64 at least 20x real time in aggregate.
 
     python bench/controller.py [--quick] [--threads T] [--sizes 1 64] [--kin mujoco|torch] [--repeats R] [--clock cpu]
                                [--backend both|native|python]

@@ -15,6 +15,10 @@ steps (all envs together):
 Both run with ``torch.set_num_threads(1)``. With ``--repeats R`` the two are run alternately R times
 (so they see the same machine load) and the medians are reported.
 
+Start-up: ``a3cqp train`` (``python -m a3cqp_rl.cli train --timings``) in fresh processes, from process start to the
+end of the first update (imports, config, env, the C library or torch.compile's first call), median of 3; and where
+the loop's time went (its named timing blocks: iterate, regions, log, checkpoint).
+
 Usage: python bench/train_speed.py [--steps N] [--ours-steps M] [--repeats R] [--quick] [--only sb3|ours]
                                    [--backend auto|torch|native]
 
@@ -139,6 +143,25 @@ def run_ours(cfg, steps: int) -> tuple[float, float, float, int]:
     return float(result.steps_per_second), float(result.compile_seconds), wall, done
 
 
+def startup(config: str, runs: int = 3, steps: int = 200_000) -> tuple[list[float], str]:
+    """`a3cqp train --timings` in fresh processes: start-up seconds of each run, and the last run's timings line."""
+    import re
+    import tempfile
+
+    values, line = [], ""
+    for _ in range(runs):
+        with tempfile.TemporaryDirectory() as tmp:
+            out = subprocess.run([sys.executable, "-m", "a3cqp_rl.cli", "train", "--config", config, "--steps",
+                                  str(steps), "--out", tmp, "--no-plots", "--quiet", "--timings"],
+                                 capture_output=True, text=True, cwd=_ROOT, timeout=600)
+        m = re.search(r"^timings: start-up ([0-9.]+) s.*$", out.stdout, re.M)
+        if m is None:
+            raise RuntimeError(f"a3cqp train printed no timings: {out.stdout[-500:]} {out.stderr[-500:]}")
+        values.append(float(m.group(1)))
+        line = m.group(0)
+    return values, line
+
+
 def _git_rev() -> str:
     try:
         out = subprocess.run(["git", "-C", str(_ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
@@ -249,6 +272,12 @@ def main(argv: list[str] | None = None) -> int:
               f"{sb3.projected_seconds() / ours.projected_seconds():.2f}x")
     print("one-time = first run's torch.compile + setup inside train() (excluded from steps/s, included in the "
           "projection; later runs in this process reuse the compiled code). SB3: construction not timed.")
+    if args.only != "sb3":
+        make_config = str(_ROOT / "configs" / "point_mass_a2c_fig5_fd_1e6.yaml")  # what `make train` runs
+        values, line = startup(make_config)
+        print(f"start-up of `a3cqp train` ({Path(make_config).name}, 2e5 steps, fresh processes): median "
+              f"{statistics.median(values):.2f} s (runs: {', '.join(f'{v:.2f}' for v in values)}), process start to the "
+              f"end of the first update; last run's {line}")
     print(f"load average at end {os.getloadavg()[0]:.2f} (other processes share the cores: compare ratios, "
           "not absolute rates, across runs)")
     return 0

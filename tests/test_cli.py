@@ -45,3 +45,56 @@ def test_final_message_says_when_no_episode_ended():
 
     assert "no episode finished" in _reward_text(float("nan"))
     assert _reward_text(-12.345) == "last mean episode reward -12.35"
+
+
+def test_default_config_works_from_any_directory(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(["train", "--steps", "32", "--no-compile", "--quiet", "--no-plots", "--timings"]) == 0
+    assert (tmp_path / "runs" / "point_mass_a2c" / "policy.pt").is_file()
+    assert "timings: start-up " in capsys.readouterr().out  # what the train bench reads
+
+
+def test_file_errors_are_one_line_naming_the_file(tmp_path, capsys, monkeypatch):
+    args = ["train", "--config", CONFIG, "--steps", "32", "--no-compile", "--quiet", "--no-plots"]
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    assert main([*args, "--out", str(afile)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"--out {afile} is a file" in err
+    assert main([*args, "--out", str(afile / "sub")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"cannot write to {afile / 'sub'}" in err
+    # a full disk while writing the checkpoint
+    import errno
+
+    import torch
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", full)
+    assert main([*args, "--out", str(tmp_path / "full")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "checkpoint.pt: No space left on device" in err
+    assert not list((tmp_path / "full").glob(".*.tmp"))
+    monkeypatch.undo()
+    # a corrupt metrics.csv on resume, a corrupt checkpoint: the file named, no torch advice
+    run = tmp_path / "run"
+    assert main([*args, "--out", str(run)]) == 0
+    capsys.readouterr()
+    (run / "metrics.csv").write_text("step,update\n16,one\n")
+    assert main([*args, "--out", str(run), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{run / 'metrics.csv'} is not a metrics file" in err
+    (run / "checkpoint.pt").write_bytes(b"PK\x03\x04 not really")
+    assert main([*args, "--out", str(run), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(run / "checkpoint.pt") in err and "weights_only=False" not in err
+    bad = tmp_path / "bad.yaml"
+    bad.write_bytes(b"a2c: {ent_coef: \xff}\n")
+    assert main(["train", "--config", str(bad)]) == 2
+    assert f"{bad}: not UTF-8" in capsys.readouterr().err
+    import pytest
+
+    with pytest.raises(Exception, match="not UTF-8"):  # --debug: the traceback, for developers
+        main(["train", "--config", str(bad), "--debug"])

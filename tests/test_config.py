@@ -88,3 +88,68 @@ def test_missing_and_non_mapping_files(tmp_path):
     p.write_text("a2c: {gamma: [unclosed")
     with pytest.raises(ConfigError, match="YAML"):
         load_config(p)
+
+
+def _float_fields():
+    """Every float field of the config (dotted), found by walking the dataclasses: new fields are covered too."""
+    import dataclasses
+    import typing
+
+    def walk(cls, prefix):
+        for f in dataclasses.fields(cls):
+            tp = typing.get_type_hints(cls)[f.name]
+            if dataclasses.is_dataclass(tp):
+                yield from walk(tp, f"{prefix}{f.name}.")
+            elif tp is float or tp == (float | None) or typing.get_origin(tp) is tuple and float in typing.get_args(tp):
+                yield f"{prefix}{f.name}", tp
+
+    return list(walk(ExperimentConfig, ""))
+
+
+@pytest.mark.parametrize("bad", [".nan", ".inf", "-.inf"])
+@pytest.mark.parametrize("key,tp", _float_fields(), ids=[k for k, _ in _float_fields()])
+def test_every_float_field_must_be_finite(tmp_path, key, tp, bad):
+    import typing
+
+    *sections, name = key.split(".")
+    value = f"[1.0, {bad}, 1.0, 1.0]" if typing.get_origin(tp) is tuple else bad
+    text = "".join(f"{'  ' * i}{s}:\n" for i, s in enumerate(sections)) + f"{'  ' * len(sections)}{name}: {value}\n"
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match="must be a finite number") as info:
+        load_config(p)
+    assert str(p) in str(info.value) and key in str(info.value)
+
+
+def test_float_fields_found_include_the_reported_ones():
+    keys = [k for k, _ in _float_fields()]
+    assert len(keys) >= 35 and {"a2c.ent_coef", "point_mass.wall_damping", "point_mass.kv", "reward.alpha"} <= set(keys)
+
+
+def test_env_names_registered_or_gymnasium(tmp_path):
+    from a3cqp_rl.config import ENV_FACTORIES, config_from_dict
+
+    assert "point_mass" in ENV_FACTORIES and config_from_dict({"env": "Pendulum-v1"}).env == "Pendulum-v1"
+    with pytest.raises(ConfigError, match="env: unknown environment 'pointmass'"):
+        config_from_dict({"env": "pointmass"})
+
+
+def test_memory_estimate_refuses_a_million_envs_before_allocating():
+    from a3cqp_rl.config import check_memory, config_from_dict, estimate_memory_bytes
+
+    cfg = config_from_dict({"a2c": {"num_envs": 1_000_000}})
+    assert estimate_memory_bytes(cfg) > 6 * 2**30  # measured: the run grew past 6 GB
+    with pytest.raises(ConfigError, match="a2c.num_envs: 1000000 envs need about"):
+        check_memory(cfg, available=8 * 2**30)
+    check_memory(config_from_dict({}), available=8 * 2**30)  # the paper's 4 envs: fine
+    from algorithms.a2c import train
+
+    with pytest.raises(ConfigError, match="a2c.num_envs"):  # before any env is built (that would take minutes)
+        train(config_from_dict({"a2c": {"num_envs": 10**9, "compile": False}}), None, total_steps=16)
+
+
+def test_non_utf8_config_names_the_file(tmp_path):
+    p = tmp_path / "latin1.yaml"
+    p.write_bytes("seed: 0  # f\xfcr\n".encode("latin-1"))
+    with pytest.raises(ConfigError, match=f"{p}: not UTF-8 text"):
+        load_config(p)

@@ -72,10 +72,11 @@ OPTION_VARIANTS = [
     {"admittance_form": "paper", "ik_wrench_feedforward": False, "pd_projection": "transpose"},
     {"joint_limit_target": "qdd", "torque_limits": False, "cartesian_regularization": 0.0},
     {"joint_limits_include_f_ext": True, "jc_nullspace_weight": 0.0, "desired_state_leak": 0.0},
+    {"leak_axes": "per_axis", "desired_state_leak": 30.0},
 ]
 
 
-@pytest.mark.parametrize("options", OPTION_VARIANTS, ids=["default", "paper-forms", "qdd-target", "f_ext"])
+@pytest.mark.parametrize("options", OPTION_VARIANTS, ids=["default", "paper-forms", "qdd-target", "f_ext", "per-axis-leak"])
 @pytest.mark.parametrize("near_limits", [False, True], ids=["inside", "near-limits"])
 def test_native_qp_equals_the_python_objects(options: dict, near_limits: bool) -> None:
     inputs, model = random_inputs(N, seed=3 + near_limits, near_limits=near_limits)
@@ -102,11 +103,12 @@ def test_native_qp_equals_the_python_objects(options: dict, near_limits: bool) -
         assert ((ub - ddq).abs() < 1e-12).any() or ((lb + ddq).abs() < 1e-12).any()
 
 
-def closed_loop(backend: str, steps: int, n: int = 3, seed: int = 0, scene: str = "") -> tuple[list, A3CQPController]:
+def closed_loop(backend: str, steps: int, n: int = 3, seed: int = 0, scene: str = "",
+                leak_axes: str = "min_w1") -> tuple[list, A3CQPController]:
     """Torques and statuses of a closed loop with random weight switching every 20 ms and a push on arm 0."""
     gen = torch.Generator().manual_seed(seed)
     sim = PandaSim(n, control_site="tcp", scene=scene)
-    ctrl = A3CQPController(n, options=ControllerOptions(backend=backend))
+    ctrl = A3CQPController(n, options=ControllerOptions(backend=backend, leak_axes=leak_axes))
     s = sim.observe()
     pos_d = s.kin.pos + 0.1 * (torch.rand(n, 3, generator=gen, dtype=torch.float64) - 0.5)
     rot_d = s.kin.rot.clone()
@@ -124,9 +126,10 @@ def closed_loop(backend: str, steps: int, n: int = 3, seed: int = 0, scene: str 
     return out_log, ctrl
 
 
-def test_native_closed_loop_equals_python() -> None:
-    py, _ = closed_loop("python", 300)
-    nat, ctrl = closed_loop("native", 300)
+@pytest.mark.parametrize("leak_axes", ["min_w1", "per_axis"])
+def test_native_closed_loop_equals_python(leak_axes: str) -> None:
+    py, _ = closed_loop("python", 300, leak_axes=leak_axes)
+    nat, ctrl = closed_loop("native", 300, leak_axes=leak_axes)
     assert ctrl._native is not None
     for k, (a, b) in enumerate(zip(py, nat)):
         for f in ("tau", "qdd", "wrench", "qdd_pd", "pose_error", "f_adm", "f_ctc"):
@@ -191,7 +194,7 @@ def test_parameters_come_from_the_objects_and_the_c_table() -> None:
     ctrl = A3CQPController(1)
     lib = native.load()
     c_names = [name for name, _ in lib.Params._fields_]
-    assert len(c_names) == len(set(c_names)) == 38
+    assert len(c_names) == len(set(c_names)) == 39
     # every C field is set by exactly one owner: a task, a limit or the step
     owners = {}
     for piece in [*ctrl.tasks, *ctrl.limits]:

@@ -5,7 +5,7 @@ import torch
 
 from a3cqp_rl.config import config_from_dict
 from a3cqp_rl.plotting import plot_loss_curves, plot_policy_map, plot_region_history, policy_grid, region_history
-from algorithms.a2c import train
+from algorithms.a2c import load_policy, train
 
 
 def test_policy_grid_puts_state_variables_on_the_right_axes():
@@ -29,7 +29,7 @@ def test_plots_from_a_real_short_run(tmp_path):
         d = tmp_path / f"seed_{seed}"
         train(config_from_dict({"a2c": {"compile": False, "log_every": 10}, "seed": seed}), d, total_steps=16 * 30)
         runs.append(d)
-    png = plot_policy_map(runs[0] / "policy.pt", tmp_path / "map.png", levels=(0.0, 0.5))
+    png = plot_policy_map(load_policy(runs[0] / "policy.pt"), tmp_path / "map.png", levels=(0.0, 0.5))
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     pdf = plot_loss_curves(runs, tmp_path / "loss.pdf")
     assert pdf.read_bytes()[:4] == b"%PDF"

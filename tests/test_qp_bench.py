@@ -6,6 +6,8 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import pytest
+
 BENCH = Path(__file__).resolve().parents[1] / "bench" / "qp.py"
 
 
@@ -18,6 +20,19 @@ def test_bench_qp_main_runs(capsys) -> None:
     out = capsys.readouterr().out
     assert rc == 0
     assert "| a3cqp_rl.qp (cold) | 3 |" in out and "| a3cqp_rl.qp (warm) | 3 |" in out
-    # our accuracy column is filled and within the bound
+    # our accuracy column is filled and within 1e-6 of Clarabel
     row = next(line for line in out.splitlines() if line.startswith("| a3cqp_rl.qp (cold) | 3 |"))
     assert float(row.split("|")[-2]) <= 1e-6
+
+
+@pytest.mark.slow
+def test_bench_qp_check_mode_prints_the_family_tables(capsys) -> None:
+    spec = importlib.util.spec_from_file_location("bench_qp_check", BENCH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    assert module.main(["--check", "--sweep", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "| LP |" in out and "| invalid |" in out and "Random family members" in out
+    rows = [line.split("|") for line in out.splitlines() if line.startswith("| ") and "family" not in line]
+    assert rows and all(int(r[4]) == 0 for r in rows)  # no silent wrong answer anywhere

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from a3cqp_rl.qp import NotAQPError, NotDPPError, QPLayer, QPShapeError
+from a3cqp_rl.qp import NotAQPError, NotDPPError, QPInfeasibleError, QPLayer, QPShapeError, QPStatus
 
 DT = torch.float64
 
@@ -62,8 +62,9 @@ def test_layer_unbatched_parameters_and_broadcast() -> None:
     xs, _ = layer(*mixed)
     xs_full, _ = layer(vals[0][:1].expand(4, 3, 5), *vals[1:])
     assert xs.shape == (4, 5) and (xs - xs_full).abs().max() < 1e-12
-    single, _ = layer(*[v[0] for v in vals])
-    assert single.shape == (1, 5) and (single[0] - layer(*[v[:1] for v in vals])[0][0]).abs().max() < 1e-12
+    single, Y1 = layer(*[v[0] for v in vals])  # unbatched in, unbatched out (as cvxpylayers)
+    assert single.shape == (5,) and Y1.shape == (2, 3)
+    assert (single - layer(*[v[:1] for v in vals])[0][0]).abs().max() < 1e-12
     with pytest.raises(QPShapeError):
         layer(vals[0][:2], *vals[1:])
 
@@ -88,3 +89,61 @@ def test_layer_rejects_non_qp_and_non_dpp() -> None:
         QPLayer(non_dpp, parameters=[a, b], variables=[x])
     with pytest.raises(QPShapeError, match="exactly the parameters"):
         QPLayer(soc, parameters=[], variables=[x])
+
+
+def _attributes_problem():
+    x = cp.Variable(3, nonneg=True)
+    y = cp.Variable(2, bounds=[-1, 1])
+    p = cp.Parameter(3)
+    c1, c2, c3 = x[0] + y[0] <= 1, 0.5 == x[1], 2 * x[0] - x[2] == 1
+    prob = cp.Problem(cp.Minimize(cp.sum_squares(x - p) + cp.sum_squares(y) + 3 * y[1]), [c1, c2, c3])
+    return prob, p, [x, y], [c1, c2, c3]
+
+
+def test_variable_attributes_and_duals_match_cvxpy() -> None:
+    prob, p, (x, y), cons = _attributes_problem()
+    layer = QPLayer(prob, [p], [x, y] + [c.dual_variables[0] for c in cons])
+    g = torch.Generator().manual_seed(4)
+    vals = torch.randn(6, 3, generator=g, dtype=DT) * 2
+    outs = layer(vals)
+    assert outs[0].shape == (6, 3) and outs[1].shape == (6, 2) and outs[2].shape == (6,)
+    for i in range(6):
+        p.value = vals[i].numpy()
+        prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12)
+        assert np.abs(outs[0][i].numpy() - x.value).max() < 1e-6 and np.abs(outs[1][i].numpy() - y.value).max() < 1e-6
+        for k, c in enumerate(cons):
+            assert abs(float(outs[2 + k][i]) - float(c.dual_value)) < 1e-6, (i, k)
+
+
+def test_solver_args_at_construction_and_per_call() -> None:
+    prob, p, (x, y), _ = _attributes_problem()
+    layer = QPLayer(prob, [p], [x], solver_args={"eps": 1e-10, "backend": "torch"})
+    v = torch.tensor([1.0, 0.2, -0.3], dtype=DT)
+    (x1,) = layer(v)
+    (x2,) = layer(v, solver_args={"tol": 1e-8, "max_iters": 80, "backend": "auto"})
+    assert (x1 - x2).abs().max() < 1e-7
+    with pytest.raises(QPShapeError, match="unknown solver_args key 'verbose'"):
+        layer(v, solver_args={"verbose": True})
+
+
+def test_infeasible_parameters_raise_by_default_or_give_nan_and_status() -> None:
+    x = cp.Variable(2)
+    lo = cp.Parameter(2)
+    prob = cp.Problem(cp.Minimize(cp.sum_squares(x)), [x >= lo, cp.sum(x) <= 1])
+    vals = torch.tensor([[0.0, 0.0], [1.0, 1.0]], dtype=DT)  # the second: x ≥ 1, Σx ≤ 1 is infeasible
+    layer = QPLayer(prob, [lo], [x])
+    with pytest.raises(QPInfeasibleError, match=r"\[1\].*PRIMAL_INFEASIBLE"):
+        layer(vals)
+    nan_layer = QPLayer(prob, [lo], [x], on_failure="nan")
+    xs, status = nan_layer(vals.requires_grad_())
+    assert status.tolist() == [QPStatus.SOLVED, QPStatus.PRIMAL_INFEASIBLE]
+    assert torch.isnan(xs[1]).all() and torch.allclose(xs[0], torch.zeros(2, dtype=DT))
+    xs[0].sum().backward()  # the solved instance still has a gradient
+    assert torch.isfinite(vals.grad).all()
+    x1, s1 = nan_layer(torch.tensor([1.0, 1.0], dtype=DT))
+    assert x1.shape == (2,) and s1.shape == () and int(s1) == QPStatus.PRIMAL_INFEASIBLE
+    # Unbounded: an LP with a free direction.
+    c = cp.Parameter(2)
+    lp = cp.Problem(cp.Minimize(c @ x), [x[0] >= 0])
+    with pytest.raises(QPInfeasibleError, match="DUAL_INFEASIBLE"):
+        QPLayer(lp, [c], [x])(torch.tensor([1.0, 1.0], dtype=DT))

@@ -5,21 +5,21 @@ from __future__ import annotations
 import pytest
 import torch
 
-from a3cqp_rl.qp import QPShapeError, QPStatus, solve_qp
+from a3cqp_rl.qp import QPShapeError, QPStatus, native, solve_qp
 from a3cqp_rl.qp.random_qp import clarabel_reference, random_qp_batch
 
 DT = torch.float64
 
 
-@pytest.fixture(autouse=True, params=["native", "no-native"])
+@pytest.fixture(autouse=True, params=["c", "torch"])
 def solver_route(request, monkeypatch):
-    """Every test twice: with the C routine (batches up to NATIVE_BATCH_MAX take it) and without it
-    (numpy for small batches, the batched torch path above), so the batched path keeps its own coverage."""
-    if request.param == "no-native":
-        import a3cqp_rl.qp.small_batch as small
-
-        monkeypatch.setattr(small, "NATIVE", False)
-    return request.param
+    """Every test twice: backend "auto" on the C route, and on the torch route (A3CQP_NATIVE_QP=0, the
+    documented override), so both keep their coverage through the default call."""
+    if request.param == "torch":
+        monkeypatch.setenv("A3CQP_NATIVE_QP", "0")
+    native._reset()
+    yield request.param
+    native._reset()
 
 
 def _active_any(sol) -> torch.Tensor:
@@ -193,8 +193,9 @@ def test_unbatched_arguments_broadcast_and_shape_errors() -> None:
 
 
 def test_max_iter_status_and_finite_output() -> None:
+    # Budgets of the torch route (the C route's Goldfarb-Idnani is finite and certifies these).
     qp = random_qp_batch(10, spread=0.35, seed=6)
-    sol = solve_qp(*qp.args(), max_iter=2, active_set_iter=1)
+    sol = solve_qp(*qp.args(), max_iter=2, active_set_iter=1, backend="torch")
     assert (sol.status == QPStatus.MAX_ITER).any()
     assert torch.isfinite(sol.x).all()
 

@@ -83,3 +83,15 @@ def test_optimizer_clips_before_step():
 def test_bad_hyper_parameters(kw):
     with pytest.raises(ValueError):
         RMSpropEq32([torch.nn.Parameter(torch.zeros(1))], **kw)
+
+
+def test_a_tensor_learning_rate_steps_like_the_float_one():
+    from algorithms.rmsprop import rmsprop_step_
+
+    g = torch.Generator().manual_seed(0)
+    p, grad = torch.randn(50, generator=g), torch.randn(50, generator=g)
+    a, b = p.clone(), p.clone()
+    sa, sb = torch.zeros(50), torch.zeros(50)
+    rmsprop_step_([a], [grad], [sa], 1e-2, 0.9, 1e-5)
+    rmsprop_step_([b], [grad], [sb], torch.tensor(1e-2), 0.9, 1e-5)
+    assert torch.allclose(a, b, rtol=0, atol=1e-7) and not torch.equal(a, p) and torch.equal(sa, sb)

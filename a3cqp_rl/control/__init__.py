@@ -3,6 +3,7 @@
 from a3cqp_rl.control.context import N_QDD, N_VARS, N_WRENCH, ControlContext
 from a3cqp_rl.control.controller import (A3CQPController, ControllerOptions, ControlOutput,
                                          wrench_from_joint_torques)
+from a3cqp_rl.control.hierarchy import Hierarchy, level_from_selector, levels_from_selectors, solve_cascade
 from a3cqp_rl.control.limits import (FrictionPyramid, Inequality, JointLimitsViability, Limit, TorqueLimits,
                                      WrenchBox,
                                      joint_acceleration_bounds)
@@ -12,4 +13,4 @@ from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer
 __all__ = ["N_QDD", "N_VARS", "N_WRENCH", "ControlContext", "A3CQPController", "ControllerOptions", "ControlOutput",
            "wrench_from_joint_torques", "FrictionPyramid", "Inequality", "JointLimitsViability", "Limit", "WrenchBox",
            "joint_acceleration_bounds", "TorqueLimits", "Admittance", "CartesianAccelerationRegularizer", "CartesianIK", "ForceControl", "JointCentering", "Residual",
-           "Task"]
+           "Task", "Hierarchy", "level_from_selector", "levels_from_selectors", "solve_cascade"]

@@ -73,6 +73,8 @@ class ControlContext:
     """h + g [B, 7] (N m), for the torque limits (None when the caller did not provide it)."""
     qdd_map: torch.Tensor | None = None
     """I + ∂q̈_pd/∂q̈* [B, 7, 7]: the commanded joint acceleration per unit q̈* (None: limits compute it)."""
+    jpinv: torch.Tensor | None = None
+    """J⁺ [B, 7, 6], the damped pseudo-inverse of N (for the per-axis relaxation of q*, q̇*)."""
     jt_w1_j: torch.Tensor | None = None
     """Jᵀ W1 J [B, 7, 7] (the IK weight pulled back to joint space; None: tasks compute it)."""
     wrench_feedforward: torch.Tensor | None = None

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from a3cqp_rl.exceptions import A3CQPError
 
-__all__ = ["ControlError", "InvalidGainError", "ControlShapeError"]
+__all__ = ["ControlError", "InvalidGainError", "ControlShapeError", "InvalidLevelError"]
 
 
 class ControlError(A3CQPError):
@@ -17,3 +17,7 @@ class InvalidGainError(ControlError, ValueError):
 
 class ControlShapeError(ControlError, ValueError):
     """A controller input with the wrong shape (names the input, the expected and the actual shape)."""
+
+
+class InvalidLevelError(ControlError, ValueError):
+    """A strict-priority level (or level selector) with an invalid value (names the task and the value)."""

@@ -16,6 +16,7 @@ import torch
 from a3cqp_rl.control.arrays import Array, cat, const, mm, mv
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import InvalidGainError
+from a3cqp_rl.control.piece import QPPiece
 
 __all__ = ["Inequality", "Limit", "JointLimitsViability", "WrenchBox", "FrictionPyramid", "TorqueLimits",
            "joint_acceleration_bounds"]
@@ -59,23 +60,14 @@ class Inequality:
     """[B, m]."""
 
 
-class Limit(ABC):
+class Limit(QPPiece, ABC):
     """A QP limit: inequality rows from the step's context."""
 
     name: str = "limit"
-    numpy_capable: bool = False
-    """True when `rows` also runs on a context of numpy arrays (see Task.numpy_capable)."""
 
     @abstractmethod
     def rows(self, ctx: ControlContext) -> Inequality:
         """Rows (G, h) of this limit for the batch in `ctx`."""
-
-    def c_params(self) -> tuple[str, dict] | None:
-        """(kind, its fields of the native step's parameters, control/native) or None when C does not translate it.
-
-        Only a class that defines `_c_params` itself is translated: a subclass may change the math."""
-        own = type(self).__dict__.get("_c_params")
-        return None if own is None else own(self)
 
 
 def _acc_bounds_from_position(q, dq, q_min, q_max, dt, xp):  # noqa: ANN001, ANN202

@@ -17,6 +17,7 @@ import torch
 from a3cqp_rl.control.arrays import Array, const, mm, mv, zeros
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import InvalidGainError
+from a3cqp_rl.control.piece import QPPiece
 
 __all__ = ["Residual", "Task", "CartesianIK", "Admittance", "ForceControl", "JointCentering",
            "CartesianAccelerationRegularizer"]
@@ -73,24 +74,14 @@ def _check_positive(**values: float) -> None:
             raise InvalidGainError(f"{name} must be finite and >= 0, got {value!r}")
 
 
-class Task(ABC):
+class Task(QPPiece, ABC):
     """A QP task: its residual and weight from the step's context."""
 
     name: str = "task"
-    numpy_capable: bool = False
-    """True when `residual` also runs on a context of numpy arrays (arrays.py); the controller's CPU step uses numpy
-    only when every task and limit is (a task written with torch calls keeps working: that step runs on torch)."""
 
     @abstractmethod
     def residual(self, ctx: ControlContext) -> Residual:
         """Residual (A, b) and weight W of this task for the batch in `ctx`."""
-
-    def c_params(self) -> tuple[str, dict] | None:
-        """(kind, its fields of the native step's parameters, control/native) or None when C does not translate it.
-
-        Only a class that defines `_c_params` itself is translated: a subclass may change the math."""
-        own = type(self).__dict__.get("_c_params")
-        return None if own is None else own(self)
 
 
 class CartesianIK(Task):

@@ -1,14 +1,25 @@
 """`a3cqp plot policy-map POLICY [--out F] [--fixed e --levels 0,0.05,0.3]` and
 `a3cqp plot loss-curves RUN [RUN ...] [--out F]` and `a3cqp plot regions RUN [RUN ...] [--out F]` and
+`a3cqp plot episode RUN [--controller learned] [--axis z] [--strip] [--out F]` (a Panda episode, Fig. 7/8) and
 `a3cqp plot ga DIR [--out F]` and `a3cqp plot pareto DIR [--out F]` (PNG by default; --pdf or a .pdf name for PDF)."""
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from pathlib import Path
 
 from a3cqp_rl.exceptions import A3CQPError
+
+POLICY_LOADER = "algorithms.a2c:load_policy"
+"""'module:function' turning a policy file into obs [..., 3] -> action [..., 4] (resolved on use: plotting does not
+import the algorithms)."""
+
+
+def _load_policy(path: Path):
+    module, func = POLICY_LOADER.split(":")
+    return getattr(importlib.import_module(module), func)(path)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -29,6 +40,13 @@ def main(argv: list[str] | None = None) -> int:
         runs.add_argument("runs", nargs="+", help="run folders holding metrics.csv (e.g. runs/sweep/seed_*)")
         runs.add_argument("--out", default=None)
         runs.add_argument("--pdf", action="store_true")
+    ep = sub.add_parser("episode", help="paper Fig. 7/8: one Panda episode of `a3cqp evaluate --scene ... --out RUN`")
+    ep.add_argument("run", help="RUN folder (or an episode_<controller>.npz)")
+    ep.add_argument("--controller", default="learned", help="which controller's episode (default: learned)")
+    ep.add_argument("--axis", default="z", choices=["x", "y", "z", "rx", "ry", "rz"], help="local axis (default z)")
+    ep.add_argument("--strip", action="store_true", help="also an image strip of the scene (needs EGL or OSMesa)")
+    ep.add_argument("--out", default=None)
+    ep.add_argument("--pdf", action="store_true")
     for name, text in (("ga", "GA run (a3cqp tune): fitness per generation, best and spread, genes"),
                        ("pareto", "NSGA-II run (a3cqp pareto): evaluations and Pareto front, 2-D (and 3-D)")):
         run = sub.add_parser(name, help=text)
@@ -36,6 +54,10 @@ def main(argv: list[str] | None = None) -> int:
         run.add_argument("--out", default=None)
         run.add_argument("--pdf", action="store_true")
     args = p.parse_args(argv)
+    if getattr(args, "strip", False):
+        import os
+
+        os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen; read when MuJoCo is first imported
     ext = ".pdf" if args.pdf else ".png"
     try:
         if args.what == "policy-map":
@@ -46,12 +68,27 @@ def main(argv: list[str] | None = None) -> int:
                 src = src / "policy.pt"
             levels = [float(v) for v in args.levels.split(",")]
             out = Path(args.out) if args.out else src.with_name("policy_map" + ext)
-            plot_policy_map(src, out, args.x, args.y, args.fixed, levels)
+            plot_policy_map(_load_policy(src), out, args.x, args.y, args.fixed, levels, title=str(src))
         elif args.what == "loss-curves":
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
 
             out = Path(args.out) if args.out else Path(args.runs[0]).parent / ("loss_curves" + ext)
             plot_loss_curves(args.runs, out)
+        elif args.what == "episode":
+            from a3cqp_rl.plotting.episode import load_episode, plot_episode, render_strip
+
+            src = Path(args.run)
+            npz = src / f"episode_{args.controller}.npz" if src.is_dir() else src
+            data = load_episode(npz)
+            base = npz.parent / f"episode_{args.controller}" if src.is_dir() else npz.with_suffix("")
+            out = Path(args.out) if args.out else base.with_suffix(ext)
+            plot_episode(data, out, axis=args.axis, title=f"{data.get('scene', '')}: {args.controller}, axis {args.axis}")
+            if args.strip:
+                try:
+                    strip = render_strip(data, out.with_name(out.stem + "_strip.png"))
+                    print(f"wrote {strip}")
+                except RuntimeError as exc:
+                    print(f"no image strip: {exc}", file=sys.stderr)
         elif args.what == "ga":
             from a3cqp_rl.plotting.ga_history import plot_ga_run
 

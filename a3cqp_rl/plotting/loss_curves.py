@@ -16,11 +16,17 @@ def read_metrics(run_dir: str | Path) -> dict[str, np.ndarray]:
     path = Path(run_dir) / "metrics.csv"
     if not path.is_file():
         raise FileNotFoundError(f"no metrics.csv in {run_dir} (is it a training output folder?)")
-    with path.open() as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
-        raise ValueError(f"{path} has no rows yet")
-    return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+    try:
+        with path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        if not rows:
+            raise ValueError(f"{path} has no rows yet")
+        return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+    except (UnicodeDecodeError, csv.Error, TypeError, ValueError) as exc:
+        if str(exc).startswith(str(path)):
+            raise
+        raise ValueError(f"{path} is not a metrics file a3cqp train wrote (numbers under a header row): "
+                         f"{type(exc).__name__}: {exc}") from None
 
 
 def plot_loss_curves(

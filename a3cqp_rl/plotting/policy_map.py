@@ -27,31 +27,27 @@ def policy_grid(
     gy, gx = torch.meshgrid(lin, lin, indexing="ij")
     cols = {x: gx, y: gy, fixed: torch.full_like(gx, level)}
     obs = torch.stack([cols[n] for n in STATE_NAMES], dim=-1)  # [R, R, 3] in (e, f_env, f_ope) order
-    return lin, lin, policy(obs)
+    with torch.no_grad():
+        return lin, lin, policy(obs)
 
 
 def plot_policy_map(
-    policy_or_path: Callable[[Tensor], Tensor] | str | Path,
+    policy: Callable[[Tensor], Tensor],
     out: str | Path,
     x: str = "f_ope",
     y: str = "f_env",
     fixed: str = "e",
     levels: Sequence[float] = (0.0, 0.05, 0.3),
     resolution: int = 41,
+    title: str = "policy",
 ) -> Path:
-    """Draw a 4 × len(levels) grid of heat maps (one row per action) to `out` (.png or .pdf); returns the path."""
+    """Draw `policy` (obs [..., 3] -> action [..., 4], e.g. algorithms.a2c.load_policy(path)) as a 4 × len(levels)
+    grid of heat maps (one row per action) to `out` (.png or .pdf); returns the path."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    if isinstance(policy_or_path, (str, Path)):
-        from algorithms.a2c import load_policy
-
-        policy = load_policy(policy_or_path)
-        title = str(policy_or_path)
-    else:
-        policy, title = policy_or_path, "policy"
     fig, axes = plt.subplots(4, len(levels), figsize=(3.2 * len(levels) + 1.2, 11), squeeze=False,
                              sharex=True, sharey=True, constrained_layout=True)
     im = None

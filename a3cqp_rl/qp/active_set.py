@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from a3cqp_rl.qp.kkt import LU_MAX_BATCH, RHO_FAST, eq_solve_alm, kkt_lu, kkt_schur, mv
+from a3cqp_rl.qp.kkt import LU_MAX_BATCH, RHO_FAST, eq_solve_alm, kkt_certified, kkt_lu, kkt_schur, mv, row_thresholds
 
 __all__ = ["residual_scales", "active_set_stage"]
 
@@ -24,14 +24,13 @@ def active_set_stage(
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Active-set stage on the whole batch; returns x, y, z, certified-optimal mask, iterations.
 
-    z0 [B, m] seeds the working set W = {z0 > 0}; sp, sd [B] scale the tolerances.
+    z0 [B, m] seeds the working set W = {z0 > 0}; sp, sd [B] scale the tolerance of the working-set
+    solves; a candidate counts as optimal only when `kkt_certified` (per-row tolerances) accepts it.
     """
     B, n = q.shape
     p, m = A.shape[1], G.shape[1]
     C = torch.cat([A, G], 1) if p else G  # (B, p + m, n)
     d = torch.cat([b, h], 1) if p else h
-    tol_p = (tol * sp).unsqueeze(-1)
-    ntol_d = (-tol * sd).unsqueeze(-1)
     W = z0 > 0  # (B, m) working set
     z = torch.cat([q.new_zeros(B, p), z0], 1) if p else z0
     x = row_sq = L = x_u = None
@@ -57,7 +56,7 @@ def active_set_stage(
             # inequality multipliers ≥ 0.
             vG = mv(G, x_d) - h  # (b, m): > 0 means violated
             zG = z_d[:, p:]
-            ok = (res <= tol_r) & (vG <= tol_p).all(-1) & (zG >= ntol_d).all(-1)
+            ok = (res <= tol_r) & kkt_certified(P, q, A, b, G, h, x_d, z_d[:, :p], zG, tol)
             if out is None and bool(ok.all()):
                 # Fast exit (the warm-started control loop, or a single instance): every instance
                 # certified in the same iteration, so no bookkeeping ops at all.
@@ -77,7 +76,7 @@ def active_set_stage(
             x, z, stat, viol = eq_solve_alm(P, q, C, d, mask, z, x, 1e-2 * tol, row_sq, RHO_FAST)
             res = torch.maximum(stat, (viol * mask).abs().amax(-1))
             vG, zG = viol[:, p:], z[:, p:]
-            ok = (res <= tol_r) & (vG <= tol_p).all(-1) & (zG >= ntol_d).all(-1)
+            ok = (res <= tol_r) & kkt_certified(P, q, A, b, G, h, x, z[:, :p], zG, tol)
         n_ok = int(ok.sum())
         if n_ok and out is None and n_ok == ok.shape[0]:
             return x, z[:, :p], z[:, p:], ok, torch.full((B,), k + 1, dtype=torch.long, device=q.device)
@@ -94,12 +93,13 @@ def active_set_stage(
             break
         # Semismooth Newton step on min(z, h − Gx) = 0: keep working rows with positive
         # multipliers, add the violated rows.
-        W = (W & (zG > 0)) | (~W & (vG > tol_p))
+        # "Violated" as in the certificate: beyond the row's own tolerance at the current point.
+        W = (W & (zG > 0)) | (~W & (vG > row_thresholds(G, h, x, tol)))
         if n_ok:
             # Drop certified instances (one integer index, reused; C and d alias G and h if p = 0).
             keep = (~ok).nonzero().squeeze(-1)
-            idx, P, q, G, h, x, z, W, tol_p, ntol_d, tol_r = (
-                t.index_select(0, keep) for t in (idx, P, q, G, h, x, z, W, tol_p, ntol_d, tol_r)
+            idx, P, q, G, h, x, z, W, tol_r = (
+                t.index_select(0, keep) for t in (idx, P, q, G, h, x, z, W, tol_r)
             )
             A, b = A.index_select(0, keep), b.index_select(0, keep)
             C, d = (torch.cat([A, G], 1), torch.cat([b, h], 1)) if p else (G, h)

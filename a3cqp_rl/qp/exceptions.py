@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from a3cqp_rl.exceptions import A3CQPError
 
-__all__ = ["QPError", "QPShapeError", "NotAQPError", "NotDPPError"]
+__all__ = ["QPError", "QPShapeError", "QPBackendError", "QPInfeasibleError", "NotAQPError", "NotDPPError"]
 
 
 class QPError(A3CQPError):
@@ -13,6 +13,14 @@ class QPError(A3CQPError):
 
 class QPShapeError(QPError, ValueError):
     """QP data with inconsistent shapes, dtypes or batch sizes (the message names the argument)."""
+
+
+class QPBackendError(QPError, ValueError):
+    """An unknown `backend=`, or one that cannot run here (the C route on a GPU or without its library)."""
+
+
+class QPInfeasibleError(QPError, RuntimeError):
+    """`QPLayer` met instances without a solution (infeasible, unbounded, ...) and was asked to raise."""
 
 
 class NotAQPError(QPError, ValueError):

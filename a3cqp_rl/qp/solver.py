@@ -1,164 +1,175 @@
-"""Batched dense QP solver in pure torch, differentiable through the KKT conditions.
+"""`solve_qp`: batched dense QPs, differentiable through the KKT conditions, with a status per instance.
 
 Problem, for each element of a batch [B] with the same sizes::
 
     minimise ½ xᵀ P x + qᵀ x   subject to   A x = b,   G x ≤ h,   lb ≤ x ≤ ub.
 
-Algorithm (why this one)
-------------------------
-The controller solves one small QP (n ≈ 13, m ≈ 30-40 rows) per robot every millisecond, with a
-solution from the previous millisecond at hand, and training solves thousands at once.  In eager
-torch every op costs a few µs whatever its size, so at B = 1 the *number of ops* decides latency;
-at B = 1024 the passes over the [B, m, n] constraint data and the batched factorisations decide
-throughput.  Measured here: an interior-point (IPM) iteration is ~150 torch calls (0.5-0.9 ms at
-B = 1 on the shared 2-core box) and forming P + Gᵀ D G costs ~1 ms at B = 1024; a cold IPM needs
-7-20 iterations, while an active-set iteration is ~40 calls.  So the
-solver works in two stages, each vectorised over the batch:
+Routes (`backend=`; see `status.py` for which inputs give which status, on every route alike):
 
-1. **Primal-dual active set (PDAS: semismooth Newton on min(z, h − Gx) = 0)**, from the warm
-   start's active set (or the empty set).  Each iteration solves the equality-constrained QP of
-   the working set W (Ax = b, G_W x = h_W) exactly:
-   - B ≤ 32: one batched LU of the masked KKT matrix (fewest ops, lowest latency);
-   - B > 32: Cholesky of P once per solve, then the Schur complement on the *gathered* working
-     rows only (k = max |W|, typically 0-5 of 30 rows), O(n²k) per iteration;
-   - fallback (singular KKT: dependent active rows, P singular on their null space): a proximal
-     augmented Lagrangian on the Cholesky factor of P + C_Wᵀ ρ C_W + δI, which stays definite.
-   A candidate is accepted only when *certified* optimal a posteriori (KKT residual of the
-   working set, primal feasibility of every row and non-negative multipliers, all within tol), so
-   this stage never returns a wrong answer.  Warm-started in the control loop the active set
-   rarely changes and one PDAS iteration solves the QP; cold, W = ∅ already solves every instance
-   whose unconstrained optimum is feasible; the controller-like test family needs 1-4 iterations,
-   heavily constrained instances (5-10 active rows) 5-15 or the IPM.
-2. **Mehrotra predictor-corrector IPM** for the instances the active-set stage did not certify
-   within `active_set_iter` iterations (15 for B ≤ 32, 10 above) (cycling, many active-set changes, infeasible or unbounded
-   problems).  It factors P + Gᵀ(z/s)G (+ρAᵀA with a p × p Schur complement for equalities) by
-   batched Cholesky on unit-norm rows, detects primal infeasibility (Farkas certificate from the
-   duals) and unboundedness (a recession direction from the steps), drops finished instances
-   from the working batch, and its strictly complementary active set (z > s) seeds a final PDAS
-   "polish" that returns the exact solution of that active set.
+- ``"c"``: `native/gi_qp.c`, a dense Goldfarb-Idnani dual active set per instance in one C call for
+  the whole batch (input checks, bounds, the active set and its KKT certificate).  It solves every
+  strictly convex instance (P ≻ 0) it can certify; the rest (P only semi-definite or indefinite,
+  dependent active rows, infeasible or unbounded candidates) goes to the torch route, instance by
+  instance.  CPU tensors only.
+- ``"torch"``: `batched.py`, the whole batch in batched torch ops on any device: input checks,
+  convexity test, a primal-dual active set, then an interior point with infeasibility and
+  unboundedness certificates and an exact polish.
+- ``"auto"`` (default): ``"c"`` for CPU tensors when the C routine is available, else ``"torch"``.
+  The C routine is unavailable without a C compiler or with the environment variable
+  A3CQP_NATIVE_QP=0 (a default override for whole programs); an explicit ``backend="c"`` then raises.
 
-Small CPU batches (dispatch)
-----------------------------
-At B = 1 the stages above are op-bound: a warm-started solve is ~60 torch calls (180-400 µs),
-slower than proxsuite.torch, and a cold heavily constrained one pays for IPM iterations of ~150
-calls each.  So small CPU batches go through `small_batch.py` instead: per instance in numpy
-(~1 µs per call on these sizes instead of ~4-7 µs per torch op), a Goldfarb-Idnani dual active
-set warm-started from the previous working set (one KKT solve in the control loop, 10-18 on
-heavily constrained instances, no IPM), with the same certificate; what it does not certify
-(singular P or rows, infeasible, unbounded, NaN) goes to the batched stages above, so answers and
-statuses are the batched path's.  The backward of those batches solves the adjoint system per
-instance in numpy too (same equations; the torch adjoint if a system is singular).  Both the
-active set (cold and warm) and the adjoint also exist in C (`native/gi_qp.c`, compiled on first
-use, one ctypes call per batch, same decisions and certificates; the numpy code is the fallback
-and the reference), which takes the numpy call overhead out of B = 1.  The Python
-loop grows with B while the batched torch path is nearly flat, so the route is chosen by batch
-size (CPU only; a CUDA batch always takes the batched path):
+Why these two: at the controller's size (n ≈ 13, m ≈ 30) a whole active-set solve is a few µs of
+arithmetic, so the C route's cost is its call: at B = 1 this module goes from torch tensors to the C
+call and back without intermediate tensors (`_forward_c`), and the returned `QPSolution` turns its
+numpy buffers into tensors only when a field is read.  The torch route is what runs on GPUs and
+without a compiler.  Measured when a third, numpy copy of the active set was removed (2026-11-24,
+1 thread, µs per QP, C / numpy / torch): B = 1 default instances 31 / 65 / 190, heavily constrained
+32 / 123 / 857; B = 64 2.0 / 20 / 12 and 5.0 / 57 / 277: where a compiler exists the numpy copy never
+ran, and where none exists the controller runs its Python backend anyway.
 
-- B ≤ `SMALL_BATCH_MAX_WARM` (8) with a warm start, B ≤ `SMALL_BATCH_MAX` (16) without: numpy.
-- Measured crossovers (µs per QP, numpy / batched torch, 13 variables, 30 rows, 1 thread, the
-  shared box under load, so ratios matter more than values): warm forward B = 8: 128 / 130,
-  B = 16: 109 / 88; cold forward B = 16: 187 / 251, B = 32: 171 / 195, B = 64: 158 / 89 (spread
-  0.35, where the batched path needs its IPM: numpy wins up to B ≈ 64); backward alone B = 16:
-  76 / 123.  At B = 1: warm 407 / 736, cold 712 / 1318, cold heavily constrained 1209 / 3639.
-  (Those numbers predate the range-space cold start of `small_batch.py`; with it and the leaner
-  wrapper, B = 1 against proxsuite.torch, medians of 3 `bench/qp.py` runs: default instances
-  cold 1.24× forward / 1.16× forward+backward, warm 2.24× / 1.45×; heavily constrained (spread
-  0.35) cold 0.97× / 1.00×, warm 2.80× / 1.66×.  With the C routines, same protocol, old path
-  (A3CQP_NATIVE_QP=0) and new back to back: default cold 1.24× → 2.30× forward, 1.22× → 1.74×
-  forward+backward, warm 2.09× → 2.55× / 1.46× → 1.81×; heavily constrained cold 1.02× → 2.55× /
-  1.14× → 2.05×, warm 2.66× → 3.65× / 1.57× → 2.15×.  Against proxsuite's parallel BatchQP
-  (forward only) cold 0.58× → 1.15× (default), 0.56× → 1.53× (heavy).)
-
-Code: `kkt.py` (the three working-set solves), `active_set.py` (stage 1), `interior_point.py`
-(stage 2), `small_batch.py` (the small-batch route), this file (assembly, polish, autograd,
-dispatch, `solve_qp`).
-
-Infinite bounds and right-hand sides become inert rows (0·x ≤ 1), and a failed instance never
-produces NaN: x is the last finite iterate and `status` says what happened.
+Every route solves in float64; float32 (or lower) inputs are solved in float64, rounded, and re-checked
+against `tol` in the input's precision (TOLERANCE_NOT_MET if the rounded answer misses it).
 
 Backward: implicit differentiation of the KKT system at the solution (as OptNet/qpth), with the
-active set read from the duals and slacks (z > h − Gx).  The adjoint system has the same structure
-as a PDAS step and is solved by the same LU / Schur / augmented-Lagrangian routines; it gives the
-gradients with respect to P, q, A, b, G, h, lb, ub in closed form.  Nothing is unrolled.
+active set read from the duals and slacks (z > h − Gx): the C adjoint (`gi_qp_adjoint`) where the C
+route solved the batch and P ≻ 0, else the torch adjoint (LU / Schur / augmented Lagrangian, `kkt.py`).
+Gradients flow to every tensor argument through x of SOLVED instances; nothing is unrolled.
+
+Code: `kkt.py` (working-set solves, the KKT certificate), `active_set.py`, `interior_point.py`,
+`batched.py` (the torch route), `native/` (the C route), this file (arguments, dispatch, autograd).
 """
 
 from __future__ import annotations
-
-import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from a3cqp_rl.qp.active_set import active_set_stage, residual_scales
-from a3cqp_rl.qp.exceptions import QPShapeError
-from a3cqp_rl.qp.interior_point import interior_point
-from a3cqp_rl.qp.kkt import LU_MAX_BATCH, eq_solve_alm, kkt_lu, kkt_schur, mv
-from a3cqp_rl.qp import native, small_batch
-from a3cqp_rl.qp.small_batch import EXHAUSTED, SINGULAR, active_set_small, adjoint_small, gradients_native
+from a3cqp_rl.native_build import address
+from a3cqp_rl.qp import native
+from a3cqp_rl.qp.batched import solve_torch
+from a3cqp_rl.qp.exceptions import QPBackendError, QPShapeError
+from a3cqp_rl.qp.kkt import LU_MAX_BATCH, eq_solve_alm, kkt_certified, kkt_lu, kkt_schur, mv
 from a3cqp_rl.qp.status import QPStatus
 
-__all__ = ["QPStatus", "QPSolution", "solve_qp", "SMALL_BATCH_MAX", "SMALL_BATCH_MAX_WARM"]
+__all__ = ["QPStatus", "QPSolution", "solve_qp", "BACKENDS", "MAX_STEPS"]
 
-SMALL_BATCH_MAX = 16
-"""Largest CPU batch solved (and differentiated) by the numpy per-instance path, `small_batch.py`
-(measured crossover: see the module docstring)."""
-SMALL_BATCH_MAX_WARM = 8
-"""Same, for warm-started solves: both paths then certify in one iteration, which the batched
-path amortises over the batch sooner."""
-NATIVE_BATCH_MAX = 4096
-"""With the C routine loaded, CPU batches up to this size take the per-instance path as well: one C call
-loops over the batch, which beats the batched torch path at every size measured (µs per QP, C / batched
-torch, 1 thread: B = 64 heavily constrained cold 13.5 / 415; B = 1024 heavily constrained cold 12.4 / 178,
-forward+backward 17.6 / 171; B = 1024 default cold 6.4 / 8.1).  Above `SMALL_BATCH_MAX` what C does
-not certify goes straight to the batched path (a numpy retry per instance would not scale)."""
-SMALL_MAX_STEPS = 100
-"""Step budget of the numpy dual active set (one KKT solve per step) before the interior point.
+BACKENDS = ("auto", "c", "torch")
+"""Values of `solve_qp(backend=...)`."""
+MAX_STEPS = 100
+"""Active-set steps of the C route (one k × k solve each) before an instance goes to the torch route:
 Goldfarb-Idnani is finite (each step adds or drops a row); heavily constrained controller-sized
 instances need 10-30, so the budget only stops numerical cycling."""
+_F64 = torch.float64
 
 
-@dataclass
+class _Field:
+    """A QPSolution field read through `_get` (made from the C route's output buffer when first read)."""
+
+    def __init__(self, doc: str) -> None:
+        self.__doc__ = doc
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.slot = "_" + name
+
+    def __get__(self, sol: "QPSolution | None", owner: type | None = None):  # noqa: ANN204
+        return self if sol is None else sol._get(self.slot)
+
+
 class QPSolution:
-    """Solution of a batch of QPs; duals follow L = ½xᵀPx + qᵀx + yᵀ(Ax − b) + zᵀ(Gx − h) + ...."""
+    """Solution of a batch of QPs; duals follow L = ½xᵀPx + qᵀx + yᵀ(Ax − b) + zᵀ(Gx − h) + z_lbᵀ(lb − x) + z_ubᵀ(x − ub).
 
-    x: Tensor
-    """Primal solution [B, n]."""
-    y: Tensor
-    """Multipliers of A x = b [B, p]."""
-    z: Tensor
-    """Multipliers (≥ 0) of G x ≤ h [B, m]."""
-    z_lb: Tensor
-    """Multipliers (≥ 0) of lb ≤ x [B, n] (zero where lb is absent or infinite)."""
-    z_ub: Tensor
-    """Multipliers (≥ 0) of x ≤ ub [B, n] (zero where ub is absent or infinite)."""
-    status: Tensor
-    """QPStatus code per instance [B] (int64)."""
-    iterations: Tensor
-    """Number of KKT factorisations (active-set + interior-point iterations) per instance [B]."""
+    Fields are tensors in the dtype of `q` (status and iterations int64).  On the C route they are views
+    of the solver's output buffer, made when first read (a tensor costs ~1 µs at B = 1).
+    """
+
+    __slots__ = ("_x", "_y", "_z", "_z_lb", "_z_ub", "_status", "_iterations", "_dtype", "_buf", "_addr", "_dims")
+
+    def __init__(self, x: Tensor, y: Tensor, z: Tensor, z_lb: Tensor, z_ub: Tensor, status: Tensor,
+                 iterations: Tensor) -> None:
+        self._x, self._y, self._z, self._z_lb, self._z_ub = x, y, z, z_lb, z_ub
+        self._status, self._iterations = status, iterations
+        self._dtype = x.dtype
+        self._buf = None
+
+    @classmethod
+    def _from_buffer(cls, buf: np.ndarray, addr: int, B: int, n: int, p: int, m: int) -> "QPSolution":
+        """A solution over gi_qp_solve's output buffer: x [B·n] | duals [B·(p + m + 2n)] | status [B] | solves [B]."""
+        sol = cls.__new__(cls)
+        sol._buf, sol._addr, sol._dims, sol._dtype = buf, addr, (B, n, p, m), _F64
+        sol._x = sol._y = sol._z = sol._z_lb = sol._z_ub = sol._status = sol._iterations = None
+        return sol
+
+    def _np(self, name: str) -> np.ndarray:
+        """numpy view of one field of the output buffer."""
+        B, n, p, m = self._dims
+        buf, nout = self._buf, p + m + 2 * n
+        if name == "_x":
+            return buf[: B * n].reshape(B, n)
+        if name in ("_status", "_iterations"):
+            k = B * (n + nout) + (B if name == "_iterations" else 0)
+            return buf[k : k + B].view(np.int64)
+        lo, hi = {"_y": (0, p), "_z": (p, p + m), "_z_lb": (p + m, p + m + n), "_z_ub": (p + m + n, nout)}[name]
+        return buf[B * n : B * (n + nout)].reshape(B, nout)[:, lo:hi]
+
+    def _get(self, name: str) -> Tensor:
+        v = getattr(self, name)
+        if v is None:
+            v = torch.from_numpy(self._np(name))
+            setattr(self, name, v)
+        return v
+
+    @property
+    def x(self) -> Tensor:
+        """Primal solution [B, n] (zero where no answer exists: see `status`)."""
+        v = self._x
+        return v if v is not None else self._get("_x")
+
+    y = _Field("Multipliers of A x = b [B, p].")
+    z = _Field("Multipliers (≥ 0) of G x ≤ h [B, m].")
+    z_lb = _Field("Multipliers (≥ 0) of lb ≤ x [B, n] (zero where lb is absent or −inf).")
+    z_ub = _Field("Multipliers (≥ 0) of x ≤ ub [B, n] (zero where ub is absent or +inf).")
+    status = _Field("QPStatus code per instance [B] (int64).")
+    iterations = _Field("KKT factorisations (active-set steps + interior-point iterations) per instance [B] (int64).")
 
     @property
     def solved(self) -> Tensor:
         """Boolean mask [B] of instances with status SOLVED."""
         return self.status == QPStatus.SOLVED
 
+    def __repr__(self) -> str:
+        return f"QPSolution(x={self.x!r}, status={self.status!r})"
+
 
 # ----------------------------------------------------------------------------------------------
-# Problem assembly
+# Arguments
 # ----------------------------------------------------------------------------------------------
 
 
-def _batched(t: Tensor | None, name: str, ndim: int, batch: int, dtype: torch.dtype) -> Tensor | None:
-    """Check dims of a QP argument and expand an unbatched one to the batch size."""
+def _as_tensor(t: object, name: str) -> Tensor | None:
+    """A QP argument as a tensor: tensors as they are, numpy arrays (and nested lists) converted."""
+    if t is None or isinstance(t, Tensor):
+        return t
+    if isinstance(t, (np.ndarray, list, tuple, float, int, np.floating)):
+        a = np.asarray(t)
+        if a.dtype.kind not in "fiub":
+            raise QPShapeError(f"{name} must hold numbers, got a numpy array of dtype {a.dtype}")
+        return torch.from_numpy(np.ascontiguousarray(a, dtype=a.dtype if a.dtype.kind == "f" else np.float64))
+    raise QPShapeError(f"{name} must be a torch.Tensor or a numpy array, got {type(t).__name__}")
+
+
+def _batched(t: Tensor | None, name: str, ndim: int, batch: int, dtype: torch.dtype, device: torch.device) -> Tensor | None:
+    """Check dims, dtype and device of a QP argument and expand an unbatched one to the batch size."""
     if t is None:
         return None
     if t.dtype != dtype:
         raise QPShapeError(f"{name} has dtype {t.dtype}, expected {dtype} (the dtype of q)")
+    if (t.is_cpu and device.type != "cpu") or (not t.is_cpu and t.device != device):
+        raise QPShapeError(f"{name} is on {t.device}, expected {device} (the device of q)")
     if t.dim() == ndim - 1:
         t = t.unsqueeze(0)
     if t.dim() != ndim:
-        raise QPShapeError(f"{name} must have {ndim} dims [B, ...], got shape {tuple(t.shape)}")
+        raise QPShapeError(f"{name} must have {ndim} dims [B, ...] or {ndim - 1} (shared by the batch), got shape {tuple(t.shape)}")
     if t.shape[0] == 1 and batch > 1:
         t = t.expand(batch, *t.shape[1:])
     elif t.shape[0] != batch:
@@ -166,339 +177,307 @@ def _batched(t: Tensor | None, name: str, ndim: int, batch: int, dtype: torch.dt
     return t
 
 
+def _resolve_backend(backend: str, q: Tensor) -> native.NativeQP | None:
+    """The C routine to use, or None for the torch route; unknown or impossible backends raise."""
+    if backend == "torch":
+        return None
+    if backend not in BACKENDS:
+        if backend == "numpy":
+            raise QPBackendError("backend 'numpy' no longer exists: use 'c' (compiled) or 'torch' (any device)")
+        raise QPBackendError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if not q.is_cpu:
+        if backend == "c":
+            raise QPBackendError(f"backend='c' solves CPU tensors, got tensors on {q.device}; use 'torch' or 'auto'")
+        return None
+    lib = native.load()
+    if lib is None and backend == "c":
+        raise QPBackendError("backend='c' is unavailable: the C routine did not build (no C compiler, or "
+                             "A3CQP_NATIVE_QP=0); use 'torch' or 'auto'")
+    return lib
+
+
 _EMPTY_EQ: dict[tuple, tuple[Tensor, Tensor]] = {}
 
 
-def _no_equalities(batch: int, n: int, like: Tensor) -> tuple[Tensor, Tensor]:
-    """Empty A [B, 0, n] and b [B, 0], cached per shape/dtype/device: two allocations are ~5 µs of
-    the B = 1 budget, and a tensor with no elements cannot be changed by whoever holds it."""
-    key = (batch, n, like.dtype, like.device)
+def _no_equalities(B: int, n: int, like: Tensor) -> tuple[Tensor, Tensor]:
+    """Empty A [B, 0, n] and b [B, 0], cached per shape/dtype/device (a tensor without elements cannot change)."""
+    key = (B, n, like.dtype, like.device)
     eq = _EMPTY_EQ.get(key)
     if eq is None:
         if len(_EMPTY_EQ) > 64:
             _EMPTY_EQ.clear()
-        eq = _EMPTY_EQ[key] = (like.new_zeros(batch, 0, n), like.new_zeros(batch, 0))
+        eq = _EMPTY_EQ[key] = (like.new_zeros(B, 0, n), like.new_zeros(B, 0))
     return eq
 
 
-def _stack_inequalities(
-    G: Tensor | None, h: Tensor | None, lb: Tensor | None, ub: Tensor | None, batch: int, n: int, like: Tensor
-) -> tuple[Tensor, Tensor, int, bool, bool]:
-    """Stack G x ≤ h, −x ≤ −lb, x ≤ ub into one (G_all, h_all), with infinite rows made inert."""
-    if G is not None and lb is None and ub is None:  # the controller's case: nothing to stack
-        return *_inert_infinite_rows(G, h, like), G.shape[1], False, False
+def _stack_rows(G: Tensor | None, h: Tensor | None, lb: Tensor | None, ub: Tensor | None, B: int, n: int,
+                like: Tensor) -> tuple[Tensor, Tensor]:
+    """G x ≤ h, −x ≤ −lb, x ≤ ub as one (G_all [B, m + ·, n], h_all); infinite entries are handled downstream."""
     rows_G, rows_h = [], []
-    m = 0
     if G is not None:
         rows_G.append(G)
         rows_h.append(h)
-        m = G.shape[1]
-    has_lb, has_ub = lb is not None, ub is not None
-    if has_lb or has_ub:
-        eye = torch.eye(n, dtype=like.dtype, device=like.device).expand(batch, n, n)
-    if has_lb:
-        rows_G.append(-eye)
-        rows_h.append(-lb)
-    if has_ub:
-        rows_G.append(eye)
-        rows_h.append(ub)
+    if lb is not None or ub is not None:
+        eye = torch.eye(n, dtype=like.dtype, device=like.device).expand(B, n, n)
+        if lb is not None:
+            rows_G.append(-eye)
+            rows_h.append(-lb)
+        if ub is not None:
+            rows_G.append(eye)
+            rows_h.append(ub)
     if not rows_G:
-        empty = like.new_zeros(batch, 0, n)
-        return empty, like.new_zeros(batch, 0), 0, False, False
-    G_all = torch.cat(rows_G, 1) if len(rows_G) > 1 else rows_G[0]
-    h_all = torch.cat(rows_h, 1) if len(rows_h) > 1 else rows_h[0]
-    return *_inert_infinite_rows(G_all, h_all, like), m, has_lb, has_ub
-
-
-def _inert_infinite_rows(G: Tensor, h: Tensor, like: Tensor) -> tuple[Tensor, Tensor]:
-    """Rows with an infinite right-hand side replaced by 0·x ≤ 1.
-
-    An infinite right-hand side is no constraint; 0·x ≤ 1 is always satisfied with slack 1 and a
-    zero multiplier, so every instance keeps the same row count."""
-    if h.is_cpu:
-        # Three torch calls are ~10 µs of the B = 1 budget (~25 at B = 64): test in numpy.  A finite
-        # sum proves every entry finite (a non-finite one, or an overflow, takes the exact test below).
-        if math.isfinite(_np64(h).sum()):
-            return G, h
-    finite = torch.isfinite(h)
-    if bool(finite.all()):
-        return G, h
-    G = torch.where(finite.unsqueeze(-1), G, torch.zeros((), dtype=like.dtype))
-    h = torch.where(finite, h, torch.ones((), dtype=like.dtype))
-    return G, h
+        return like.new_zeros(B, 0, n), like.new_zeros(B, 0)
+    if len(rows_G) == 1:
+        return rows_G[0], rows_h[0]
+    return torch.cat(rows_G, 1), torch.cat(rows_h, 1)
 
 
 # ----------------------------------------------------------------------------------------------
-# Forward driver and autograd
+# The C route
 # ----------------------------------------------------------------------------------------------
 
+_STRIDES: dict[tuple[int, ...], tuple[np.ndarray, int]] = {}
+_RETIRED: list[dict] = []
 
-_IPM_POLISH_TOL = 1e-6
-"""Complementarity at which the interior point hands its active set to the exact polish."""
+
+def _strides(key: tuple[int, ...]) -> int:
+    """Address of the int64 stride array of a call (cached, arrays kept alive: the same few layouts recur
+    every control step)."""
+    hit = _STRIDES.get(key)
+    if hit is None:
+        if len(_STRIDES) > 256:  # addresses handed out stay valid: old arrays are kept, only not found again
+            _RETIRED.append(_STRIDES.copy())
+            _STRIDES.clear()
+            _FAST_STRIDES.clear()
+        arr = np.array(key, dtype=np.int64)
+        hit = _STRIDES[key] = (arr, address(arr))
+    return hit[1]
 
 
-def _ipm_polished(
-    P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, sp: Tensor, sd: Tensor,
-    tol_ipm: float, tol: float, max_iter: int,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Interior point to tol_ipm, then an active-set polish to tol; returns x, y, z, status, iterations, polished."""
-    nb, n = q.shape
-    m = G.shape[1]
-    # Unit-norm rows for the interior point: one tolerance fits all rows and its Farkas test is
-    # scale-free; multipliers are scaled back below.
-    nA = A.norm(dim=-1).clamp_min(1e-30)
-    nG = G.norm(dim=-1)
-    nG = torch.where(nG > 0, nG, torch.ones((), dtype=q.dtype))
-    Gs, hs = (G / nG.unsqueeze(-1), h / nG) if m else (q.new_zeros(nb, 1, n), q.new_ones(nb, 1))
-    xi, yi, zi, si, ii = interior_point(P, q, A / nA.unsqueeze(-1), b / nA, Gs, hs, tol_ipm, max_iter)
-    yi = yi / nA
-    # Active set decided in the normalised rows, where multipliers and slacks are comparable.
-    act_ipm = zi[:, :m] > (hs - mv(Gs, xi))[:, :m]
-    zi = zi[:, :m] / nG
-    polished = torch.zeros(nb, dtype=torch.bool, device=q.device)
-    good = (si == QPStatus.SOLVED).nonzero().squeeze(-1)
-    if good.numel():
-        # Polish: the IPM's strictly complementary active set (z > s) seeds an active-set solve,
-        # which returns the exact solution of that active set and multipliers that are zero on
-        # inactive rows (an IPM stopped at μ leaves O(√μ) errors on degenerate rows).
-        z_act = torch.where(act_ipm, zi, torch.zeros((), dtype=q.dtype)) if m else zi
-        sub = [t.index_select(0, good) for t in (P, q, A, b, G, h, z_act, sp, sd)]
-        xp, yp, zp, okp, itp = active_set_stage(*sub, tol, 2)
-        sel = good[okp]
-        xi[sel], zi[sel], yi[sel], polished[sel] = xp[okp], zp[okp], yp[okp], True
-        ii[good] = ii[good] + itp.clamp(max=2)
-    return xi, yi, zi, si, ii, polished
+def _c_arg(t: Tensor | None, ndim: int, B: int) -> tuple[Tensor | None, int, int]:
+    """(tensor kept alive, data address, batch stride in doubles) of a float64 CPU argument for gi_qp_solve."""
+    if t is None:
+        return None, 0, 0
+    if t.dim() == ndim:  # batched
+        if t.shape[0] != B and t.shape[0] != 1:
+            raise QPShapeError(f"an argument has batch size {t.shape[0]}, expected {B}")
+        if t.is_contiguous():
+            return t, t.data_ptr(), (t.numel() // t.shape[0] if t.shape[0] == B and B > 1 else 0)
+        if t.stride(0) == 0 and t[0].is_contiguous():  # expanded: one array for the whole batch
+            return t, t.data_ptr(), 0
+        t = t.contiguous()
+        return t, t.data_ptr(), t.numel() // B
+    t = t.contiguous()  # unbatched: shared
+    return t, t.data_ptr(), 0
+
+
+def _forward_c(
+    lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Tensor | None, G: Tensor | None,
+    h: Tensor | None, lb: Tensor | None, ub: Tensor | None, B: int, n: int, p: int, m: int,
+    warm: tuple[np.ndarray, int, int] | None, tol: float,
+) -> tuple[np.ndarray, int, int]:
+    """One gi_qp_solve call on float64 CPU tensors (any batch layout); returns (output buffer, its address, worst status)."""
+    keep = [_c_arg(P, 3, B), _c_arg(q, 2, B), _c_arg(A, 3, B), _c_arg(b, 2, B), _c_arg(G, 3, B), _c_arg(h, 2, B),
+            _c_arg(lb, 2, B), _c_arg(ub, 2, B)]
+    nout = p + m + 2 * n
+    out = np.empty(B * (n + nout + 2))
+    o = address(out)
+    z0, z0_stride = (warm[1], warm[2]) if warm is not None else (0, 0)
+    worst = lib.solve(B, n, p, m, *(k[1] for k in keep), z0, _strides((*(k[2] for k in keep), z0_stride)), tol,
+                      MAX_STEPS, o)
+    if worst < 0:
+        raise MemoryError("a3cqp_rl.qp: the C route could not allocate its workspace")
+    return out, o, worst
+
+
+def _warm_duals(warm_start: "QPSolution", B: int, n: int, p: int, m: int) -> tuple[np.ndarray, int, int]:
+    """Warm-start multipliers for the C route as (array kept alive, address of z | z_lb | z_ub, stride)."""
+    if warm_start._buf is not None and warm_start._dims == (B, n, p, m):  # a C solve's own buffer: no copies
+        return warm_start._buf, warm_start._addr + 8 * (B * n + p), p + m + 2 * n
+    parts = [warm_start.z, warm_start.z_lb, warm_start.z_ub]
+    want = ((B, m), (B, n), (B, n))
+    for t, w, nm in zip(parts, want, ("z", "z_lb", "z_ub")):
+        if tuple(t.shape) != w:
+            raise QPShapeError(f"warm_start.{nm} has shape {tuple(t.shape)}, expected {w}")
+    z0 = np.ascontiguousarray(torch.cat([t.detach().to(_F64).cpu() for t in parts], 1).numpy())
+    return z0, address(z0), m + 2 * n
+
+
+def _fast_rows(M: Tensor, r: Tensor, B: int, n: int) -> tuple[int, int, int] | None:
+    """(row count, data addresses) of a batched contiguous float64 CPU pair (A, b) or (G, h), else None."""
+    if type(M) is not Tensor or type(r) is not Tensor or M.dtype is not _F64 or r.dtype is not _F64 or M.dim() != 3:
+        return None
+    k = M.shape[1]
+    if M.shape != (B, k, n) or r.shape != (B, k) or not (M.is_cpu and r.is_cpu and M.is_contiguous() and r.is_contiguous()):
+        return None
+    return k, M.data_ptr(), r.data_ptr()
+
+
+_FAST_STRIDES: dict[tuple[int, ...], int] = {}
+"""(n, p, m, warm stride) -> address of the stride array of `_fast_c`'s layout (batched contiguous arguments)."""
+
+
+def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Tensor | None, G: Tensor | None,
+            h: Tensor | None, lb: Tensor | None, ub: Tensor | None, warm_start: QPSolution | None, tol: float,
+            max_iter: int, active_set_iter: int | None) -> QPSolution | None:
+    """The C route for the common call (every argument a batched, contiguous float64 CPU tensor of one batch
+    size, no gradients), straight from the tensors' data to gi_qp_solve and back; None when the call does
+    not fit (the general path then checks, explains and converts)."""
+    if type(P) is not Tensor or q.dim() != 2 or P.dtype is not _F64 or not (P.is_cpu and q.is_contiguous() and P.is_contiguous()):
+        return None
+    B, n = q.shape
+    if P.shape != (B, n, n):
+        return None
+    p = m = 0
+    pA = pb = pG = ph = pl = pu = 0
+    if A is not None:
+        rows = _fast_rows(A, b, B, n)
+        if rows is None:
+            return None
+        p, pA, pb = rows
+    if G is not None:
+        rows = _fast_rows(G, h, B, n)
+        if rows is None:
+            return None
+        m, pG, ph = rows
+    if lb is not None:
+        if type(lb) is not Tensor or lb.dtype is not _F64 or lb.shape != (B, n) or not (lb.is_cpu and lb.is_contiguous()):
+            return None
+        pl = lb.data_ptr()
+    if ub is not None:
+        if type(ub) is not Tensor or ub.dtype is not _F64 or ub.shape != (B, n) or not (ub.is_cpu and ub.is_contiguous()):
+            return None
+        pu = ub.data_ptr()
+    nout = p + m + 2 * n
+    z0 = zs = 0
+    keep = None
+    if warm_start is not None:
+        keep, z0, zs = _warm_duals(warm_start, B, n, p, m)
+    buf = np.empty(B * (n + nout + 2))
+    o = address(buf)
+    key = (n, p, m, zs)
+    sa = _FAST_STRIDES.get(key)
+    if sa is None:
+        sa = _FAST_STRIDES[key] = _strides((n * n, n, p * n, p, m * n, m, n, n, zs))
+    worst = lib.solve(B, n, p, m, P.data_ptr(), q.data_ptr(), pA, pb, pG, ph, pl, pu, z0, sa, tol, MAX_STEPS, o)
+    del keep
+    sol = QPSolution._from_buffer(buf, o, B, n, p, m)
+    if worst >= native.HANDED_ON:  # some instances need the torch route
+        _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
+    elif worst < 0:
+        raise MemoryError("a3cqp_rl.qp: the C route could not allocate its workspace")
+    return sol
+
+
+# ----------------------------------------------------------------------------------------------
+# Canonical forward (autograd path and leftovers of the C route)
+# ----------------------------------------------------------------------------------------------
 
 
 def _solve_canonical(
-    P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
-    tol: float, max_iter: int, active_set_iter: int | None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, tuple[np.ndarray, ...] | None]:
-    """Solve the canonical batch (no autograd); returns x, y, z, status, iterations and, on the
-    small-batch path, the float64 numpy (P symmetrised, A, G, h) for the backward (else None)."""
-    if _use_small_path(q, SMALL_BATCH_MAX_WARM if z_warm is not None else SMALL_BATCH_MAX):
-        return _solve_small(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
-    if _use_native_path(q):
-        return _solve_small(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter, numpy_retry=False)
-    return (*_solve_batched(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter), None)
-
-
-def _use_native_path(x: Tensor) -> bool:
-    """Whether a batch above the numpy sizes still takes the per-instance path (the C routine is loaded)."""
-    return _use_small_path(x, NATIVE_BATCH_MAX) and small_batch.NATIVE and native.load() is not None
-
-
-def _use_small_path(q: Tensor, limit: int | None = None) -> bool:
-    """Whether this batch goes through the numpy per-instance path (at most `limit` instances, on CPU)."""
-    return q.shape[0] <= (SMALL_BATCH_MAX if limit is None else limit) and q.is_cpu
-
-
-def _np64(t: Tensor) -> np.ndarray:
-    """Float64 numpy view (zero-copy for float64 CPU tensors, expanded ones included) of a tensor."""
-    if t.requires_grad:  # (detach costs ~2 µs: only when needed)
-        t = t.detach()
-    return (t if t.dtype == torch.float64 else t.double()).numpy()
-
-
-def _from_np(v: np.ndarray, dtype: torch.dtype) -> Tensor:
-    """Torch tensor of a float64 numpy result, in the caller's dtype (no copy for float64)."""
-    t = torch.from_numpy(v)
-    return t if dtype == torch.float64 else t.to(dtype)
-
-
-def _solve_small(
-    P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
-    tol: float, max_iter: int, active_set_iter: int | None, numpy_retry: bool = True,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, tuple[np.ndarray, ...]]:
-    """Small-batch route: numpy active set per instance, the batched torch path for what it leaves.
-
-    `numpy_retry=False`: what the C routine leaves goes to the batched path without the numpy retry.
-
-    The returned cache is (P symmetrised, A, G, h) in float64 numpy, plus (x, y, z) when every
-    instance was certified here (all SOLVED)."""
-    B = q.shape[0]
-    Pn = _np64(P)
-    Ps, An, Gn, hn = 0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(A), _np64(G), _np64(h)
-    cache = (Ps, An, Gn, hn)
-    xn, yn, zn, outcome, itn = active_set_small(
-        Ps, _np64(q), An, _np64(b), Gn, hn,
-        _np64(z_warm) if z_warm is not None else None, tol, SMALL_MAX_STEPS if active_set_iter is None else active_set_iter,
-        numpy_retry=numpy_retry,
-    )
-    x, y, z = (_from_np(v, q.dtype) for v in (xn, yn, zn))
-    iters = torch.from_numpy(itn)
-    status = torch.from_numpy(np.zeros(B, dtype=np.int64))  # QPStatus.SOLVED; from numpy: ~3x cheaper
-    if not outcome[outcome.argmax()]:  # every instance CERTIFIED (= 0); argmax + index ~5x cheaper than any()
-        # All solved by numpy: the backward can use these float64 results as they are.
-        return x, y, z, status, iters, (*cache, xn, yn, zn)
-    # Singular working-set systems get the torch active set (its augmented Lagrangian copes with
-    # dependent rows); instances that used up the iterations go straight to the interior point.
-    for code, as_iter in ((SINGULAR, active_set_iter), (EXHAUSTED, 0)):
-        sel = np.flatnonzero(outcome == code)
-        if sel.size == 0:
-            continue
-        idx = torch.from_numpy(sel)
-        sub = [t.index_select(0, idx) for t in (P, q, A, b, G, h)]
-        zw = z_warm.index_select(0, idx) if z_warm is not None else None
-        xs, ys, zs, ss, its = _solve_batched(*sub, zw, tol, max_iter, as_iter)
-        x[idx], y[idx], z[idx], status[idx] = xs, ys, zs, ss
-        iters[idx] = its + (iters[idx] if code == EXHAUSTED else 0)
-    return x, y, z, status, iters, cache
-
-
-def _solve_batched(
-    P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor, z_warm: Tensor | None,
-    tol: float, max_iter: int, active_set_iter: int | None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Batched torch route: active-set stage on the whole batch, interior point for what it leaves."""
+    lib: native.NativeQP | None, P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor,
+    z_warm: Tensor | None, tol: float, max_iter: int, active_set_iter: int | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, bool]:
+    """Solve a canonical float64 batch (bounds stacked into G, h); returns x, y, z, status, iterations and
+    whether the C route certified every instance (its adjoint then applies)."""
+    if lib is None:
+        return (*solve_torch(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter), False)
     B, n = q.shape
-    if active_set_iter is None:
-        active_set_iter = 15 if B <= LU_MAX_BATCH else 10
     p, m = A.shape[1], G.shape[1]
-    P = 0.5 * (P + P.mT)
-    sp, sd = residual_scales(q, b, h)
-    z0 = z_warm if z_warm is not None else q.new_zeros(B, m)
-    x, y, z, ok, iters = active_set_stage(P, q, A, b, G, h, z0, sp, sd, tol, active_set_iter)
-    if bool(ok.all()):
-        return x, y, z, torch.zeros(B, dtype=torch.long, device=q.device), iters
-
-    bad = ok.logical_not().nonzero().squeeze(-1)
-    status = torch.zeros(B, dtype=torch.long, device=q.device)
-    sub = [t.index_select(0, bad) for t in (P, q, A, b, G, h, sp, sd)]
-    # The IPM only has to find the active set: stopped at a looser μ, its strictly complementary
-    # set seeds the polish, which is exact.  Only where that polish fails (degenerate or weakly
-    # active rows) is the IPM rerun to the full tolerance.
-    tol_ipm = max(tol, _IPM_POLISH_TOL)
-    xi, yi, zi, si, ii, pol = _ipm_polished(*sub, tol_ipm, tol, max_iter)
-    redo = ((si == QPStatus.SOLVED) & ~pol).nonzero().squeeze(-1) if tol_ipm > tol else pol[:0].nonzero().squeeze(-1)
-    if redo.numel():
-        xr, yr, zr, sr, ir, _ = _ipm_polished(*(t.index_select(0, redo) for t in sub), tol, tol, max_iter)
-        xi[redo], yi[redo], zi[redo], si[redo], ii[redo] = xr, yr, zr, sr, ii[redo] + ir
-    x[bad], y[bad], z[bad], status[bad], iters[bad] = xi, yi, zi, si, iters[bad] + ii
-    # Never hand NaN/inf to the caller: a failed instance keeps a finite (if meaningless) x.
-    x = torch.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
-    y = torch.nan_to_num(y, nan=0.0, posinf=0.0, neginf=0.0)
-    z = torch.nan_to_num(z.clamp_min(0.0), nan=0.0, posinf=0.0, neginf=0.0)
-    return x, y, z, status, iters
+    warm = None
+    if z_warm is not None:
+        z0 = np.ascontiguousarray(torch.cat([z_warm.detach(), z_warm.new_zeros(B, 2 * n)], 1).numpy())
+        warm = (z0, address(z0), m + 2 * n)
+    buf, addr, _ = _forward_c(lib, P, q, A, b, G, h, None, None, B, n, p, m, warm, tol)
+    c = QPSolution._from_buffer(buf, addr, B, n, p, m)
+    st = c._np("_status")
+    x, y, z, status, iters = c.x, c.y, c.z, c.status, c.iterations
+    if st[st.argmax()] < native.HANDED_ON:
+        return x, y, z, status, iters, not st.any()
+    left = np.flatnonzero(st >= native.HANDED_ON)
+    idx = torch.from_numpy(left)
+    sub = [t.index_select(0, idx) for t in (P, q, A, b, G, h)]
+    zw = z_warm.index_select(0, idx) if z_warm is not None else None
+    xs, ys, zs, ss, its = solve_torch(*sub, zw, tol, max_iter, active_set_iter)
+    x[idx], y[idx], z[idx], status[idx], iters[idx] = xs, ys, zs, ss, its + iters[idx]
+    return x, y, z, status, iters, False
 
 
-def _adjoint_direct(P: Tensor, gx: Tensor, C: Tensor, zr: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-    """Direct solve of the adjoint KKT system (LU for small batches, Schur on the working rows for large)."""
+def _backward_torch(P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Tensor, z: Tensor, gx: Tensor,
+                    need: tuple[bool, ...]) -> tuple[Tensor | None, ...]:
+    """Gradients (P, q, A, b, G, h) of Σ gx·x by the batched torch adjoint."""
+    p = A.shape[1]
+    Ps = 0.5 * (P + P.mT)
+    slack = (h - mv(G, x)).clamp_min(0.0)
+    active = z > slack  # strictly complementary part of the active set
+    C = torch.cat([A, G], 1) if p else G
+    mask = torch.cat([torch.ones_like(y, dtype=torch.bool), active], 1) if p else active
+    # Adjoint: [[P, C_Wᵀ], [C_W, 0]] [wx; wν] = [gx; 0], i.e. min ½wᵀPw − gxᵀw s.t. C_W w = 0.
+    zr = torch.zeros_like(C[..., 0])
+    tol_w = 1e-12 * (1.0 + float(gx.abs().amax())) if gx.numel() else 1e-12
+    wx = wnu = res = None
     if gx.shape[0] <= LU_MAX_BATCH:
-        return kkt_lu(P, -gx, C, zr, mask)
-    L, info = torch.linalg.cholesky_ex(P)
-    if not bool((info == 0).all()):
-        return gx, zr, None
-    x_u = torch.cholesky_solve(gx.unsqueeze(-1), L).squeeze(-1)
-    return kkt_schur(L, x_u, P, -gx, C, zr, mask)
-
-
-def _backward_small(
-    need: tuple[bool, ...], P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Tensor, z: Tensor,
-    status: Tensor, gx: Tensor, cache: tuple[np.ndarray, ...] | None = None, numpy_fallback: bool = True,
-) -> tuple[Tensor | None, ...] | None:
-    """Gradients (P, q, A, b, G, h) by the numpy adjoint (small CPU batches); None if a system is singular.
-
-    `numpy_fallback=False`: None (the batched torch backward) where the C adjoint declines, no numpy loop.
-
-    `cache`: the forward's float64 numpy (P symmetrised, A, G, h[, x, y, z]), saving their conversions."""
-    if cache is None:
-        Pn = _np64(P)
-        cache = (0.5 * (Pn + Pn.transpose(0, 2, 1)), _np64(A), _np64(G), _np64(h))
-    gxn = _np64(gx)
-    if len(cache) == 7:  # every instance SOLVED in numpy: its float64 results
-        Ps, An, Gn, hn, xn, yn, zn = cache
+        wx, wnu, res = kkt_lu(Ps, -gx, C, zr, mask)
     else:
-        (Ps, An, Gn, hn), (xn, yn, zn) = cache[:4], (_np64(x), _np64(y), _np64(z))
-        # Gradients only flow through x of solved instances (as in the torch backward).
-        st = status.numpy()
-        if st.any():  # some instance not SOLVED (= 0; an IntEnum operand would take numpy's object path)
-            gxn = gxn * (st == 0)[:, None]
-    dt = x.dtype
-
-    def out(v: np.ndarray) -> Tensor:
-        return _from_np(v, dt)
-
-    grads = gradients_native(Ps, An, Gn, hn, xn, yn, zn, gxn)  # adjoint and closed forms in one C call
-    if grads is not None:
-        return tuple(out(g) if need[k] or k % 2 else None for k, g in enumerate(grads))
-    if not numpy_fallback:
-        return None
-    adj = adjoint_small(Ps, An, Gn, hn, xn, zn, gxn)
-    if adj is None:
-        return None
-    wx, wy, wz, active = adj
-
-    # Same closed forms as the torch backward: −½(x wxᵀ + wx xᵀ), −(ν wxᵀ + wν xᵀ).
-    gP = gA = gG = None
-    if need[0]:
-        xw = xn[:, :, None] * wx[:, None, :]
-        xw += xw.transpose(0, 2, 1)
-        xw *= -0.5
-        gP = out(xw)
-    if need[2]:
-        gA = out(-(yn[:, :, None] * wx[:, None, :] + wy[:, :, None] * xn[:, None, :]))
-    if need[4]:
-        gGn = (zn * active)[:, :, None] * wx[:, None, :]
-        gGn += wz[:, :, None] * xn[:, None, :]
-        gG = out(np.negative(gGn, out=gGn))
-    wx = np.negative(wx, out=wx)
-    return gP, out(wx), gA, out(wy), gG, out(wz)
+        L, info = torch.linalg.cholesky_ex(Ps)
+        if bool((info == 0).all()):
+            x_u = torch.cholesky_solve(gx.unsqueeze(-1), L).squeeze(-1)
+            wx, wnu, res = kkt_schur(L, x_u, Ps, -gx, C, zr, mask)
+    nu_max = wnu.abs().amax(-1) if wnu is not None and wnu.shape[-1] else 0.0
+    if res is None or not bool((res <= tol_w * (1.0 + nu_max)).all()):
+        # Singular KKT (dependent active rows, P singular on their null space): the augmented
+        # Lagrangian is exact in the limit and stays well posed.
+        wx, wnu, _, _ = eq_solve_alm(Ps, -gx, C, zr, mask, zr, torch.zeros_like(x), 0.1 * tol_w)
+    wy, wz = wnu[:, :p], wnu[:, p:]
+    nu = torch.cat([y, z * active], 1) if p else z * active
+    # Sums of two outer products as one bmm with inner dimension 2: a single pass over the
+    # [B, r, n] output instead of four.
+    u = torch.stack([wx, x], -2)  # (B, 2, n)
+    gP = (torch.stack([x, wx], -1) @ u).mul_(-0.5) if need[0] else None  # −½(x wxᵀ + wx xᵀ)
+    gA = gG = None
+    if need[2] or need[4]:
+        gC = (torch.stack([nu, wnu], -1) @ u).neg_()  # −(ν wxᵀ + wν xᵀ), (B, r, n)
+        gA, gG = gC[:, :p], gC[:, p:]
+    return gP, -wx, gA, wy, gG, wz
 
 
 class _QPFunction(torch.autograd.Function):
     """x*(P, q, A, b, G, h) with a backward by implicit differentiation of the KKT conditions."""
 
     @staticmethod
-    def forward(ctx, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter):  # type: ignore[override]
+    def forward(ctx, lib, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter):  # type: ignore[override]
         # Gradients of y, z, status, iterations are never used: without materialisation autograd
-        # passes None for them instead of allocating zeros (~10 µs at B = 1).
+        # passes None for them instead of allocating zeros.
         ctx.set_materialize_grads(False)
-        x, y, z, status, iters, ctx.np_cache = _solve_canonical(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
+        x, y, z, status, iters, all_c = _solve_canonical(lib, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
+        ctx.lib = lib if all_c else None
         ctx.save_for_backward(P, A, G, h, x, y, z, status)
-        ctx.mark_non_differentiable(status, iters)
+        ctx.mark_non_differentiable(y, z, status, iters)
         return x, y, z, status, iters
 
     @staticmethod
-    def backward(ctx, gx, gy, gz, _gs, _gi):  # type: ignore[override]
+    def backward(ctx, gx, _gy, _gz, _gs, _gi):  # type: ignore[override]
         P, A, G, h, x, y, z, status = ctx.saved_tensors
-        p, m = A.shape[1], G.shape[1]
         if gx is None:
             gx = torch.zeros_like(x)
-        small = _use_small_path(x)
-        if small or (ctx.np_cache is not None and _use_native_path(x)):
-            grads = _backward_small(ctx.needs_input_grad, P, A, G, h, x, y, z, status, gx, ctx.np_cache,
-                                    numpy_fallback=small)
-            if grads is not None:
-                return (*grads, None, None, None, None)
-        # Gradients only flow through x (duals are outputs for information and warm starts).
-        ok = (status == QPStatus.SOLVED).unsqueeze(-1)
-        gx = torch.where(ok, gx, torch.zeros((), dtype=gx.dtype))
-        Ps = 0.5 * (P + P.mT)
-        slack = (h - mv(G, x)).clamp_min(0.0)
-        active = z > slack  # strictly complementary part of the active set
-        C = torch.cat([A, G], 1) if p else G
-        mask = torch.cat([torch.ones_like(y, dtype=torch.bool), active], 1) if p else active
-        # Adjoint: [[P, C_Wᵀ], [C_W, 0]] [wx; wν] = [gx; 0], i.e. min ½wᵀPw − gxᵀw s.t. C_W w = 0.
-        zr = torch.zeros_like(C[..., 0])
-        tol_w = 1e-12 * (1.0 + float(gx.abs().amax()))
-        wx, wnu, res = _adjoint_direct(Ps, gx, C, zr, mask)
-        if res is None or not bool((res <= tol_w * (1.0 + wnu.abs().amax(-1))).all()):
-            # Singular KKT (dependent active rows, P singular on their null space): the augmented
-            # Lagrangian is exact in the limit and stays well posed.
-            wx, wnu, _, _ = eq_solve_alm(Ps, -gx, C, zr, mask, zr, torch.zeros_like(x), 0.1 * tol_w)
-        wy, wz = wnu[:, :p], wnu[:, p:]
-        nu = torch.cat([y, z * active], 1) if p else z * active
-        # Sums of two outer products as one bmm with inner dimension 2: a single pass over the
-        # [B, r, n] output instead of four.
-        need = ctx.needs_input_grad
-        u = torch.stack([wx, x], -2)  # (B, 2, n)
-        gP = (torch.stack([x, wx], -1) @ u).mul_(-0.5) if need[0] else None  # −½(x wxᵀ + wx xᵀ)
-        gA = gG = None
-        if need[2] or need[4]:
-            gC = (torch.stack([nu, wnu], -1) @ u).neg_()  # −(ν wxᵀ + wν xᵀ), (B, r, n)
-            gA, gG = gC[:, :p], gC[:, p:]
-        return gP, -wx, gA, wy, gG, wz, None, None, None, None
+        need = ctx.needs_input_grad[1:7]
+        # Gradients only flow through x of solved instances (duals are outputs for information and warm starts).
+        grads = None
+        if ctx.lib is not None:  # the C route certified every instance: its range-space adjoint
+            g = ctx.lib.adjoint(P.detach(), A.detach(), G.detach(), h.detach(), x, y, z, gx)
+            if g is not None:
+                grads = tuple(v if need[k] or k % 2 else None for k, v in enumerate(g))
+        if grads is None:
+            ok = status == QPStatus.SOLVED
+            if not bool(ok.all()):
+                gx = torch.where(ok.unsqueeze(-1), gx, torch.zeros((), dtype=gx.dtype))
+            grads = _backward_torch(P, A, G, h, x, y, z, gx, need)
+        return (None, *grads, None, None, None, None)
+
+
+# ----------------------------------------------------------------------------------------------
+# solve_qp
+# ----------------------------------------------------------------------------------------------
 
 
 def solve_qp(
@@ -515,44 +494,157 @@ def solve_qp(
     tol: float | None = None,
     max_iter: int = 50,
     active_set_iter: int | None = None,
+    backend: str = "auto",
 ) -> QPSolution:
     """Solve a batch of QPs min ½xᵀPx + qᵀx s.t. Ax = b, Gx ≤ h, lb ≤ x ≤ ub (differentiable).
 
     Args:
-        P: Hessian [B, n, n] (symmetrised internally), positive semi-definite.
-        q: linear cost [B, n]; its dtype and device are the solver's.
+        P: Hessian [B, n, n] (symmetrised internally), positive semi-definite (else NON_CONVEX).
+        q: linear cost [B, n]; its dtype and device are the result's.
         A, b: equality rows [B, p, n] and right-hand side [B, p] (both or neither).
-        G, h: inequality rows [B, m, n] and right-hand side [B, m]; entries of h may be +inf.
-        lb, ub: bounds on x [B, n]; entries may be ∓inf (no bound).
+        G, h: inequality rows [B, m, n] and right-hand side [B, m]; h_i ≥ 1e20 or +inf means no row.
+        lb, ub: bounds on x [B, n]; entries ≤ −1e20 / ≥ 1e20 (or ∓inf) mean no bound.
         warm_start: a previous QPSolution of same-sized problems; its multipliers seed the active set.
-        tol: absolute tolerance on residuals and complementarity, relative to 1 + |data|;
-            default 1e-9 in float64, 1e-5 in float32.
-        max_iter: interior-point iteration budget for instances the active-set stage leaves.
-        active_set_iter: primal-dual active-set iterations tried before the interior point; default
-            15 for B ≤ 32 (an active-set iteration costs ~1/3 of an interior-point one there) and
-            10 above (measured best on heavily constrained batches).  On the small-batch CPU path
-            (see the module docstring) it is the dual active set's budget of KKT solves instead,
-            default `SMALL_MAX_STEPS` (100).
+        tol: relative tolerance of every KKT residual, row by row (see `status.py`); default 1e-9 for
+            float64 input, 1e-5 for lower precision (solved in float64, checked after rounding).
+        max_iter: interior-point iteration budget (torch route: instances the active set leaves).
+        active_set_iter: primal-dual active-set iterations of the torch route before its interior
+            point (default 15 for B ≤ 32, 10 above).
+        backend: "auto", "c" or "torch" (module docstring); unknown or impossible ones raise
+            QPBackendError.
 
-    Any argument may also be given unbatched (without the leading B) to share it across the batch.
-    Gradients flow to every tensor argument through x (implicit differentiation of the KKT system).
+    Any argument may be given unbatched (without the leading B) to share it across the batch, and as a
+    numpy array (converted; its dtype must match the others').  Gradients flow to every tensor argument
+    through x (implicit differentiation of the KKT system).  Returns a `QPSolution` whose `status`
+    says per instance whether x is an answer (never raises on a bad instance; see `status.py`).
     """
-    if q.dim() not in (1, 2):
+    if type(q) is not Tensor:
+        q = _as_tensor(q, "q")
+    qd = q.dim()
+    if qd not in (1, 2):
         raise QPShapeError(f"q must be [B, n] or [n], got shape {tuple(q.shape)}")
     dtype = q.dtype
     if not dtype.is_floating_point:
         raise QPShapeError(f"q must be a floating tensor, got {dtype}")
+    if (A is None) != (b is None) or (G is None) != (h is None):
+        raise QPShapeError("A and b (and G and h) must be given together")
+    lib = _resolve_backend(backend, q) if backend != "torch" else None
+    tol = float(tol) if tol is not None else (1e-9 if dtype is _F64 else 1e-5)
+    grad = torch.is_grad_enabled() and _needs_grad(P, q, A, b, G, h, lb, ub)
+    if lib is not None and not grad and dtype == _F64:
+        # The control loop's call (batched contiguous float64 tensors): straight to the C routine.
+        sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
+        if sol is not None:
+            return sol
+    P, A, b, G, h, lb, ub = (t if t is None or isinstance(t, Tensor) else _as_tensor(t, nm)
+                             for t, nm in zip((P, A, b, G, h, lb, ub), ("P", "A", "b", "G", "h", "lb", "ub")))
+    if lib is not None and not grad and dtype == _F64:
+        # Other float64 CPU layouts (unbatched or expanded arguments): the same C call with strides.
+        n = q.shape[-1]
+        B = q.shape[0] if qd == 2 else 1
+        if B == 1:  # q shared or of batch 1: P or G may carry the batch (any other layout: the general path)
+            if P.dim() == 3 and P.shape[0] > 1:
+                B = P.shape[0]
+            elif G is not None and G.dim() == 3 and G.shape[0] > 1:
+                B = G.shape[0]
+        p = A.shape[-2] if A is not None else 0
+        m = G.shape[-2] if G is not None else 0
+        if _fast_shapes_ok(P, q, A, b, G, h, lb, ub, B, n, p, m):
+            warm = _warm_duals(warm_start, B, n, p, m) if warm_start is not None else None
+            buf, addr, worst = _forward_c(lib, P, q, A, b, G, h, lb, ub, B, n, p, m, warm, tol)
+            sol = QPSolution._from_buffer(buf, addr, B, n, p, m)
+            if worst >= native.HANDED_ON:
+                _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
+            return sol
+    return _solve_general(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter, dtype, grad)
+
+
+def _needs_grad(P, q, A, b, G, h, lb, ub) -> bool:  # noqa: ANN001
+    """Whether any argument requires a gradient."""
+    return bool(q.requires_grad or getattr(P, "requires_grad", False)
+                or (G is not None and getattr(G, "requires_grad", False)) or (h is not None and getattr(h, "requires_grad", False))
+                or (A is not None and (getattr(A, "requires_grad", False) or getattr(b, "requires_grad", False)))
+                or (lb is not None and getattr(lb, "requires_grad", False))
+                or (ub is not None and getattr(ub, "requires_grad", False)))
+
+
+def _fast_shapes_ok(P, q, A, b, G, h, lb, ub, B: int, n: int, p: int, m: int) -> bool:  # noqa: ANN001
+    """Whether every argument is a float64 CPU tensor of a consistent shape (else the general path checks and explains)."""
+    for t, full in ((P, (B, n, n)), (q, (B, n)), (A, (B, p, n)), (b, (B, p)), (G, (B, m, n)), (h, (B, m)), (lb, (B, n)),
+                    (ub, (B, n))):
+        if t is None:
+            continue
+        if t.dtype != _F64 or not t.is_cpu:
+            return False
+        s = t.shape
+        if len(s) == len(full):
+            if s[1:] != full[1:] or (s[0] != B and s[0] != 1):
+                return False
+        elif s != full[1:]:
+            return False
+    return True
+
+
+def _warm_rows(warm_start: QPSolution | None, has_G: bool, has_lb: bool, has_ub: bool, h_all: Tensor) -> Tensor | None:
+    """Warm-start multipliers of the stacked rows (G, then lb, then ub) as one float64 tensor, or None."""
+    if warm_start is None or not h_all.shape[1]:
+        return None
+    parts = ([warm_start.z] if has_G else []) + ([warm_start.z_lb] if has_lb else []) + ([warm_start.z_ub] if has_ub else [])
+    return torch.cat([t.detach().to(device=h_all.device, dtype=_F64) for t in parts], 1)
+
+
+def _finish_on_torch(sol: QPSolution, P, q, A, b, G, h, lb, ub, B: int, n: int, p: int, m: int,  # noqa: ANN001
+                     warm_start: QPSolution | None, tol: float, max_iter: int, active_set_iter: int | None) -> None:
+    """Solve the instances the C route handed on with the torch route, writing into sol's buffer."""
+    st = sol._np("_status")
+    left = np.flatnonzero(st >= native.HANDED_ON)
+    idx = torch.from_numpy(left)
+
+    def pick(t: Tensor | None, nd: int) -> Tensor | None:
+        if t is None:
+            return None
+        t = t.unsqueeze(0) if t.dim() == nd - 1 else t
+        return t.expand(B, *t.shape[1:]).index_select(0, idx)
+
+    Ps, qs, As, bs, Gs, hs, lbs, ubs = (pick(t, nd) for t, nd in ((P, 3), (q, 2), (A, 3), (b, 2), (G, 3), (h, 2), (lb, 2), (ub, 2)))
+    k = left.size
+    if As is None:
+        As, bs = qs.new_zeros(k, 0, n), qs.new_zeros(k, 0)
+    G_all, h_all = _stack_rows(Gs, hs, lbs, ubs, k, n, qs)
+    zw = _warm_rows(warm_start, Gs is not None, lbs is not None, ubs is not None, h_all)
+    zw = zw.index_select(0, idx) if zw is not None else None
+    xs, ys, zs, ss, its = solve_torch(Ps, qs, As, bs, G_all, h_all, zw, tol, max_iter, active_set_iter)
+    xn = sol._np("_x")
+    dn = sol._buf[B * n : B * (n + p + m + 2 * n)].reshape(B, p + m + 2 * n)
+    xn[left] = xs.numpy()
+    dn[left, :p] = ys.numpy()
+    zsn = zs.numpy()
+    dn[left, p : p + m] = zsn[:, :m]
+    off = m
+    dn[left, p + m : p + m + n] = 0.0
+    dn[left, p + m + n :] = 0.0
+    if lbs is not None:
+        dn[left, p + m : p + m + n] = zsn[:, off : off + n]
+        off += n
+    if ubs is not None:
+        dn[left, p + m + n :] = zsn[:, off : off + n]
+    st[left] = ss.numpy()
+    sol._np("_iterations")[left] += its.numpy()
+
+
+def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_start: QPSolution | None,  # noqa: ANN001
+                   tol: float, max_iter: int, active_set_iter: int | None, dtype: torch.dtype, grad: bool) -> QPSolution:
+    """Every other call: shape checks with messages, float64 working precision, autograd, the torch route."""
+    device = q.device
     lead = [t.shape[0] for t, k in ((P, 3), (q, 2), (A, 3), (b, 2), (G, 3), (h, 2), (lb, 2), (ub, 2)) if t is not None and t.dim() == k]
-    batch = max(lead) if lead else 1
-    P = _batched(P, "P", 3, batch, dtype)
-    q = _batched(q, "q", 2, batch, dtype)
+    B = max(lead) if lead else 1
+    P = _batched(P, "P", 3, B, dtype, device)
+    q = _batched(q, "q", 2, B, dtype, device)
     n = q.shape[1]
     if P.shape[1:] != (n, n):
         raise QPShapeError(f"P must be [B, {n}, {n}], got {tuple(P.shape)}")
-    if (A is None) != (b is None) or (G is None) != (h is None):
-        raise QPShapeError("A and b (and G and h) must be given together")
-    A, b, G, h = (_batched(t, nm, nd, batch, dtype) for t, nm, nd in ((A, "A", 3), (b, "b", 2), (G, "G", 3), (h, "h", 2)))
-    lb, ub = _batched(lb, "lb", 2, batch, dtype), _batched(ub, "ub", 2, batch, dtype)
+    A, b, G, h, lb, ub = (_batched(t, nm, nd, B, dtype, device) for t, nm, nd in
+                          ((A, "A", 3), (b, "b", 2), (G, "G", 3), (h, "h", 2), (lb, "lb", 2), (ub, "ub", 2)))
     for t, nm in ((A, "A"), (G, "G")):
         if t is not None and t.shape[2] != n:
             raise QPShapeError(f"{nm} must have {n} columns, got {tuple(t.shape)}")
@@ -563,31 +655,44 @@ def solve_qp(
     for t, nm in ((lb, "lb"), (ub, "ub")):
         if t is not None and t.shape[1] != n:
             raise QPShapeError(f"{nm} must be [B, {n}], got {tuple(t.shape)}")
+    low = dtype != _F64
+    user_tol = tol
+    if low:  # solved in float64, a margin below the tolerance the rounded answer must meet
+        tol = tol * 1e-3
+        P, q, A, b, G, h, lb, ub = (None if t is None else t.to(_F64) for t in (P, q, A, b, G, h, lb, ub))
+    m = G.shape[1] if G is not None else 0
     if A is None:
-        A, b = _no_equalities(batch, n, q)
-    if tol is None:
-        tol = 1e-9 if dtype == torch.float64 else 1e-5
-
-    G_all, h_all, m, has_lb, has_ub = _stack_inequalities(G, h, lb, ub, batch, n, q)
-    z_warm = None
-    if warm_start is not None:
-        parts = [warm_start.z] if G is not None else []
-        parts += [warm_start.z_lb] if has_lb else []
-        parts += [warm_start.z_ub] if has_ub else []
-        if parts:
-            z_warm = (torch.cat(parts, -1) if len(parts) > 1 else parts[0]).detach()
-            if z_warm.dtype != dtype:
-                z_warm = z_warm.to(dtype)
-            if z_warm.shape != h_all.shape:
-                raise QPShapeError(f"warm_start duals have shape {tuple(z_warm.shape)}, expected {tuple(h_all.shape)}")
-
-    solver_args = (z_warm, float(tol), int(max_iter), None if active_set_iter is None else int(active_set_iter))
-    if torch.is_grad_enabled() and any(t.requires_grad for t in (P, q, A, b, G_all, h_all)):
-        x, y, z_all, status, iters = _QPFunction.apply(P, q, A, b, G_all, h_all, *solver_args)
+        A, b = _no_equalities(B, n, q)
+    G_all, h_all = _stack_rows(G, h, lb, ub, B, n, q)
+    z_warm = _warm_rows(warm_start, G is not None, lb is not None, ub is not None, h_all)
+    if z_warm is not None and z_warm.shape != h_all.shape:
+        raise QPShapeError(f"warm_start duals have shape {tuple(z_warm.shape)}, expected {tuple(h_all.shape)}")
+    args = (z_warm, tol, int(max_iter), None if active_set_iter is None else int(active_set_iter))
+    if grad:
+        x, y, z_all, status, iters = _QPFunction.apply(lib, P, q, A, b, G_all, h_all, *args)
     else:
-        x, y, z_all, status, iters, _ = _solve_canonical(P, q, A, b, G_all, h_all, *solver_args)
-    zero = q.new_zeros(batch, n)
-    z = z_all if not (has_lb or has_ub) else z_all[:, :m]  # a slice is ~5 µs of the B = 1 budget
+        x, y, z_all, status, iters, _ = _solve_canonical(lib, P, q, A, b, G_all, h_all, *args)
+    zero = q.new_zeros(B, n)
+    has_lb, has_ub = lb is not None, ub is not None
+    z = z_all if not (has_lb or has_ub) else z_all[:, :m]
     z_lb = z_all[:, m : m + n] if has_lb else zero
     z_ub = z_all[:, m + n * has_lb :] if has_ub else zero
-    return QPSolution(x=x, y=y, z=z, z_lb=z_lb, z_ub=z_ub, status=status, iterations=iters)
+    if low:
+        x, y, z, z_lb, z_ub = (t.to(dtype) for t in (x, y, z, z_lb, z_ub))
+        z_r = torch.cat([z] + ([z_lb] if has_lb else []) + ([z_ub] if has_ub else []), 1)
+        status = _recheck_rounded(status, P, q, A, b, G_all, h_all, x, y, z_r, user_tol, dtype)
+    return QPSolution(x, y, z, z_lb, z_ub, status, iters)
+
+
+def _recheck_rounded(status: Tensor, P: Tensor, q: Tensor, A: Tensor, b: Tensor, G_all: Tensor, h_all: Tensor,
+                     x: Tensor, y: Tensor, z_all: Tensor, tol: float, dtype: torch.dtype) -> Tensor:
+    """SOLVED instances whose answer, rounded to `dtype`, misses tol on the data rounded alike → TOLERANCE_NOT_MET."""
+    solved = status == QPStatus.SOLVED
+    if not bool(solved.any()):
+        return status
+    P_r, q_r, A_r, b_r, G_r, h_r = (t.to(dtype).double() for t in (P, q, A, b, G_all, h_all))
+    live = h_r.abs() < 1e20
+    G_r = torch.where(live.unsqueeze(-1), G_r, 0.0)
+    h_r = torch.where(live, h_r, 1.0)
+    ok = kkt_certified(0.5 * (P_r + P_r.mT), q_r, A_r, b_r, G_r, h_r, x.double(), y.double(), z_all.double(), tol)
+    return torch.where(solved & ~ok, int(QPStatus.TOLERANCE_NOT_MET), status)

@@ -1,4 +1,22 @@
-"""Per-instance outcome codes of the batched QP solver."""
+"""Per-instance outcome codes of the batched QP solver.
+
+Which inputs give which status (every route: C, torch; any batch size; one instance's status never
+depends on the rest of its batch):
+
+| status | value | when | x |
+|---|---:|---|---|
+| SOLVED | 0 | KKT conditions certified a posteriori within `tol`, each row relative to its own data | the solution |
+| MAX_ITER | 1 | the interior point used its `max_iter` iterations without a certificate either way | last iterate (finite) |
+| PRIMAL_INFEASIBLE | 2 | a Farkas certificate (z ≥ 0, Gᵀz + Aᵀy ≈ 0, hᵀz + bᵀy < 0) was found; or a row h_i ≤ −1e20, a bound lb_j ≥ 1e20 or ub_j ≤ −1e20 (−inf/+inf of the wrong sign), or lb_j > ub_j | 0 |
+| DUAL_INFEASIBLE | 3 | the objective is unbounded below: a direction d with P d ≈ 0, A d ≈ 0, G d ≤ 0, qᵀd < 0 was found | 0 |
+| NON_CONVEX | 4 | P (symmetrised) is not positive semi-definite: its smallest eigenvalue is below −1e-9·max|λ| | 0 |
+| INVALID_INPUT | 5 | NaN anywhere, or ±inf in P, q, A, b or G (h, lb, ub may be ±inf) | 0 |
+| TOLERANCE_NOT_MET | 6 | float32 (or float16/bfloat16) input: the float64 solution, rounded to the input's dtype, misses `tol` | the rounded solution |
+
+A right-hand side or bound with |value| ≥ 1e20 (or ±inf) of the "no constraint" sign is dropped, as
+peers write "no bound" as ±1e20.  Tolerances are per row: row i of Gx ≤ h is satisfied when
+G_i x − h_i ≤ tol·(1 + |h_i| + Σ_j |G_ij x_j|), so one large bound does not loosen the others.
+"""
 
 from __future__ import annotations
 
@@ -8,13 +26,19 @@ __all__ = ["QPStatus"]
 
 
 class QPStatus(IntEnum):
-    """Per-instance outcome codes stored in `QPSolution.status`."""
+    """Per-instance outcome codes stored in `QPSolution.status` (see the module docstring's table)."""
 
     SOLVED = 0
-    """Optimal to the requested tolerance."""
+    """Optimal to the requested tolerance (KKT conditions certified a posteriori)."""
     MAX_ITER = 1
-    """Iteration budget exhausted; x is the last iterate (finite)."""
+    """Iteration budget exhausted without a certificate; x is the last iterate (finite)."""
     PRIMAL_INFEASIBLE = 2
-    """No x satisfies the constraints (a Farkas certificate was found)."""
+    """No x satisfies the constraints (a Farkas certificate, or a bound of the wrong sign at infinity)."""
     DUAL_INFEASIBLE = 3
     """The objective is unbounded below on the feasible set (a recession direction was found)."""
+    NON_CONVEX = 4
+    """P is not positive semi-definite: the QP is not convex and no answer is given."""
+    INVALID_INPUT = 5
+    """NaN in the data, or ±inf where only finite values make sense (P, q, A, b, G)."""
+    TOLERANCE_NOT_MET = 6
+    """Solved in float64, but the answer rounded to the input's lower precision misses the tolerance."""

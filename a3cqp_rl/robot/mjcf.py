@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -14,8 +15,10 @@ __all__ = ["ASSETS_DIR", "PANDA_XML", "TOOLS", "DEFAULT_TOOL", "compose_mjcf", "
 ASSETS_DIR = Path(__file__).resolve().parent / "assets"
 PANDA_XML = ASSETS_DIR / "panda.xml"
 """The arm with the default tool (peg) inline; a complete, loadable MJCF file."""
-TOOLS = ("peg", "disc", "none")
-"""Tool names; each has assets/tool_<name>.xml (a single <body name="tool"> with a site "tcp")."""
+TOOLS = ("peg", "disc", "none", "peg_mesh", "disc_mesh")
+"""Tool names; each has assets/tool_<name>.xml (a single <body name="tool"> with a site "tcp", optionally preceded by
+an <asset> block, e.g. a collision mesh, which compose_mjcf moves to the model's top level). "peg_mesh" and
+"disc_mesh" are "peg" and "disc" colliding as 32-sided prisms (the Panda scenes use them: see their files)."""
 DEFAULT_TOOL = "peg"
 
 _TOOL_MARKERS = ("<!-- TOOL BEGIN -->", "<!-- TOOL END -->")
@@ -38,14 +41,25 @@ def table_xml(height: float = 0.3, size: tuple[float, float] = (0.3, 0.3), cente
             f'rgba="0.6 0.45 0.3 1" solref="0.005 1" friction="0.4 0.005 0.0001"/></body>')
 
 
+def _split_assets(text: str) -> tuple[str, str]:
+    """(the <asset> blocks' contents, the text without them): assets are only valid at the model's top level."""
+    assets = re.findall(r"<asset>(.*?)</asset>", text, flags=re.S)
+    return "\n".join(assets), re.sub(r"<asset>.*?</asset>", "", text, flags=re.S)
+
+
 def compose_mjcf(tool: str = DEFAULT_TOOL, scene: str = "") -> str:
-    """The Panda MJCF text with `tool` mounted below the F/T sensor and `scene` (MJCF bodies) in the worldbody."""
+    """The Panda MJCF text with `tool` mounted below the F/T sensor and `scene` (MJCF bodies) in the worldbody.
+
+    <asset> blocks in the tool file or the scene text are moved to the model's top level."""
     if tool not in TOOLS:
         raise UnknownToolError(f"unknown tool {tool!r}; known tools: {TOOLS}")
     text = PANDA_XML.read_text()
-    tool_body = (ASSETS_DIR / f"tool_{tool}.xml").read_text()
+    tool_assets, tool_body = _split_assets((ASSETS_DIR / f"tool_{tool}.xml").read_text())
+    scene_assets, scene = _split_assets(scene)
     text = _replace_between(text, _TOOL_MARKERS, tool_body)
-    return _replace_between(text, _SCENE_MARKERS, scene)
+    text = _replace_between(text, _SCENE_MARKERS, scene)
+    assets = "\n".join(a for a in (tool_assets, scene_assets) if a.strip())
+    return text.replace("<worldbody>", f"<asset>{assets}</asset>\n  <worldbody>", 1) if assets else text
 
 
 def mjcf_file(tool: str = DEFAULT_TOOL, scene: str = "") -> Path:

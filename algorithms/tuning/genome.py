@@ -10,16 +10,14 @@ import numpy as np
 
 from a3cqp_rl.config import GeneConfig
 
-__all__ = ["GenomeSpec", "level_from_selector", "LEVEL_BOUNDS"]
-
-LEVEL_BOUNDS = (0.25, 0.5, 0.75)
-"""Paper 002 eq. 4: l ≤ 0.25 → level 1, ≤ 0.5 → level 2, ≤ 0.75 → level 3, else the task is off (0)."""
-
+__all__ = ["GenomeSpec", "level_from_selector"]
 
 def level_from_selector(selector: np.ndarray | float) -> np.ndarray:
-    """Priority level (1, 2, 3, or 0 = deactivated) of a selector l in [0, 1] (paper 002 eq. 4)."""
-    level = np.searchsorted(np.asarray(LEVEL_BOUNDS), np.asarray(selector, dtype=float), side="left") + 1
-    return np.where(level > len(LEVEL_BOUNDS), 0, level)
+    """Priority level of selectors l in [0, 1] (paper 002 eq. 4, a3cqp_rl.control.hierarchy): 1, 2, 3, or 0 = off."""
+    from a3cqp_rl.control.hierarchy import level_from_selector as level  # imported only where a genome has levels
+
+    sel = np.asarray(selector, dtype=np.float64)
+    return np.array([level(v) or 0 for v in sel.ravel()], dtype=np.int64).reshape(sel.shape)
 
 
 @dataclass(frozen=True)

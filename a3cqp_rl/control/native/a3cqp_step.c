@@ -45,7 +45,7 @@
     A(wrench_max, 6)                         /* WrenchBox */                                                       \
     S(mu)                                    /* FrictionPyramid */                                                 \
     S(has_torque_limits) A(torque_max, 7) S(torque_safe) /* TorqueLimits (scaled τ̄), anchored to the brake */      \
-    A(tau_clip, 7) S(leak)                   /* torque clip ±τ_max; Δt · desired_state_leak */
+    A(tau_clip, 7) S(leak) S(leak_per_axis)  /* torque clip ±τ_max; Δt · desired_state_leak; leak_axes */
 
 #define DECLARE_S(f) double f;
 #define DECLARE_A(f, n) double f[n];
@@ -461,6 +461,55 @@ void a3cqp_assemble(int64_t n, const a3cqp_params *p, const double *in, double *
  * q* = q, q̇* = q̇); then q*, q̇* relax toward (q, q̇) where IK is off, and τ is clipped to ±τ_max (NaN → 0).
  * in, asm: a3cqp_assemble's input and output.  out, one array after the other: τ, q̈*, f, q̈_pd, q*, q̇* [n 7 / 6]
  * and saturated [n] (1.0 where some |τ_i| exceeded τ_max). */
+/* controller._relax_min_w1: q*, q̇* toward (q, q̇) at rate leak (1 − min_i w1_i), every joint. */
+static void relax_min_w1(const a3cqp_params *p, const double *w, const double *q, const double *qd, double *qs,
+                         double *qds) {
+    double w1_min = w[0];
+    for (int i = 1; i < 6; i++) w1_min = fmin(w1_min, w[i * 3]);
+    double rate = clampd(p->leak * (1.0 - clampd(w1_min, 0.0, 1.0)), 0.0, 1.0);
+    for (int i = 0; i < 7; i++) {
+        qs[i] -= rate * (qs[i] - q[i]);
+        qds[i] -= rate * (qds[i] - qd[i]);
+    }
+}
+
+/* controller._relax_per_axis: the task-space part of q* − q relaxed at rate leak (w2 + w3 min(1, f_d / 1 N)) along
+ * each axis of L, the null-space part at rate leak (same for q̇*). */
+static void relax_per_axis(const a3cqp_params *p, const double *J, const double *rot, const double *w,
+                           const double *f_d, const double *q, const double *qd, double *qs, double *qds) {
+    double jjt[36], jjt_inv[36], jpinv[7 * 6], r[6];
+    mm_nt(6, 7, 6, J, J, jjt);
+    for (int i = 0; i < 6; i++) jjt[i * 6 + i] += p->nullspace_damping;
+    gj_solve(6, jjt, 0, NULL, jjt_inv);
+    mm_tn(7, 6, 6, J, jjt_inv, jpinv);
+    for (int i = 0; i < 6; i++) {
+        double fd = clampd(clampd(f_d[i], 0.0, p->f_d_max), 0.0, 1.0);
+        r[i] = clampd(p->leak * (w[i * 3 + 1] + w[i * 3 + 2] * fd), 0.0, 1.0);
+    }
+    double full = fmin(p->leak, 1.0);
+    double *des[2] = {qs, qds};
+    const double *meas[2] = {q, qd};
+    for (int s = 0; s < 2; s++) {
+        double d[7], dx[6], dl[6], back[6], task[7], corr[7];
+        for (int i = 0; i < 7; i++) d[i] = des[s][i] - meas[s][i];
+        mv(6, 7, J, d, dx);
+        for (int b = 0; b < 2; b++) { /* local = Rᵀ dx per 3-block, scaled, back = R local (eq. 3) */
+            for (int i = 0; i < 3; i++) {
+                dl[3 * b + i] = 0.0;
+                for (int j = 0; j < 3; j++) dl[3 * b + i] += rot[j * 3 + i] * dx[3 * b + j];
+                dl[3 * b + i] *= r[3 * b + i];
+            }
+            for (int i = 0; i < 3; i++) {
+                back[3 * b + i] = 0.0;
+                for (int j = 0; j < 3; j++) back[3 * b + i] += rot[i * 3 + j] * dl[3 * b + j];
+            }
+        }
+        mv(7, 6, jpinv, dx, task);
+        mv(7, 6, jpinv, back, corr);
+        for (int i = 0; i < 7; i++) des[s][i] -= corr[i] + full * (d[i] - task[i]);
+    }
+}
+
 void a3cqp_torque(int64_t n, const a3cqp_params *p, const double *in, const double *asm_out, const double *x,
                   const uint8_t *ok, double *out) {
     const double dt = p->dt;
@@ -500,13 +549,14 @@ void a3cqp_torque(int64_t n, const a3cqp_params *p, const double *in, const doub
             }
             memset(fk, 0, sizeof(double) * 6);
         }
-        double w1_min = wk[0];
-        for (int i = 1; i < 6; i++) w1_min = fmin(w1_min, wk[i * 3]);
-        double rate = clampd(p->leak * (1.0 - clampd(w1_min, 0.0, 1.0)), 0.0, 1.0);
+        if (p->leak_per_axis != 0.0) relax_per_axis(p, Jk, a + IN_ROT, wk, a + IN_FD, qk, qdk, qn, qdn);
+        else relax_min_w1(p, wk, qk, qdk, qn, qdn);
+        for (int i = 0; i < 7; i++) {
+            q_des[7 * k + i] = qn[i];
+            qd_des[7 * k + i] = qdn[i];
+        }
         double sat = 0.0;
         for (int i = 0; i < 7; i++) {
-            q_des[7 * k + i] = qn[i] - rate * (qn[i] - qk[i]);
-            qd_des[7 * k + i] = qdn[i] - rate * (qdn[i] - qdk[i]);
             double t = tk[i], lim = p->tau_clip[i];
             if (fabs(t) > lim) sat = 1.0;
             tk[i] = t != t ? 0.0 : clampd(t, -lim, lim);

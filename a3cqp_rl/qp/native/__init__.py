@@ -1,19 +1,16 @@
-"""The small-batch dual active set in C (`gi_qp.c`, built at install time), called through ctypes.
+"""The C route of `solve_qp` (`gi_qp.c`: dense Goldfarb-Idnani per instance, and its adjoint, built at install
+time), through ctypes.
 
-Why native: at B = 1 the numpy range-space Goldfarb-Idnani of `small_batch.py` spends its time in
-call overhead, ~12 active-set steps × ~10 numpy/LAPACK calls at 0.5-3 µs each, while the
-arithmetic of a whole controller-sized solve (n = 13, m = 30) is a few µs.  One C call per batch
-does the same steps with the same decisions and certificate (see `gi_qp.c`); the numpy code stays
-as the fallback (not built: no compiler at install time; `A3CQP_NATIVE_QP=0`) and as the reference in tests.
-Measured on the shared 2-core box (controller-sized instance of bench/qp.py, B = 1):
-`active_set_small` cold 259 → 38 µs (default instance), 471 → 41 µs (spread 0.35, 12 solves);
-of the native call, ~2.5 µs is ctypes, ~5-15 µs the C code, the rest the array handling here.
-The backward (`gi_qp_adjoint`: adjoint solve and closed-form gradients) replaces ~30 numpy calls
-(~100 µs) the same way.  `solve_qp` at B = 1, medians of 3 bench runs: forward cold 348 → 163 µs
-(default), 614 → 222 µs (heavy); forward+backward 654 → 434, 942 → 481 µs.
+Why C: at the controller's size (n = 13, m = 30) a whole solve is a few µs of arithmetic, while any
+interpreted loop pays ~1 µs per call (numpy) or ~5 µs per op (eager torch) many times per active-set
+step.  One C call runs the whole batch: input checks, bound handling, the active set and its certificate.
 
-Build: setup.py at install time (flags in `a3cqp_rl.native_sources`); loading: `a3cqp_rl.native_build`.  A missing
-or stale library logs one warning and `load()` returns None for the rest of the process.
+`load()` returns a `NativeQP` with the raw ctypes functions (the B = 1 path of `solver.py` calls them with
+tensor data pointers, no conversions) or None: when the library was not built (no C compiler at install
+time) or is older than its source (one warning), or when the environment variable A3CQP_NATIVE_QP=0
+switches the C code off; `solve_qp(backend="auto")` then takes the torch route and `backend="c"` raises.
+
+Build: setup.py at install time (flags in `a3cqp_rl.native_sources`); loading: `a3cqp_rl.native_build`.
 """
 
 from __future__ import annotations
@@ -21,89 +18,71 @@ from __future__ import annotations
 import ctypes
 import logging
 from pathlib import Path
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import numpy as np
+import torch
+from torch import Tensor
 
 from a3cqp_rl.native_build import LazyLibrary, address
 
-__all__ = ["load", "load_adjoint", "SOURCE", "CERTIFIED"]
+__all__ = ["load", "NativeQP", "SOURCE", "HANDED_ON", "N_STRIDES"]
 
 SOURCE = Path(__file__).with_name("gi_qp.c")
-CERTIFIED = 0
-"""Status code of a certified instance (any other code: solve it on the numpy path)."""
+HANDED_ON = 16
+"""Status codes ≥ this are instances the C route hands on to the torch route (P not definite, dependent
+rows, infeasible or unbounded candidates, no certificate); below it they are `QPStatus` values."""
+N_STRIDES = 9
+"""Batch strides passed per call: P, q, A, b, G, h, lb, ub, z0 (0: one array shared by the batch)."""
 
 _log = logging.getLogger(__name__)
 
 
-def _bind(path: Path) -> tuple[Callable, Callable]:
-    """ctypes bindings of gi_qp_solve and gi_qp_adjoint wrapped as functions of numpy arrays."""
+class NativeQP(NamedTuple):
+    """The bound C entry points (ctypes functions taking data addresses) and a numpy-level adjoint."""
+
+    solve: Callable
+    """gi_qp_solve(B, n, p, m, P, q, A, b, G, h, lb, ub, z0, strides, tol, max_steps, out) -> worst status."""
+    adjoint: Callable
+    """(P, A, G, h, x, y, z, gx) float64 CPU tensors -> (gP, gq, gA, gb, gG, gh) or None if an instance is declined."""
+
+
+def _bind(path: Path) -> NativeQP:
+    """ctypes bindings of gi_qp_solve and gi_qp_adjoint."""
     lib = ctypes.CDLL(str(path))
     fn, fn_adj = lib.gi_qp_solve, lib.gi_qp_adjoint
     i64, dbl, ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
-    fn.argtypes = [i64, i64, i64, i64, ptr, ptr, ptr, ptr, ptr, ptr, ptr, dbl, i64, ptr, ptr, ptr, ptr, ptr]
+    fn.argtypes = [i64, i64, i64, i64, *[ptr] * 10, dbl, i64, ptr]
     fn_adj.argtypes = [i64, i64, i64, i64, *[ptr] * 15]
     fn.restype = fn_adj.restype = ctypes.c_int
-    f64, i64v = np.float64, np.int64
 
-    def solve(
-        P: np.ndarray, q: np.ndarray, A: np.ndarray, b: np.ndarray, G: np.ndarray, h: np.ndarray,
-        z0: np.ndarray | None, tol: float, max_steps: int,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Range-space G-I on a batch (shapes as `small_batch.active_set_small`); returns x, y, z, status, solves.
-
-        Inputs are made float64 C-contiguous (a no-op for the usual arrays); x, y, z are valid
-        where status == CERTIFIED (0)."""
-        B, n = q.shape
-        p, m = A.shape[1], G.shape[1]
-        P, q, A, b, G, h = (np.ascontiguousarray(t, dtype=f64) for t in (P, q, A, b, G, h))
-        if z0 is not None:
-            z0 = np.ascontiguousarray(z0, dtype=f64)
-        # One output buffer (one address to take): x | y | z | status | solves.
-        out = np.empty(B * (n + p + m + 2))
-        e1, e2, e3 = B * n, B * (n + p), B * (n + p + m)
-        x, y, z = out[:e1].reshape(B, n), out[e1:e2].reshape(B, p), out[e2:e3].reshape(B, m)
-        codes = out[e3:].view(i64v)
-        o = address(out)
-        fn(B, n, p, m, address(P), address(q), address(A), address(b), address(G), address(h), None if z0 is None else address(z0),
-           tol, max_steps, o, o + 8 * e1, o + 8 * e2, o + 8 * e3, o + 8 * (e3 + B))
-        return x, y, z, codes[:B], codes[B:]
-
-    def adjoint(
-        P: np.ndarray, A: np.ndarray, G: np.ndarray, h: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray, gx: np.ndarray,
-    ) -> tuple[np.ndarray, ...] | None:
+    def adjoint(P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Tensor, z: Tensor, gx: Tensor) -> tuple[Tensor, ...] | None:
         """Gradients (gP, gq, gA, gb, gG, gh) of Σ gx·x by the range-space adjoint (`gi_qp_adjoint`), or None.
 
-        None when some instance's system is not accepted (the caller then uses its numpy adjoint)."""
+        Float64 CPU tensors (made contiguous here); None when some instance's system is not accepted (the
+        caller then uses the torch backward)."""
         B, n = x.shape
         p, m = A.shape[1], G.shape[1]
-        P, A, G, h, x, y, z, gx = (np.ascontiguousarray(t, dtype=f64) for t in (P, A, G, h, x, y, z, gx))
+        ts = [t.contiguous() for t in (P, A, G, h, x, y, z, gx)]
         sizes = (n * n, n, p * n, p, m * n, m)
-        out = np.empty(B * (sum(sizes) + 1))
-        o, offs = address(out), [0]
+        offs = [0]
         for s_ in sizes:
             offs.append(offs[-1] + B * s_)
-        status = out[offs[-1]:].view(i64v)
-        fn_adj(B, n, p, m, address(P), address(A), address(G), address(h), address(x), address(y), address(z), address(gx),
-               *(o + 8 * e for e in offs))
+        out = np.empty(offs[-1] + B)
+        o = address(out)
+        fn_adj(B, n, p, m, *(t.data_ptr() for t in ts), *(o + 8 * e for e in offs))
+        status = out[offs[-1]:].view(np.int64)
         if status[status.argmax()]:  # any instance not accepted
             return None
         shapes = ((B, n, n), (B, n), (B, p, n), (B, p), (B, m, n), (B, m))
-        return tuple(out[offs[i] : offs[i + 1]].reshape(shapes[i]) for i in range(6))
+        return tuple(torch.from_numpy(out[offs[i] : offs[i + 1]].reshape(shapes[i])) for i in range(6))
 
-    return solve, adjoint
-
-
-def load() -> Callable | None:
-    """The native batch solver, or None (disabled by A3CQP_NATIVE_QP=0, or not built / stale: one warning)."""
-    fns = _library.get()
-    return None if fns is None else fns[0]
+    return NativeQP(fn, adjoint)
 
 
-def load_adjoint() -> Callable | None:
-    """The native backward (adjoint and gradients), or None exactly when `load()` is None."""
-    fns = _library.get()
-    return None if fns is None else fns[1]
+def load() -> NativeQP | None:
+    """The C route, or None (switched off by A3CQP_NATIVE_QP=0, or no compiler / build failed: one warning)."""
+    return _library.get()
 
 
 def _reset() -> None:
@@ -111,4 +90,4 @@ def _reset() -> None:
     _library.reset()
 
 
-_library = LazyLibrary(SOURCE, "A3CQP_NATIVE_QP", _bind, _log, "a3cqp_rl.qp: native QP routine", "the numpy path")
+_library = LazyLibrary(SOURCE, "A3CQP_NATIVE_QP", _bind, _log, "a3cqp_rl.qp: native QP routine", "the torch route")

@@ -1,0 +1,185 @@
+"""Episode plots like the paper's Fig. 7/8 (one Panda episode: weights, f_d, e, f_env, f_ope on one axis of L, the
+scene's own signal at the bottom, the leading task shaded) and an image strip of the MuJoCo scene rendered offscreen.
+
+Both take data (arrays, or an episode .npz as written by `a3cqp evaluate --scene ... --out RUN`), not env objects.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["plot_episode", "load_episode", "render_strip", "AXES", "TASK_COLOURS"]
+
+AXES = ("x", "y", "z", "rx", "ry", "rz")
+TASK_COLOURS = {"IK": "#9ecae1", "AC": "#a1d99b", "FC": "#fc9272"}
+"""Fig. 7/8's colours: blue IK, green AC, red FC."""
+_TASKS = ("IK", "AC", "FC")
+
+
+def load_episode(path: str | Path) -> dict[str, np.ndarray]:
+    """Arrays of an episode .npz (a run folder: its episode_learned.npz)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "episode_learned.npz"
+    if not path.is_file():
+        raise FileNotFoundError(f"episode file not found: {path} (write one with `a3cqp evaluate --scene ... --out`)")
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _spans(labels: np.ndarray) -> list[tuple[int, int, int]]:
+    """(start, end, label) runs of equal consecutive labels."""
+    change = np.flatnonzero(np.diff(labels)) + 1
+    starts = np.concatenate([[0], change])
+    ends = np.concatenate([change, [len(labels)]])
+    return [(int(a), int(b), int(labels[a])) for a, b in zip(starts, ends)]
+
+
+def plot_episode(ep: dict[str, np.ndarray], out: str | Path, axis: str = "z", title: str | None = None) -> Path:
+    """Fig. 7/8-style figure of one episode on local axis `axis`; returns the written path (PNG or PDF)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    if axis not in AXES:
+        raise ValueError(f"axis must be one of {AXES}, got {axis!r}")
+    k = AXES.index(axis)
+    t = np.asarray(ep["time"], dtype=float)
+    if len(t) < 2:
+        raise ValueError("the episode has fewer than two steps")
+    w = np.asarray(ep["weights"])[:, k]
+    rot = k >= 3
+    lin, force = ("rad", "N m") if rot else ("m", "N")
+    scene = str(ep.get("scene", ""))
+    bottom = []
+    if "misalign_translation" in ep:
+        bottom = [("misalignment", [(1e3 * ep["misalign_translation"], "translation [mm]"),
+                                    (np.degrees(ep["misalign_rotation"]), "rotation [deg]")])]
+    elif "x_d" in ep:
+        bottom = [("reference [m]", [(ep["x_d"], "x_d"), (ep["y_d"], "y_d")])]
+    rows = 5 + len(bottom)
+    fig, ax = plt.subplots(rows, 1, figsize=(11, 2.0 * rows + 1), sharex=True)
+    for i, name in enumerate(("w1 IK", "w2 AC", "w3 FC")):
+        ax[0].plot(t, w[:, i], color=("C0", "C2", "C3")[i], label=name)
+    ax[0].set_ylabel(f"weights ({axis})")
+    ax[0].set_ylim(-0.05, 1.05)
+    ax[1].plot(t, np.asarray(ep["f_d"])[:, k], color="C3", label=f"f_d [{force}]")
+    ax[1].set_ylabel(f"f_d [{force}]")
+    ax[2].plot(t, np.asarray(ep["e_local"])[:, k], color="C0", label=f"e [{lin}]")
+    ax[2].set_ylabel(f"e [{lin}]")
+    ax[3].plot(t, np.asarray(ep["f_env_local"])[:, k], color="C3", label=f"f_env [{force}]")
+    ax[3].set_ylabel(f"f_env [{force}]")
+    ax[4].plot(t, np.asarray(ep["f_ope_local"])[:, k], color="C2", label=f"f_ope [{force}]")
+    ax[4].set_ylabel(f"f_ope [{force}]")
+    for j, (label, curves) in enumerate(bottom):
+        a = ax[5 + j]
+        for c, (y, name) in enumerate(curves):
+            a.plot(t, y, color=f"C{c + 4}", label=name)
+        a.set_ylabel(label)
+    # shading: the task leading this axis (largest weight), as Fig. 7/8's patches
+    lead = np.argmax(w, axis=1)
+    for a in ax:
+        for s, e, lab in _spans(lead):
+            a.axvspan(t[s], t[min(e, len(t) - 1)], color=TASK_COLOURS[_TASKS[lab]], alpha=0.35, lw=0)
+        a.grid(alpha=0.3)
+        a.legend(loc="upper right", fontsize=8)
+    # the procedure's phases as thin lines with their names
+    if "phase" in ep and "phase_names" in ep:
+        names = [str(x) for x in ep["phase_names"]]
+        for s, _e, lab in _spans(np.asarray(ep["phase"])):
+            for a in ax:
+                a.axvline(t[s], color="0.4", lw=0.6, ls=":")
+            ax[0].text(t[s], 1.07, names[lab], fontsize=7, rotation=30, va="bottom")
+    ax[-1].set_xlabel("time [s]")
+    handles = [matplotlib.patches.Patch(color=TASK_COLOURS[n], alpha=0.5, label=f"{n} leads") for n in _TASKS]
+    fig.legend(handles=handles, loc="upper left", ncol=3, fontsize=8)
+    fig.suptitle(title or f"{scene} episode, local axis {axis}", y=0.995)
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
+
+
+def render_strip(ep: dict[str, np.ndarray], out: str | Path, frames: int = 6, size: tuple[int, int] = (360, 480),
+                 times: list[float] | None = None) -> Path:
+    """Offscreen MuJoCo snapshots of the episode (its recorded joint angles in its scene) in a row; returns the path.
+
+    Needs an OpenGL backend (MUJOCO_GL=egl or osmesa). MuJoCo picks its backend when it is first imported, so when
+    the process's one cannot render offscreen the frames are drawn in a fresh interpreter with MUJOCO_GL=egl, then
+    osmesa; RuntimeError when none works.
+    """
+    try:
+        return _render_strip(ep, out, frames, size, times)
+    except RuntimeError as first:
+        import subprocess
+        import sys
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            src = Path(tmp) / "episode.npz"
+            np.savez(src, **ep)
+            for backend in ("egl", "osmesa"):
+                code = ("import sys; from a3cqp_rl.plotting.episode import _render_strip, load_episode; "
+                        f"_render_strip(load_episode(sys.argv[1]), sys.argv[2], {frames}, {tuple(size)}, {times!r})")
+                env = {**os.environ, "MUJOCO_GL": backend, "PYOPENGL_PLATFORM": backend}
+                done = subprocess.run([sys.executable, "-c", code, str(src), str(out)], env=env, capture_output=True)
+                if done.returncode == 0:
+                    return Path(out)
+        raise first
+
+
+def _render_strip(ep: dict[str, np.ndarray], out: str | Path, frames: int, size: tuple[int, int],
+                  times: list[float] | None) -> Path:
+    """render_strip in this process (its MuJoCo GL backend)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import mujoco
+
+    from a3cqp_rl.robot.mjcf import compose_mjcf
+
+    for key in ("q", "tool", "scene_xml"):
+        if key not in ep:
+            raise ValueError(f"the episode has no {key!r}: record it with `a3cqp evaluate --scene ... --out`")
+    model = mujoco.MjModel.from_xml_string(compose_mjcf(str(ep["tool"]), str(ep["scene_xml"])))
+    data = mujoco.MjData(model)
+    try:
+        renderer = mujoco.Renderer(model, size[0], size[1])
+    except Exception as exc:  # no GL context: EGL/OSMesa missing
+        raise RuntimeError(f"no OpenGL backend for offscreen rendering ({type(exc).__name__}: {exc}); "
+                           "install EGL or OSMesa and set MUJOCO_GL=egl or MUJOCO_GL=osmesa") from None
+    t = np.asarray(ep["time"], dtype=float)
+    if times is None:
+        times = list(np.linspace(t[0], t[-1], frames + 2)[1:-1])
+    opt = mujoco.MjvOption()
+    opt.geomgroup[:] = 1
+    images = []
+    tcp = model.site("tcp").id
+    for tt in times:
+        i = int(np.argmin(np.abs(t - tt)))
+        data.qpos[:7] = ep["q"][i]
+        mujoco.mj_forward(model, data)
+        cam = mujoco.MjvCamera()
+        cam.lookat[:] = data.site_xpos[tcp] + np.array([0.0, 0.0, 0.05])
+        cam.distance, cam.azimuth, cam.elevation = 0.55, 150.0, -20.0
+        renderer.update_scene(data, camera=cam, scene_option=opt)
+        images.append((t[i], renderer.render().copy()))
+    renderer.close()
+    fig, ax = plt.subplots(1, len(images), figsize=(3.2 * len(images), 2.8))
+    for a, (ti, im), label in zip(np.atleast_1d(ax), images, "ABCDEFGHIJKL"):
+        a.imshow(im)
+        a.set_title(f"({label}) t = {ti:.1f} s", fontsize=9)
+        a.axis("off")
+    fig.tight_layout()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out

@@ -1,0 +1,234 @@
+"""The pieces of `a2c.train` around its loop: run folder, checkpoints and resume, parameter averaging, Fig. 5 region
+checks, and Ctrl-C. Each is a small object the loop calls in one line."""
+
+from __future__ import annotations
+
+import math
+import signal
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from a3cqp_rl.checkpoint import load_checkpoint, save_atomic
+from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, config_to_dict
+from a3cqp_rl.exceptions import A3CQPError, CheckpointError
+from a3cqp_rl.run_folder import RunFolder, RunFolderError, config_changes
+from algorithms.networks import ParamLayout, policy_mean
+from algorithms.policy import layout_key
+
+__all__ = ["open_run_folder", "Checkpoints", "ParameterAverage", "RegionChecks", "SigintCheckpoint",
+           "TrainingInterrupted", "CKPT_KEYS", "RESUMABLE_CHANGES"]
+
+CKPT_KEYS = ("format", "update", "flat", "square_avg", "gen", "rollout", "config", "layout", "metric_sum", "metric_count")
+RESUMABLE_CHANGES = ("a2c.total_steps", "a2c.compile", "a2c.checkpoint_every")
+"""Config keys a resume may change without --override: how long, whether compiled, how often checkpointed."""
+
+
+def open_run_folder(out_dir: str | Path | None, *, resume: bool, force: bool) -> RunFolder | None:
+    """The locked run folder (None without `out_dir`); a resume needs one that exists."""
+    if out_dir is None:
+        if resume:
+            raise CheckpointError("--resume needs an output directory holding checkpoint.pt")
+        return None
+    if resume and not (Path(out_dir) / "checkpoint.pt").is_file():
+        raise CheckpointError(f"checkpoint not found: {Path(out_dir) / 'checkpoint.pt'} (nothing to resume)")
+    return RunFolder.open(out_dir, resume=resume, force=force)
+
+
+class ParameterAverage:
+    """`a2c.average_last` (stochastic weight averaging): the running uniform mean of the parameters over the last
+    `fraction` of `num_updates` updates, which policy.pt holds instead of the last parameters."""
+
+    def __init__(self, num_updates: int, fraction: float) -> None:
+        """Average the parameters after updates num_updates − ⌈fraction·num_updates⌉ + 1 … num_updates."""
+        self.num_updates, self.first = num_updates, num_updates - math.ceil(fraction * num_updates) + 1
+        self.mean: Tensor | None = None
+        self.count = 0
+
+    def update(self, done_updates: int, flat: Tensor) -> None:
+        """Fold in the parameters after update `done_updates` (1-based) if it is inside the window."""
+        if done_updates >= self.first:
+            self.count += 1
+            self.mean = flat.clone() if self.mean is None else self.mean.lerp_(flat, 1.0 / self.count)
+
+    def policy(self, flat: Tensor) -> Tensor:
+        """The parameters a saved policy gets now: the average once it has begun, else `flat`."""
+        return self.mean if self.count else flat
+
+    def state_dict(self) -> dict:
+        """Checkpoint entry (empty before the window)."""
+        return {"first": self.first, "count": self.count, "mean": self.mean} if self.count else {}
+
+    def load_state_dict(self, d: dict, start: int) -> None:
+        """Restore at checkpoint update `start`; a window moved by another --steps restarts (with a warning if its
+        start has passed)."""
+        if d and d["first"] == self.first:
+            self.count, self.mean = int(d["count"]), d["mean"].clone()
+        elif start >= self.first:
+            warnings.warn(f"a2c.average_last: the average over updates {self.first}-{self.num_updates} cannot be "
+                          f"rebuilt from a checkpoint at update {start}; policy.pt averages {start + 1}-{self.num_updates}")
+
+
+class Checkpoints:
+    """Everything a run must keep to continue bit-identically: parameters, optimiser, RNG, rollout and env state,
+    the metric window, episode count and parameter average; written atomically to OUT/checkpoint.pt."""
+
+    def __init__(self, folder: RunFolder | None, cfg: ExperimentConfig, layout: ParamLayout, spec, flat: Tensor,
+                 square_avg: Tensor, gen: torch.Generator, runner, average: ParameterAverage) -> None:
+        """Hold references to the live training state (updated in place by the loop)."""
+        self.folder, self.cfg, self.layout, self.spec = folder, cfg, layout, spec
+        self.flat, self.square_avg, self.gen, self.runner, self.average = flat, square_avg, gen, runner, average
+        self.layout_key = [layout.obs_dim, layout.act_dim, list(layout.hidden), layout.network, layout.critic_obs_dim]
+        self.metric_sum = torch.zeros(5)  # running sums of METRICS since the last logged row
+        self.metric_count = 0
+        self.episodes_before = 0
+        """Episodes that ended before the checkpoint this run resumed from, beyond the ones `runner.finished` holds."""
+
+    def begin(self, resume: bool, override: bool) -> int:
+        """Restore the checkpoint if `resume` (see `restore`), then record the run's config in OUT/config.yaml; returns
+        the update to continue after (0 for a new run)."""
+        start = self.restore(override) if resume else 0
+        if self.folder is not None:
+            self._write_config()
+        return start
+
+    @property
+    def path(self) -> Path:
+        return self.folder.path / "checkpoint.pt"
+
+    def add_metrics(self, metrics: Tensor) -> None:
+        """Fold one update's METRICS [5] into the window."""
+        self.metric_sum += metrics
+        self.metric_count += 1
+
+    def metric_means(self, updates: int) -> Tensor:
+        """Means over the window; the window restarts on `log_every` boundaries (a final, partial window stays in the
+        sums, so a resumed run re-logs it whole)."""
+        means = self.metric_sum / self.metric_count
+        if updates % self.cfg.a2c.log_every == 0:
+            self.metric_sum.zero_()
+            self.metric_count = 0
+        return means
+
+    def _meta(self) -> dict:
+        """What policy.pt and checkpoint.pt say about the network and the env."""
+        s = self.spec
+        return {"layout": self.layout_key, "config": config_to_dict(self.cfg), "env": self.cfg.env,
+                "agents": list(s.agents), "action_low": list(s.low) if s.low is not None else None,
+                "action_high": list(s.high) if s.high is not None else None}
+
+    def save(self, update: int) -> None:
+        """Write the checkpoint after `update` updates."""
+        r = self.runner
+        save_atomic({"format": 1, "update": update, "flat": self.flat, "square_avg": self.square_avg,
+                     "gen": self.gen.get_state(), "rollout": r.state_dict(), **self._meta(),
+                     "finished": [list(x) for x in r.finished[-1000:]], "episodes": self.episodes_before + len(r.finished),
+                     "metric_sum": self.metric_sum, "metric_count": self.metric_count,
+                     "average": self.average.state_dict()}, self.path)
+
+    def save_policy(self) -> Path:
+        """Write OUT/policy.pt: the parameters policy.pt holds (averaged with a2c.average_last), layout and bounds."""
+        return save_atomic({"format": 1, "flat": self.average.policy(self.flat).clone(), **self._meta(),
+                            "averaged_updates": self.average.count}, self.folder.path / "policy.pt")
+
+    def restore(self, override: bool) -> int:
+        """Load OUT/checkpoint.pt into the live state; refuse a changed config unless `override` (then recorded in
+        OUT/overrides.log). Returns the update to continue after."""
+        ck = load_checkpoint(self.path, CKPT_KEYS)
+        if layout_key(ck["layout"]) != self.layout_key or ck["flat"].shape != self.flat.shape:
+            raise CheckpointError(f"{self.path} was written for network {ck['layout']}, the config and env ask for "
+                                  f"{self.layout_key}")
+        start = int(ck["update"])
+        changes = config_changes(_with_defaults(ck["config"]), config_to_dict(self.cfg), RESUMABLE_CHANGES)
+        if changes and not override:
+            raise CheckpointError(f"{self.path} was written with another config ({'; '.join(changes)}); resume with "
+                                  "--override to continue with the new values (recorded in overrides.log), or start "
+                                  "a new run elsewhere")
+        if changes:
+            self.folder.record_overrides(start, changes)
+        self.flat.copy_(ck["flat"])
+        self.square_avg.copy_(ck["square_avg"])
+        self.gen.set_state(ck["gen"])
+        self.runner.load_state_dict(ck["rollout"])
+        self.runner.finished = [tuple(x) for x in ck.get("finished", [])]
+        self.episodes_before = int(ck.get("episodes", len(self.runner.finished))) - len(self.runner.finished)
+        self.metric_sum, self.metric_count = ck["metric_sum"].clone(), int(ck["metric_count"])
+        self.average.load_state_dict(ck.get("average", {}), start)
+        return start
+
+    def _write_config(self) -> None:
+        import yaml
+
+        path = self.folder.path / "config.yaml"
+        try:
+            path.write_text(yaml.safe_dump(config_to_dict(self.cfg), sort_keys=False))
+        except OSError as exc:
+            raise RunFolderError(f"cannot write {path}: {exc.strerror or exc}") from None
+
+
+def _with_defaults(d: dict) -> dict:
+    """A checkpoint's config with the fields added since it was written at their defaults (as it ran)."""
+    try:
+        return config_to_dict(config_from_dict(d, "checkpoint config"))
+    except A3CQPError:
+        return d
+
+
+class RegionChecks:
+    """Paper Fig. 5 region checks (a3cqp_rl.regions) of the policy policy.pt would hold, on every `stride`-th log row
+    and the last one (`a2c.region_checks` of them; 0 = none)."""
+
+    def __init__(self, layout: ParamLayout, flat: Tensor, average: ParameterAverage, num_updates: int,
+                 hp: A2CConfig) -> None:
+        """Check `average.policy(flat)` (read live) over a run of `num_updates` updates."""
+        self.layout, self.flat, self.average, self.num_updates, self.log_every = layout, flat, average, num_updates, hp.log_every
+        self.stride = max(1, math.ceil(num_updates // hp.log_every / hp.region_checks)) if hp.region_checks else 0
+
+    def __call__(self, done: int) -> dict[str, float]:
+        """REGION_COLUMNS values at log row `done` (empty when this row is not checked)."""
+        from a3cqp_rl.regions import region_row
+
+        if not self.stride or not (done == self.num_updates or (done // self.log_every) % self.stride == 0):
+            return {}
+        flat = self.average.policy(self.flat)
+        return region_row(lambda o: policy_mean(self.layout, flat, o).clamp(-1.0, 1.0))
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped training after a checkpoint was written."""
+
+
+class SigintCheckpoint:
+    """While active, Ctrl-C (SIGINT) asks the loop to finish its update, write a checkpoint and stop; a second Ctrl-C
+    interrupts at once (the previous handler is back)."""
+
+    def __init__(self, enabled: bool) -> None:
+        """Install the handler on `__enter__` if `enabled` and in the main thread (signals go only there)."""
+        self.enabled = enabled and threading.current_thread() is threading.main_thread()
+        self.requested = False
+        self._previous = None
+
+    def _handle(self, signum, frame) -> None:  # noqa: ANN001
+        self.requested = True
+        signal.signal(signal.SIGINT, self._previous)
+
+    def __enter__(self) -> SigintCheckpoint:
+        if self.enabled:
+            self._previous = signal.getsignal(signal.SIGINT)
+            if self._previous is None:  # set from C: the best we can restore is Python's default
+                self._previous = signal.default_int_handler
+            signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.enabled and signal.getsignal(signal.SIGINT) == self._handle:
+            signal.signal(signal.SIGINT, self._previous)
+
+    def stop_if_requested(self, step: int, folder: RunFolder | None) -> None:
+        """Raise TrainingInterrupted if Ctrl-C came (call after the checkpoint was written)."""
+        if self.requested:
+            where = f"; {folder.path / 'checkpoint.pt'} holds it, continue with --resume" if folder else ""
+            raise TrainingInterrupted(f"interrupted at step {step:,}{where}")

@@ -1,0 +1,56 @@
+"""Build the TorchRL env a config names (`env:` / `a3cqp train --env`): a registered env or any gymnasium id.
+
+Registered names are listed in `a3cqp_rl.config.ENV_FACTORIES` as "module:function" strings; each function takes
+(cfg, num_envs, seed) and returns a seeded TorchRL EnvBase with batch_size [num_envs]. Any other name must be a
+gymnasium id: it runs as ONE batched env, gymnasium's synchronous vector env of `num_envs` copies wrapped by TorchRL's
+`GymWrapper` (in-process, ~19k steps/s for Pendulum-v1 with 8 copies here; TorchRL's `GymEnv(num_envs=...)` starts
+one process per copy, slower on small machines).
+"""
+
+from __future__ import annotations
+
+import importlib
+
+from a3cqp_rl.config import ENV_FACTORIES, ExperimentConfig
+
+__all__ = ["make_env", "point_mass", "gym_env"]
+
+
+def make_env(cfg: ExperimentConfig, num_envs: int | None = None, seed: int | None = None):
+    """The env `cfg.env` names, with `num_envs` (default a2c.num_envs) copies, seeded with `seed` (default cfg.seed)."""
+    num_envs = cfg.a2c.num_envs if num_envs is None else num_envs
+    seed = cfg.seed if seed is None else seed
+    if cfg.env in ENV_FACTORIES:
+        module, func = ENV_FACTORIES[cfg.env].split(":")
+        return getattr(importlib.import_module(module), func)(cfg, num_envs, seed)
+    return gym_env(cfg.env, num_envs, seed)
+
+
+def point_mass(cfg: ExperimentConfig, num_envs: int, seed: int):
+    """PointMassEnv (eq. 35), natively batched, reset."""
+    from envs.point_mass import PointMassEnv
+
+    env = PointMassEnv(num_envs, cfg, seed=seed)
+    env.reset()
+    return env
+
+
+def gym_env(env_id: str, num_envs: int, seed: int):
+    """gymnasium `env_id` × num_envs as one TorchRL env, batch_size [num_envs], seeded."""
+    import logging
+
+    import gymnasium as gym
+    from torchrl.envs import GymWrapper
+
+    # TorchRL reads the final observation of an episode (for bootstrapping at truncation) only in SAME_STEP mode
+    vec = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="sync",
+                       vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
+    log = logging.getLogger("torchrl")
+    level = log.level
+    log.setLevel(logging.WARNING)  # GymWrapper logs its spec probing at INFO on every construction
+    try:
+        env = GymWrapper(vec)
+    finally:
+        log.setLevel(level)
+    env.set_seed(seed)
+    return env

@@ -1,0 +1,119 @@
+"""Benchmark: PandaEnv agent steps per second and aggregate real-time factor for N = 1, 8, 32 arms, with the
+peg-in-hole scene's contacts on.
+
+Every arm runs the peg-in-hole procedure with the scripted IK + force-control weights until its peg is on the block
+(the insertion phase: peg on the rim or in the bore), then the timed agent steps start (each = 10 control periods of
+controller + MuJoCo + sensing + operator/scene at 100 Hz). Reported per N (medians over repeats):
+  steps/s    batched env.step() calls per second (TorchRL EnvBase.step, tensordict in and out)
+  RTF        aggregate real-time factor N · 10 ms · steps/s
+  contacts   mean MuJoCo contacts per arm in the timed window
+  bare RTF   the same arms, the same number of control periods, run as the bare loop of bench/controller.py (PandaSim
+             + A3CQPController, free motion, no env): the peer; `env cost` = bare RTF / RTF
+Target: RTF >= 10x at N = 32 on this machine (2 cores).  `--eval` also times `a3cqp evaluate --scene peg_in_hole`
+for the learned policy alone on 26 trials (target: under a minute).
+
+    python bench/panda_env.py [--quick] [--sizes 1 8 32] [--repeats R] [--eval POLICY]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+
+import numpy as np
+import torch
+
+from a3cqp_rl.control import A3CQPController
+from a3cqp_rl.robot import PandaSim
+from envs.panda import PandaEnv
+
+
+def _scripted(env: PandaEnv) -> None:
+    """IK everywhere, force control on the tool axis once the peg touches (the ik_fc baseline's weights)."""
+    n = env.num_envs
+    W = np.zeros((n, 6, 3))
+    W[..., 0] = 1.0
+    f_d = np.zeros((n, 6))
+    touching = np.linalg.norm(env.f_env[:, :3], axis=1) > 1.0
+    W[touching, 2] = [0.0, 0.0, 1.0]
+    f_d[touching, 2] = 10.0
+    env.hold_weights(np.ones(n, dtype=bool), W, f_d)
+
+
+def run_env(n: int, steps: int) -> dict[str, float]:
+    """Agent steps/s of PandaEnv(n) in the insertion phase and the mean number of contacts per arm."""
+    env = PandaEnv(n, seed=0)
+    td = env.reset()
+    action = torch.zeros(n, 6, 4)
+    guard = 0
+    while not (env.scene.phase == env.scene.INSERT).all() or env.t[0] < 3.2:  # all pegs at the block
+        _scripted(env)
+        td["action"] = action
+        td = env.step(td)["next"]
+        guard += 1
+        if guard > 1000:
+            raise RuntimeError("the arms did not reach the block")
+    contacts = []
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        _scripted(env)
+        td["action"] = action
+        td = env.step(td)["next"]
+        contacts.append(env.sim.data.ncon / n)
+    wall = time.perf_counter() - t0
+    return {"steps_s": steps / wall, "rtf": n * env.adapt.dt * steps / wall, "contacts": float(np.mean(contacts))}
+
+
+def run_bare(n: int, periods: int) -> float:
+    """Aggregate RTF of the bare PandaSim + A3CQPController loop (free motion), the same n and control periods."""
+    sim = PandaSim(n, tool="peg")
+    ctrl = A3CQPController(n)
+    s = sim.observe()
+    pos, rot = s.kin.pos.clone(), s.kin.rot.clone()
+    w = torch.zeros(n, 6, 3, dtype=torch.float64)
+    w[..., 0] = 1.0
+    f_d = torch.zeros(n, 6, dtype=torch.float64)
+    t0 = time.perf_counter()
+    for _ in range(periods):
+        out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, f_d, pos, rot, f_env=s.f_env, kin=s.kin)
+        sim.step(out.tau)
+        s = sim.observe()
+    return n * sim.dt * periods / (time.perf_counter() - t0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark and print one row per N; returns 0."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="few steps (smoke test)")
+    p.add_argument("--sizes", type=int, nargs="+", default=[1, 8, 32])
+    p.add_argument("--repeats", type=int, default=3, help="runs per N; the row shows the median")
+    p.add_argument("--eval", default=None, metavar="POLICY", help="also time the 26-trial learned-policy evaluation")
+    args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    torch.set_num_threads(1)
+    steps = 20 if args.quick else 200
+    repeats = 1 if args.quick else args.repeats
+    print(f"PandaEnv benchmark (peg-in-hole, contacts on): {steps} timed agent steps (x10 control periods), "
+          f"median of {repeats}")
+    print(f"{'N':>4} {'steps/s':>9} {'RTF':>8} {'contacts/arm':>13} {'bare RTF':>9} {'env cost':>9} {'target':>18}")
+    for n in args.sizes:
+        runs = sorted((run_env(n, steps) for _ in range(repeats)), key=lambda r: r["rtf"])
+        r = runs[len(runs) // 2]
+        bare = statistics.median(run_bare(n, steps * 10) for _ in range(repeats))
+        target = f">=10x RT: {'met' if r['rtf'] >= 10 else 'NOT met'}" if n == 32 else "-"
+        print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {bare:>8.2f}x "
+              f"{bare / r['rtf']:>8.2f}x {target:>18}")
+    if args.eval:
+        from envs.panda_eval import evaluate
+
+        t0 = time.perf_counter()
+        res = evaluate("peg_in_hole", args.eval, 26, 0, controllers=("learned",), progress=False)
+        wall = time.perf_counter() - t0
+        print(f"26-trial evaluation of the learned policy: {wall:.1f} s ({res.sim_seconds:.0f} s simulated; "
+              f"target < 60 s: {'met' if wall < 60 else 'NOT met'})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,491 @@
+"""N simulated Franka Pandas with the A3CQP controller in the loop and six per-axis agents, as a TorchRL env.
+
+Paper 000, sections III-VI: the QP controller (a3cqp_rl.control.A3CQPController) runs at 1 kHz on MuJoCo
+(a3cqp_rl.robot.PandaSim, all N arms in one MjData); the adaptation runs at 100 Hz. Each of the six axes of the local
+frame L (the tool tip's frame: x, y, z, then rotations about them) has an agent that sees eq. 26's three scalars and
+outputs eq. 27's four rates; all six share one policy, so a policy trained on the point mass (obs [..., 3] ->
+action [..., 4]) runs here unchanged:
+
+    observation [N, 6, 3] = (|e^L|/ē, |f_env^L|/f̄_env, |f_ope^L|/f̄_ope) per axis   (eq. 25-26)
+    action      [N, 6, 4] = (ẇ1, ẇ2, ẇ3, ḟd) per axis ∈ [−1, 1]                    (eq. 27)
+    eq. 29 -> local weights w^L [N, 6, 3] (rotated to the world by the controller, eq. 8) and f_d^L [N, 6]
+              (one f_d per translational axis in PandaEnvConfig.fd_axes; desired torques are zero)
+    reward      [N, 6, 1] = eq. 30 per axis
+
+Force sensing as on the real robot (section V-A): f_env from the wrist F/T sensor (tool below it; PandaSim removes
+the tool's weight and inertia), moved to the tool tip; f_ext = J^T† τ_s from the joint torque sensors
+(wrench_from_joint_torques); f_ope = f_ext − f_env. Noise and bias: PandaEnvConfig.sensors (off by default).
+
+The operator and the scene procedure (peg-in-hole, polishing, guidance) are in envs/scenarios.py. A robot whose
+simulation diverges (non-finite state, joint speed far beyond its limit, a deep contact penetration) ends its own
+episode (`terminated` and `diverged` set, one log line) and is put back home; the rest of the batch runs on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import mujoco
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from a3cqp_rl.adaptation import check_finite, integrate_force, integrate_weights, observe, reward
+from a3cqp_rl.config import ExperimentConfig
+from a3cqp_rl.control import A3CQPController, ControllerOptions, wrench_from_joint_torques
+from a3cqp_rl.control.frames import pose_error
+from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaModel, PandaSim
+from envs.scenarios import Operator, Scene, SceneInput, make_scene, rotvec_to_matrix
+
+__all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS"]
+
+logger = logging.getLogger(__name__)
+
+AXES = ("x", "y", "z", "rx", "ry", "rz")
+"""The six agents: translations then rotations along/about the local frame L."""
+INFO_KEYS = ("e_local", "f_env_local", "f_ope_local", "weights", "f_d", "phase", "time", "diverged")
+"""Per-step entries written next to `observation` (plus the scene's signals, e.g. the peg's misalignment)."""
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+
+
+def to_local(rot: np.ndarray, v6: np.ndarray) -> np.ndarray:
+    """World 6-vectors [N, 6] (linear; angular) into the local frames of `rot` [N, 3, 3]: D^T v (eq. 3)."""
+    rt = np.swapaxes(rot, 1, 2)
+    return np.concatenate([(rt @ v6[:, :3, None])[..., 0], (rt @ v6[:, 3:, None])[..., 0]], axis=1)
+
+
+class PandaEnv(EnvBase):
+    """N Pandas + A3CQP controller + operator + scene; six per-axis agents per arm; batch_size=[num_envs].
+
+    Args:
+        num_envs: number of arms N (all in one MuJoCo model).
+        config: ExperimentConfig; its `panda` section (PandaEnvConfig) picks the scene, operator, sensing and the
+            rotational-axis bounds, `adaptation`/`reward` give Table II/III, `controller` Table I.
+        seed: seed of the trial draws, the operator's tremor and the sensor noise (each arm has its own stream,
+            spawned from it).
+        scene: override of `config.panda.scene`.
+        controller_options: ControllerOptions for the A3CQP controller (default: the controller's defaults).
+        trial_seeds: one seed per arm instead of `seed` (arms with the same seed run the same trials: the
+            evaluation gives every controller the same trials this way).
+    """
+
+    _has_dynamic_specs = False
+
+    def __init__(self, num_envs: int, config: ExperimentConfig | None = None, seed: int | None = None,
+                 scene: str | None = None, controller_options: ControllerOptions | None = None,
+                 trial_seeds: list[int] | None = None, device: str | torch.device = "cpu") -> None:
+        if not isinstance(num_envs, int) or num_envs < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        super().__init__(device=device, batch_size=torch.Size([num_envs]))
+        cfg = config or ExperimentConfig()
+        self.cfg, self.pcfg, self.adapt, self.rew = cfg, cfg.panda, cfg.adaptation, cfg.reward
+        self.num_envs = n = num_envs
+        if trial_seeds is not None and len(trial_seeds) != n:
+            raise ValueError(f"trial_seeds needs one seed per arm ({n}), got {len(trial_seeds)}")
+        self._trial_seeds = None if trial_seeds is None else [int(x) for x in trial_seeds]
+        self._set_seed(seed)
+        scene_name = scene or self.pcfg.scene
+        from envs.scenarios import SCENES
+
+        if scene_name not in SCENES:
+            raise ValueError(f"unknown scene {scene_name!r}; choose from {sorted(SCENES)}")
+        tool = SCENES[scene_name].tool
+        self.model = PandaModel(tool=tool)
+        home_pos, home_rot = (x[0].numpy() for x in self.model.fk(torch.tensor([PANDA_HOME], dtype=torch.float64)))
+        self.dt = 1.0 / cfg.controller.rate_hz
+        self.substeps = int(round(self.adapt.dt / self.dt))
+        if self.substeps < 1 or abs(self.substeps * self.dt - self.adapt.dt) > 1e-9:
+            raise ValueError(f"adaptation.dt ({self.adapt.dt}) must be a multiple of the control period {self.dt}")
+        self.operator = Operator(n, self.pcfg.operator, self.dt)
+        # the scene needs the handle's home position (guidance goals): from a one-arm simulation of the bare arm
+        probe = PandaSim(1, tool=tool)
+        probe.observe()
+        (h_pos,), _ = probe.site_pose("handle")
+        (t_pos,), (t_rot,) = probe.site_pose("tcp")
+        (f_pos,), _ = probe.site_pose("ft_site")
+        # handle and F/T site in the tool tip's frame (rigidly attached: constant)
+        self._o_handle, self._o_ft = t_rot.T @ (h_pos - t_pos), t_rot.T @ (f_pos - t_pos)
+        self.scene: Scene = make_scene(scene_name, n, self.operator, home_pos, home_rot, self.pcfg, h_pos)
+        self.sim = PandaSim(n, tool=tool, scene=self.scene.mjcf(), q0=PANDA_HOME, timestep=self.dt, control_site="tcp")
+        # one diverging arm must not make MuJoCo reset the whole batch (its default on bad qpos/qvel/qacc)
+        self.sim.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
+        opts = dataclasses.replace(controller_options or ControllerOptions(), leak_axes=self.pcfg.state_leak)
+        self.ctrl = A3CQPController(n, model=self.model, config=cfg.controller, options=opts)
+        self._geom_arm = self._geom_arms()
+        lim = PANDA_LIMITS
+        self._dq_max = np.array(lim.dq_max)
+        # per-axis bounds (translations: Table II; rotations: PandaEnvConfig)
+        p = self.pcfg
+        self._fd_mask = np.array([a in p.fd_axes for a in ("x", "y", "z")] + [False] * 3)
+        # --- state
+        half = 0.5 * self.adapt.sigma_w
+        self._ik_logits = np.array([half, -half, -half])
+        self.w_logits = np.tile(self._ik_logits, (n, 6, 1))
+        self.weights = np.zeros((n, 6, 3))
+        self.f_d = np.zeros((n, 6))
+        self.t = np.zeros(n)
+        self.diverged = np.zeros(n, dtype=bool)
+        self.stiffness_scale = np.ones((n, 6))
+        """Per-arm, per-local-axis scale of the IK stiffness (1 = Table I), applied by moving the reference
+        (x_d' = x + s (x_d − x) in L): lets a variable-impedance baseline run on the same controller."""
+        self._override: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._noise: dict[str, np.ndarray] = {}
+        self._ft_bias = np.zeros((n, 6))
+        self._tau_bias = np.zeros((n, 7))
+        # latest measurements (world frame, at the tool tip)
+        self.pos, self.rot = np.tile(home_pos, (n, 1)), np.tile(home_rot, (n, 1, 1))
+        self.f_env, self.f_ope, self.f_ext = np.zeros((n, 6)), np.zeros((n, 6)), np.zeros((n, 6))
+        self.tau, self.q, self.qd = np.zeros((n, 7)), np.zeros((n, 7)), np.zeros((n, 7))
+        self.handle_pos, self.handle_force = np.zeros((n, 3)), np.zeros((n, 3))
+        self.max_penetration = np.zeros(n)
+        """Deepest contact penetration of each arm in the last agent period [m]."""
+        self.fallbacks = np.zeros(n, dtype=np.int64)
+        """Control periods in which the controller's QP fell back to braking, per arm, this episode."""
+        self.signal_keys = tuple(self.scene.signals(self._scene_input()).keys())
+        """Names of the scene's per-step signals in the output (e.g. the peg's misalignment and depth)."""
+        self._make_specs()
+        self._reset_arms(np.arange(n))
+
+    # ------------------------------------------------------------------ specs
+    def _make_specs(self) -> None:
+        N, f32, f64, dev = self.batch_size, torch.float32, torch.float64, self.device
+        info = {
+            "e_local": Unbounded(shape=(*N, 6), dtype=f64, device=dev),
+            "f_env_local": Unbounded(shape=(*N, 6), dtype=f64, device=dev),
+            "f_ope_local": Unbounded(shape=(*N, 6), dtype=f64, device=dev),
+            "weights": Bounded(0.0, 1.0, shape=(*N, 6, 3), dtype=f64, device=dev),
+            "f_d": Unbounded(shape=(*N, 6), dtype=f64, device=dev),
+            "phase": Unbounded(shape=N, dtype=torch.int64, device=dev),
+            "time": Unbounded(shape=N, dtype=f64, device=dev),
+            "diverged": Categorical(2, shape=N, dtype=torch.bool, device=dev),
+        }
+        for k in self.signal_keys:
+            info[k] = Unbounded(shape=N, dtype=f64, device=dev)
+        self.observation_spec = Composite(
+            observation=Bounded(0.0, 1.0, shape=(*N, 6, 3), dtype=f32, device=dev), **info, shape=N)
+        self.action_spec = Bounded(-1.0, 1.0, shape=(*N, 6, 4), dtype=f32, device=dev)
+        self.reward_spec = Unbounded(shape=(*N, 6, 1), dtype=f32, device=dev)
+        flag = Categorical(2, shape=(*N, 1), dtype=torch.bool, device=dev)
+        self.done_spec = Composite(done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=N)
+
+    def _set_seed(self, seed: int | None) -> None:
+        """One generator per arm: spawned from `seed`, or the `trial_seeds` given at construction."""
+        if self._trial_seeds is not None:
+            self.arm_rngs = [np.random.default_rng(s) for s in self._trial_seeds]
+        else:
+            self.arm_rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(self.num_envs)]
+
+    def _draw(self, idx: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+        """Standard normal draws [len(idx), *shape] from each arm's own stream."""
+        return np.array([self.arm_rngs[i].standard_normal(shape) for i in idx]).reshape(len(idx), *shape)
+
+    def _geom_arms(self) -> np.ndarray:
+        """Arm index of every geom of the composite model (-1: none)."""
+        m = self.sim.model
+        if self.num_envs == 1:
+            return np.zeros(m.ngeom, dtype=np.int64)
+        body_arm = np.full(m.nbody, -1)
+        for b in range(1, m.nbody):
+            name = m.body(b).name
+            if name.startswith("arm") and "/" in name:
+                body_arm[b] = int(name[3:name.index("/")])
+        return body_arm[m.geom_bodyid]
+
+    # ------------------------------------------------------------------ reset
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        idx = np.arange(self.num_envs) if mask is None else np.flatnonzero(mask.reshape(self.num_envs).cpu().numpy())
+        if len(idx):
+            self._reset_arms(idx)
+        return self._output(done=np.zeros(self.num_envs, dtype=bool), terminated=np.zeros(self.num_envs, dtype=bool))
+
+    def _reset_arms(self, idx: np.ndarray) -> None:
+        """Arms `idx` back home, fresh trial, IK weights (or random), new sensor biases."""
+        k = len(idx)
+        self.sim.reset(np.tile(np.array(PANDA_HOME), (k, 1)), idx=idx.tolist())
+        self.ctrl.reset(torch.tensor(np.tile(np.array(PANDA_HOME), (k, 1))), idx=torch.as_tensor(idx))
+        half = 0.5 * self.adapt.sigma_w
+        rngs = [self.arm_rngs[i] for i in idx]
+        if self.pcfg.initial_weights == "random":
+            self.w_logits[idx] = np.array([r.uniform(-half, half, (6, 3)) for r in rngs])
+            self.f_d[idx] = np.array([r.uniform(0.0, self.adapt.f_d_max, 6) for r in rngs]) * self._fd_mask
+        else:
+            self.w_logits[idx] = self._ik_logits
+            self.f_d[idx] = 0.0
+        self.weights[idx] = _softmax(self.w_logits[idx])
+        self.t[idx] = 0.0
+        self.diverged[idx] = False
+        self.fallbacks[idx] = 0
+        self.stiffness_scale[idx] = 1.0
+        s = self.pcfg.sensors
+        if s.ft_force_bias > 0 or s.ft_torque_bias > 0:
+            self._ft_bias[idx] = self._draw(idx, (6,)) * np.repeat([s.ft_force_bias, s.ft_torque_bias], 3)
+        if s.joint_torque_bias > 0:
+            self._tau_bias[idx] = self._draw(idx, (7,)) * s.joint_torque_bias
+        self.operator.reset(idx)
+        self.scene.reset(idx, rngs)
+        self._measure()
+        self._update_scene()
+
+    # ------------------------------------------------------------------ control
+    def hold_weights(self, mask: np.ndarray, weights: np.ndarray, f_d: np.ndarray) -> None:
+        """For the next step only, arms in `mask` [N] use these local weights [N, 6, 3] and f_d^L [N, 6] instead of
+        eq. 29 of their action (scripted baselines); their integrated state follows (w̌ = log w, f_d)."""
+        self._override = (np.asarray(mask, dtype=bool), np.asarray(weights, dtype=np.float64),
+                          np.asarray(f_d, dtype=np.float64))
+
+    def _adapt(self, action: torch.Tensor) -> None:
+        """Eq. 29 for every axis of every arm: rates -> w̌, w = softmax(w̌), f_d (translational f_d axes only)."""
+        a = action.to(torch.float64)
+        logits, w = integrate_weights(torch.from_numpy(self.w_logits), a[..., :3], self.adapt.sigma_w, self.adapt.dt,
+                                      check=False)
+        f_d = integrate_force(torch.from_numpy(self.f_d), a[..., 3], self.adapt.sigma_f, self.adapt.dt,
+                              self.adapt.f_d_max, check=False)
+        self.w_logits, self.weights = logits.numpy().copy(), w.numpy().copy()
+        self.f_d = f_d.numpy() * self._fd_mask
+        if self._override is not None:
+            mask, w_o, f_o = self._override
+            self.weights[mask] = w_o[mask]
+            self.f_d[mask] = f_o[mask]
+            self.w_logits[mask] = np.log(np.clip(w_o[mask], 1e-12, 1.0))
+            self._override = None
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action")
+        if tuple(action.shape) != (self.num_envs, 6, 4):
+            raise ValueError(f"action must have shape ({self.num_envs}, 6, 4), got {tuple(action.shape)}")
+        check_finite(action=action)
+        self._adapt(action)
+        self.max_penetration[:] = 0.0
+        weights, f_d = torch.from_numpy(self.weights), torch.from_numpy(self.f_d)
+        pos_d, rot_d = self._controller_reference()
+        self._draw_noise()
+        for k in range(self.substeps):
+            self._tick(k, weights, f_d, pos_d, rot_d)
+        self.t += self.adapt.dt
+        self._update_scene()
+        truncated = self.scene.done | (self.t >= self.pcfg.max_episode_time - 1e-9)
+        return self._output(done=truncated | self.diverged, terminated=self.diverged.copy(), reward=True)
+
+    def _controller_reference(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The scene's reference, moved toward the tool by `stiffness_scale` where it is not 1 (arm frame)."""
+        pos_d, rot_d = self.scene.pos_d.copy(), self.scene.rot_d.copy()
+        s = self.stiffness_scale
+        if np.any(s != 1.0):
+            e_loc = to_local(self.rot, pose_error(pos_d, rot_d, self.pos, self.rot)) * s
+            pos_d = self.pos + (self.rot @ e_loc[:, :3, None])[..., 0]
+            rot_d = rotvec_to_matrix((self.rot @ e_loc[:, 3:, None])[..., 0]) @ self.rot
+        return torch.from_numpy(pos_d), torch.from_numpy(rot_d)
+
+    def _draw_noise(self) -> None:
+        """This agent period's random draws, from each arm's own stream: hand tremor (arms the operator holds) and
+        sensor noise (when configured), [N, substeps, dim] each."""
+        n, K, sen = self.num_envs, self.substeps, self.pcfg.sensors
+        self._noise = {}
+        held = np.flatnonzero(self.operator.active)
+        if self.pcfg.operator.noise > 0 and len(held):
+            hand = np.zeros((n, K, 3))
+            hand[held] = self._draw(held, (K, 3))
+            self._noise["hand"] = hand
+        if sen.ft_force_noise > 0 or sen.ft_torque_noise > 0:
+            self._noise["ft"] = self._draw(np.arange(n), (K, 6)) * np.repeat([sen.ft_force_noise, sen.ft_torque_noise], 3)
+        if sen.joint_torque_noise > 0:
+            self._noise["tau"] = self._draw(np.arange(n), (K, 7)) * sen.joint_torque_noise
+
+    def _tick(self, k: int, weights: torch.Tensor, f_d: torch.Tensor, pos_d: torch.Tensor,
+              rot_d: torch.Tensor) -> np.ndarray:
+        """One 1 kHz control period (the k-th of the agent period) for all arms; returns the arms that diverged."""
+        s = self._measure(k)
+        bad = self._check_divergence()
+        out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
+                             f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin)
+        self.fallbacks += out.fallback.numpy()
+        tau = out.tau.numpy()
+        self.tau[:] = tau
+        # the operator's hand at the handle (above the F/T sensor: read by the joint torques only)
+        v, w = s.kin.twist.numpy()[:, :3], s.kin.twist.numpy()[:, 3:]
+        r = (self.rot @ self._o_handle)
+        hand = self._noise.get("hand")
+        force, torque = self.operator.wrench(self.t + k * self.dt, self.pos + r, v + _cross(w, r), self.rot, w,
+                                             None if hand is None else hand[:, k])
+        self.handle_force[:] = force
+        if np.any(force) or np.any(torque):
+            self.sim.push(force, site="handle", torque_world=torque)
+        self.sim.step(tau)
+        if bad.any():
+            self._end_diverged(bad)
+        return bad
+
+    def _measure(self, k: int | None = None):  # noqa: ANN202
+        """mj_step1 and the sensed quantities at the tool tip (world frame): pose, f_env, f_ext, f_ope; sensor noise of
+        the agent period's k-th control period (none for k = None), bias always."""
+        s = self.sim.observe()
+        sen = self.pcfg.sensors
+        noise = self._noise if k is not None else {}
+        self.q, self.qd = s.q.numpy(), s.qd.numpy()
+        self.pos, self.rot = s.kin.pos.numpy().copy(), s.kin.rot.numpy().copy()
+        self._jac = s.kin.jac.numpy()
+        tau = s.tau_ext
+        if "tau" in noise or sen.joint_torque_bias > 0:
+            tau = torch.from_numpy(tau.numpy() + self._tau_bias + (noise["tau"][:, k] if "tau" in noise else 0.0))
+        self.f_ext = wrench_from_joint_torques(tau, s.kin.jac, s.mass).numpy()
+        ft = s.f_env.numpy().copy()  # world frame, about the F/T site
+        if "ft" in noise or sen.ft_force_bias > 0 or sen.ft_torque_bias > 0:
+            err = self._ft_bias + (noise["ft"][:, k] if "ft" in noise else 0.0)
+            ft[:, :3] += (self.rot @ err[:, :3, None])[..., 0]  # sensor frame = tool frame
+            ft[:, 3:] += (self.rot @ err[:, 3:, None])[..., 0]
+        # moment about the tool tip: τ_tip = τ_site + (p_site − p_tip) × F
+        ft[:, 3:] += _cross(self.rot @ self._o_ft, ft[:, :3])
+        self.f_env = ft
+        self.f_ope = self.f_ext - self.f_env
+        self.handle_pos = self.pos + self.rot @ self._o_handle
+        return s
+
+    def _check_divergence(self) -> np.ndarray:
+        """Arms newly diverged: non-finite state, joint speed > factor × limit, or a too deep contact."""
+        p = self.pcfg
+        finite = np.isfinite(self.q).all(1) & np.isfinite(self.qd).all(1)
+        with np.errstate(invalid="ignore"):
+            fast = (np.abs(self.qd) > p.divergence_speed_factor * self._dq_max).any(1)
+        d = self.sim.data
+        deep = np.zeros(self.num_envs, dtype=bool)
+        if d.ncon:
+            dist = d.contact.dist[:d.ncon]
+            arm = np.maximum(self._geom_arm[d.contact.geom1[:d.ncon]], self._geom_arm[d.contact.geom2[:d.ncon]])
+            pen = np.zeros(self.num_envs)
+            ok = arm >= 0
+            np.maximum.at(pen, arm[ok], -dist[ok])
+            np.maximum(self.max_penetration, pen, out=self.max_penetration)
+            deep = pen > p.divergence_penetration
+        bad = (~finite | fast | deep) & ~self.diverged
+        for i in np.flatnonzero(bad):
+            why = "non-finite state" if not finite[i] else ("joint speed beyond limit" if fast[i] else
+                                                           f"contact penetration {1e3 * self.max_penetration[i]:.1f} mm")
+            logger.warning("panda env: robot %d diverged at t = %.3f s (%s); its episode ends", i, self.t[i], why)
+        return bad
+
+    def _end_diverged(self, bad: np.ndarray) -> None:
+        """Flag the diverged arms and park them at home (their episode is over; the batch runs on)."""
+        idx = np.flatnonzero(bad)
+        self.diverged[idx] = True
+        self.sim.reset(np.tile(np.array(PANDA_HOME), (len(idx), 1)), idx=idx.tolist())
+        self.ctrl.reset(torch.tensor(np.tile(np.array(PANDA_HOME), (len(idx), 1))), idx=torch.as_tensor(idx))
+        self.operator.reset(idx)
+        self.scene.abort(idx)
+
+    # ------------------------------------------------------------------ scene and outputs
+    def _scene_input(self) -> SceneInput:
+        return SceneInput(t=self.t, pos=self.pos, rot=self.rot, f_env=self.f_env, f_ope=self.f_ope, f_d=self.f_d,
+                          handle_pos=self.handle_pos)
+
+    def _update_scene(self) -> None:
+        self.operator.update(self.t, self.handle_pos, self.rot)
+        self.scene.update(self._scene_input())
+
+    def local_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(e^L, f_env^L, f_ope^L) [N, 6] each: the pose error to the current reference and the sensed wrenches in L."""
+        e = pose_error(self.scene.pos_d, self.scene.rot_d, self.pos, self.rot)
+        return to_local(self.rot, e), to_local(self.rot, self.f_env), to_local(self.rot, self.f_ope)
+
+    def _observation(self, e: torch.Tensor, fe: torch.Tensor, fo: torch.Tensor) -> torch.Tensor:
+        a, p = self.adapt, self.pcfg
+        tr = observe(e[:, :3], fe[:, :3], fo[:, :3], a.e_max, a.f_env_max, a.f_ope_max, check=False)
+        rt = observe(e[:, 3:], fe[:, 3:], fo[:, 3:], p.e_max_rot, p.f_env_max_rot, p.f_ope_max_rot, check=False)
+        return torch.cat([tr, rt], dim=1)  # eq. 26 per axis [N, 6, 3]
+
+    def _reward(self, e: torch.Tensor, fe: torch.Tensor, fo: torch.Tensor, fd: torch.Tensor) -> torch.Tensor:
+        a, p, al = self.adapt, self.pcfg, self.rew.alpha
+        tr = reward(e[:, :3], fe[:, :3], fo[:, :3], fd[:, :3], al, a.e_max, a.f_env_max, a.f_ope_max, a.f_d_max,
+                    check=False)
+        rt = reward(e[:, 3:], fe[:, 3:], fo[:, 3:], fd[:, 3:], al, p.e_max_rot, p.f_env_max_rot, p.f_ope_max_rot,
+                    a.f_d_max, check=False)
+        return torch.cat([tr, rt], dim=1)  # eq. 30 per axis [N, 6]
+
+    def _output(self, done: np.ndarray, terminated: np.ndarray, reward: bool = False) -> TensorDictBase:
+        e, fe, fo = (torch.from_numpy(x) for x in self.local_state())
+        fd = torch.from_numpy(self.f_d.copy())
+        n = self.num_envs
+        done_t = torch.from_numpy(done.copy()).reshape(n, 1)
+        term_t = torch.from_numpy(terminated.copy()).reshape(n, 1)
+        data = {
+            "observation": self._observation(e, fe, fo).to(torch.float32),
+            "e_local": e, "f_env_local": fe, "f_ope_local": fo, "weights": torch.from_numpy(self.weights.copy()),
+            "f_d": fd, "phase": torch.from_numpy(self.scene.phase.copy()), "time": torch.from_numpy(self.t.copy()),
+            "diverged": torch.from_numpy(self.diverged.copy()),
+            "done": done_t, "terminated": term_t, "truncated": done_t & ~term_t,
+        }
+        for k, v in self.scene.signals(self._scene_input()).items():
+            data[k] = torch.from_numpy(np.asarray(v, dtype=np.float64))
+        if reward:
+            data["reward"] = self._reward(e, fe, fo, fd).to(torch.float32).unsqueeze(-1)
+        return TensorDict(data, batch_size=self.batch_size, device=self.device)
+
+
+def _softmax(x: np.ndarray) -> np.ndarray:
+    z = np.exp(x - x.max(-1, keepdims=True))
+    return z / z.sum(-1, keepdims=True)
+
+
+class PandaAxisAgents(EnvBase):
+    """PandaEnv seen as N·6 independent agents (batch_size=[N·6]): obs [N·6, 3], action [N·6, 4], reward [N·6, 1].
+
+    The six per-axis agents of every arm share one policy (paper 000, section IV), so a learner that treats them as
+    a batch of separate environments (algorithms.a2c through a TorchRL collector) trains that shared policy. An arm's
+    episode ends for all six of its agents; a reset request for any of them resets the arm.
+    """
+
+    _has_dynamic_specs = False
+
+    def __init__(self, num_envs: int, config: ExperimentConfig | None = None, seed: int | None = None,
+                 **kwargs) -> None:
+        inner = PandaEnv(num_envs, config, seed=seed, **kwargs)
+        n = num_envs * 6
+        super().__init__(device=inner.device, batch_size=torch.Size([n]))
+        self.inner = inner
+        self.num_arms = num_envs
+        f32, dev = torch.float32, self.device
+        self.observation_spec = Composite(observation=Bounded(0.0, 1.0, shape=(n, 3), dtype=f32, device=dev),
+                                          shape=(n,))
+        self.action_spec = Bounded(-1.0, 1.0, shape=(n, 4), dtype=f32, device=dev)
+        self.reward_spec = Unbounded(shape=(n, 1), dtype=f32, device=dev)
+        flag = Categorical(2, shape=(n, 1), dtype=torch.bool, device=dev)
+        self.done_spec = Composite(done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=(n,))
+
+    def _flat(self, td: TensorDictBase, reward: bool) -> TensorDictBase:
+        n = self.batch_size[0]
+        out = {"observation": td["observation"].reshape(n, 3)}
+        for k in ("done", "terminated", "truncated"):
+            out[k] = td[k].repeat_interleave(6, dim=0)
+        if reward:
+            out["reward"] = td["reward"].reshape(n, 1)
+        return TensorDict(out, batch_size=self.batch_size, device=self.device)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        inner = None
+        if mask is not None:
+            arms = mask.reshape(self.num_arms, 6).any(-1, keepdim=True)
+            inner = TensorDict({"_reset": arms}, batch_size=self.inner.batch_size)
+        return self._flat(self.inner._reset(inner), reward=False)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action").reshape(self.num_arms, 6, 4)
+        td = TensorDict({"action": action}, batch_size=self.inner.batch_size)
+        return self._flat(self.inner._step(td), reward=True)
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.inner._set_seed(seed)
+
+
+def axis_agents(cfg: ExperimentConfig, num_envs: int, seed: int) -> PandaAxisAgents:
+    """`env: panda` for training (a3cqp_rl.config.ENV_FACTORIES): `num_envs` arms as num_envs × 6 agents, reset."""
+    env = PandaAxisAgents(num_envs, cfg, seed=seed)
+    env.reset()
+    return env

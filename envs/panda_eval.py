@@ -1,0 +1,345 @@
+"""`a3cqp evaluate --scene peg_in_hole|polishing|guidance`: the learned policy and scripted baselines on the same trials.
+
+    a3cqp evaluate --scene peg_in_hole --policy runs/pm_default/policy.pt --trials 26 [--seed 0] [--json F]
+                   [--config configs/panda_peg_in_hole.yaml] [--controllers learned,ik,ik_fc,equal,vic]
+                   [--cycles 1] [--out RUN]
+
+Every controller runs the same K trials (trial k has the same seed, hence the same misalignment, operator tremor and
+sensor noise, for all of them), all in one batched simulation. Controllers (the adaptation law in the loop):
+
+- learned: the policy (obs [..., 3] -> action [..., 4], e.g. a point-mass policy) on all six axes, eq. 29.
+- ik:      fixed weights, IK only on every axis, f_d = 0.
+- ik_fc:   IK, and force control on the tool axis (local z) switched on by the first contact force of a contact phase
+           (the paper's scripted trigger, section VI-B1): z weights go linearly to FC in `SWITCH_TIME`, f_d ramps at
+           σf to `FC_FORCE`; back to IK when the phase ends.
+- equal:   fixed weights 1/3 each on every axis, f_d = `FC_FORCE` on z.
+- vic:     a variable-impedance baseline in the style of robosuite's OSC (impedance gains as actions): IK only, with
+           a hand-tuned stiffness schedule per local axis (scales of Table I's k_p, k_θ): 1 in free motion; after
+           the first contact force `VIC_CONTACT` (soft along the tool axis, stiff across it); `VIC_OPERATOR` while
+           the operator holds the handle.
+
+The scripted baselines know the scene's phase (which phases expect contact or the operator); the learned policy only
+sees eq. 26. Peg-in-hole prints Table VI (success rate, insertion time, misalignment at the first contact) next to
+the paper's; polishing and guidance print the metrics their scenes define (envs/scenarios.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from a3cqp_rl.exceptions import A3CQPError
+
+__all__ = ["main", "evaluate", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult"]
+
+CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
+PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
+                  "insertion_time_std_s": 0.24, "misalignment_rotation_mean_deg": 3.66,
+                  "misalignment_rotation_std_deg": 0.45, "misalignment_translation_mean_mm": 12.30,
+                  "misalignment_translation_std_mm": 4.24}
+"""Paper 000, Table VI (real Panda, 26 insertions)."""
+FC_FORCE = 10.0
+"""Desired contact force of the scripted force-control baselines [N] (half of Table II's f̄_d)."""
+SWITCH_TIME = 1.0
+"""Time over which the scripted baselines move their weights [s] (σw = 6 takes a task from off to on in ~1 s)."""
+VIC_CONTACT = (2.0, 2.0, 1.0 / 3.0, 1.0, 1.0, 1.0)
+"""vic's stiffness scales per local axis (x, y, z, rx, ry, rz) after the first contact: k_p 300 across the tool
+axis, 50 along it."""
+VIC_OPERATOR = (0.2, 0.2, 0.2, 0.5, 0.5, 0.5)
+"""vic's stiffness scales while the operator holds the handle (compliant)."""
+RECORD_KEYS = ("time", "phase", "e_local", "f_env_local", "f_ope_local", "weights", "f_d")
+
+
+@dataclass
+class EvalResult:
+    """Per-controller metrics and the recorded episodes of trial 0."""
+
+    scene: str
+    summary: dict
+    """Controller -> metric name -> value (JSON-ready)."""
+    per_trial: dict
+    """Controller -> metric name -> list over trials (and cycles)."""
+    episodes: dict
+    """Controller -> recorded arrays of trial 0 (RECORD_KEYS plus the scene's signals), [T, ...]."""
+    seconds: float
+    sim_seconds: float
+
+
+def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, since: np.ndarray,  # noqa: ANN001
+              contact_force: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Weights [N, 6, 3], f_d [N, 6], stiffness scales [N, 6] and the mask of scripted arms for this step."""
+    n = env.num_envs
+    task = np.array(env.scene.phase_task)[env.scene.phase]  # what each arm's phase expects: IK, FC or AC
+    touching = np.linalg.norm(env.f_env[:, :3], axis=1) > contact_force
+    fc_phase = task == "FC"
+    latched &= fc_phase
+    newly = fc_phase & touching & ~latched
+    since[newly] = env.t[newly]
+    latched |= newly
+    ramp = np.where(latched, np.clip((env.t - since) / SWITCH_TIME, 0.0, 1.0), 0.0)
+    f_ramp = np.where(latched, np.clip((env.t - since) * env.adapt.sigma_f, 0.0, FC_FORCE), 0.0)
+    W = np.zeros((n, 6, 3))
+    W[..., 0] = 1.0
+    f_d = np.zeros((n, 6))
+    scale = np.ones((n, 6))
+    ctrl = np.repeat(np.array(controllers), trials)
+    m = ctrl == "ik_fc"
+    W[m, 2] = (1.0 - ramp[m, None]) * np.array([1.0, 0.0, 0.0]) + ramp[m, None] * np.array([0.0, 0.0, 1.0])
+    f_d[m, 2] = f_ramp[m]
+    m = ctrl == "equal"
+    W[m] = 1.0 / 3.0
+    f_d[m, 2] = FC_FORCE
+    m = ctrl == "vic"
+    scale[m] = np.where(latched[m, None], np.array(VIC_CONTACT), 1.0)
+    op = m & (task == "AC") & env.operator.active
+    scale[op] = VIC_OPERATOR
+    return W, f_d, scale, ctrl != "learned"
+
+
+def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int = 0, config=None,  # noqa: ANN001
+             controllers: tuple[str, ...] = CONTROLLERS, cycles: int | None = None,
+             progress: bool = True) -> EvalResult:
+    """Run every controller on the same `trials` trials of `scene` (one batched simulation); return the metrics."""
+    from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict
+    from envs.panda import PandaEnv
+
+    cfg = config or ExperimentConfig()
+    if cycles is not None:
+        d = config_to_dict(cfg)
+        d["panda"]["peg_in_hole"]["cycles"] = int(cycles)
+        cfg = config_from_dict(d, "<evaluate --cycles>")
+    unknown = [c for c in controllers if c not in CONTROLLERS]
+    if unknown:
+        raise ValueError(f"unknown controller(s) {unknown}; choose from {list(CONTROLLERS)}")
+    policy = None
+    if "learned" in controllers:
+        if policy_path is None:
+            raise ValueError("the learned controller needs --policy PATH (or leave it out of --controllers)")
+        from algorithms.a2c import load_policy
+
+        policy = load_policy(policy_path)
+    controllers = list(controllers)
+    trial_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(trials)]
+    env = PandaEnv(len(controllers) * trials, cfg, scene=scene, trial_seeds=trial_seeds * len(controllers))
+    contact_force = getattr(getattr(env.scene, "cfg", None), "contact_force", 1.0)
+    n = env.num_envs
+    latched, since = np.zeros(n, dtype=bool), np.zeros(n)
+    rec_arms = np.arange(len(controllers)) * trials  # trial 0 of each controller
+    episodes = {c: {k: [] for k in RECORD_KEYS + env.signal_keys + ("q",)} for c in controllers}
+    td = env.reset()
+    finished = np.zeros(n, dtype=bool)
+    t_wall = time.perf_counter()
+    limit = cfg.panda.max_episode_time
+    bar = _progress(limit, progress)
+    steps = 0
+    while not finished.all():
+        W, f_d, scale, scripted = _scripted(env, controllers, trials, latched, since, contact_force)
+        env.hold_weights(scripted, W, f_d)
+        env.stiffness_scale[:] = scale
+        action = torch.zeros(n, 6, 4)
+        if policy is not None:
+            learned = ~scripted
+            action[learned] = policy(td["observation"][learned])
+        td["action"] = action
+        td = env.step(td)["next"]
+        steps += 1
+        for c, arm in zip(controllers, rec_arms):
+            if not finished[arm]:
+                for k in episodes[c]:
+                    episodes[c][k].append(env.q[arm].copy() if k == "q" else td[k][arm].numpy().copy())
+        finished |= td["done"].reshape(n).numpy()
+        if steps % 100 == 0:
+            bar.update(min(1.0, max(0.0, limit - bar.n)))
+    bar.close()
+    seconds = time.perf_counter() - t_wall
+    metrics = env.scene.metrics()
+    metrics["diverged"] = env.diverged.copy()
+    summary, per_trial = {}, {}
+    for j, c in enumerate(controllers):
+        sl = slice(j * trials, (j + 1) * trials)
+        m = {k: np.asarray(v)[sl] for k, v in metrics.items()}
+        summary[c] = _summarise(env.scene.name, m)
+        per_trial[c] = {k: _json_list(v) for k, v in m.items()}
+    meta = {"scene": env.scene.name, "tool": env.scene.tool, "scene_xml": env.scene.mjcf(),
+            "phase_names": np.array(env.scene.phase_names), "phase_task": np.array(env.scene.phase_task)}
+    eps = {c: {**{k: np.asarray(v) for k, v in rec.items()}, **meta} for c, rec in episodes.items()}
+    return EvalResult(scene=env.scene.name, summary=summary, per_trial=per_trial, episodes=eps, seconds=seconds,
+                      sim_seconds=float(steps * env.adapt.dt * n))
+
+
+def _progress(total: float, enabled: bool):  # noqa: ANN202
+    from tqdm import tqdm
+
+    return tqdm(total=total, disable=not enabled, mininterval=2.0, file=sys.stderr,
+                bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s of the longest episode [{elapsed}]")
+
+
+def _json_list(v: np.ndarray) -> list:
+    a = np.asarray(v)
+    if a.dtype == bool:
+        return a.tolist()
+    return [None if (isinstance(x, float) and not math.isfinite(x)) else x for x in a.astype(float).ravel().tolist()]
+
+
+def _mean_std(x: np.ndarray, scale: float = 1.0) -> tuple[float | None, float | None]:
+    x = np.asarray(x, dtype=float).ravel()
+    x = x[np.isfinite(x)] * scale
+    if not len(x):
+        return None, None
+    return float(x.mean()), float(x.std(ddof=1)) if len(x) > 1 else 0.0
+
+
+def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
+    """The JSON metrics of one controller from its per-trial metrics."""
+    out: dict = {"trials": int(len(m["diverged"])), "diverged": int(np.sum(m["diverged"]))}
+    if scene == "peg_in_hole":
+        succ = m["success"] & ~m["diverged"][:, None]
+        out["insertions"] = int(succ.size)
+        out["successes"] = int(succ.sum())
+        out["success_rate"] = float(succ.mean())
+        t_mean, t_std = _mean_std(np.where(succ, m["insertion_time"], np.nan))
+        out["insertion_time_mean_s"], out["insertion_time_std_s"] = t_mean, t_std
+        out["misalignment_rotation_mean_deg"], out["misalignment_rotation_std_deg"] = _mean_std(
+            m["misalign_rotation"], 180.0 / math.pi)
+        out["misalignment_translation_mean_mm"], out["misalignment_translation_std_mm"] = _mean_std(
+            m["misalign_translation"], 1e3)
+        out["disengage_force_mean_n"], _ = _mean_std(m["disengage_force"])
+        out["extracted_rate"] = float(np.mean(m["extracted"]))
+    else:
+        for k, v in m.items():
+            if k != "diverged":
+                out[f"{k}_mean"], out[f"{k}_std"] = _mean_std(v)
+    return out
+
+
+def _fmt(v, unit: str = "", scale: float = 1.0, prec: int = 2) -> str:  # noqa: ANN001
+    return "-" if v is None else f"{v * scale:.{prec}f}{unit}"
+
+
+def format_table(res: EvalResult) -> str:
+    """Text table of the summary (with the paper's Table VI column for peg-in-hole)."""
+    names = list(res.summary)
+    rows: list[tuple[str, list[str]]] = []
+    s = res.summary
+    if res.scene == "peg_in_hole":
+        p = PAPER_TABLE_VI
+        cols = ["paper (real robot)"] + names
+        rows.append(("successes", [f"{p['successes']}/{p['trials']}"]
+                     + [f"{s[c]['successes']}/{s[c]['insertions']}" for c in names]))
+        rows.append(("success rate", [f"{100 * p['success_rate']:.0f} %"]
+                     + [f"{100 * s[c]['success_rate']:.0f} %" for c in names]))
+        rows.append(("insertion time [s]", [f"{p['insertion_time_mean_s']:.2f} ± {p['insertion_time_std_s']:.2f}"]
+                     + [f"{_fmt(s[c]['insertion_time_mean_s'])} ± {_fmt(s[c]['insertion_time_std_s'])}"
+                        for c in names]))
+        rows.append(("rotation misalignment [deg]",
+                     [f"{p['misalignment_rotation_mean_deg']:.2f} ± {p['misalignment_rotation_std_deg']:.2f}"]
+                     + [f"{_fmt(s[c]['misalignment_rotation_mean_deg'])} ± "
+                        f"{_fmt(s[c]['misalignment_rotation_std_deg'])}" for c in names]))
+        rows.append(("translation misalignment [mm]",
+                     [f"{p['misalignment_translation_mean_mm']:.2f} ± {p['misalignment_translation_std_mm']:.2f}"]
+                     + [f"{_fmt(s[c]['misalignment_translation_mean_mm'])} ± "
+                        f"{_fmt(s[c]['misalignment_translation_std_mm'])}" for c in names]))
+        rows.append(("mean |f_ope| disengaging [N]", ["-"] + [_fmt(s[c]["disengage_force_mean_n"], prec=1)
+                                                               for c in names]))
+        rows.append(("peg pulled out by operator", ["-"] + [f"{100 * s[c]['extracted_rate']:.0f} %" for c in names]))
+    else:
+        cols = names
+        keys = [k[:-5] for k in s[names[0]] if k.endswith("_mean")]
+        for k in keys:
+            rows.append((k, [f"{_fmt(s[c][k + '_mean'], prec=3)} ± {_fmt(s[c][k + '_std'], prec=3)}" for c in names]))
+    rows.append(("diverged", (["-"] if res.scene == "peg_in_hole" else []) + [str(s[c]["diverged"]) for c in names]))
+    w0 = max(len(r[0]) for r in rows)
+    widths = [max(len(cols[i]), *(len(r[1][i]) for r in rows)) for i in range(len(cols))]
+    line = " | ".join([" " * w0] + [c.rjust(w) for c, w in zip(cols, widths)])
+    out = [line, "-" * len(line)]
+    for name, vals in rows:
+        out.append(" | ".join([name.ljust(w0)] + [v.rjust(w) for v, w in zip(vals, widths)]))
+    return "\n".join(out)
+
+
+def to_json(res: EvalResult, primary: str = "learned") -> dict:
+    """JSON document: the primary controller's metrics at the top level, the others under "baselines"."""
+    main_name = primary if primary in res.summary else next(iter(res.summary))
+    doc = {"scene": res.scene, "controller": main_name, **res.summary[main_name],
+           "baselines": {c: v for c, v in res.summary.items() if c != main_name},
+           "per_trial": res.per_trial, "wall_seconds": res.seconds, "simulated_seconds": res.sim_seconds}
+    if res.scene == "peg_in_hole":
+        doc["paper"] = PAPER_TABLE_VI
+    return doc
+
+
+def _write_json(path: Path, doc: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(doc, indent=2))
+    tmp.replace(path)  # atomic
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry for `a3cqp evaluate --scene ...`; returns an exit code."""
+    p = argparse.ArgumentParser(prog="a3cqp evaluate", description=__doc__.splitlines()[0])
+    p.add_argument("--scene", required=True, choices=["peg_in_hole", "polishing", "guidance"])
+    p.add_argument("--policy", default=None, help="policy.pt of the learned controller (a run folder also works)")
+    p.add_argument("--trials", type=int, default=26, help="trials per controller (default: 26, Table VI's)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--config", default=None, help="YAML config (default: configs/panda_<scene>.yaml if present)")
+    p.add_argument("--controllers", default=",".join(CONTROLLERS), help="comma-separated subset of "
+                   + ",".join(CONTROLLERS))
+    p.add_argument("--cycles", type=int, default=None, help="peg-in-hole insertions per episode (Fig. 7: 3)")
+    p.add_argument("--json", default=None, help="write the metrics to this JSON file")
+    p.add_argument("--out", default=None, help="run folder: results.json and the recorded episodes (episode_*.npz, "
+                   "for `a3cqp plot episode`)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    try:
+        from a3cqp_rl.config import load_config
+
+        if args.trials < 1:
+            raise ValueError(f"--trials must be >= 1, got {args.trials}")
+        cfg_path = args.config
+        default = Path("configs") / f"panda_{args.scene}.yaml"
+        if cfg_path is None and default.is_file():
+            cfg_path = default
+        cfg = load_config(cfg_path)
+        policy = args.policy
+        if policy is not None and Path(policy).is_dir():
+            policy = Path(policy) / "policy.pt"
+        if policy is not None and not Path(policy).is_file():
+            raise FileNotFoundError(f"policy file not found: {policy}")
+        controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
+        if policy is None and "learned" in controllers:
+            controllers = tuple(c for c in controllers if c != "learned")
+            print("no --policy given: evaluating the baselines only", file=sys.stderr)
+        res = evaluate(args.scene, policy, args.trials, args.seed, cfg, controllers, args.cycles,
+                       progress=not args.quiet)
+    except (A3CQPError, FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"{res.scene}: {args.trials} trials per controller, seed {args.seed}, config {cfg_path or 'defaults'}; "
+          f"{res.sim_seconds:.0f} s simulated in {res.seconds:.1f} s ({res.sim_seconds / res.seconds:.1f}x real time)")
+    print(format_table(res))
+    doc = to_json(res)
+    if args.json:
+        _write_json(Path(args.json), doc)
+        print(f"wrote {args.json}")
+    if args.out:
+        out = Path(args.out)
+        _write_json(out / "results.json", doc)
+        for c, ep in res.episodes.items():
+            np.savez_compressed(out / f"episode_{c}.npz", **ep)
+        print(f"wrote {out}/results.json and {out}/episode_<controller>.npz (plot: a3cqp plot episode {out})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

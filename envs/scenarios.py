@@ -1,0 +1,656 @@
+"""Simulated operator and scripted scene procedures for the Panda env (paper 000, section VI): peg-in-hole, polishing,
+free guidance.
+
+Everything is batched over N arms with numpy (one array per quantity, loops over phases, never over arms) and runs
+at the agent rate (100 Hz) except `Operator.wrench`, which the env calls every 1 kHz control period.
+
+Frames: positions and rotations are those of PandaSim's arm frame (each arm's own base frame), world-aligned.
+The scenes write the Cartesian reference of the control site (the tool tip "tcp": pos_d [N, 3], rot_d [N, 3, 3]) and
+start operator intents; they also keep the per-trial metrics the evaluation reports.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from a3cqp_rl.config import GuidanceConfig, OperatorConfig, PegInHoleConfig, PolishingConfig
+from a3cqp_rl.control.frames import rotation_log
+from a3cqp_rl.robot.scenes import HoleGeometry, hole_block_xml, plate_xml
+
+__all__ = ["Operator", "SceneInput", "Scene", "PegInHole", "Polishing", "Guidance", "make_scene", "min_jerk",
+           "rotvec_to_matrix", "SCENES"]
+
+
+def min_jerk(t: np.ndarray, duration: float | np.ndarray) -> np.ndarray:
+    """Minimum-jerk progress s ∈ [0, 1] at time t of a move lasting `duration` [s] (10τ³ − 15τ⁴ + 6τ⁵)."""
+    tau = np.clip(t / np.maximum(duration, 1e-9), 0.0, 1.0)
+    return tau * tau * tau * (10.0 + tau * (-15.0 + 6.0 * tau))
+
+
+def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
+    """Rotation matrices [..., 3, 3] of rotation vectors [..., 3] (rad), Rodrigues' formula."""
+    theta = np.linalg.norm(v, axis=-1)[..., None, None]
+    k = v / np.maximum(theta[..., 0], 1e-12)
+    K = np.zeros(v.shape[:-1] + (3, 3))
+    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -k[..., 2], k[..., 1], -k[..., 0]
+    K = K - np.swapaxes(K, -1, -2)
+    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+
+
+def _interp_rot(r0: np.ndarray, r1: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Geodesic interpolation from r0 to r1 [k, 3, 3] at progress s [k]."""
+    return rotvec_to_matrix(s[:, None] * rotation_log(r1 @ np.swapaxes(r0, -1, -2))) @ r0
+
+
+def _clip_norm(v: np.ndarray, bound: float) -> np.ndarray:
+    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    return v * np.minimum(1.0, bound / np.maximum(n, 1e-12))
+
+
+# ---------------------------------------------------------------------------------------------------- operator
+class Operator:
+    """N operator hands (OperatorConfig): each grasps the handle on an intent, pulls toward a goal, releases.
+
+    States per arm: idle, holding (force fades in, attractor moves to the goal), releasing (force fades out).
+    `wrench()` is called every control period with the handle's current state and returns the hand's force and
+    torque [N, 3] (world frame) to apply at the handle; it acts on the state `delay` s ago (reaction delay).
+    """
+
+    IDLE, HOLD, RELEASE = 0, 1, 2
+
+    def __init__(self, n: int, cfg: OperatorConfig, dt: float) -> None:
+        self.n, self.cfg, self.dt = n, cfg, dt
+        self.state = np.zeros(n, dtype=np.int64)
+        self.t_grasp = np.zeros(n)
+        self.t_release = np.zeros(n)
+        self.t_reached = np.full(n, np.nan)
+        self.start = np.zeros((n, 3))
+        self.goal = np.zeros((n, 3))
+        self.rot_grasp = np.tile(np.eye(3), (n, 1, 1))
+        self.releases = np.zeros(n, dtype=np.int64)
+        """Number of completed grasps per arm (a scene sees a release as this count going up)."""
+        self.reached = np.zeros(n, dtype=bool)
+        """Whether the last grasp reached its goal before releasing."""
+        self._lag = max(1, int(round(cfg.delay / dt)))
+        self._hist = np.zeros((self._lag, n, 18))  # ring buffer of (p, v, R, ω) of the handle
+        self._k = 0
+        self._primed = np.zeros(n, dtype=bool)
+        self._last_pos = np.zeros((n, 3))
+        self._last_rot = np.tile(np.eye(3), (n, 1, 1))
+
+    def reset(self, idx: np.ndarray) -> None:
+        """Make arms `idx` idle with no history."""
+        self.state[idx] = self.IDLE
+        self.t_reached[idx] = np.nan
+        self.releases[idx] = 0
+        self.reached[idx] = False
+        self._primed[idx] = False
+
+    @property
+    def active(self) -> np.ndarray:
+        """Bool [N]: the hand is on the handle (holding or releasing)."""
+        return self.state != self.IDLE
+
+    def grasp(self, idx: np.ndarray, goal: np.ndarray, t: np.ndarray) -> None:
+        """Start an intent for arms `idx`: grasp at the handle's last position, move it to `goal` [k, 3] (arm frame)."""
+        if len(idx) == 0:
+            return
+        self.state[idx] = self.HOLD
+        self.t_grasp[idx] = t[idx]
+        self.t_reached[idx] = np.nan
+        self.start[idx] = self._last_pos[idx]
+        self.rot_grasp[idx] = self._last_rot[idx]  # the grip keeps the orientation the tool had when grasped
+        self.goal[idx] = goal
+        self.reached[idx] = False
+
+    def attractor(self, t: np.ndarray) -> np.ndarray:
+        """Where each hand pulls the handle to [N, 3]: from the grasp point toward the goal at `speed`."""
+        path = self.goal - self.start
+        length = np.linalg.norm(path, axis=1)
+        s = np.clip((t - self.t_grasp) * self.cfg.speed / np.maximum(length, 1e-9), 0.0, 1.0)
+        return self.start + s[:, None] * path
+
+    def update(self, t: np.ndarray, handle_pos: np.ndarray, handle_rot: np.ndarray) -> None:
+        """Agent-rate bookkeeping: goal reached -> hold -> release; timeouts; release fade-out ends."""
+        c = self.cfg
+        self._last_pos[:] = handle_pos
+        self._last_rot[:] = handle_rot
+        hold = self.state == self.HOLD
+        near = hold & (np.linalg.norm(handle_pos - self.goal, axis=1) < c.goal_tolerance) & np.isnan(self.t_reached)
+        self.t_reached[near] = t[near]
+        self.reached[near] = True
+        done_hold = hold & (((t - self.t_reached) >= c.hold_time) | ((t - self.t_grasp) >= c.timeout))
+        self.state[done_hold] = self.RELEASE
+        self.t_release[done_hold] = t[done_hold]
+        done = (self.state == self.RELEASE) & ((t - self.t_release) >= c.grip_time)
+        self.state[done] = self.IDLE
+        self.releases[done] += 1
+
+    def wrench(self, t: np.ndarray, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray, omega: np.ndarray,
+               noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Hand force and torque [N, 3] (N, N m; world) from the handle's state (pos, vel, rot, ω) `delay` s ago;
+        `noise` [N, 3]: standard normal draws for the tremor (scaled by `noise` of the config)."""
+        c, k = self.cfg, self._k
+        now = np.concatenate([pos, vel, rot.reshape(-1, 9), omega], axis=1)
+        fresh = ~self._primed  # no history yet: the hand sees the present
+        if fresh.any():
+            self._hist[:, fresh] = now[fresh]
+            self._primed[fresh] = True
+        old = self._hist[k].copy()
+        self._hist[k] = now
+        self._k = (k + 1) % self._lag
+        force, torque = np.zeros((self.n, 3)), np.zeros((self.n, 3))
+        on = self.state != self.IDLE
+        if not on.any():
+            return force, torque
+        p, v, R, w = old[:, :3], old[:, 3:6], old[:, 6:15].reshape(-1, 3, 3), old[:, 15:]
+        grip = np.where(self.state == self.HOLD, np.clip((t - self.t_grasp) / c.grip_time, 0.0, 1.0),
+                        np.clip(1.0 - (t - self.t_release) / c.grip_time, 0.0, 1.0))[:, None] * on[:, None]
+        force = c.stiffness * (self.attractor(t) - p) - c.damping * v
+        if c.noise > 0 and noise is not None:
+            force = force + c.noise * noise
+        torque = c.rot_stiffness * rotation_log(self.rot_grasp @ np.swapaxes(R, -1, -2)) - c.rot_damping * w
+        return _clip_norm(grip * force, c.max_force), _clip_norm(grip * torque, c.max_torque)
+
+
+# ---------------------------------------------------------------------------------------------------- scenes
+@dataclass
+class SceneInput:
+    """What a scene reads at the agent rate (arm frame, control site = tool tip)."""
+
+    t: np.ndarray
+    """Episode time of each arm [N] (s)."""
+    pos: np.ndarray
+    """Tool tip position [N, 3] (m)."""
+    rot: np.ndarray
+    """Tool tip rotation [N, 3, 3] (columns: local axes L)."""
+    f_env: np.ndarray
+    """Sensed environment wrench at the tool tip [N, 6] (world; N, N m)."""
+    f_ope: np.ndarray
+    """Operator wrench estimate f_ext − f_env at the tool tip [N, 6] (world)."""
+    f_d: np.ndarray
+    """Desired local wrench f_d^L [N, 6] in use."""
+    handle_pos: np.ndarray
+    """Operator handle position [N, 3]."""
+
+
+class Scene:
+    """A scripted procedure for N arms: reference pose, operator intents, phases and per-trial metrics."""
+
+    name = "scene"
+    tool = "peg_mesh"
+    phase_names: tuple[str, ...] = ()
+    """Phase labels; `phase` holds indices into it."""
+    phase_task: tuple[str, ...] = ()
+    """Which task the phase expects to lead ("IK", "FC", "AC"): the shading of the episode plot."""
+
+    def __init__(self, n: int, operator: Operator, home_pos: np.ndarray, home_rot: np.ndarray) -> None:
+        self.n, self.operator = n, operator
+        self.home_pos, self.home_rot = home_pos.copy(), home_rot.copy()
+        self.pos_d = np.tile(home_pos, (n, 1))
+        self.rot_d = np.tile(home_rot, (n, 1, 1))
+        self.phase = np.zeros(n, dtype=np.int64)
+        self.done = np.zeros(n, dtype=bool)
+        self.t0 = np.zeros(n)
+
+    def mjcf(self) -> str:
+        """Scene bodies for PandaSim."""
+        raise NotImplementedError
+
+    def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
+        """Start a new trial for arms `idx`, drawing its random parameters from the arms' own generators `rngs`
+        (one per entry of idx: a trial depends on its arm's stream only, whatever the batch)."""
+        self.pos_d[idx], self.rot_d[idx] = self.home_pos, self.home_rot
+        self.phase[idx] = 0
+        self.done[idx] = False
+        self.t0[idx] = 0.0
+
+    def update(self, inp: SceneInput) -> None:
+        """Advance the procedure one agent period: phases, reference, operator intents, metrics."""
+        raise NotImplementedError
+
+    def abort(self, idx: np.ndarray) -> None:
+        """End the trials of arms `idx` now (their simulation diverged): last phase, reference home."""
+        self.phase[idx] = len(self.phase_names) - 1
+        self.done[idx] = True
+        self.pos_d[idx], self.rot_d[idx] = self.home_pos, self.home_rot
+
+    def metrics(self) -> dict[str, np.ndarray]:
+        """Per-arm metrics of the current trials (arrays [N] or [N, cycles])."""
+        return {}
+
+    def signals(self, inp: SceneInput) -> dict[str, np.ndarray]:
+        """Scene-specific per-step signals for plots (e.g. the peg's misalignment), arrays [N]."""
+        return {}
+
+    def _enter(self, mask: np.ndarray, phase: int, t: np.ndarray) -> None:
+        self.phase[mask] = phase
+        self.t0[mask] = t[mask]
+
+
+class PegInHole(Scene):
+    """Peg-in-hole (paper 000, Fig. 7, Table VI); see PegInHoleConfig for the procedure."""
+
+    name, tool = "peg_in_hole", "peg_mesh"
+    SETTLE, APPROACH, INSERT, DISENGAGE, RETURN, DONE = range(6)
+    phase_names = ("settle", "approach", "insert", "disengage", "return", "done")
+    phase_task = ("IK", "IK", "FC", "AC", "IK", "IK")
+
+    def __init__(self, n: int, operator: Operator, home_pos: np.ndarray, home_rot: np.ndarray,
+                 cfg: PegInHoleConfig) -> None:
+        super().__init__(n, operator, home_pos, home_rot)
+        self.cfg = cfg
+        self.geometry = HoleGeometry(center=tuple(cfg.hole_center), top=cfg.hole_top, bore_diameter=cfg.hole_diameter,
+                                     depth=cfg.hole_depth, segments=cfg.hole_segments, friction=cfg.friction)
+        self.hole = np.array([cfg.hole_center[0], cfg.hole_center[1], cfg.hole_top])
+        C = cfg.cycles
+        self.cycle = np.zeros(n, dtype=np.int64)
+        self.offset = np.zeros((n, C, 3))  # approach-pose offset from the hole axis, per cycle
+        self.tilt = np.zeros((n, C, 3))  # approach-pose tilt (rotation vector), per cycle
+        self.from_pos, self.from_rot = self.pos_d.copy(), self.rot_d.copy()
+        self.contact_time = np.full((n, C), np.nan)
+        """Episode time of the first contact of each cycle [s]."""
+        self.success_time = np.full((n, C), np.nan)
+        """Episode time at which the peg reached `success_depth` [s]."""
+        self.misalign_translation = np.full((n, C), np.nan)
+        """Horizontal distance of the peg tip from the hole axis at the first contact [m]."""
+        self.misalign_rotation = np.full((n, C), np.nan)
+        """Angle between the peg axis and the hole axis at the first contact [rad]."""
+        self.max_depth = np.full((n, C), np.nan)
+        """Deepest tip position below the rim during the insertion [m]."""
+        self.extracted = np.zeros((n, C), dtype=bool)
+        """Whether the peg left the hole (tip above the rim) during the disengagement."""
+        self.disengage_force = np.full((n, C), np.nan)
+        """Mean |f_ope| while the operator disengages [N]."""
+        self._f_sum, self._f_cnt = np.zeros(n), np.zeros(n)
+        self._grasp_releases = np.zeros(n, dtype=np.int64)
+
+    def mjcf(self) -> str:
+        return hole_block_xml(self.geometry)
+
+    def reference_depth(self, tau: np.ndarray) -> np.ndarray:
+        """Depth below the rim [k] (m) of the insertion reference `tau` s after the insertion phase began: minimum-jerk
+        from the approach height to the rim in `descent_time`, then down at `insert_speed` to `insert_depth`."""
+        c = self.cfg
+        above = -c.approach_height * (1.0 - min_jerk(tau, c.descent_time))
+        below = np.clip((tau - c.descent_time) * c.insert_speed, 0.0, c.insert_depth)
+        return above + below
+
+    def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
+        super().reset(idx, rngs)
+        c, C = self.cfg, self.cfg.cycles
+        self.cycle[idx] = 0
+        # translation: |offset| ~ N(mean, std) clipped >= 0, uniform direction; tilt: |θ| ~ N, random horizontal axis
+        draws = np.array([[rng.normal(c.misalign_translation[0], c.misalign_translation[1], C),
+                           rng.uniform(0.0, 2.0 * np.pi, C),
+                           np.radians(rng.normal(c.misalign_rotation_deg[0], c.misalign_rotation_deg[1], C)),
+                           rng.uniform(0.0, 2.0 * np.pi, C)] for rng in rngs])  # [k, 4, C]
+        mag, ang, tilt, axis = np.maximum(draws[:, 0], 0.0), draws[:, 1], np.maximum(draws[:, 2], 0.0), draws[:, 3]
+        self.offset[idx] = np.stack([mag * np.cos(ang), mag * np.sin(ang), np.zeros_like(mag)], axis=-1)
+        self.tilt[idx] = np.stack([tilt * np.cos(axis), tilt * np.sin(axis), np.zeros_like(tilt)], axis=-1)
+        self.from_pos[idx], self.from_rot[idx] = self.home_pos, self.home_rot
+        for a in (self.contact_time, self.success_time, self.misalign_translation, self.misalign_rotation,
+                  self.max_depth, self.disengage_force):
+            a[idx] = np.nan
+        self.extracted[idx] = False
+        self._f_sum[idx], self._f_cnt[idx] = 0.0, 0.0
+
+    def _approach_pose(self, arms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cyc = self.cycle[arms]
+        pos = self.hole + self.offset[arms, cyc] + np.array([0.0, 0.0, self.cfg.approach_height])
+        rot = rotvec_to_matrix(self.tilt[arms, cyc]) @ self.home_rot
+        return pos, rot
+
+    def depth(self, pos: np.ndarray) -> np.ndarray:
+        """Tip depth below the rim [N] (m; negative above)."""
+        return self.hole[2] - pos[:, 2]
+
+    def update(self, inp: SceneInput) -> None:
+        c, t, ph = self.cfg, inp.t, self.phase
+        arms = np.arange(self.n)
+        depth = self.depth(inp.pos)
+        # --- settle at home
+        m = (ph == self.SETTLE) & (t - self.t0 >= c.settle_time)
+        if m.any():
+            self.from_pos[m], self.from_rot[m] = self.pos_d[m], self.rot_d[m]
+            self._enter(m, self.APPROACH, t)
+        # --- approach pose (misaligned), reached within the lenient tolerance
+        m = ph == self.APPROACH
+        if m.any():
+            a = arms[m]
+            goal_p, goal_r = self._approach_pose(a)
+            s = min_jerk(t[a] - self.t0[a], c.approach_time)
+            self.pos_d[a] = self.from_pos[a] + s[:, None] * (goal_p - self.from_pos[a])
+            self.rot_d[a] = _interp_rot(self.from_rot[a], goal_r, s)
+            err = np.linalg.norm(goal_p - inp.pos[a], axis=1)
+            late = t[a] - self.t0[a] >= c.approach_time
+            go = a[late & ((err < c.approach_tolerance) | (t[a] - self.t0[a] >= c.approach_time + 3.0))]
+            if len(go):
+                self.from_pos[go], self.from_rot[go] = goal_p[np.isin(a, go)], goal_r[np.isin(a, go)]
+                self._enter(np.isin(arms, go), self.INSERT, t)
+        # --- insertion: reference to the contact pose (z fast, x-y and tilt slow); contact, success, time limit
+        m = ph == self.INSERT
+        if m.any():
+            a = arms[m]
+            cyc = self.cycle[a]
+            tau = t[a] - self.t0[a]
+            sxy = min_jerk(tau, c.align_time)
+            p = self.from_pos[a]
+            self.pos_d[a, :2] = p[:, :2] + sxy[:, None] * (self.hole[:2] - p[:, :2])
+            self.pos_d[a, 2] = self.hole[2] - self.reference_depth(tau)
+            self.rot_d[a] = _interp_rot(self.from_rot[a], np.broadcast_to(self.home_rot, (len(a), 3, 3)), sxy)
+            touching = np.linalg.norm(inp.f_env[a, :3], axis=1) > c.contact_force
+            first = touching & np.isnan(self.contact_time[a, cyc])
+            if first.any():
+                f = a[first]
+                self.contact_time[f, cyc[first]] = t[f]
+                self.misalign_translation[f, cyc[first]] = np.linalg.norm(inp.pos[f, :2] - self.hole[:2], axis=1)
+                # angle between the tool axis (local z) and the hole axis (world −z)
+                self.misalign_rotation[f, cyc[first]] = np.arccos(np.clip(-inp.rot[f, 2, 2], -1.0, 1.0))
+            self.max_depth[a, cyc] = np.fmax(self.max_depth[a, cyc], depth[a])
+            contacted = ~np.isnan(self.contact_time[a, cyc])
+            # inserted: deep enough with the tip inside the bore (not slid down beside the block)
+            inside = np.linalg.norm(inp.pos[a, :2] - self.hole[:2], axis=1) < 0.5 * c.hole_diameter
+            ok = contacted & (depth[a] >= c.success_depth) & inside
+            self.success_time[a[ok], cyc[ok]] = t[a[ok]]
+            since = np.where(contacted, t[a] - self.contact_time[a, cyc], tau - c.descent_time)
+            finished = a[ok | (since > c.time_limit)]
+            if len(finished):
+                fm = np.isin(arms, finished)
+                if c.operator_disengage:
+                    self._grasp_releases[fm] = self.operator.releases[fm]
+                    goal = inp.handle_pos[fm] + np.array([0.0, 0.0, c.disengage_lift])
+                    self.operator.grasp(arms[fm], goal, t)
+                    self._f_sum[fm], self._f_cnt[fm] = 0.0, 0.0
+                    self._enter(fm, self.DISENGAGE, t)
+                else:
+                    self._start_return(fm, t)
+        # --- the operator pulls the peg out; the reference stays (Fig. 7)
+        m = ph == self.DISENGAGE
+        if m.any():
+            a = arms[m]
+            cyc = self.cycle[a]
+            holding = self.operator.active[a]
+            self._f_sum[a] += np.where(holding, np.linalg.norm(inp.f_ope[a, :3], axis=1), 0.0)
+            self._f_cnt[a] += holding
+            self.extracted[a, cyc] |= depth[a] < 0.0
+            released = self.operator.releases[a] > self._grasp_releases[a]
+            if released.any():
+                r = a[released]
+                self.disengage_force[r, self.cycle[r]] = self._f_sum[r] / np.maximum(self._f_cnt[r], 1.0)
+                self._start_return(np.isin(arms, r), t)
+        # --- back home; then the next cycle or done
+        m = ph == self.RETURN
+        if m.any():
+            a = arms[m]
+            s = min_jerk(t[a] - self.t0[a], c.return_time)
+            self.pos_d[a] = self.from_pos[a] + s[:, None] * (self.home_pos - self.from_pos[a])
+            self.rot_d[a] = _interp_rot(self.from_rot[a], np.broadcast_to(self.home_rot, (len(a), 3, 3)), s)
+            self.extracted[a, self.cycle[a]] |= depth[a] < 0.0
+            end = a[t[a] - self.t0[a] >= c.return_time]
+            if len(end):
+                em = np.isin(arms, end)
+                more = em & (self.cycle + 1 < c.cycles)
+                self.cycle[more] += 1
+                self.from_pos[more], self.from_rot[more] = self.pos_d[more], self.rot_d[more]
+                self._enter(more, self.APPROACH, t)
+                self._enter(em & ~more, self.DONE, t)
+                self.done[em & ~more] = True
+
+    def _start_return(self, mask: np.ndarray, t: np.ndarray) -> None:
+        self.from_pos[mask], self.from_rot[mask] = self.pos_d[mask], self.rot_d[mask]
+        if self.cfg.cycles == 1 and self.cfg.operator_disengage:  # a single trial ends when the operator lets go
+            self._enter(mask, self.DONE, t)
+            self.done[mask] = True
+        else:
+            self._enter(mask, self.RETURN, t)
+
+    def metrics(self) -> dict[str, np.ndarray]:
+        succ = ~np.isnan(self.success_time)
+        return {"success": succ, "insertion_time": self.success_time - self.contact_time,
+                "contact_time": self.contact_time.copy(), "misalign_translation": self.misalign_translation.copy(),
+                "misalign_rotation": self.misalign_rotation.copy(), "max_depth": self.max_depth.copy(),
+                "extracted": self.extracted.copy(), "disengage_force": self.disengage_force.copy()}
+
+    def signals(self, inp: SceneInput) -> dict[str, np.ndarray]:
+        return {"misalign_translation": np.linalg.norm(inp.pos[:, :2] - self.hole[:2], axis=1),
+                "misalign_rotation": np.arccos(np.clip(-inp.rot[:, 2, 2], -1.0, 1.0)),
+                "depth": self.depth(inp.pos)}
+
+
+class Polishing(Scene):
+    """Polishing (paper 000, Fig. 8); see PolishingConfig. Metrics over the full circles of the polishing phases:
+    fraction of samples in contact, mean pressing force and mean |pressing force − f_d| (every sample, in contact or
+    not), x-y tracking error (RMS); mean |f_ope| while the operator relocates the zone, and how often the hand
+    reached its relocation goal."""
+
+    name, tool = "polishing", "disc_mesh"
+    REST, APPROACH, POLISH, RELOCATE, HOLD, DONE = range(6)
+    phase_names = ("rest", "approach", "polish", "relocate", "hold", "done")
+    phase_task = ("IK", "IK", "FC", "AC", "IK", "IK")
+    RAMP = 1.0
+    """Seconds over which the circle's radius grows from 0 (so the reference starts where the tool is)."""
+    DISC_RADIUS = 0.0625
+    """Radius of the polishing disc of tool_disc_mesh.xml [m]."""
+
+    def __init__(self, n: int, operator: Operator, home_pos: np.ndarray, home_rot: np.ndarray,
+                 cfg: PolishingConfig) -> None:
+        super().__init__(n, operator, home_pos, home_rot)
+        self.cfg = cfg
+        self.zone = np.zeros((n, 2))
+        self.period = np.zeros(n, dtype=np.int64)
+        self.from_pos = self.pos_d.copy()
+        self._releases = np.zeros(n, dtype=np.int64)
+        K = len(cfg.relocations)
+        # accumulators per arm: polishing samples, in-contact samples, |f_env,z − f_d,z| sum, tracking error² sum,
+        # relocation |f_ope| sum and count, peak relocation |f_ope|
+        self._acc = {k: np.zeros(n) for k in ("n_pol", "n_con", "f_err", "f_con", "trk2", "n_rel", "f_rel", "f_rel_max")}
+        self.zone_reached = np.zeros((n, K), dtype=bool)
+        """Whether the operator's hand reached each relocation goal."""
+
+    def mjcf(self) -> str:
+        c = self.cfg
+        return plate_xml(center=tuple(c.plate_center), top=c.plate_top, half_size=tuple(c.plate_half_size),
+                         friction=c.friction)
+
+    def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
+        super().reset(idx, rngs)
+        self.zone[idx] = np.array(self.cfg.plate_center) + np.array(self.cfg.start_offset)
+        self.period[idx] = 0
+        self.from_pos[idx] = self.home_pos
+        for v in self._acc.values():
+            v[idx] = 0.0
+        self.zone_reached[idx] = False
+
+    def _polish_z(self) -> float:
+        return self.cfg.plate_top - self.cfg.preload
+
+    def update(self, inp: SceneInput) -> None:
+        c, t, ph, arms = self.cfg, inp.t, self.phase, np.arange(self.n)
+        m = (ph == self.REST) & (t - self.t0 >= c.rest_time)
+        if m.any():
+            self.from_pos[m] = self.pos_d[m]
+            self._enter(m, self.APPROACH, t)
+        m = ph == self.APPROACH
+        if m.any():
+            a = arms[m]
+            goal = np.concatenate([self.zone[a], np.full((len(a), 1), self._polish_z())], axis=1)
+            s = min_jerk(t[a] - self.t0[a], c.approach_time)
+            self.pos_d[a] = self.from_pos[a] + s[:, None] * (goal - self.from_pos[a])
+            self.rot_d[a] = self.home_rot
+            self._enter(m & (t - self.t0 >= c.approach_time), self.POLISH, t)
+        m = ph == self.POLISH
+        if m.any():
+            a = arms[m]
+            tau = t[a] - self.t0[a]
+            rho = c.circle_radius * np.clip(tau / self.RAMP, 0.0, 1.0)
+            ang = 2.0 * np.pi * tau / c.circle_period
+            self.pos_d[a, 0] = self.zone[a, 0] + rho * np.sin(ang)
+            self.pos_d[a, 1] = self.zone[a, 1] + rho * (1.0 - np.cos(ang))
+            self.pos_d[a, 2] = self._polish_z()
+            steady = tau >= self.RAMP  # metrics on the full circle only
+            fz, fdz = inp.f_env[a, 2], inp.f_d[a, 2]  # the plate pushes the disc up (world +z): the pressing force
+            con = fz > c.contact_force
+            acc = self._acc
+            acc["n_pol"][a] += steady
+            acc["n_con"][a] += steady & con
+            acc["f_err"][a] += np.where(steady, np.abs(fz - fdz), 0.0)  # every polishing sample, in contact or not
+            acc["f_con"][a] += np.where(steady, fz, 0.0)
+            acc["trk2"][a] += np.where(steady, np.sum((inp.pos[a, :2] - self.pos_d[a, :2]) ** 2, axis=1), 0.0)
+            end = a[tau >= c.polish_time]
+            if len(end):
+                em = np.isin(arms, end)
+                k = self.period[end]
+                d = np.array(c.relocations)[k]
+                goal = inp.handle_pos[end] + np.concatenate([d, np.full((len(end), 1), c.lift)], axis=1)
+                self._releases[end] = self.operator.releases[end]
+                self.operator.grasp(end, goal, t)
+                self._enter(em, self.RELOCATE, t)
+        m = ph == self.RELOCATE
+        if m.any():
+            a = arms[m]
+            # while the operator guides, the reference follows the tool (Fig. 8: x_d changes with the operator)
+            self.pos_d[a] = inp.pos[a]
+            hold = self.operator.active[a]
+            f = np.linalg.norm(inp.f_ope[a, :3], axis=1)
+            self._acc["n_rel"][a] += hold
+            self._acc["f_rel"][a] += np.where(hold, f, 0.0)
+            self._acc["f_rel_max"][a] = np.maximum(self._acc["f_rel_max"][a], np.where(hold, f, 0.0))
+            released = self.operator.releases[a] > self._releases[a]
+            if released.any():
+                r = a[released]
+                self.zone_reached[r, self.period[r]] = self.operator.reached[r]
+                self._enter(np.isin(arms, r), self.HOLD, t)
+        m = ph == self.HOLD
+        if m.any():
+            a = arms[m]
+            end = a[t[a] - self.t0[a] >= c.hold_time]
+            if len(end):
+                em = np.isin(arms, end)
+                self.period[end] += 1
+                more = em & (self.period < len(c.relocations))
+                # the new working zone is where the operator left the tool, kept on the plate (disc and circle inside)
+                margin = np.array(c.plate_half_size) - (self.DISC_RADIUS + c.circle_radius + 0.01)
+                centre = np.array(c.plate_center)
+                self.zone[more] = np.clip(self.pos_d[more, :2], centre - np.maximum(margin, 0.0),
+                                          centre + np.maximum(margin, 0.0))
+                self.from_pos[more] = self.pos_d[more]
+                self._enter(more, self.APPROACH, t)
+                self._enter(em & ~more, self.DONE, t)
+                self.done[em & ~more] = True
+
+    def metrics(self) -> dict[str, np.ndarray]:
+        a = self._acc
+        n_pol = np.maximum(a["n_pol"], 1.0)
+        return {"contact_fraction": a["n_con"] / n_pol,
+                "force_error": np.where(a["n_pol"] > 0, a["f_err"] / n_pol, np.nan),
+                "contact_force": np.where(a["n_pol"] > 0, a["f_con"] / n_pol, np.nan),
+                "tracking_error": np.sqrt(a["trk2"] / np.maximum(a["n_pol"], 1.0)),
+                "relocation_force": np.where(a["n_rel"] > 0, a["f_rel"] / np.maximum(a["n_rel"], 1.0), np.nan),
+                "zones_reached": self.zone_reached.mean(axis=1)}
+
+    def signals(self, inp: SceneInput) -> dict[str, np.ndarray]:
+        return {"x_d": self.pos_d[:, 0].copy(), "y_d": self.pos_d[:, 1].copy()}
+
+
+class Guidance(Scene):
+    """Free guidance: the operator takes the tool to each waypoint and lets go; the robot holds the taught pose.
+
+    Metrics: |f_ope| while guiding (mean, peak: the effort), the hand's distance to its goal at release, the time
+    to reach the goal, and how far the robot drifts from the taught pose after the release."""
+
+    name, tool = "guidance", "peg_mesh"
+    PAUSE, GUIDE, DONE = range(3)
+    phase_names = ("pause", "guide", "done")
+    phase_task = ("IK", "AC", "IK")
+
+    def __init__(self, n: int, operator: Operator, home_pos: np.ndarray, home_rot: np.ndarray, cfg: GuidanceConfig,
+                 handle_home: np.ndarray) -> None:
+        super().__init__(n, operator, home_pos, home_rot)
+        self.cfg, self.handle_home = cfg, handle_home.copy()
+        K = len(cfg.waypoints)
+        self.k = np.zeros(n, dtype=np.int64)
+        self._releases = np.zeros(n, dtype=np.int64)
+        self.goal_error = np.full((n, K), np.nan)
+        """Handle-to-goal distance when the hand let go [m]."""
+        self.reach_time = np.full((n, K), np.nan)
+        """Grasp to goal reached [s] (NaN: not reached)."""
+        self.drift = np.zeros((n, K))
+        """Largest distance of the tool tip from the taught pose during the pause after each release [m]."""
+        self._acc = {k: np.zeros(n) for k in ("n", "f", "f_max")}
+
+    def mjcf(self) -> str:
+        return ""
+
+    def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
+        super().reset(idx, rngs)
+        self.k[idx] = 0
+        for a in (self.goal_error, self.reach_time):
+            a[idx] = np.nan
+        self.drift[idx] = 0.0
+        for v in self._acc.values():
+            v[idx] = 0.0
+
+    def update(self, inp: SceneInput) -> None:
+        c, t, ph, arms = self.cfg, inp.t, self.phase, np.arange(self.n)
+        K = len(c.waypoints)
+        m = ph == self.PAUSE
+        if m.any():
+            a = arms[m]
+            prev = self.k[a] - 1
+            was = prev >= 0
+            if was.any():
+                d = np.linalg.norm(inp.pos[a[was]] - self.pos_d[a[was]], axis=1)
+                self.drift[a[was], prev[was]] = np.maximum(self.drift[a[was], prev[was]], d)
+            go = a[t[a] - self.t0[a] >= c.pause]
+            if len(go):
+                gm = np.isin(arms, go)
+                more = gm & (self.k < K)
+                mo = arms[more]
+                if len(mo):
+                    goal = self.handle_home + np.array(c.waypoints)[self.k[mo]]
+                    self._releases[mo] = self.operator.releases[mo]
+                    self.operator.grasp(mo, goal, t)
+                    self._enter(more, self.GUIDE, t)
+                self._enter(gm & ~more, self.DONE, t)
+                self.done[gm & ~more] = True
+        m = ph == self.GUIDE
+        if m.any():
+            a = arms[m]
+            hold = self.operator.active[a]
+            f = np.linalg.norm(inp.f_ope[a, :3], axis=1)
+            self._acc["n"][a] += hold
+            self._acc["f"][a] += np.where(hold, f, 0.0)
+            self._acc["f_max"][a] = np.maximum(self._acc["f_max"][a], np.where(hold, f, 0.0))
+            released = self.operator.releases[a] > self._releases[a]
+            if released.any():
+                r = a[released]
+                k = self.k[r]
+                self.goal_error[r, k] = np.linalg.norm(inp.handle_pos[r] - self.operator.goal[r], axis=1)
+                self.reach_time[r, k] = self.operator.t_reached[r] - self.operator.t_grasp[r]
+                self.pos_d[r], self.rot_d[r] = inp.pos[r], inp.rot[r]  # the released pose is the new reference
+                self.k[r] += 1
+                self._enter(np.isin(arms, r), self.PAUSE, t)
+
+    def metrics(self) -> dict[str, np.ndarray]:
+        a = self._acc
+        return {"guide_force": np.where(a["n"] > 0, a["f"] / np.maximum(a["n"], 1.0), np.nan),
+                "guide_force_peak": a["f_max"].copy(), "goal_error": self.goal_error.copy(),
+                "reach_time": self.reach_time.copy(), "drift": self.drift.copy()}
+
+
+SCENES = {"peg_in_hole": PegInHole, "polishing": Polishing, "guidance": Guidance}
+
+
+def make_scene(name: str, n: int, operator: Operator, home_pos: np.ndarray, home_rot: np.ndarray, cfg,  # noqa: ANN001
+               handle_home: np.ndarray) -> Scene:
+    """The scene `name` for n arms (cfg: the PandaEnvConfig holding its section)."""
+    if name == "peg_in_hole":
+        return PegInHole(n, operator, home_pos, home_rot, cfg.peg_in_hole)
+    if name == "polishing":
+        return Polishing(n, operator, home_pos, home_rot, cfg.polishing)
+    if name == "guidance":
+        return Guidance(n, operator, home_pos, home_rot, cfg.guidance, handle_home)
+    raise ValueError(f"unknown scene {name!r}; choose from {sorted(SCENES)}")

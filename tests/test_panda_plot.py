@@ -1,0 +1,49 @@
+"""Episode plot (Fig. 7/8 layout) from data arrays, the `a3cqp plot episode` command, and the image strip."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from a3cqp_rl.plotting.cli import main as plot_main
+from a3cqp_rl.plotting.episode import load_episode, plot_episode, render_strip
+from a3cqp_rl.robot import PANDA_HOME
+from a3cqp_rl.robot.scenes import HoleGeometry, hole_block_xml
+
+
+def _episode(T: int = 300) -> dict[str, np.ndarray]:
+    t = np.arange(T) * 0.01
+    w = np.zeros((T, 6, 3))
+    w[:, :, 0] = 1.0
+    w[100:200, 2] = [0.1, 0.0, 0.9]  # FC leads z in the middle
+    return {"time": t, "phase": (t > 1.0).astype(np.int64) + (t > 2.0), "e_local": np.zeros((T, 6)),
+            "f_env_local": np.zeros((T, 6)), "f_ope_local": np.zeros((T, 6)), "weights": w, "f_d": np.zeros((T, 6)),
+            "misalign_translation": np.full(T, 0.01), "misalign_rotation": np.full(T, 0.05), "depth": np.zeros(T),
+            "q": np.tile(PANDA_HOME, (T, 1)), "scene": np.array("peg_in_hole"), "tool": np.array("peg_mesh"),
+            "scene_xml": np.array(hole_block_xml(HoleGeometry())),
+            "phase_names": np.array(["approach", "insert", "disengage"]), "phase_task": np.array(["IK", "FC", "AC"])}
+
+
+def test_plot_episode_writes_a_png_and_checks_its_input(tmp_path) -> None:  # noqa: ANN001
+    out = plot_episode(_episode(), tmp_path / "ep.png", axis="z")
+    assert out.is_file() and out.stat().st_size > 10_000
+    with pytest.raises(ValueError, match="axis"):
+        plot_episode(_episode(), tmp_path / "bad.png", axis="w")
+
+
+def test_plot_episode_command_reads_a_run_folder(tmp_path, capsys) -> None:  # noqa: ANN001
+    np.savez_compressed(tmp_path / "episode_learned.npz", **_episode())
+    assert plot_main(["episode", str(tmp_path), "--axis", "x"]) == 0
+    assert (tmp_path / "episode_learned.png").is_file()
+    assert set(load_episode(tmp_path)) >= {"time", "weights", "q"}
+    assert plot_main(["episode", str(tmp_path / "missing")]) == 2
+    assert "episode file not found" in capsys.readouterr().err
+
+
+def test_render_strip_draws_the_scene_or_says_why_not(tmp_path) -> None:  # noqa: ANN001
+    try:
+        out = render_strip(_episode(), tmp_path / "strip.png", frames=2, size=(120, 160))
+    except RuntimeError as exc:
+        assert "MUJOCO_GL" in str(exc)
+        pytest.skip(f"no OpenGL here: {exc}")
+    assert out.is_file() and out.stat().st_size > 5_000

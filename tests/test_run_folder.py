@@ -1,0 +1,134 @@
+"""Run folders: no silent overwrite, one writer, no silent relabelling, exact resumes, Ctrl-C keeps the work."""
+
+import csv
+import os
+import signal
+from pathlib import Path
+
+import pytest
+import torch
+
+from a3cqp_rl.cli import main
+from a3cqp_rl.config import config_from_dict
+from a3cqp_rl.exceptions import CheckpointError
+from a3cqp_rl.run_folder import RunFolder, RunFolderError, config_changes
+from algorithms.a2c import train
+
+BASE = {"a2c": {"compile": False, "log_every": 5, "checkpoint_every": 10, "region_checks": 0},
+        "point_mass": {"episode_steps": 30}}
+CONFIG = str(Path(__file__).parents[1] / "configs" / "point_mass_a2c.yaml")
+
+
+def _flat(run):
+    return torch.load(run / "policy.pt", weights_only=True)["flat"]
+
+
+def _rows(run):
+    with (run / "metrics.csv").open() as f:
+        return [{k: v for k, v in r.items() if k != "steps_per_second"} for r in csv.DictReader(f)]
+
+
+def test_a_finished_run_is_not_overwritten_without_force(tmp_path):
+    cfg = config_from_dict(BASE)
+    train(cfg, tmp_path / "run", total_steps=16 * 20)
+    before = (tmp_path / "run" / "metrics.csv").read_text()
+    with pytest.raises(RunFolderError, match="already holds a run.*--resume.*--force"):
+        train(cfg, tmp_path / "run", total_steps=16 * 10)
+    assert (tmp_path / "run" / "metrics.csv").read_text() == before
+    (tmp_path / "run" / "notes.txt").write_text("mine")
+    train(cfg, tmp_path / "run", total_steps=16 * 10, force=True)  # starts over: 10 updates, 2 rows
+    assert len(_rows(tmp_path / "run")) == 2 and (tmp_path / "run" / "notes.txt").read_text() == "mine"
+
+
+def test_one_writer_per_folder(tmp_path):
+    with RunFolder.open(tmp_path / "run"):
+        with pytest.raises(RunFolderError, match=f"being written by another process \\(pid {os.getpid()}\\)"):
+            train(config_from_dict(BASE), tmp_path / "run", total_steps=16)
+    train(config_from_dict(BASE), tmp_path / "run", total_steps=16)  # released
+
+
+def test_resume_refuses_a_changed_config_unless_overridden_and_records_it(tmp_path):
+    cfg = config_from_dict(BASE)
+    train(cfg, tmp_path / "run", total_steps=16 * 10)
+    config_before = (tmp_path / "run" / "config.yaml").read_text()
+    for change, text in (({"seed": 1}, "seed: 0 -> 1"), ({"a2c": {"learning_rate": 1e-3}}, "a2c.learning_rate")):
+        other = config_from_dict({**BASE, **change, "a2c": {**BASE["a2c"], **change.get("a2c", {})}})
+        with pytest.raises(CheckpointError, match=text):
+            train(other, tmp_path / "run", total_steps=16 * 20, resume=True)
+    assert not (tmp_path / "run" / "overrides.log").exists()
+    assert (tmp_path / "run" / "config.yaml").read_text() == config_before  # a refused resume relabels nothing
+    # more steps and --no-compile are no change of the experiment
+    train(config_from_dict({**BASE, "a2c": {**BASE["a2c"], "total_steps": 5}}), tmp_path / "run", total_steps=16 * 12,
+          resume=True)
+    other = config_from_dict({**BASE, "a2c": {**BASE["a2c"], "learning_rate": 1e-3}})
+    train(other, tmp_path / "run", total_steps=16 * 20, resume=True, override=True)
+    log = (tmp_path / "run" / "overrides.log").read_text()
+    assert "resume at update 12: a2c.learning_rate: 4.25339846e-06 -> 0.001" in log
+    assert "learning_rate: 0.001" in (tmp_path / "run" / "config.yaml").read_text()
+    assert config_changes({"a": {"b": 1, "c": 2}}, {"a": {"b": 1, "c": 3}}) == ["a.c: 2 -> 3"]
+
+
+def test_episodes_are_counted_exactly_across_a_resume(tmp_path):
+    base = {"a2c": {"compile": False, "log_every": 50, "checkpoint_every": 350, "region_checks": 0},
+            "point_mass": {"episode_steps": 4}}
+    cfg = config_from_dict(base)
+    train(cfg, tmp_path / "full", total_steps=16 * 400)  # 4 envs x 1 episode per update: 1600 episodes
+    train(cfg, tmp_path / "part", total_steps=16 * 350)  # the checkpoint keeps only the last 1000 returns
+    train(cfg, tmp_path / "part", total_steps=16 * 400, resume=True)
+    assert _rows(tmp_path / "full")[-1]["episodes"] == "1600"
+    assert _rows(tmp_path / "part") == _rows(tmp_path / "full")
+
+
+def test_resume_cleans_temporary_files_of_a_killed_writer(tmp_path):
+    train(config_from_dict(BASE), tmp_path / "run", total_steps=16 * 10)
+    orphan = tmp_path / "run" / ".checkpoint.pt.k3j4.tmp"
+    orphan.write_bytes(b"half a checkpoint")
+    train(config_from_dict(BASE), tmp_path / "run", total_steps=16 * 12, resume=True)
+    assert not orphan.exists() and not list((tmp_path / "run").glob("*.tmp"))
+
+
+def test_ctrl_c_writes_a_checkpoint_and_the_resume_is_exact(tmp_path):
+    cfg = config_from_dict(BASE)
+    train(cfg, tmp_path / "full", total_steps=16 * 30)
+
+    def ctrl_c(step, row):
+        if step == 16 * 15:  # between checkpoints (10, 20)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with pytest.raises(KeyboardInterrupt, match="interrupted at step 240.*--resume"):
+        train(cfg, tmp_path / "part", total_steps=16 * 30, callback=ctrl_c)
+    assert torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=True)["update"] == 15
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler given back
+    train(cfg, tmp_path / "part", total_steps=16 * 30, resume=True)
+    assert torch.equal(_flat(tmp_path / "part"), _flat(tmp_path / "full"))
+    assert _rows(tmp_path / "part") == _rows(tmp_path / "full")
+
+
+def test_cli_refuses_a_second_run_and_a_sweep_resumes_seed_by_seed(tmp_path, capsys):
+    args = ["train", "--config", CONFIG, "--steps", "160", "--no-compile", "--quiet", "--no-plots"]
+    out = tmp_path / "sweep"
+    assert main([*args, "--seeds", "0", "--out", str(out)]) == 0
+    assert main([*args, "--seeds", "0-1", "--out", str(out)]) == 2
+    assert "already holds a run" in capsys.readouterr().err
+    assert main([*args, "--seeds", "0-1", "--out", str(out), "--resume"]) == 0  # seed 1 never started: it starts
+    assert (out / "seed_1" / "policy.pt").is_file()
+    assert main([*args, "--seed", "0", "--out", str(out / "seed_0"), "--resume", "--override", "--steps", "320"]) == 0
+    assert main([*args, "--out", str(out / "x"), "--override"]) == 2
+    assert "--override only applies with --resume" in capsys.readouterr().err
+
+
+def test_make_train_twice_just_works(tmp_path, capsys):
+    import shlex
+    import shutil
+    import subprocess
+
+    if shutil.which("make") is None:
+        pytest.skip("no make")
+    root = Path(__file__).parents[1]
+    out = tmp_path / "default"
+    for _ in range(2):  # the command `make train` runs, as make expands it at that moment
+        cmd = subprocess.run(["make", "-s", "-n", "-o", ".venv/.installed", "-C", str(root), "train", f"OUT={out}",
+                              "STEPS=160", f"TRAIN_CONFIG={CONFIG}"], capture_output=True, text=True, check=True).stdout
+        argv = shlex.split(next(ln for ln in cmd.splitlines() if "a3cqp train" in ln))
+        assert main(argv[argv.index("train"):] + ["--no-compile", "--quiet", "--no-plots"]) == 0
+    assert "trained 160 steps" in capsys.readouterr().out
