@@ -227,7 +227,8 @@ class GeneConfig:
     """'log': u maps to low·(high/low)^u (needs low > 0), so each decade gets the same share of the search."""
     type: Literal["float", "int", "level"] = "float"
     """'int': rounded to the nearest integer; 'level': a priority-level selector l = u in [0, 1] mapped as
-    paper 002 eq. 4 (l ≤ 0.25 → level 1, ≤ 0.5 → 2, ≤ 0.75 → 3, else 0 = off); low/high stay 0 and 1."""
+    paper 002 eq. 4 (l ≤ 0.25 → level 1, ≤ 0.5 → 2, ≤ 0.75 → 3, else 0 = off; a3cqp_rl.control.hierarchy);
+    low/high stay 0 and 1."""
     size: int = 1
     """Genes sharing this spec: a vector value name[0..size-1] (e.g. ZDT's 30 variables)."""
 
