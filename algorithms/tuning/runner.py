@@ -85,7 +85,7 @@ class RunResult:
     rows: list[dict] = field(default_factory=list)
     """evaluations.csv as dicts."""
     seconds: float = 0.0
-    """Wall time of the whole run, all sessions of a resumed one together [s]."""
+    """Wall time of the whole run, every part of a resumed one together [s]."""
     evaluations: int = 0
     """Genomes evaluated (cache misses) over the whole run."""
     resumed_from: int | None = None
