@@ -242,10 +242,9 @@ def main(argv: list[str] | None = None) -> int:
         result = tune_pareto(cfg, out, workers=args.workers, ray=args.ray, resume=args.resume, progress=not args.quiet)
         front = read_front(out)
         objective = get_objective(cfg.nsga2.objective)
-        names = list(result.values.shape[1:] and objective.objectives)
         hv = ""
         if objective.reference_point:
-            pts = np.array([[r[n] for n in names] for r in front])
+            pts = np.array([[r[n] for n in objective.objectives] for r in front])
             hv = f", hypervolume {hypervolume(pts, objective.reference_point):.4f} (reference {objective.reference_point})"
         print(f"NSGA-II: {result.generation} generations, {result.evaluations} evaluations in {result.seconds:.1f} s; "
               f"Pareto front of {len(front)} solutions{hv}")
