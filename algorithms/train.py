@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
                   + _reward_text(res.final_metrics.get("episode_reward", float("nan"))))
             passed.append(_print_regions(res.policy_path))
         if len(seeds) > 1:
-            print(f"Fig. 5 regions: all four on {passed.count(4)} of {len(seeds)} seeds, at least three on "
+            print(f"Fig. 5 regions (literal): all four on {passed.count(4)} of {len(seeds)} seeds, at least three on "
                   f"{sum(n >= 3 for n in passed)}")
         if not args.no_plots:
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
@@ -111,13 +111,10 @@ def _reward_text(r: float) -> str:
 
 
 def _print_regions(policy_path: Path) -> int:
-    """Print the paper's Fig. 5 region check of the saved policy (a3cqp_rl.regions); returns how many pass."""
-    from a3cqp_rl.regions import check_fig5_regions
+    """Print both Fig. 5 region checks of the saved policy (a3cqp_rl.regions); returns how many pass the literal one."""
+    from a3cqp_rl.regions import check_fig5_regions, format_regions
     from algorithms.a2c import load_policy
 
     results = check_fig5_regions(load_policy(policy_path))
-    labels = {"w2": "w2 admittance", "w3": "w3 force control", "fd": "fd desired force", "w1": "w1 IK"}
-    parts = [f"{labels[r.name.split('_')[0]]} {r.inside:+.2f}/{r.outside:+.2f} {'ok' if r.ok else 'no'}" for r in results]
-    n = sum(r.ok for r in results)
-    print(f"Fig. 5 regions {n}/4 (mean action inside/outside each region): " + ", ".join(parts))
-    return n
+    print(format_regions(results))
+    return sum(r.literal for r in results)
