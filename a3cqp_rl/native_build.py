@@ -61,16 +61,19 @@ def enabled(var: str) -> bool:
     return os.environ.get(var, "1").strip().lower() not in ("0", "false", "no", "off")
 
 
-def build(source: Path, cflags: list[str] = CFLAGS) -> Path:
+def build(source: Path, cflags: list[str] = CFLAGS, include_dirs: tuple[Path, ...] = ()) -> Path:
     """Path of the shared library compiled from `source`, compiling it if this source/compiler/flags is not cached.
 
+    `include_dirs` go to the compiler as -I; their headers (*.h) are part of the cache key, so editing one rebuilds.
     Raises RuntimeError when there is no compiler or it fails (callers log one warning and use their numpy path).
     """
     cc = compiler()
     if cc is None:
         raise RuntimeError("no C compiler found (set A3CQP_CC or CC, or install cc/gcc)")
     src = source.read_bytes()
-    key = hashlib.sha256(b"\0".join([src, " ".join(cc + cflags).encode(), platform.machine().encode(),
+    includes = [f"-I{d}" for d in include_dirs]
+    headers = [h.read_bytes() for d in include_dirs for h in sorted(Path(d).glob("*.h"))]
+    key = hashlib.sha256(b"\0".join([src, *headers, " ".join(cc + cflags).encode(), platform.machine().encode(),
                                      sys.platform.encode()])).hexdigest()[:16]
     cache = cache_dir()
     lib = cache / f"{source.stem}-{key}.so"
@@ -80,7 +83,7 @@ def build(source: Path, cflags: list[str] = CFLAGS) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f".{source.stem}-", suffix=".so", dir=cache)
     os.close(fd)
     try:
-        proc = subprocess.run([*cc, *cflags, "-o", tmp, str(source), "-lm"], capture_output=True, text=True,
+        proc = subprocess.run([*cc, *cflags, *includes, "-o", tmp, str(source), "-lm"], capture_output=True, text=True,
                               timeout=120)
         if proc.returncode != 0:
             raise RuntimeError(f"{cc[0]} failed ({proc.returncode}): {proc.stderr.strip()[:500]}")
@@ -114,9 +117,9 @@ class LazyLibrary(Generic[T]):
     """
 
     def __init__(self, source: Path, switch: str, bind: Callable[[Path], T], log: logging.Logger, what: str,
-                 fallback: str, cflags: list[str] = CFLAGS) -> None:
+                 fallback: str, cflags: list[str] = CFLAGS, include_dirs: tuple[Path, ...] = ()) -> None:
         self.source, self.switch, self.bind, self.log, self.what, self.fallback = source, switch, bind, log, what, fallback
-        self.cflags = cflags
+        self.cflags, self.include_dirs = cflags, tuple(include_dirs)
         self._lock = threading.Lock()
         self._state: tuple[bool, T | None] = (False, None)
 
@@ -130,7 +133,7 @@ class LazyLibrary(Generic[T]):
                 value = None
                 if enabled(self.switch):
                     try:
-                        value = self.bind(build(self.source, self.cflags))
+                        value = self.bind(build(self.source, self.cflags, self.include_dirs))
                     except Exception as exc:  # no compiler, build error, unwritable cache, load error
                         self.log.warning("%s unavailable (%s); using %s", self.what, exc, self.fallback)
                 self._state = (True, value)
