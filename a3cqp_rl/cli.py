@@ -1,4 +1,4 @@
-"""`a3cqp` command line: train | plot | demo | bench.
+"""`a3cqp` command line: train | evaluate | plot | demo | bench.
 
 Each sub-command lazily imports its module so `a3cqp --help` stays fast.
 """
@@ -12,6 +12,7 @@ import sys
 # sub-command -> "module:function" taking the remaining argv list and returning an exit code.
 COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("algorithms.train:main", "train an A2C adaptation policy (point mass by default)"),
+    "evaluate": ("envs.evaluate_cli:main", "closed-loop evaluation of policies against fixed-weight baselines"),
     "plot": ("a3cqp_rl.plotting.cli:main", "policy maps (Fig. 5) and loss curves (Fig. 4) from runs"),
     "demo": ("a3cqp_rl.demo:main", "demos, e.g. `a3cqp demo controller` (Panda QP controller in MuJoCo)"),
     "bench": ("a3cqp_rl.bench_cli:main", "benchmarks: env | train | qp | controller | all"),

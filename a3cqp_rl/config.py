@@ -283,23 +283,43 @@ class PointMassConfig:
     """wall: damping while in contact [N s/m]."""
     random_initial_weights: bool = True
     """Start each episode from random (w̌, f_d) instead of pure IK with f_d = 0."""
+    operator_model: Literal["push", "hand"] = "push"
+    """How the operator makes its force. 'push': the piecewise-constant intent force above, measured through the
+    linear force-velocity law (training). 'hand': the operator grasps the mass and moves their hand from the grasp
+    position by a displacement D along a minimum-jerk path of operator_move_time, through a spring-damper grip,
+    f_ope = clip(k_h (s − x) + d_h (ṡ − ẋ), ±f̄_ope) with s the hand's position (an evaluation model training does
+    not use; `envs.point_mass_eval`). The schedule then holds D [m] while holding (0: not holding), drawn as
+    ±U(operator_goal_min, operator_goal_max) with the same on/off phases."""
+    operator_hand_stiffness: float = 300.0
+    """hand operator: grip stiffness k_h [N/m]."""
+    operator_hand_damping: float = 30.0
+    """hand operator: grip damping d_h [N s/m]."""
+    operator_goal_min: float = 0.1
+    operator_goal_max: float = 0.3
+    """hand operator: range of the hand's displacement per grasp [m] (random sign)."""
+    operator_move_time: float = 0.8
+    """hand operator: duration of the minimum-jerk hand motion [s] (the hand then stays at its goal until letting go)."""
 
     SCENARIOS: typing.ClassVar[tuple[str, ...]] = ("free", "operator", "wall", "wall_operator")
 
     def _check(self, err: _Errors) -> None:
         for name in ("mass", "kp", "lambda_d", "c_d", "physics_dt", "substeps", "episode_steps",
                      "target_max", "operator_v_hand", "operator_on_max", "operator_off_max",
-                     "wall_stiffness"):
+                     "wall_stiffness", "operator_move_time"):
             err.positive(self, name)
         if self.kv is not None and self.kv < 0:
             err.add("kv", f"must be >= 0 or null, got {self.kv}")
         for lo, hi in (("target_min", "target_max"), ("operator_on_min", "operator_on_max"),
                        ("operator_off_min", "operator_off_max"), ("wall_min", "wall_max"),
-                       ("depth_min", "depth_max")):
+                       ("depth_min", "depth_max"), ("operator_goal_min", "operator_goal_max")):
             a, b = getattr(self, lo), getattr(self, hi)
             if a < 0 or a > b:
                 err.add(lo, f"must satisfy 0 <= {lo} <= {hi}, got {a} > {b}" if a > b else f"must be >= 0, got {a}")
-        for name in ("operator_target_range", "operator_force_min", "wall_damping"):
+        if self.operator_model == "hand" and not self.operator_goal_min > 0:
+            err.add("operator_goal_min", f"must be > 0 for the hand operator (a displacement of 0 means 'not holding'), "
+                    f"got {self.operator_goal_min}")
+        for name in ("operator_target_range", "operator_force_min", "wall_damping", "operator_hand_stiffness",
+                     "operator_hand_damping"):
             if getattr(self, name) < 0:
                 err.add(name, f"must be >= 0, got {getattr(self, name)}")
         unknown = set(self.scenario_probs) - set(self.SCENARIOS)

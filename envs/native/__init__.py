@@ -42,6 +42,8 @@ class PMParams(ctypes.Structure):
 
 def unsupported(cfg: ExperimentConfig) -> str | None:
     """Why the C point mass cannot simulate `cfg` (None when it can)."""
+    if cfg.point_mass.operator_model != "push":
+        return f"the C point mass has the 'push' operator only, not {cfg.point_mass.operator_model!r}"
     return None
 
 
