@@ -283,6 +283,9 @@ class PointMassConfig:
     """wall: damping while in contact [N s/m]."""
     random_initial_weights: bool = True
     """Start each episode from random (w̌, f_d) instead of pure IK with f_d = 0."""
+    random_initial_fraction: float = 1.0
+    """With random_initial_weights: the fraction of episodes that start from random (w̌, f_d); the others start
+    from pure IK with f_d = 0, as a deployed robot does (so the policy also learns to raise f_d from zero)."""
     operator_model: Literal["push", "hand"] = "push"
     """How the operator makes its force. 'push': the piecewise-constant intent force above, measured through the
     linear force-velocity law (training). 'hand': the operator grasps the mass and moves their hand from the grasp
@@ -318,6 +321,8 @@ class PointMassConfig:
         if self.operator_model == "hand" and not self.operator_goal_min > 0:
             err.add("operator_goal_min", f"must be > 0 for the hand operator (a displacement of 0 means 'not holding'), "
                     f"got {self.operator_goal_min}")
+        if not 0.0 <= self.random_initial_fraction <= 1.0:
+            err.add("random_initial_fraction", f"must be in [0, 1], got {self.random_initial_fraction}")
         for name in ("operator_target_range", "operator_force_min", "wall_damping", "operator_hand_stiffness",
                      "operator_hand_damping"):
             if getattr(self, name) < 0:

@@ -6,7 +6,9 @@
 Writes under OUT (per seed OUT/seed_S when sweeping): config.yaml, metrics.csv, checkpoint.pt
 (atomic, every `a2c.checkpoint_every` updates), policy.pt, and the plots policy_map.png,
 loss_curves.png and regions.png (the Fig. 5 regions checked over training). `--resume` continues
-a killed run from OUT/checkpoint.pt with no lost or repeated steps.
+a killed run from OUT/checkpoint.pt with no lost or repeated steps. At the end the policies run in
+closed loop against the baselines (`a3cqp evaluate`; OUT/evaluation.json): with --seeds, one row per
+seed, the seed-robustness table.
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-compile", action="store_true", help="skip torch.compile (slower steps, no compile wait)")
     p.add_argument("--no-plots", action="store_true", help="do not draw policy map / loss curves at the end")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--no-eval", action="store_true", help="skip the closed-loop evaluation at the end (point mass)")
     args = p.parse_args(argv)
 
     import torch
@@ -79,6 +82,11 @@ def main(argv: list[str] | None = None) -> int:
         if len(seeds) > 1:
             print(f"Fig. 5 regions (literal): all four on {passed.count(4)} of {len(seeds)} seeds, at least three on "
                   f"{sum(n >= 3 for n in passed)}")
+        if cfg.env == "point_mass" and not args.no_eval:  # the closed-loop table against the baselines
+            from envs.evaluate_cli import report
+
+            print()
+            report([d / "policy.pt" for d in run_dirs], config=cfg, json_path=out / "evaluation.json")
         if not args.no_plots:
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
             from a3cqp_rl.plotting.policy_map import plot_policy_map

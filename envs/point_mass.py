@@ -143,11 +143,16 @@ class PointMassEnv(EnvBase):
         wall_target = wall_pos + self._uniform(n, c.depth_min, c.depth_max)
         target = torch.where(has_wall, wall_target, torch.where(has_op, op_target, free_target))
         half = 0.5 * self.adapt.sigma_w
+        ik = torch.tensor([half, -half, -half], dtype=self.dtype, device=self.device).expand(n, 3)
         if c.random_initial_weights:
             w_logits = self._uniform(n, -half, half, 3)
             f_d = self._uniform(n, 0.0, self.adapt.f_d_max)
+            if c.random_initial_fraction < 1.0:  # the rest start like a deployed robot: pure IK, f_d = 0
+                from_ik = self._uniform(n, 0.0, 1.0) >= c.random_initial_fraction
+                w_logits = torch.where(from_ik.unsqueeze(-1), ik, w_logits)
+                f_d = torch.where(from_ik, torch.zeros_like(f_d), f_d)
         else:  # pure IK, no desired force
-            w_logits = torch.tensor([half, -half, -half], dtype=self.dtype, device=self.device).expand(n, 3).clone()
+            w_logits = ik.clone()
             f_d = torch.zeros(n, dtype=self.dtype, device=self.device)
         dest = self._pending if pending else self._state
         for k, v in zip(EPISODE_KEYS, (target, wall_pos, has_wall, scen, w_logits, f_d)):
