@@ -1,7 +1,7 @@
 """`a3cqp bench NAME [args]`: run a benchmark script from the repository's bench/ folder.
 
 NAME: env (bench/env_throughput.py), train (bench/train_speed.py), qp (bench/qp.py),
-controller (bench/controller.py), or all (each with --quick unless args are given).
+controller (bench/controller.py), eval (bench/eval_speed.py), or all (each with --quick unless args are given).
 """
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ import runpy
 import sys
 from pathlib import Path
 
-BENCHES = {"env": "env_throughput.py", "train": "train_speed.py", "qp": "qp.py", "controller": "controller.py"}
+BENCHES = {"env": "env_throughput.py", "train": "train_speed.py", "qp": "qp.py", "controller": "controller.py",
+           "eval": "eval_speed.py"}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -265,6 +265,10 @@ class PointMassConfig:
     """operator: smallest push magnitude [N] (largest is f̄_ope)."""
     operator_v_hand: float = 0.3
     """operator: hand speed along the push at which the measured force vanishes [m/s]."""
+    operator_grip: bool = False
+    """operator: the hand holds on to the handle: a mass running ahead of the push faster than operator_v_hand is
+    braked by it, f_ope = F·clip(1 − ẋ·sgn(F)/operator_v_hand, −1, 1) (down to −F at twice that speed). False: the
+    hand lets go of a mass that runs away (the force stops at 0)."""
     operator_on_min: float = 0.5
     operator_on_max: float = 2.0
     """operator: push duration range [s]."""

@@ -385,6 +385,7 @@ def agent_step(
     x, v, target, wall_pos, has_wall = state["x"], state["x_dot"], state["target"], state["wall_pos"], state["has_wall"]
     sgn = torch.sign(f_cmd)
     hand = cfg.operator_model == "hand"
+    grip_min = -1.0 if cfg.operator_grip else 0.0  # a gripping hand brakes a mass that runs ahead of it
     if hand:  # the grasp starts when the schedule turns on: remember where and when
         holding = f_cmd != 0
         prev = schedule[state["slot"], env_idx, (t - 1).clamp(min=0, max=schedule.shape[-1] - 1)]
@@ -405,7 +406,7 @@ def agent_step(
             pull = cfg.operator_hand_stiffness * (s_hand - x) + cfg.operator_hand_damping * (v_hand - v)
             f_ope = torch.where(holding, pull.clamp(-adapt.f_ope_max, adapt.f_ope_max), 0.0)
         else:  # a hand with a linear force-velocity law: yielding along the push relieves the force
-            f_ope = f_cmd * (1.0 - v * sgn / cfg.operator_v_hand).clamp(0.0, 1.0)
+            f_ope = f_cmd * (1.0 - v * sgn / cfg.operator_v_hand).clamp(grip_min, 1.0)
         f_ext = f_env + f_ope
         e = target - x
         # eq. 35 (ẍ_pd = 0 for a fixed target)

@@ -11,7 +11,8 @@ from envs.point_mass import PointMassEnv, agent_step, observe_state
 pytestmark = pytest.mark.skipif(native.load() is None, reason="no C compiler")
 
 
-@pytest.mark.parametrize("overrides", [{}, {"point_mass": {"wall_damping": 0.0, "operator_v_hand": 0.05, "substeps": 3},
+@pytest.mark.parametrize("overrides", [{}, {"point_mass": {"wall_damping": 0.0, "operator_v_hand": 0.05, "substeps": 3,
+                                                            "operator_grip": True},
                                             "reward": {"alpha": [1.0, 5.0, 4.0, 2.0]}}])
 def test_c_step_equals_torch_step_for_a_whole_episode(overrides):
     cfg = config_from_dict({**overrides, "point_mass": {
@@ -30,7 +31,7 @@ def test_c_step_equals_torch_step_for_a_whole_episode(overrides):
     live = schedule[state["slot"], torch.arange(N)].unsqueeze(0).expand(2, N, -1).contiguous()
     gen = torch.Generator().manual_seed(0)
     worst = {"state": 0.0, "reward": 0.0, "obs": 0.0}
-    contact = push = 0
+    contact = push = brake = 0
     for _ in range(cfg.point_mass.episode_steps):
         a = (torch.rand(N, 4, generator=gen) * 2.4 - 1.2).float()  # beyond [-1, 1]: both clip
         state, r = agent_step(state, a.double(), live, cfg.point_mass, cfg.adaptation, cfg.reward)
@@ -42,8 +43,10 @@ def test_c_step_equals_torch_step_for_a_whole_episode(overrides):
         worst["obs"] = max(worst["obs"], float(np.abs(oc - observe_state(state, cfg.adaptation, torch.float32).numpy()).max()))
         contact += int((state["f_env"] < -1.0).sum())
         push += int((state["f_ope"].abs() > 1.0).sum())
+        brake += int((state["f_ope"] * live[0, torch.arange(N), (state["t"] - 1).clamp(min=0)] < -0.1).sum())
     assert worst["state"] < 1e-9 and worst["reward"] < 1e-9 and worst["obs"] < 1e-6, worst
     assert contact > 0 and push > 0  # walls and operators were exercised
+    assert (brake > 0) == cfg.point_mass.operator_grip  # and the gripping hand braked a mass running ahead
 
 
 def test_params_layout_and_bad_library_switch(monkeypatch):
