@@ -290,13 +290,20 @@ class PointMassConfig:
     random_initial_fraction: float = 1.0
     """With random_initial_weights: the fraction of episodes that start from random (w̌, f_d); the others start
     from pure IK with f_d = 0, as a deployed robot does (so the policy also learns to raise f_d from zero)."""
-    operator_model: Literal["push", "hand"] = "push"
-    """How the operator makes its force. 'push': the piecewise-constant intent force above, measured through the
-    linear force-velocity law (training). 'hand': the operator grasps the mass and moves their hand from the grasp
-    position by a displacement D along a minimum-jerk path of operator_move_time, through a spring-damper grip,
-    f_ope = clip(k_h (s − x) + d_h (ṡ − ẋ), ±f̄_ope) with s the hand's position (an evaluation model training does
-    not use; `envs.point_mass_eval`). The schedule then holds D [m] while holding (0: not holding), drawn as
-    ±U(operator_goal_min, operator_goal_max) with the same on/off phases."""
+    operator_model: Literal["push", "drag", "hand"] = "push"
+    """How the operator makes its force.
+    'push': the piecewise-constant intent force F above, measured through the linear force-velocity law
+    f_ope = F·clip(1 − ẋ·sgn(F)/operator_v_hand, 0, 1) (the paper's surrogate, and the default).
+    'drag': the operator's hand moves with a half-sine speed profile over each push, u = u_peak·sin(π τ) (τ the
+    fraction of the push done, u_peak = operator_v_hand·|F|/f̄_ope), so it starts and stops smoothly, and drags the
+    mass through a viscous grip b = f̄_ope/operator_v_hand: f_ope = clip(b (u − ẋ), ±f̄_ope). A mass that keeps
+    moving when the hand slows down is braked by the grip, so an undamped one (force control with f_d = 0) costs
+    more than admittance.
+    'hand': the operator grasps the mass and moves their hand from the grasp position by a displacement D along a
+    minimum-jerk path of operator_move_time, through a spring-damper grip, f_ope = clip(k_h (s − x) + d_h (ṡ − ẋ),
+    ±f̄_ope) with s the hand's position (an evaluation model training does not use; `envs.point_mass_eval`). The
+    schedule then holds D [m] while holding (0: not holding), drawn as ±U(operator_goal_min, operator_goal_max) with
+    the same on/off phases."""
     operator_hand_stiffness: float = 300.0
     """hand operator: grip stiffness k_h [N/m]."""
     operator_hand_damping: float = 30.0

@@ -182,7 +182,13 @@ class PointMassEnv(EnvBase):
         seg = torch.searchsorted(boundaries, times.expand(n, -1).contiguous(), right=True)  # [n, T+1]
         phase = (seg // 2).clamp(max=K - 1)
         is_on = (seg % 2) == 1
-        return torch.where(is_on, torch.gather(force, 1, phase), torch.zeros((), dtype=self.dtype))
+        value = torch.gather(force, 1, phase)
+        if c.operator_model == "drag":  # the hand's speed (so the force on a mass at rest) rises and falls: sin(π τ)
+            start = torch.gather(ends_off, 1, phase)
+            length = torch.gather(on, 1, phase)
+            tau = ((times - start) / length).clamp(0.0, 1.0)
+            value = value * torch.sin(math.pi * tau).clamp(min=1e-6)  # > 0 while holding: 0 means "not holding"
+        return torch.where(is_on, value, torch.zeros((), dtype=self.dtype))
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None if tensordict is None else tensordict.get("_reset", None)
@@ -386,6 +392,11 @@ def agent_step(
     sgn = torch.sign(f_cmd)
     hand = cfg.operator_model == "hand"
     grip_min = -1.0 if cfg.operator_grip else 0.0  # a gripping hand brakes a mass that runs ahead of it
+    drag = cfg.operator_model == "drag"
+    if drag:  # the schedule holds b·u, the grip's force on a mass at rest
+        holding = f_cmd != 0
+        drag_max = adapt.f_ope_max
+        drag_b = drag_max / cfg.operator_v_hand
     if hand:  # the grasp starts when the schedule turns on: remember where and when
         holding = f_cmd != 0
         prev = schedule[state["slot"], env_idx, (t - 1).clamp(min=0, max=schedule.shape[-1] - 1)]
@@ -405,6 +416,8 @@ def agent_step(
                                            cfg.operator_move_time)
             pull = cfg.operator_hand_stiffness * (s_hand - x) + cfg.operator_hand_damping * (v_hand - v)
             f_ope = torch.where(holding, pull.clamp(-adapt.f_ope_max, adapt.f_ope_max), 0.0)
+        elif drag:  # a hand moving at f_cmd/b, through a viscous grip b, bounded by the push's peak force
+            f_ope = torch.where(holding, (f_cmd - drag_b * v).clamp(-drag_max, drag_max), 0.0)
         else:  # a hand with a linear force-velocity law: yielding along the push relieves the force
             f_ope = f_cmd * (1.0 - v * sgn / cfg.operator_v_hand).clamp(grip_min, 1.0)
         f_ext = f_env + f_ope

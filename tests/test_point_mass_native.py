@@ -11,8 +11,9 @@ from envs.point_mass import PointMassEnv, agent_step, observe_state
 pytestmark = pytest.mark.skipif(native.load() is None, reason="no C compiler")
 
 
-@pytest.mark.parametrize("overrides", [{}, {"point_mass": {"wall_damping": 0.0, "operator_v_hand": 0.05, "substeps": 3,
-                                                            "operator_grip": True},
+@pytest.mark.parametrize("overrides", [{}, {"point_mass": {"operator_model": "drag", "operator_v_hand": 0.2}},
+                                       {"point_mass": {"wall_damping": 0.0, "operator_v_hand": 0.05, "substeps": 3,
+                                                       "operator_grip": True},
                                             "reward": {"alpha": [1.0, 5.0, 4.0, 2.0]}}])
 def test_c_step_equals_torch_step_for_a_whole_episode(overrides):
     cfg = config_from_dict({**overrides, "point_mass": {
@@ -46,7 +47,8 @@ def test_c_step_equals_torch_step_for_a_whole_episode(overrides):
         brake += int((state["f_ope"] * live[0, torch.arange(N), (state["t"] - 1).clamp(min=0)] < -0.1).sum())
     assert worst["state"] < 1e-9 and worst["reward"] < 1e-9 and worst["obs"] < 1e-6, worst
     assert contact > 0 and push > 0  # walls and operators were exercised
-    assert (brake > 0) == cfg.point_mass.operator_grip  # and the gripping hand braked a mass running ahead
+    # and the gripping or dragging hand braked a mass running ahead of it
+    assert (brake > 0) == (cfg.point_mass.operator_grip or cfg.point_mass.operator_model == "drag")
 
 
 def test_params_layout_and_bad_library_switch(monkeypatch):

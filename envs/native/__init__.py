@@ -36,14 +36,15 @@ class PMParams(ctypes.Structure):
     _fields_ = [("N", _i), ("episode_steps", _i), ("substeps", _i), ("sched_len", _i),
                 ("mass", _d), ("kp", _d), ("kv", _d), ("physics_dt", _d), ("lambda_d", _d), ("c_d", _d),
                 ("wall_stiffness", _d), ("wall_damping", _d), ("operator_v_hand", _d), ("operator_grip_min", _d),
+                ("operator_drag", _i),
                 ("sigma_w", _d), ("sigma_f", _d), ("adapt_dt", _d), ("f_d_max", _d), ("e_max", _d),
                 ("f_env_max", _d), ("f_ope_max", _d), ("alpha", _d * 4)]
 
 
 def unsupported(cfg: ExperimentConfig) -> str | None:
     """Why the C point mass cannot simulate `cfg` (None when it can)."""
-    if cfg.point_mass.operator_model != "push":
-        return f"the C point mass has the 'push' operator only, not {cfg.point_mass.operator_model!r}"
+    if cfg.point_mass.operator_model not in ("push", "drag"):
+        return f"the C point mass has the 'push' and 'drag' operators only, not {cfg.point_mass.operator_model!r}"
     return None
 
 
@@ -53,7 +54,7 @@ def pm_params(cfg: ExperimentConfig, num_envs: int) -> PMParams:
     p = PMParams(N=num_envs, episode_steps=c.episode_steps, substeps=c.substeps, sched_len=c.episode_steps + 1,
                  mass=c.mass, kp=c.kp, kv=c.kv_value, physics_dt=c.physics_dt, lambda_d=c.lambda_d, c_d=c.c_d,
                  wall_stiffness=c.wall_stiffness, wall_damping=c.wall_damping, operator_v_hand=c.operator_v_hand,
-                 operator_grip_min=-1.0 if c.operator_grip else 0.0,
+                 operator_grip_min=-1.0 if c.operator_grip else 0.0, operator_drag=int(c.operator_model == "drag"),
                  sigma_w=ad.sigma_w, sigma_f=ad.sigma_f, adapt_dt=ad.dt, f_d_max=ad.f_d_max, e_max=ad.e_max,
                  f_env_max=ad.f_env_max, f_ope_max=ad.f_ope_max)
     p.alpha[:] = [float(a) for a in cfg.reward.alpha]

@@ -19,6 +19,7 @@
 typedef struct {
     int64_t N, episode_steps, substeps, sched_len;
     double mass, kp, kv, physics_dt, lambda_d, c_d, wall_stiffness, wall_damping, operator_v_hand, operator_grip_min;
+    int64_t operator_drag; /* operator_model 'drag' (1) or 'push' (0) */
     double sigma_w, sigma_f, adapt_dt, f_d_max, e_max, f_env_max, f_ope_max;
     double alpha[4];
 } pm_params;
@@ -84,7 +85,11 @@ static inline double pm_agent_step(const pm_params *P, const pm_state *s, const 
         double pen = x - wall;
         /* unilateral wall: pushes back only */
         f_env = (has_wall && pen > 0.0) ? fmin(-P->wall_stiffness * pen - P->wall_damping * v, 0.0) : 0.0;
-        f_ope = f_cmd * pm_clamp(1.0 - v * sgn / P->operator_v_hand, P->operator_grip_min, 1.0);
+        if (P->operator_drag)  /* a hand moving at f_cmd / b through a viscous grip b = f̄_ope / v_hand */
+            f_ope = f_cmd != 0.0 ? pm_clamp(f_cmd - P->f_ope_max / P->operator_v_hand * v, -P->f_ope_max, P->f_ope_max)
+                                 : 0.0;
+        else  /* linear force-velocity law */
+            f_ope = f_cmd * pm_clamp(1.0 - v * sgn / P->operator_v_hand, P->operator_grip_min, 1.0);
         double f_ext = f_env + f_ope, e = target - x;
         double acc = (f_ext + w[0] * mass * (P->kp * e - P->kv * v) + w[1] * (adm * f_ext - P->c_d * v) + w[2] * fd) / mass;
         v = v + acc * dt;  /* eq. 35, semi-implicit Euler */
