@@ -46,8 +46,9 @@ def parse_seeds(text: str) -> list[int]:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="a3cqp train", description=__doc__.splitlines()[0])
-    p.add_argument("--config", default=None, help=f"YAML config (default: {DEFAULT_CONFIG.name}; the paper's "
-                                                    "Table IV settings: configs/point_mass_a2c.yaml)")
+    p.add_argument("--config", default=None, help=f"YAML config (default: {DEFAULT_CONFIG.name} on the point mass, "
+                                                    "the paper's Table IV settings (configs/point_mass_a2c.yaml) "
+                                                    "on other envs)")
     p.add_argument("--env", default=None, help="environment: point_mass or a gymnasium id, e.g. Pendulum-v1 "
                                                "(default: the config's env)")
     p.add_argument("--steps", type=int, default=None, help="total agent steps (default: a2c.total_steps)")
@@ -99,7 +100,9 @@ def _run(args: argparse.Namespace) -> int:
         overrides["a2c"] = {"compile": False}
     if args.env:
         overrides["env"] = args.env
-    config = args.config or (DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() else None)
+    # the default config trains the point mass; another env without --config starts from the paper's settings
+    point_mass = args.env in (None, "point_mass")
+    config = args.config or (DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() and point_mass else None)
     cfg = load_config(config, overrides)
     name = Path(config).stem if config else "point_mass_a2c"
     out = Path(args.out or Path("runs") / (name if not args.env else f"{name}_{args.env}"))
