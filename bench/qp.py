@@ -35,7 +35,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from a3cqp_rl.qp import solve_qp
+from a3cqp_rl.qp import qp_vjp, solve_qp
 from a3cqp_rl.qp.random_qp import RandomQP, clarabel_reference, random_qp_batch
 
 N_VARS, N_ROWS = 13, 30
@@ -62,14 +62,24 @@ def _weights(qp: RandomQP) -> torch.Tensor:
 # ------------------------------------------------------------------------------------------------
 
 
-def ours(qp: RandomQP, warm: bool = False):
-    """a3cqp_rl.qp.solve_qp (cold, or warm-started from the solution of the same batch)."""
+def ours(qp: RandomQP, warm: bool = False, vjp: bool = False):
+    """a3cqp_rl.qp.solve_qp (cold, or warm-started from the solution of the same batch); backward by autograd, or
+    with `vjp` by `qp_vjp` (the same gradients of Σ w·x with respect to P, q, G, h, without an autograd graph)."""
     sol0 = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h) if warm else None
 
     def fwd():
         return solve_qp(qp.P, qp.q, G=qp.G, h=qp.h, warm_start=sol0).x
 
-    w = _weights(qp)
+    w = _weights(qp).contiguous()
+
+    if vjp:
+        def fwd_vjp():
+            sol = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h, warm_start=sol0)
+            g = qp_vjp(sol, w)
+            g.P, g.q, g.G, g.h  # noqa: B018 (every gradient made into a tensor, as autograd's .grad are)
+            return sol.x
+
+        return fwd, fwd_vjp
 
     def fwd_bwd():
         leaves = [t.detach().clone().requires_grad_() for t in (qp.P, qp.q, qp.G, qp.h)]
@@ -448,6 +458,7 @@ def main(argv: list[str] | None = None) -> int:
     peers: list[tuple[str, Callable, str]] = [
         ("a3cqp_rl.qp (cold)", lambda qp: ours(qp), "ours"),
         ("a3cqp_rl.qp (warm)", lambda qp: ours(qp, warm=True), "ours"),
+        ("a3cqp_rl.qp (cold, qp_vjp)", lambda qp: ours(qp, vjp=True), "ours"),
         ("daqp (loop)", daqp_solver, "daqp"),
         ("quadprog (loop)", quadprog_solver, "quadprog"),
         ("piqp (loop)", piqp_solver, "piqp"),

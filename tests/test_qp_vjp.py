@@ -133,6 +133,7 @@ def test_errors_and_wrt() -> None:
     g = qp_vjp(sol, torch.ones(2, 13), wrt=("q", "h"))  # float32 gx is converted
     assert g.P is None and g.G is None and g.q.shape == (2, 13) and g.h.shape == (2, 30)
     assert torch.allclose(g.h, qp_vjp(sol, torch.ones(2, 13, dtype=DT)).h)
+    assert qp_vjp(sol, torch.ones(2, 13, dtype=DT), wrt=["G"]).q is None
     with pytest.raises(QPShapeError, match="wrt"):
         qp_vjp(sol, torch.ones(2, 13, dtype=DT), wrt=("Q",))
     h[0, 0] += 1.0  # in place after the solve

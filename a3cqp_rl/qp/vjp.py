@@ -56,7 +56,7 @@ class QPGrad:
         v = self._cache[k]
         if v is None and self._spec[k] is not None:
             off, count, shape, _ = self._spec[k]
-            v = self._cache[k] = torch.from_numpy(self._out[off : off + count]).view(shape)
+            v = self._cache[k] = torch.from_numpy(self._out[off : off + count].reshape(shape))
         return v
 
     P, q, A, b, G, h, lb, ub = (_GradField(k) for k in range(8))
@@ -66,7 +66,7 @@ class QPGrad:
                                      for k, nm in enumerate(GRAD_NAMES)) + ")"
 
 
-def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | None = None) -> QPGrad:
+def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | list[str] | str | None = None) -> QPGrad:
     """Gradients of Σ gx·x* (gx [B, n], the cotangent of `sol.x`) with respect to the QP data of the
     `solve_qp` call that returned `sol`, by implicit differentiation of its KKT conditions (module docstring).
 
@@ -78,10 +78,10 @@ def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | None = None) -> Q
     if data is None:
         raise QPGradientError("qp_vjp needs a solution of the C route solved without autograd (float64 CPU "
                               "tensors, no argument requiring grad); for others call x.backward(gx)")
-    lib, args, versions, ptrs, strides, _ = data
-    for t, v, nm in zip(args, versions, GRAD_NAMES):
-        if t is not None and t._version != v:
-            raise QPGradientError(f"{nm} was changed in place after the solve: its gradient would be of other data")
+    lib, args, versions, ptrs, strides, keep = data
+    if tuple(-1 if t is None else t._version for t in args) != versions:
+        nm = next(nm for t, v, nm in zip(args, versions, GRAD_NAMES) if t is not None and t._version != v)
+        raise QPGradientError(f"{nm} was changed in place after the solve: its gradient would be of other data")
     B, n, p, m = sol._dims
     if type(gx) is not Tensor:
         gx = _as_tensor(gx, "gx")
@@ -89,6 +89,33 @@ def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | None = None) -> Q
         if gx.shape not in ((B, n), (n,), (1, n)):
             raise QPShapeError(f"gx must be [{B}, {n}] (the shape of x), got {tuple(gx.shape)}")
         gx = gx.detach().to(device="cpu", dtype=_F64).expand(B, n).contiguous()
+    if wrt is not None and type(wrt) is not tuple:
+        wrt = (wrt,) if isinstance(wrt, str) else tuple(wrt)
+    # The layout of the gradients depends only on the sizes, which arguments were given and their shapes (on the
+    # direct path every given argument is [B, ...]), so it is made once per such key.
+    if keep is None:
+        key = (B, n, p, m, wrt, args[2] is None, args[4] is None, args[6] is None, args[7] is None)
+    else:
+        key = (B, n, p, m, wrt, strides, tuple(None if t is None else tuple(t.shape) for t in args))
+    hit = _LAYOUTS.get(key)
+    if hit is None:
+        if len(_LAYOUTS) > 256:
+            _LAYOUTS.clear()
+        hit = _LAYOUTS[key] = _layout(args, strides, wrt, B, n, p, m)
+    spec, layout, total = hit
+    out = np.empty(total + B)
+    if lib.vjp(B, n, p, m, *ptrs, sol._addr, gx.data_ptr(), layout, address(out)):
+        _declined(sol, args, gx, out, spec, total)
+    return QPGrad(out, spec)
+
+
+_LAYOUTS: dict[tuple, tuple[list, int, int]] = {}
+"""Layout key (see `qp_vjp`) -> (per-argument (offset, count, shape, per instance) or None, address of the int64
+layout array of gi_qp_vjp, doubles of gradients before the adjoint statuses)."""
+
+
+def _layout(args: tuple, strides: tuple, wrt: tuple[str, ...] | None, B: int, n: int, p: int, m: int) -> tuple[list, int, int]:
+    """Where each gradient goes in the output buffer, and gi_qp_vjp's layout array (module `_LAYOUTS`)."""
     if wrt is not None and any(nm not in GRAD_NAMES for nm in wrt):
         raise QPShapeError(f"wrt names arguments of solve_qp {GRAD_NAMES}, got {tuple(wrt)}")
     sizes = (n * n, n, p * n, p, m * n, m, n, n)
@@ -99,13 +126,9 @@ def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | None = None) -> Q
             continue
         per = B > 1 and t.dim() == _NDIM[k] and t.shape[0] == B  # a gradient per instance, else summed
         count = B * sizes[k] if per else sizes[k]
-        spec.append((total, count, t.shape, per)), offs.append(total), ostr.append(sizes[k] if per else 0)
+        spec.append((total, count, tuple(t.shape), per)), offs.append(total), ostr.append(sizes[k] if per else 0)
         total += count
-    out = np.empty(total + B)
-    layout = _strides((*strides, n, *offs, *ostr, total, 0))
-    if lib.vjp(B, n, p, m, *ptrs, sol._addr, gx.data_ptr(), layout, address(out)):
-        _declined(sol, args, gx, out, spec, total)
-    return QPGrad(out, spec)
+    return spec, _strides((*strides, n, *offs, *ostr, total, 0)), total
 
 
 def _declined(sol: QPSolution, args: tuple, gx: Tensor, out: np.ndarray, spec: list, total: int) -> None:
