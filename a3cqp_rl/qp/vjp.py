@@ -78,7 +78,7 @@ def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | list[str] | str |
     if data is None:
         raise QPGradientError("qp_vjp needs a solution of the C route solved without autograd (float64 CPU "
                               "tensors, no argument requiring grad); for others call x.backward(gx)")
-    lib, args, versions, ptrs, strides, keep = data
+    lib, args, versions = data[:3]
     if tuple(-1 if t is None else t._version for t in args) != versions:
         nm = next(nm for t, v, nm in zip(args, versions, GRAD_NAMES) if t is not None and t._version != v)
         raise QPGradientError(f"{nm} was changed in place after the solve: its gradient would be of other data")
@@ -93,9 +93,13 @@ def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | list[str] | str |
         wrt = (wrt,) if isinstance(wrt, str) else tuple(wrt)
     # The layout of the gradients depends only on the sizes, which arguments were given and their shapes (on the
     # direct path every given argument is [B, ...]), so it is made once per such key.
-    if keep is None:
-        key = (B, n, p, m, wrt, args[2] is None, args[4] is None, args[6] is None, args[7] is None)
-    else:
+    if len(data) == 3:  # `_fast_c`: every given argument batched and contiguous, read by C where it lies
+        P, _, A, _, G, h, lb, ub = args
+        ptrs = tuple(0 if t is None else t.data_ptr() for t in (P, A, G, h, lb, ub))
+        strides = (n * n, p * n, m * n, m, n, n)
+        key = (B, n, p, m, wrt, A is None, G is None, lb is None, ub is None)
+    else:  # other layouts: the addresses and batch strides of the arrays C read (copies kept alive by the solution)
+        ptrs, strides = data[3], data[4]
         key = (B, n, p, m, wrt, strides, tuple(None if t is None else tuple(t.shape) for t in args))
     hit = _LAYOUTS.get(key)
     if hit is None:
