@@ -556,11 +556,19 @@ def solve_qp(
     lib = _resolve_backend(backend, q) if backend != "torch" else None
     tol = float(tol) if tol is not None else (1e-9 if dtype is _F64 else 1e-5)
     grad = torch.is_grad_enabled() and _needs_grad(P, q, A, b, G, h, lb, ub)
-    if lib is not None and not grad and dtype == _F64:
+    if lib is not None and dtype == _F64:
         # The control loop's call (batched contiguous float64 tensors): straight to the C routine.
-        sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
-        if sol is not None:
-            return sol
+        if not grad:
+            sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
+            if sol is not None:
+                return sol
+        else:  # the same, with x differentiable by `qp_vjp` (one autograd node, none of the general path's work)
+            with torch.no_grad():
+                sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
+            if sol is not None:
+                from a3cqp_rl.qp.vjp import with_grad  # (vjp imports this module)
+
+                return with_grad(sol)
     P, A, b, G, h, lb, ub = (t if t is None or isinstance(t, Tensor) else _as_tensor(t, nm)
                              for t, nm in zip((P, A, b, G, h, lb, ub), ("P", "A", "b", "G", "h", "lb", "ub")))
     if lib is not None and not grad and dtype == _F64:

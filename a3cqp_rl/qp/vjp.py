@@ -24,7 +24,7 @@ from a3cqp_rl.native_build import address
 from a3cqp_rl.qp.exceptions import QPGradientError, QPShapeError
 from a3cqp_rl.qp.solver import QPSolution, _as_tensor, _backward_torch, _stack_rows, _strides
 
-__all__ = ["qp_vjp", "QPGrad", "GRAD_NAMES"]
+__all__ = ["qp_vjp", "QPGrad", "GRAD_NAMES", "with_grad"]
 
 GRAD_NAMES = ("P", "q", "A", "b", "G", "h", "lb", "ub")
 """The arguments of `solve_qp` a `QPGrad` has a field for, in order."""
@@ -111,6 +111,30 @@ def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | list[str] | str |
     if lib.vjp(B, n, p, m, *ptrs, sol._addr, gx.data_ptr(), layout, address(out)):
         _declined(sol, args, gx, out, spec, total)
     return QPGrad(out, spec)
+
+
+class _SolvedX(torch.autograd.Function):
+    """x of a solution of the direct C path, differentiable through `qp_vjp` (the arguments are its inputs)."""
+
+    @staticmethod
+    def forward(ctx, sol, *args):  # type: ignore[override]
+        ctx.sol = sol
+        return torch.from_numpy(sol._np("_x"))
+
+    @staticmethod
+    def backward(ctx, gx):  # type: ignore[override]
+        wrt = tuple(nm for nm, need in zip(GRAD_NAMES, ctx.needs_input_grad[1:]) if need)
+        g = qp_vjp(ctx.sol, gx, wrt)
+        return (None, *(g._get(k) for k in range(8)))
+
+
+def with_grad(sol: QPSolution) -> QPSolution:
+    """`sol` (of `_fast_c`, arguments requiring grad) with its x an autograd output whose backward is `qp_vjp`."""
+    # The node keeps a second solution over the same buffer: keeping `sol` itself would make a cycle through x.
+    inner = QPSolution._from_buffer(sol._buf, sol._addr, *sol._dims)
+    inner._data = sol._data
+    sol._x = _SolvedX.apply(inner, *sol._data[1])
+    return sol
 
 
 _LAYOUTS: dict[tuple, tuple[list, int, int]] = {}
