@@ -158,3 +158,13 @@ def test_autograd_on_both_c_paths_equals_the_torch_route(monkeypatch) -> None:
             assert (a is None) == (r is None)
             if r is not None:
                 assert a.shape == r.shape and float((a - r).abs().max()) <= 1e-8 * (1.0 + float(r.abs().max()))
+
+
+def test_empty_batch_gives_empty_gradients() -> None:
+    P = torch.eye(3, dtype=DT).expand(0, 3, 3).contiguous()
+    q, G, h = torch.zeros(0, 3, dtype=DT), torch.zeros(0, 2, 3, dtype=DT), torch.zeros(0, 2, dtype=DT)
+    g = qp_vjp(solve_qp(P, q, G=G, h=h), torch.zeros(0, 3, dtype=DT))
+    assert g.P.shape == (0, 3, 3) and g.q.shape == (0, 3) and g.G.shape == (0, 2, 3) and g.h.shape == (0, 2)
+    q = q.clone().requires_grad_()
+    solve_qp(P, q, G=G, h=h).x.sum().backward()
+    assert q.grad.shape == (0, 3)

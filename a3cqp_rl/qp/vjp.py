@@ -152,7 +152,7 @@ def _layout(args: tuple, strides: tuple, wrt: tuple[str, ...] | None, B: int, n:
         if t is None or (wrt is not None and GRAD_NAMES[k] not in wrt):
             spec.append(None), offs.append(-1), ostr.append(0)
             continue
-        per = B > 1 and t.dim() == _NDIM[k] and t.shape[0] == B  # a gradient per instance, else summed
+        per = B != 1 and t.dim() == _NDIM[k] and t.shape[0] == B  # a gradient per instance, else summed
         count = B * sizes[k] if per else sizes[k]
         spec.append((total, count, tuple(t.shape), per)), offs.append(total), ostr.append(sizes[k] if per else 0)
         total += count
