@@ -361,14 +361,15 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
     sa = _FAST_STRIDES.get(key)
     if sa is None:
         sa = _FAST_STRIDES[key] = _strides((n * n, n, p * n, p, m * n, m, n, n, zs))
-    worst = lib.solve(B, n, p, m, P.data_ptr(), q.data_ptr(), pA, pb, pG, ph, pl, pu, z0, sa, tol, MAX_STEPS, o)
+    pP = P.data_ptr()
+    worst = lib.solve(B, n, p, m, pP, q.data_ptr(), pA, pb, pG, ph, pl, pu, z0, sa, tol, MAX_STEPS, o)
     del keep
     sol = QPSolution._from_buffer(buf, o, B, n, p, m)
-    # What `qp_vjp` needs: the arguments (batched, contiguous: what C read) and versions to notice in-place changes.
-    args = (P, q, A, b, G, h, lb, ub)
-    sol._data = (lib, args, (P._version, q._version, -1 if A is None else A._version, -1 if b is None else b._version,
-                             -1 if G is None else G._version, -1 if h is None else h._version,
-                             -1 if lb is None else lb._version, -1 if ub is None else ub._version))
+    # What `qp_vjp` needs: the arguments (batched, contiguous), versions to notice in-place changes, what C read.
+    sol._data = (lib, (P, q, A, b, G, h, lb, ub),
+                 (P._version, q._version, -1 if A is None else A._version, -1 if b is None else b._version,
+                  -1 if G is None else G._version, -1 if h is None else h._version,
+                  -1 if lb is None else lb._version, -1 if ub is None else ub._version), (pP, pA, pG, ph, pl, pu))
     if worst >= native.HANDED_ON:  # some instances need the torch route
         _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
     elif worst < 0:

@@ -79,7 +79,10 @@ def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | list[str] | str |
         raise QPGradientError("qp_vjp needs a solution of the C route solved without autograd (float64 CPU "
                               "tensors, no argument requiring grad); for others call x.backward(gx)")
     lib, args, versions = data[:3]
-    if tuple(-1 if t is None else t._version for t in args) != versions:
+    P, q, A, b, G, h, lb, ub = args
+    if (P._version, q._version, -1 if A is None else A._version, -1 if b is None else b._version,
+            -1 if G is None else G._version, -1 if h is None else h._version, -1 if lb is None else lb._version,
+            -1 if ub is None else ub._version) != versions:
         nm = next(nm for t, v, nm in zip(args, versions, GRAD_NAMES) if t is not None and t._version != v)
         raise QPGradientError(f"{nm} was changed in place after the solve: its gradient would be of other data")
     B, n, p, m = sol._dims
@@ -93,13 +96,12 @@ def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | list[str] | str |
         wrt = (wrt,) if isinstance(wrt, str) else tuple(wrt)
     # The layout of the gradients depends only on the sizes, which arguments were given and their shapes (on the
     # direct path every given argument is [B, ...]), so it is made once per such key.
-    if len(data) == 3:  # `_fast_c`: every given argument batched and contiguous, read by C where it lies
-        P, _, A, _, G, h, lb, ub = args
-        ptrs = tuple(0 if t is None else t.data_ptr() for t in (P, A, G, h, lb, ub))
+    ptrs = data[3]
+    if len(data) == 4:  # `_fast_c`: every given argument batched and contiguous, read by C where it lies
         strides = (n * n, p * n, m * n, m, n, n)
         key = (B, n, p, m, wrt, A is None, G is None, lb is None, ub is None)
     else:  # other layouts: the addresses and batch strides of the arrays C read (copies kept alive by the solution)
-        ptrs, strides = data[3], data[4]
+        strides = data[4]
         key = (B, n, p, m, wrt, strides, tuple(None if t is None else tuple(t.shape) for t in args))
     hit = _LAYOUTS.get(key)
     if hit is None:
