@@ -124,7 +124,10 @@ class QPSolution:
     def x(self) -> Tensor:
         """Primal solution [B, n] (zero where no answer exists: see `status`)."""
         v = self._x
-        return v if v is not None else self._get("_x")
+        if v is None:  # the common first read, without `_get`'s lookups (~0.3 µs of a B = 1 solve's ~8)
+            B, n = self._dims[:2]
+            v = self._x = torch.from_numpy(self._buf[: B * n].reshape(B, n))
+        return v
 
     y = _Field("Multipliers of A x = b [B, p].")
     z = _Field("Multipliers (≥ 0) of G x ≤ h [B, m].")
