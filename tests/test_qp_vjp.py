@@ -168,3 +168,22 @@ def test_empty_batch_gives_empty_gradients() -> None:
     q = q.clone().requires_grad_()
     solve_qp(P, q, G=G, h=h).x.sum().backward()
     assert q.grad.shape == (0, 3)
+
+
+def test_fields_changed_in_place_are_refused() -> None:
+    qp = random_qp_batch(2, 13, 30, spread=0.3, seed=9)
+    sol = solve_qp(*qp.args())
+    sol.z.clamp_(max=0.0)  # the duals qp_vjp reads its working set from
+    with pytest.raises(QPGradientError, match="solution's z was changed in place"):
+        qp_vjp(sol, torch.ones(2, 13, dtype=DT))
+    q = qp.q.clone().requires_grad_()
+    sol = solve_qp(qp.P, q, G=qp.G, h=qp.h)
+    x = sol.x
+    sol.z.mul_(2.0)
+    with pytest.raises(QPGradientError, match="solution's z"):
+        x.sum().backward()
+    sol = solve_qp(qp.P, q, G=qp.G, h=qp.h)
+    x = sol.x
+    del sol  # the node falls back on its own view of the buffer
+    x.sum().backward()
+    assert q.grad is not None and bool(torch.isfinite(q.grad).all())

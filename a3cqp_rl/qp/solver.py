@@ -84,7 +84,8 @@ class QPSolution:
     of the solver's output buffer, made when first read (a tensor costs ~1 µs at B = 1).
     """
 
-    __slots__ = ("_x", "_y", "_z", "_z_lb", "_z_ub", "_status", "_iterations", "_dtype", "_buf", "_addr", "_dims", "_data")
+    __slots__ = ("_x", "_y", "_z", "_z_lb", "_z_ub", "_status", "_iterations", "_dtype", "_buf", "_addr", "_dims", "_data",
+                 "__weakref__")
 
     def __init__(self, x: Tensor, y: Tensor, z: Tensor, z_lb: Tensor, z_ub: Tensor, status: Tensor,
                  iterations: Tensor) -> None:

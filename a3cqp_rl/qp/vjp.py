@@ -16,6 +16,8 @@ whose status is not SOLVED get zero gradients, as with autograd.
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -85,6 +87,10 @@ def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | list[str] | str |
             -1 if ub is None else ub._version) != versions:
         nm = next(nm for t, v, nm in zip(args, versions, GRAD_NAMES) if t is not None and t._version != v)
         raise QPGradientError(f"{nm} was changed in place after the solve: its gradient would be of other data")
+    # Fields read from the solution are views of the buffer read here (made at version 0).
+    for f, nm in ((sol._x, "x"), (sol._y, "y"), (sol._z, "z"), (sol._z_lb, "z_lb"), (sol._z_ub, "z_ub")):
+        if f is not None and f._version:
+            raise QPGradientError(f"the solution's {nm} was changed in place: it is what the gradient is computed from")
     B, n, p, m = sol._dims
     if type(gx) is not Tensor:
         gx = _as_tensor(gx, "gx")
@@ -119,23 +125,25 @@ class _SolvedX(torch.autograd.Function):
     """x of a solution of the direct C path, differentiable through `qp_vjp` (the arguments are its inputs)."""
 
     @staticmethod
-    def forward(ctx, sol, *args):  # type: ignore[override]
-        ctx.sol = sol
-        return torch.from_numpy(sol._np("_x"))
+    def forward(ctx, sol, inner, *args):  # type: ignore[override]
+        ctx.sol, ctx.inner = weakref.ref(sol), inner
+        return torch.from_numpy(inner._np("_x"))
 
     @staticmethod
     def backward(ctx, gx):  # type: ignore[override]
-        wrt = tuple(nm for nm, need in zip(GRAD_NAMES, ctx.needs_input_grad[1:]) if need)
-        g = qp_vjp(ctx.sol, gx, wrt)
-        return (None, *(g._get(k) for k in range(8)))
+        wrt = tuple(nm for nm, need in zip(GRAD_NAMES, ctx.needs_input_grad[2:]) if need)
+        sol = ctx.sol()  # while the user's solution lives, its fields are checked for in-place changes
+        g = qp_vjp(sol if sol is not None else ctx.inner, gx, wrt)
+        return (None, None, *(g._get(k) for k in range(8)))
 
 
 def with_grad(sol: QPSolution) -> QPSolution:
     """`sol` (of `_fast_c`, arguments requiring grad) with its x an autograd output whose backward is `qp_vjp`."""
-    # The node keeps a second solution over the same buffer: keeping `sol` itself would make a cycle through x.
+    # The node holds a second solution over the same buffer and only a weak reference to `sol`: holding `sol`
+    # would make a cycle through its x.
     inner = QPSolution._from_buffer(sol._buf, sol._addr, *sol._dims)
     inner._data = sol._data
-    sol._x = _SolvedX.apply(inner, *sol._data[1])
+    sol._x = _SolvedX.apply(sol, inner, *sol._data[1])
     return sol
 
 
