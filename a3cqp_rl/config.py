@@ -773,6 +773,13 @@ class PandaEnvConfig:
     toward the measured state where IK does not lead. "per_axis" (per local axis, so force control on z leaves the
     integral action of eq. 5-7 on the axes IK still tracks; without it the peg stays on the rim, held by friction:
     docs/panda.md) or "min_w1" (one rate for all joints, set by the smallest w1 of the six axes)."""
+    task_blend: Literal["eq35", "eq24"] = "eq35"
+    """How the env's controller blends the three tasks on each axis of L. "eq35": as the point-mass surrogate the
+    adaptation is trained on (eq. 35, a weighted sum: ẍ = w1 ẍ_IK on the acceleration, f* = w2 f_adm + w3 f_ctc on
+    the wrench), i.e. ControllerOptions(cartesian_regularization=1, wrench_blend="weighted_sum"). "eq24": the QP's
+    defaults (γ = 0.01: IK realised in full for any w1 ≫ γ; f* = (w2 f_adm + w3 f_ctc) / (w2 + w3)). With "eq24"
+    the weights w = (0.5, 0, 0.5), f_d = 20 N that the point-mass policy reaches in contact command full IK plus
+    20 N instead of the half-stiffness and 10 N it was trained with (docs/panda.md)."""
     divergence_speed_factor: float = 3.0
     """A robot whose joint speed exceeds this multiple of its datasheet limit counts as diverged."""
     divergence_penetration: float = 0.01
