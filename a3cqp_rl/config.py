@@ -815,7 +815,11 @@ class PandaEnvConfig:
     the wrench), i.e. ControllerOptions(cartesian_regularization=1, wrench_blend="weighted_sum"). "eq24": the QP's
     defaults (γ = 0.01: IK realised in full for any w1 ≫ γ; f* = (w2 f_adm + w3 f_ctc) / (w2 + w3)). With "eq24"
     the weights w = (0.5, 0, 0.5), f_d = 20 N that the point-mass policy reaches in contact command full IK plus
-    20 N instead of the half-stiffness and 10 N it was trained with (docs/panda.md)."""
+    20 N instead of the half-stiffness and 10 N it was trained with. Peg-in-hole, 26 trials, the same point-mass
+    policy: 24/26 with "eq35", 9/26 with "eq24" (docs/panda.md)."""
+    policy: str | None = None
+    """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
+    folder, relative to the working directory (None: --policy is needed for the learned controller)."""
     divergence_speed_factor: float = 3.0
     """A robot whose joint speed exceeds this multiple of its datasheet limit counts as diverged."""
     divergence_penetration: float = 0.01
@@ -830,6 +834,8 @@ class PandaEnvConfig:
         for name in ("e_max_rot", "f_env_max_rot", "f_ope_max_rot", "max_episode_time", "divergence_speed_factor",
                      "divergence_penetration"):
             err.positive(self, name)
+        if self.policy is not None and not self.policy.strip():
+            err.add("policy", "must be a path to a policy.pt or a run folder, or null")
         bad = [a for a in self.fd_axes if a not in ("x", "y", "z")]
         if bad or len(set(self.fd_axes)) != len(self.fd_axes):
             err.add("fd_axes", f"must be distinct names among x, y, z, got {list(self.fd_axes)}")
