@@ -175,6 +175,11 @@ class A2CConfig:
     """Fraction in [0, 1) of the run, at its end, whose parameters policy.pt averages uniformly (stochastic weight
     averaging, Izmailov et al. 2018; for A2C, Nikishin et al. 2018). 0 = the last parameters (the paper). Training
     itself uses the raw parameters; the average only smooths the noise the last updates leave in the saved policy."""
+    init_policy: str | None = None
+    """Fine-tuning: a policy.pt (or checkpoint.pt, or run folder) whose parameters the run starts from instead of
+    the random init: every tensor whose name and shape match (the actor, its log σ, the critic where its input has
+    the same width); the rest keeps the init (e.g. a point-mass policy's privileged critic on the Panda env). None:
+    from scratch. Resuming a run restores its own checkpoint instead."""
     checkpoint_every: int = 5000
     """Updates between checkpoints."""
     log_every: int = 250
@@ -210,6 +215,8 @@ class A2CConfig:
             err.add("hidden", f"must be a non-empty list of positive sizes, got {self.hidden}")
         if self.critic == "privileged" and self.network != "separate":
             err.add("critic", "'privileged' needs network: separate (a shared trunk would pass the privileged state to the policy)")
+        if self.init_policy is not None and not self.init_policy.strip():
+            err.add("init_policy", "must be a path to a policy.pt, a checkpoint.pt or a run folder, or null")
 
 
 @dataclass
