@@ -183,6 +183,9 @@ class PopulationController(A3CQPController):
                                       config.epsilon, options.jc_nullspace_weight),
                  _RobotCartesianRegularizer(g.cartesian_regularization)]
         super().__init__(n, model=model, config=config, options=options, limits=limits, tasks=tasks)
+        self.saturated_periods = np.zeros(n, dtype=np.int64)
+        """Control periods in which some joint torque of the robot hit its limit (counted by `step`; zero it to
+        start a new count)."""
         self.set_robot_levels(np.ones((n, len(TASKS)), dtype=np.int64) if levels is None else levels)
 
     # ------------------------------------------------------------------ levels
@@ -240,11 +243,13 @@ class PopulationController(A3CQPController):
     # ------------------------------------------------------------------ QP
     def step(self, q: torch.Tensor, qd: torch.Tensor, mass: torch.Tensor, bias: torch.Tensor,
              weights: torch.Tensor, *args, **kwargs) -> ControlOutput:
-        """A3CQPController.step with the weights of robots' off tasks zeroed."""
+        """A3CQPController.step with the weights of robots' off tasks zeroed; counts torque saturation."""
         weights = torch.as_tensor(weights, dtype=torch.float64)
         if weights.shape == (self.n, 6, 3):
             weights = weights * self._weight_on
-        return super().step(q, qd, mass, bias, weights, *args, **kwargs)
+        out = super().step(q, qd, mass, bias, weights, *args, **kwargs)
+        self.saturated_periods += out.saturated.numpy()
+        return out
 
     def task_residuals(self, ctx: ControlContext) -> dict[str, Residual]:
         """Every task's residual, JC and the regularizer weighted 0 for the robots that turn them off (IK, AC and FC
