@@ -12,7 +12,7 @@ OUT ?= runs/point_mass_default
 
 .PHONY: install train test test-slow bench clean
 
-NATIVE := setup.py a3cqp_rl/native_sources.py $(wildcard a3cqp_rl/*/native/*.c algorithms/native/*.c envs/native/*.c)
+NATIVE := setup.py a3cqp_rl/native_sources.py $(wildcard a3cqp_rl/*/native/*.c algorithms/native/*.c envs/native/*.c envs/native/*.h)
 
 # (re)installs when the dependencies or a C source change: pip builds the C libraries in place
 $(STAMP): pyproject.toml constraints.txt $(NATIVE)

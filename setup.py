@@ -17,7 +17,9 @@ def extension(source: str, flags: tuple[str, ...]) -> Extension:
     """A ctypes-loaded C library `dir/_stem.<suffix>` built from `dir/stem.c`."""
     path = Path(source)
     name = ".".join((*path.parent.parts, f"_{path.stem}"))
-    return Extension(name, [source], extra_compile_args=[*_mod.COMMON_FLAGS, *flags], libraries=["m"], optional=True)
+    headers = list(_mod.NATIVE_HEADERS.get(source, ()))
+    return Extension(name, [source], extra_compile_args=[*_mod.COMMON_FLAGS, *flags], libraries=["m"], optional=True,
+                     include_dirs=sorted({str(Path(h).parent) for h in headers}), depends=headers)
 
 
 setup(ext_modules=[extension(src, flags) for src, flags in _mod.NATIVE_SOURCES.items()])

@@ -518,6 +518,10 @@ class PointMassConfig:
     """operator: smallest push magnitude [N] (largest is f̄_ope)."""
     operator_v_hand: float = 0.3
     """operator: hand speed along the push at which the measured force vanishes [m/s]."""
+    operator_grip: bool = False
+    """operator: the hand holds on to the handle: a mass running ahead of the push faster than operator_v_hand is
+    braked by it, f_ope = F·clip(1 − ẋ·sgn(F)/operator_v_hand, −1, 1) (down to −F at twice that speed). False: the
+    hand lets go of a mass that runs away (the force stops at 0)."""
     operator_on_min: float = 0.5
     operator_on_max: float = 2.0
     """operator: push duration range [s]."""
@@ -536,23 +540,55 @@ class PointMassConfig:
     """wall: damping while in contact [N s/m]."""
     random_initial_weights: bool = True
     """Start each episode from random (w̌, f_d) instead of pure IK with f_d = 0."""
+    random_initial_fraction: float = 1.0
+    """With random_initial_weights: the fraction of episodes that start from random (w̌, f_d); the others start
+    from pure IK with f_d = 0, as a deployed robot does (so the policy also learns to raise f_d from zero)."""
+    operator_model: Literal["push", "drag", "hand"] = "push"
+    """How the operator makes its force.
+    'push': the piecewise-constant intent force F above, measured through the linear force-velocity law
+    f_ope = F·clip(1 − ẋ·sgn(F)/operator_v_hand, 0, 1) (the paper's surrogate, and the default).
+    'drag': the operator's hand moves with a half-sine speed profile over each push, u = u_peak·sin(π τ) (τ the
+    fraction of the push done, u_peak = operator_v_hand·|F|/f̄_ope), so it starts and stops smoothly, and drags the
+    mass through a viscous grip b = f̄_ope/operator_v_hand: f_ope = clip(b (u − ẋ), ±f̄_ope). A mass that keeps
+    moving when the hand slows down is braked by the grip, so an undamped one (force control with f_d = 0) costs
+    more than admittance.
+    'hand': the operator grasps the mass and moves their hand from the grasp position by a displacement D along a
+    minimum-jerk path of operator_move_time, through a spring-damper grip, f_ope = clip(k_h (s − x) + d_h (ṡ − ẋ),
+    ±f̄_ope) with s the hand's position (an evaluation model training does not use; `envs.point_mass_eval`). The
+    schedule then holds D [m] while holding (0: not holding), drawn as ±U(operator_goal_min, operator_goal_max) with
+    the same on/off phases."""
+    operator_hand_stiffness: float = 300.0
+    """hand operator: grip stiffness k_h [N/m]."""
+    operator_hand_damping: float = 30.0
+    """hand operator: grip damping d_h [N s/m]."""
+    operator_goal_min: float = 0.1
+    operator_goal_max: float = 0.3
+    """hand operator: range of the hand's displacement per grasp [m] (random sign)."""
+    operator_move_time: float = 0.8
+    """hand operator: duration of the minimum-jerk hand motion [s] (the hand then stays at its goal until letting go)."""
 
     SCENARIOS: typing.ClassVar[tuple[str, ...]] = ("free", "operator", "wall", "wall_operator")
 
     def _check(self, err: _Errors) -> None:
         for name in ("mass", "kp", "lambda_d", "c_d", "physics_dt", "substeps", "episode_steps",
                      "target_max", "operator_v_hand", "operator_on_max", "operator_off_max",
-                     "wall_stiffness"):
+                     "wall_stiffness", "operator_move_time"):
             err.positive(self, name)
         if self.kv is not None and self.kv < 0:
             err.add("kv", f"must be >= 0 or null, got {self.kv}")
         for lo, hi in (("target_min", "target_max"), ("operator_on_min", "operator_on_max"),
                        ("operator_off_min", "operator_off_max"), ("wall_min", "wall_max"),
-                       ("depth_min", "depth_max")):
+                       ("depth_min", "depth_max"), ("operator_goal_min", "operator_goal_max")):
             a, b = getattr(self, lo), getattr(self, hi)
             if a < 0 or a > b:
                 err.add(lo, f"must satisfy 0 <= {lo} <= {hi}, got {a} > {b}" if a > b else f"must be >= 0, got {a}")
-        for name in ("operator_target_range", "operator_force_min", "wall_damping"):
+        if self.operator_model == "hand" and not self.operator_goal_min > 0:
+            err.add("operator_goal_min", f"must be > 0 for the hand operator (a displacement of 0 means 'not holding'), "
+                    f"got {self.operator_goal_min}")
+        if not 0.0 <= self.random_initial_fraction <= 1.0:
+            err.add("random_initial_fraction", f"must be in [0, 1], got {self.random_initial_fraction}")
+        for name in ("operator_target_range", "operator_force_min", "wall_damping", "operator_hand_stiffness",
+                     "operator_hand_damping"):
             if getattr(self, name) < 0:
                 err.add(name, f"must be >= 0, got {getattr(self, name)}")
         unknown = set(self.scenario_probs) - set(self.SCENARIOS)

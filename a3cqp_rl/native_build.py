@@ -56,14 +56,15 @@ def address(a: np.ndarray) -> int:
         return a.__array_interface__["data"][0]
 
 
-def _find(source: Path) -> Path:
-    """The built library of `source`; RuntimeError saying why there is none usable."""
+def _find(source: Path, depends: tuple[Path, ...] = ()) -> Path:
+    """The built library of `source` (which includes the headers `depends`); RuntimeError saying why none is usable."""
     lib = library_path(source)
     if lib is None:
         raise RuntimeError(f"{source.name} was not compiled at install time; {REBUILD_HINT}")
-    if source.is_file() and source.stat().st_mtime > lib.stat().st_mtime:
-        # an edited source with the old library would run old code next to new Python bindings
-        raise RuntimeError(f"{lib.name} is older than {source.name}; {REBUILD_HINT}")
+    for part in (source, *depends):
+        if part.is_file() and part.stat().st_mtime > lib.stat().st_mtime:
+            # an edited source with the old library would run old code next to new Python bindings
+            raise RuntimeError(f"{lib.name} is older than {part.name}; {REBUILD_HINT}")
     return lib
 
 
@@ -72,12 +73,14 @@ class LazyLibrary(Generic[T]):
 
     `bind(path)` turns the library into what callers use (ctypes functions, wrappers). `get()` returns it, or None
     when the environment variable `switch` turns the native code off, or after one warning on `log` when the library
-    is missing, stale or fails to bind (the caller then takes its `fallback` path).
+    is missing, stale (older than its source or a header in `depends`) or fails to bind (the caller then takes its
+    `fallback` path).
     """
 
     def __init__(self, source: Path, switch: str, bind: Callable[[Path], T], log: logging.Logger, what: str,
-                 fallback: str) -> None:
+                 fallback: str, depends: tuple[Path, ...] = ()) -> None:
         self.source, self.switch, self.bind, self.log, self.what, self.fallback = source, switch, bind, log, what, fallback
+        self.depends = tuple(depends)
         self._lock = threading.Lock()
         self._state: tuple[bool, T | None] = (False, None)
 
@@ -91,7 +94,7 @@ class LazyLibrary(Generic[T]):
                 value = None
                 if enabled(self.switch):
                     try:
-                        value = self.bind(_find(self.source))
+                        value = self.bind(_find(self.source, self.depends))
                     except Exception as exc:  # missing, stale, or a layout mismatch found by `bind`
                         self.log.warning("%s unavailable (%s); using %s", self.what, exc, self.fallback)
                 self._state = (True, value)

@@ -10,5 +10,12 @@ NATIVE_SOURCES = {
     "a3cqp_rl/qp/native/gi_qp.c": (),
     "a3cqp_rl/control/native/a3cqp_step.c": (),
     "algorithms/native/a2c_iteration.c": ("-fopenmp-simd", "-fno-math-errno"),
+    "envs/native/point_mass.c": ("-fno-math-errno",),
 }
 """Every C source (path from the project root) and its extra flags; each builds into `dir/_stem<ext suffix>`."""
+
+NATIVE_HEADERS = {
+    "algorithms/native/a2c_iteration.c": ("envs/native/point_mass.h",),
+    "envs/native/point_mass.c": ("envs/native/point_mass.h",),
+}
+"""Project headers a source includes (their folders go to the compiler as -I; editing one rebuilds the library)."""

@@ -9,6 +9,8 @@ Writes under OUT (per seed OUT/seed_S when sweeping): config.yaml, metrics.csv, 
 policy_map.png and regions.png (the Fig. 5 regions checked over training). A folder holding a run is not started
 again: `--resume` continues it (no lost or repeated steps; a sweep resumes seed by seed), `--force` starts over,
 `--override` lets a resume change the config (recorded in OUT/overrides.log). One process writes a folder at a time.
+On the point mass the policies then run in closed loop against the baselines (`a3cqp evaluate`; OUT/evaluation.json):
+with --seeds, one row per seed, the seed-robustness table.
 """
 
 from __future__ import annotations
@@ -60,6 +62,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-plots", action="store_true", help="do not draw policy map / loss curves at the end")
     p.add_argument("--timings", action="store_true", help="print where the time went (start-up, named loop blocks)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--no-eval", action="store_true", help="skip the closed-loop evaluation at the end (point mass)")
     p.add_argument("--debug", action="store_true", help="show the full traceback of errors")
     return p
 
@@ -121,9 +124,13 @@ def _run(args: argparse.Namespace) -> int:
         if res.fig5_applies:
             passed.append(_print_regions(res.policy_path))
     if len(seeds) > 1 and passed:
-        print(f"Fig. 5 regions: all four on {passed.count(4)} of {len(passed)} seeds, at least three on "
+        print(f"Fig. 5 regions (literal): all four on {passed.count(4)} of {len(passed)} seeds, at least three on "
               f"{sum(k >= 3 for k in passed)}")
-    # Point-mass evaluations of the trained policies (region printouts, closed-loop tables) go here.
+    if cfg.env == "point_mass" and not args.no_eval:  # the closed-loop table against the baselines
+        from envs.evaluate_cli import report
+
+        print()
+        report([d / "policy.pt" for d in run_dirs], config=cfg, json_path=out / "evaluation.json")
     plots = [] if args.no_plots else _plot(run_dirs, out, results, cfg.a2c.region_checks)
     print(f"results in {out}/: policy.pt (load with algorithms.a2c.load_policy / load_actor), checkpoint.pt, "
           f"metrics.csv" + (f"; plots {', '.join(plots)}" if plots else ""))
@@ -163,16 +170,13 @@ def _reward_text(r: float) -> str:
 
 
 def _print_regions(policy_path: Path) -> int:
-    """Print the paper's Fig. 5 region check of the saved policy (a3cqp_rl.regions); returns how many pass."""
-    from a3cqp_rl.regions import check_fig5_regions
+    """Print both Fig. 5 region checks of the saved policy (a3cqp_rl.regions); returns how many pass the literal one."""
+    from a3cqp_rl.regions import check_fig5_regions, format_regions
     from algorithms.a2c import load_policy
 
     results = check_fig5_regions(load_policy(policy_path))
-    labels = {"w2": "w2 admittance", "w3": "w3 force control", "fd": "fd desired force", "w1": "w1 IK"}
-    parts = [f"{labels[r.name.split('_')[0]]} {r.inside:+.2f}/{r.outside:+.2f} {'ok' if r.ok else 'no'}" for r in results]
-    n = sum(r.ok for r in results)
-    print(f"Fig. 5 regions {n}/4 (mean action inside/outside each region): " + ", ".join(parts))
-    return n
+    print(format_regions(results))
+    return sum(r.literal for r in results)
 
 
 if __name__ == "__main__":

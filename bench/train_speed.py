@@ -5,8 +5,9 @@ Table IV settings (4 envs, n = 4 steps per env per update, RMSProp, lr 4.25e-6, 
 steps (all envs together):
 
   - SB3: ``A2C("MlpPolicy", make_vec_env(PointMassGym, n_envs=4), ...)`` on `bench/point_mass_gym.py`,
-    a numpy gymnasium version of the task that `tests/test_point_mass_gym.py` checks against
-    `envs.point_mass.PointMassEnv` to 1e-9. Only ``learn()`` is timed (construction excluded).
+    a gymnasium wrapper of the task (episodes from `envs.point_mass.PointMassEnv`, steps by the C point mass
+    `envs.native`) that `tests/test_point_mass_gym.py` checks against the TorchRL env to 1e-9. Only ``learn()``
+    is timed (construction excluded).
   - ours: ``algorithms.a2c.train(cfg, out_dir=None, total_steps=N, progress=False)``; its
     ``steps_per_second`` excludes the one-time ``torch.compile`` cost (``compile_seconds``). The
     projection adds the first run's whole one-time cost: train()'s wall time minus its steps at

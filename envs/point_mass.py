@@ -8,7 +8,9 @@ turns it into task weights w and desired force f_d, then eq. 35 is integrated at
     Λẍ = f_ext + w1 Λ (Kp e − Kv ẋ + ẍ_pd) + w2 (Λ/Λd − 1) f_ext − w2 Cd ẋ + w3 f_d,  f_ext = f_env + f_ope
 
 with e = x_target − x and ẍ_pd = 0 (fixed target). Scenarios (free motion, operator pushes, a stiff
-wall in front of the target, both) are sampled per reset; see `a3cqp_rl.config.PointMassConfig`.
+wall in front of the target, both) are sampled per reset; see `a3cqp_rl.config.PointMassConfig`, whose
+`operator_model` also offers an operator guiding the mass by hand through a spring-damper grip (used by
+`envs.point_mass_eval`).
 All randomness is drawn at reset (targets, walls and the whole operator force schedule), so the
 step is a pure function of (state, action): deterministic, and compilable by `torch.compile`.
 Each env also holds a *pending* next episode, drawn in advance, so fused trainers can step through
@@ -114,6 +116,8 @@ class PointMassEnv(EnvBase):
             "scenario": torch.zeros(N, dtype=torch.int64, device=dev),
             "slot": torch.zeros(N, dtype=torch.int64, device=dev),
         }
+        if self.cfg.operator_model == "hand":  # where and when the hand grasped (set by agent_step)
+            self._state.update(hand_x0=z.clone(), hand_t0=torch.zeros(N, dtype=torch.int64, device=dev))
         self._pending = {k: self._state[k].clone() for k in EPISODE_KEYS}
 
     def _uniform(self, n: int, lo: float, hi: float, *shape: int) -> Tensor:
@@ -139,11 +143,16 @@ class PointMassEnv(EnvBase):
         wall_target = wall_pos + self._uniform(n, c.depth_min, c.depth_max)
         target = torch.where(has_wall, wall_target, torch.where(has_op, op_target, free_target))
         half = 0.5 * self.adapt.sigma_w
+        ik = torch.tensor([half, -half, -half], dtype=self.dtype, device=self.device).expand(n, 3)
         if c.random_initial_weights:
             w_logits = self._uniform(n, -half, half, 3)
             f_d = self._uniform(n, 0.0, self.adapt.f_d_max)
+            if c.random_initial_fraction < 1.0:  # the rest start like a deployed robot: pure IK, f_d = 0
+                from_ik = self._uniform(n, 0.0, 1.0) >= c.random_initial_fraction
+                w_logits = torch.where(from_ik.unsqueeze(-1), ik, w_logits)
+                f_d = torch.where(from_ik, torch.zeros_like(f_d), f_d)
         else:  # pure IK, no desired force
-            w_logits = torch.tensor([half, -half, -half], dtype=self.dtype, device=self.device).expand(n, 3).clone()
+            w_logits = ik.clone()
             f_d = torch.zeros(n, dtype=self.dtype, device=self.device)
         dest = self._pending if pending else self._state
         for k, v in zip(EPISODE_KEYS, (target, wall_pos, has_wall, scen, w_logits, f_d)):
@@ -155,12 +164,15 @@ class PointMassEnv(EnvBase):
                 self._state[k][idx] = 0
 
     def _operator_schedule(self, n: int) -> Tensor:
-        """Piecewise-constant operator intent force [N] per agent step, shape [n, T + 1]."""
+        """Piecewise-constant operator intent force [N] (hand operator: displacement [m]) per agent step, [n, T + 1]."""
         c, K = self.cfg, self._n_phases
         off = self._uniform(n, c.operator_off_min, c.operator_off_max, K)
         on = self._uniform(n, c.operator_on_min, c.operator_on_max, K)
         sign = torch.where(self._uniform(n, 0, 1, K) < 0.5, -1.0, 1.0).to(self.dtype)
-        force = sign * self._uniform(n, c.operator_force_min, self.adapt.f_ope_max, K)
+        if c.operator_model == "hand":  # the hand's displacement [m] from where it grasps
+            force = sign * self._uniform(n, c.operator_goal_min, c.operator_goal_max, K)
+        else:
+            force = sign * self._uniform(n, c.operator_force_min, self.adapt.f_ope_max, K)
         # Phase k is "off" during [start_k, start_k + off_k) then "on" until start_{k+1}.
         ends_off = torch.cumsum(off + on, dim=-1) - on  # [n, K]
         ends_on = torch.cumsum(off + on, dim=-1)
@@ -170,7 +182,13 @@ class PointMassEnv(EnvBase):
         seg = torch.searchsorted(boundaries, times.expand(n, -1).contiguous(), right=True)  # [n, T+1]
         phase = (seg // 2).clamp(max=K - 1)
         is_on = (seg % 2) == 1
-        return torch.where(is_on, torch.gather(force, 1, phase), torch.zeros((), dtype=self.dtype))
+        value = torch.gather(force, 1, phase)
+        if c.operator_model == "drag":  # the hand's speed (so the force on a mass at rest) rises and falls: sin(π τ)
+            start = torch.gather(ends_off, 1, phase)
+            length = torch.gather(on, 1, phase)
+            tau = ((times - start) / length).clamp(0.0, 1.0)
+            value = value * torch.sin(math.pi * tau).clamp(min=1e-6)  # > 0 while holding: 0 means "not holding"
+        return torch.where(is_on, value, torch.zeros((), dtype=self.dtype))
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None if tensordict is None else tensordict.get("_reset", None)
@@ -372,15 +390,36 @@ def agent_step(
     w1, w2, w3 = w.unbind(-1)
     x, v, target, wall_pos, has_wall = state["x"], state["x_dot"], state["target"], state["wall_pos"], state["has_wall"]
     sgn = torch.sign(f_cmd)
+    hand = cfg.operator_model == "hand"
+    grip_min = -1.0 if cfg.operator_grip else 0.0  # a gripping hand brakes a mass that runs ahead of it
+    drag = cfg.operator_model == "drag"
+    if drag:  # the schedule holds b·u, the grip's force on a mass at rest
+        holding = f_cmd != 0
+        drag_max = adapt.f_ope_max
+        drag_b = drag_max / cfg.operator_v_hand
+    if hand:  # the grasp starts when the schedule turns on: remember where and when
+        holding = f_cmd != 0
+        prev = schedule[state["slot"], env_idx, (t - 1).clamp(min=0, max=schedule.shape[-1] - 1)]
+        onset = holding & ((t == 0) | (prev == 0))
+        hand_x0 = torch.where(onset, x, state["hand_x0"])
+        hand_t0 = torch.where(onset, t, state["hand_t0"])
+        elapsed = (t - hand_t0).to(x.dtype) * (cfg.substeps * dt)
     f_env = torch.zeros_like(x)
     f_ope = torch.zeros_like(x)
-    for _ in range(cfg.substeps):  # 1 kHz sub-steps; a loop over time, not over envs
+    for k in range(cfg.substeps):  # 1 kHz sub-steps; a loop over time, not over envs
         pen = x - wall_pos
         contact = has_wall & (pen > 0)
         # Unilateral wall: pushes back (−x) only, never pulls.
         f_env = torch.where(contact, (-cfg.wall_stiffness * pen - cfg.wall_damping * v).clamp(max=0.0), 0.0)
-        # Operator hand with a linear force-velocity law: yielding along the push relieves the force.
-        f_ope = f_cmd * (1.0 - v * sgn / cfg.operator_v_hand).clamp(0.0, 1.0)
+        if hand:  # the hand moves by f_cmd along a minimum-jerk path; the grip is a bounded spring-damper
+            s_hand, v_hand = _minimum_jerk(hand_x0, f_cmd, (elapsed + k * dt) / cfg.operator_move_time,
+                                           cfg.operator_move_time)
+            pull = cfg.operator_hand_stiffness * (s_hand - x) + cfg.operator_hand_damping * (v_hand - v)
+            f_ope = torch.where(holding, pull.clamp(-adapt.f_ope_max, adapt.f_ope_max), 0.0)
+        elif drag:  # a hand moving at f_cmd/b, through a viscous grip b, bounded by the push's peak force
+            f_ope = torch.where(holding, (f_cmd - drag_b * v).clamp(-drag_max, drag_max), 0.0)
+        else:  # a hand with a linear force-velocity law: yielding along the push relieves the force
+            f_ope = f_cmd * (1.0 - v * sgn / cfg.operator_v_hand).clamp(grip_min, 1.0)
         f_ext = f_env + f_ope
         e = target - x
         # eq. 35 (ẍ_pd = 0 for a fixed target)
@@ -389,6 +428,16 @@ def agent_step(
         x = x + v * dt
     new_state = dict(state)
     new_state.update(x=x, x_dot=v, w_logits=w_logits, f_d=f_d, f_env=f_env, f_ope=f_ope, t=t + 1)
+    if hand:
+        new_state.update(hand_x0=hand_x0, hand_t0=hand_t0)
     r = reward(target - x, f_env, f_ope, f_d, rew.alpha, adapt.e_max, adapt.f_env_max, adapt.f_ope_max,
                adapt.f_d_max, check=False)  # eq. 30
     return new_state, r
+
+
+def _minimum_jerk(start: Tensor, distance: Tensor, tau: Tensor, duration: float) -> tuple[Tensor, Tensor]:
+    """Position and velocity of a minimum-jerk move by `distance` from `start` at phase `tau` (clipped to [0, 1])."""
+    tau = tau.clamp(0.0, 1.0)
+    pos = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau**2)
+    vel = 30.0 * tau**2 * (1.0 - tau) ** 2 / duration
+    return start + distance * pos, distance * vel

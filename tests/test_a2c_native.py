@@ -16,15 +16,17 @@ CASES = {
     "paper": {},
     "privileged_gae_normalized_bound_deep": {"a2c": {"critic": "privileged", "gae_lambda": 0.9, "bound_coef": 1.0,
                                                      "normalize_advantage": True, "hidden": [16, 8, 12],
-                                                     "learning_rate": 1e-2, "num_envs": 8, "n_steps": 5}},
+                                                     "learning_rate": 1e-2, "num_envs": 8, "n_steps": 5},
+                                             "point_mass": {"operator_model": "drag"}},
     "shared_entropy": {"a2c": {"network": "shared", "ent_coef": 0.01, "learning_rate": 1e-2, "num_envs": 3,
-                               "n_steps": 7, "max_grad_norm": 0.5}},
+                               "n_steps": 7, "max_grad_norm": 0.5}, "point_mass": {"operator_grip": True}},
 }
 
 
 def _setup(overrides: dict):
-    cfg = config_from_dict({**overrides, "point_mass": {"episode_steps": 13, "scenario_probs":
-                                                        {"free": 0.2, "operator": 0.3, "wall": 0.3, "wall_operator": 0.2}}})
+    cfg = config_from_dict({**overrides, "point_mass": {**overrides.get("point_mass", {}), "episode_steps": 13,
+                                                        "scenario_probs": {"free": 0.2, "operator": 0.3, "wall": 0.3,
+                                                                           "wall_operator": 0.2}}})
     hp = cfg.a2c
     env = PointMassEnv(hp.num_envs, cfg, seed=3)
     env.reset()

@@ -26,7 +26,10 @@ def test_seed_sweep_makes_one_folder_per_seed(tmp_path, capsys):
                  "--out", str(out)]) == 0
     assert (out / "seed_0" / "policy.pt").is_file() and (out / "seed_1" / "policy.pt").is_file()
     assert (out / "loss_curves.png").is_file() and (out / "regions.png").is_file()
-    assert "Fig. 5 regions: all four on" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "Fig. 5 regions (literal): all four on" in printed
+    assert "| seed_0 |" in printed and "| seed_1 |" in printed and "best_return" in printed  # the robustness table
+    assert (out / "evaluation.json").is_file()
 
 
 def test_clear_errors(tmp_path, capsys):

@@ -1,8 +1,8 @@
 """bench/point_mass_gym.py is the same task as envs.point_mass.PointMassEnv (the SB3 baseline's env).
 
 Same episode parameters + same actions -> same x, ẋ, f_env, f_ope, w, f_d, reward to 1e-9 for every
-step of a full episode, per scenario; same sampling of episodes from the same uniform draws; gymnasium
-API conformance (check_env). Needs no Stable-Baselines3.
+step of a full episode, per scenario (the C point mass against the torch env); episodes drawn by the torch env;
+gymnasium API conformance (check_env). Needs no Stable-Baselines3.
 """
 
 from __future__ import annotations
@@ -110,45 +110,40 @@ def test_same_episode_through_torchrl_step_api_and_truncation():
         assert truncated == bool(td["truncated"][0, 0]) == (i == T - 1)
 
 
-@pytest.mark.parametrize("scenario,random_init", [(s, True) for s in SCENARIOS] + [("wall_operator", False)])
-def test_episode_sampling_matches_torchrl_env(scenario, random_init):
-    """Same uniform draws -> same episode: order, ranges and construction of every drawn quantity."""
-    cfg = one_scenario(scenario, random_initial_weights=random_init)
-    tenv = PointMassEnv(1, cfg, seed=5)
-    draws = []
-    real_uniform = tenv._uniform
+def test_episodes_come_from_the_torch_env_and_follow_the_seed():
+    """The gym draws no episodes of its own: a seeded PointMassEnv(1) does; same seed, same episodes."""
+    cfg = one_scenario("wall_operator")
 
-    def recording(n, lo, hi, *shape):
-        out = real_uniform(n, lo, hi, *shape)
-        draws.append((float(lo), float(hi), tuple(shape), out[0].numpy().copy()))
-        return out
+    def episodes(seed):
+        env = PointMassGym(cfg)
+        first = env.reset(seed=seed)[1]
+        return [env.episode_params() for _ in range(3) if env.reset() is not None], first
 
-    tenv._uniform = recording
-    tenv.reset()
-    expected = torch_episode_params(tenv)
+    (a, _), (b, _), (c, _) = episodes(4), episodes(4), episodes(5)
+    for pa, pb in zip(a, b):
+        assert pa["target"] == pb["target"] and np.array_equal(pa["schedule"], pb["schedule"])
+    assert a[0]["target"] != c[0]["target"]
+    assert all(p["scenario"] == 3 and p["has_wall"] and np.count_nonzero(p["schedule"]) > 0 for p in a)
+    assert PointMassGym(cfg)._sampler is None  # drawn lazily, at the first reset
 
-    replay = iter(draws)
 
-    def uniform(lo, hi, shape):
-        rlo, rhi, rshape, out = next(replay)
-        assert (lo, hi, shape) == (rlo, rhi, rshape)
-        return out
+def test_torch_fallback_gives_the_same_trajectory(monkeypatch):
+    """Without the C library the gym steps the torch env's agent_step: same numbers."""
+    from envs import native
 
-    genv = PointMassGym(cfg)
-    genv.reset(seed=0)
-    got = genv._sample_episode(uniform)
-    # Every draw of the live episode consumed; what is left, if anything, is one more whole episode
-    # drawn in advance by the TorchRL env (its pending next episode).
-    left = len(list(replay))
-    assert left in (0, len(draws) - left), (left, len(draws))
-    assert got["scenario"] == expected["scenario"] == SCENARIOS.index(scenario)
-    assert got["has_wall"] == expected["has_wall"]
-    for k in ("target", "wall_pos", "f_d"):
-        assert got[k] == pytest.approx(expected[k], abs=1e-12), k
-    np.testing.assert_allclose(got["w_logits"], expected["w_logits"], rtol=0, atol=1e-12)
-    np.testing.assert_array_equal(got["schedule"], expected["schedule"])
-    if scenario in ("operator", "wall_operator"):
-        assert np.count_nonzero(got["schedule"]) > 0
+    cfg = one_scenario("wall_operator")
+    fast = PointMassGym(cfg)
+    monkeypatch.setattr(native, "load", lambda: None)
+    slow = PointMassGym(cfg)
+    assert fast._native is not None and slow._native is None
+    p = (fast.reset(seed=2), fast.episode_params())[1]
+    slow.reset(options=p)
+    for a in actions(200, seed=3):
+        o1, r1, _, t1, i1 = fast.step(a)
+        o2, r2, _, t2, i2 = slow.step(a)
+        assert abs(r1 - r2) <= 1e-9 and t1 == t2 and np.abs(o1 - o2).max() <= 1e-6
+        assert all(abs(i1[k] - i2[k]) <= TOL for k in ("x", "x_dot", "f_env", "f_ope", "f_d"))
+    np.testing.assert_allclose(fast.weights, slow.weights, rtol=0, atol=TOL)
 
 
 def test_paper_episode_length_and_truncation():

@@ -1,6 +1,7 @@
 """When are the paper's Fig. 5 regions learned, and do they stay? A strip per region (and one for all
 four): the fraction of runs whose policy passes `a3cqp_rl.regions` at each checked step, read from the
-region columns of each run's metrics.csv (`a2c.region_checks`)."""
+region columns of each run's metrics.csv (`a2c.region_checks`): the literal check where the runs have it,
+else the contrast check."""
 
 from __future__ import annotations
 
@@ -10,30 +11,36 @@ from pathlib import Path
 import numpy as np
 
 from a3cqp_rl.plotting.loss_curves import read_metrics
-from a3cqp_rl.regions import REGION_COLUMNS
+from a3cqp_rl.regions import CONTRAST_COLUMNS, LITERAL_COLUMNS
 
-ROW_LABELS = {"region_w2": r"$\dot w_2$ admittance", "region_w3": r"$\dot w_3$ force ctrl", "region_fd": r"$\dot f_d$",
-              "region_w1": r"$\dot w_1$ IK", "regions_ok": "all four"}
+_NAMES = {"w2": r"$\dot w_2$ admittance", "w3": r"$\dot w_3$ force ctrl", "fd": r"$\dot f_d$", "w1": r"$\dot w_1$ IK"}
+_COLUMNS = {"contrast": CONTRAST_COLUMNS, "literal": LITERAL_COLUMNS}
 
 
-def region_history(run_dirs: Sequence[str | Path]) -> tuple[np.ndarray, np.ndarray]:
-    """(steps [S], pass fraction over runs [5, S]: region_w2, _w3, _fd, _w1, all four) at the first run's checks."""
+def region_history(run_dirs: Sequence[str | Path], check: str = "contrast") -> tuple[np.ndarray, np.ndarray]:
+    """(steps [S], pass fraction over runs [5, S]: w2, w3, fd, w1, all four) at the first run's checks.
+
+    `check`: 'contrast' (columns regions_ok, region_*) or 'literal' (literal_ok, literal_*).
+    """
+    if check not in _COLUMNS:
+        raise ValueError(f"check must be one of {sorted(_COLUMNS)}, got {check!r}")
+    total, *per_region = _COLUMNS[check]
     runs = [read_metrics(d) for d in run_dirs]
     if not runs:
         raise ValueError("no runs given")
     for d, r in zip(run_dirs, runs):
-        if "regions_ok" not in r or not np.isfinite(r["regions_ok"]).any():
+        if total not in r or not np.isfinite(r[total]).any():
             raise ValueError(f"{d}/metrics.csv has no Fig. 5 region checks (a2c.region_checks was 0, or an older run)")
     first = runs[0]
-    steps = first["step"][np.isfinite(first["regions_ok"])]
-    keys = [*REGION_COLUMNS[1:], "regions_ok"]
+    steps = first["step"][np.isfinite(first[total])]
+    keys = [*per_region, total]
     frac = np.zeros((len(keys), len(steps)))
     for r in runs:
-        ok = np.isfinite(r["regions_ok"])
+        ok = np.isfinite(r[total])
         # runs checked at other steps (another length or config) count with their latest check at or before each step
         idx = np.searchsorted(r["step"][ok], steps, side="right") - 1
         for i, k in enumerate(keys):
-            v = r[k][ok] == 4.0 if k == "regions_ok" else r[k][ok] == 1.0
+            v = r[k][ok] == 4.0 if k == total else r[k][ok] == 1.0
             frac[i] += np.where(idx >= 0, v[np.clip(idx, 0, None)], False)
     return steps, frac / len(runs)
 
@@ -45,18 +52,21 @@ def plot_region_history(run_dirs: Sequence[str | Path], out: str | Path) -> Path
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    steps, frac = region_history(run_dirs)
-    keys = [*REGION_COLUMNS[1:], "regions_ok"]
+    tables = [read_metrics(d) for d in run_dirs]
+    literal = all(LITERAL_COLUMNS[0] in t and np.isfinite(t[LITERAL_COLUMNS[0]]).any() for t in tables)
+    check = "literal" if literal else "contrast"
+    steps, frac = region_history(run_dirs, check)
+    labels = [*(_NAMES[c.split("_")[1]] for c in _COLUMNS[check][1:]), "all four"]
     # each check's cell spans from the previous check to it: the policy at that step
     edges = np.concatenate([[0.0], steps])
     fig, ax = plt.subplots(figsize=(9, 2.8), constrained_layout=True)
-    mesh = ax.pcolormesh(edges, np.arange(len(keys) + 1), frac, cmap="Greens", vmin=0.0, vmax=1.0, edgecolors="white",
+    mesh = ax.pcolormesh(edges, np.arange(len(labels) + 1), frac, cmap="Greens", vmin=0.0, vmax=1.0, edgecolors="white",
                          linewidth=0.5)
-    ax.set_yticks(np.arange(len(keys)) + 0.5, [ROW_LABELS[k] for k in keys])
+    ax.set_yticks(np.arange(len(labels)) + 0.5, labels)
     ax.invert_yaxis()
     ax.set_xlabel("steps")
     n = len(run_dirs)
-    ax.set_title(f"Fig. 5 regions passed ({n} run{'s' if n > 1 else ''}; a3cqp_rl.regions.check_fig5_regions)")
+    ax.set_title(f"Fig. 5 regions passed, {check} check ({n} run{'s' if n > 1 else ''}; a3cqp_rl.regions)")
     fig.colorbar(mesh, ax=ax, label="fraction of runs" if n > 1 else "pass", pad=0.01)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

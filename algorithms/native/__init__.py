@@ -22,7 +22,10 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.native_build import LazyLibrary
+from envs.native import HEADER, PMParams, pm_params
+from envs.native import unsupported as env_unsupported
 
 __all__ = ["Params", "NativeIteration", "load", "unsupported", "SOURCE", "AUTO_MAX_BATCH", "MAX_DEPTH"]
 
@@ -39,18 +42,14 @@ _i, _d = ctypes.c_int64, ctypes.c_double
 class Params(ctypes.Structure):
     """`a2c_params` of a2c_iteration.c, field by field."""
 
-    _fields_ = [("N", _i), ("n", _i), ("episode_steps", _i), ("substeps", _i), ("sched_len", _i),
+    _fields_ = [("env", PMParams), ("n", _i),
                 ("obs_dim", _i), ("act_dim", _i), ("critic_dim", _i), ("privileged", _i), ("shared", _i),
                 ("depth", _i), ("hidden", _i * MAX_DEPTH), ("size", _i),
                 ("off_w", (_i * MAX_DEPTH) * 2), ("off_b", (_i * MAX_DEPTH) * 2), ("off_pi_w", _i), ("off_pi_b", _i),
                 ("off_vf_w", _i), ("off_vf_b", _i), ("off_log_std", _i), ("in_dim", _i * 2),
                 ("gae", _i), ("normalize_advantage", _i),
                 ("gamma", _d), ("gae_lambda", _d), ("vf_coef", _d), ("ent_coef", _d), ("bound_coef", _d),
-                ("max_grad_norm", _d), ("lr", _d), ("rms_alpha", _d), ("rms_eps", _d),
-                ("mass", _d), ("kp", _d), ("kv", _d), ("physics_dt", _d), ("lambda_d", _d), ("c_d", _d),
-                ("wall_stiffness", _d), ("wall_damping", _d), ("operator_v_hand", _d),
-                ("sigma_w", _d), ("sigma_f", _d), ("adapt_dt", _d), ("f_d_max", _d), ("e_max", _d),
-                ("f_env_max", _d), ("f_ope_max", _d), ("alpha", _d * 4)]
+                ("max_grad_norm", _d), ("lr", _d), ("rms_alpha", _d), ("rms_eps", _d)]
 
 
 STATE = ("x", "x_dot", "target", "w_logits", "f_d", "wall_pos", "has_wall", "t", "f_env", "f_ope", "scenario", "slot")
@@ -76,7 +75,8 @@ def _bind(path: Path) -> ctypes.CDLL:
     return lib
 
 
-_library = LazyLibrary(SOURCE, "A3CQP_NATIVE_A2C", _bind, _log, "algorithms: native A2C iteration", "the torch path")
+_library = LazyLibrary(SOURCE, "A3CQP_NATIVE_A2C", _bind, _log, "algorithms: native A2C iteration", "the torch path",
+                       depends=(HEADER,))
 
 
 def load() -> ctypes.CDLL | None:
@@ -94,23 +94,18 @@ def unsupported(env, layout) -> str | None:  # noqa: ANN001
         return f"the C iteration runs on the CPU, the env is on {env.device}"
     if len(layout.hidden) > MAX_DEPTH or layout.act_dim != 4 or layout.obs_dim != 3:
         return f"network {layout.hidden} with {layout.obs_dim} -> {layout.act_dim} is outside the C file's limits"
-    return None
+    return env_unsupported(ExperimentConfig(point_mass=env.cfg, adaptation=env.adapt, reward=env.rew))
 
 
 def _params(env, layout, hp) -> Params:  # noqa: ANN001
-    cfg, ad, rw = env.cfg, env.adapt, env.rew
-    p = Params(N=env.num_envs, n=hp.n_steps, episode_steps=cfg.episode_steps, substeps=cfg.substeps,
-               sched_len=cfg.episode_steps + 1, obs_dim=layout.obs_dim, act_dim=layout.act_dim,
+    cfg = ExperimentConfig(point_mass=env.cfg, adaptation=env.adapt, reward=env.rew)
+    p = Params(env=pm_params(cfg, env.num_envs), n=hp.n_steps, obs_dim=layout.obs_dim, act_dim=layout.act_dim,
                critic_dim=layout.critic_obs_dim, privileged=int(layout.critic_obs_dim > layout.obs_dim),
                shared=int(layout.network == "shared"), depth=len(layout.hidden), size=layout.size,
                gae=int(hp.gae_lambda != 1.0), normalize_advantage=int(hp.normalize_advantage),
                gamma=hp.gamma, gae_lambda=hp.gae_lambda, vf_coef=hp.vf_coef, ent_coef=hp.ent_coef,
                bound_coef=hp.bound_coef, max_grad_norm=hp.max_grad_norm, lr=hp.learning_rate, rms_alpha=hp.rms_alpha,
-               rms_eps=hp.rms_eps, mass=cfg.mass, kp=cfg.kp, kv=cfg.kv_value, physics_dt=cfg.physics_dt,
-               lambda_d=cfg.lambda_d, c_d=cfg.c_d, wall_stiffness=cfg.wall_stiffness, wall_damping=cfg.wall_damping,
-               operator_v_hand=cfg.operator_v_hand, sigma_w=ad.sigma_w, sigma_f=ad.sigma_f, adapt_dt=ad.dt,
-               f_d_max=ad.f_d_max, e_max=ad.e_max, f_env_max=ad.f_env_max, f_ope_max=ad.f_ope_max)
-    p.alpha[:] = [float(a) for a in rw.alpha]
+               rms_eps=hp.rms_eps)
     for k, h in enumerate(layout.hidden):
         p.hidden[k] = h
     stacks = ("pi", "vf") if layout.network == "separate" else ("trunk",)
@@ -154,7 +149,7 @@ class NativeIteration:
                 if v.dtype != _DTYPES.get(k, torch.float64) or tuple(v.shape) != self._shapes[k] or not v.is_contiguous():
                     raise ValueError(f"{group}[{k!r}] must be a contiguous {_DTYPES.get(k, torch.float64)} tensor of "
                                      f"shape {self._shapes[k]}, got {v.dtype} {tuple(v.shape)}")
-        want = {"schedule": ((2, p.N, p.sched_len), torch.float64, schedule), "flat": ((p.size,), torch.float32, flat),
+        want = {"schedule": ((2, p.env.N, p.env.sched_len), torch.float64, schedule), "flat": ((p.size,), torch.float32, flat),
                 "square_avg": ((p.size,), torch.float32, square_avg)}
         for name, (shape, dtype, v) in want.items():
             if tuple(v.shape) != shape or v.dtype != dtype or not v.is_contiguous():

@@ -1,7 +1,7 @@
 /* One A2C iteration on the point-mass surrogate, in C: n agent steps of N envs + one update.
  *
- * A translation of the torch reference, function by function, in the same order of operations:
- *   envs/point_mass.py   agent_step (eq. 29 + eq. 35 sub-steps + eq. 30), observe_state, auto_reset
+ * A translation of the torch reference, function by function, in the same order of operations (the point mass
+ * itself, envs/point_mass.py's agent_step, observe_state and auto_reset, comes from envs/native/point_mass.h):
  *   algorithms/a2c.py    rollout_step, nstep_returns / gae_advantages, a2c_update (eq. 31, hand-derived gradients)
  *   algorithms/networks.py  _stack_forward, forward, backward (tanh MLPs in one flat float32 vector)
  *   algorithms/rmsprop.py   clip_grad_norm_ (λζ), rmsprop_step_ (eq. 32)
@@ -16,22 +16,21 @@
 #include <stdint.h>
 #include <string.h>
 
+#include "point_mass.h" /* envs/native: the eq. 35 step, observation and auto-reset */
+
 #define MAX_DEPTH 8
 #define LOG_2PI 1.8378770664093453
 
 typedef struct {
+    pm_params env; /* the point mass: N envs, episode_steps, substeps, sched_len, physics, adaptation, reward */
     /* sizes */
-    int64_t N, n, episode_steps, substeps, sched_len;
+    int64_t n;
     int64_t obs_dim, act_dim, critic_dim, privileged, shared, depth, hidden[MAX_DEPTH], size;
     /* flat-vector offsets: stack 0 = pi (or trunk), stack 1 = vf (separate only) */
     int64_t off_w[2][MAX_DEPTH], off_b[2][MAX_DEPTH], off_pi_w, off_pi_b, off_vf_w, off_vf_b, off_log_std;
     int64_t in_dim[2];
     int64_t gae, normalize_advantage;
     double gamma, gae_lambda, vf_coef, ent_coef, bound_coef, max_grad_norm, lr, rms_alpha, rms_eps;
-    /* point mass (PointMassConfig), adaptation (AdaptationConfig), reward (RewardConfig) */
-    double mass, kp, kv, physics_dt, lambda_d, c_d, wall_stiffness, wall_damping, operator_v_hand;
-    double sigma_w, sigma_f, adapt_dt, f_d_max, e_max, f_env_max, f_ope_max;
-    double alpha[4];
 } a2c_params;
 
 /* The pointer table, in this order (Python: STATE, PENDING and the rest, algorithms/native/__init__.py). */
@@ -58,7 +57,7 @@ static int64_t acts_floats(const a2c_params *P, int64_t rows) {
 
 /* float32 workspace entries this iteration needs */
 int64_t a2c_workspace_floats(const a2c_params *P) {
-    int64_t B = P->n * P->N, D = P->critic_dim, A = P->act_dim, H = hmax(P);
+    int64_t B = P->n * P->env.N, D = P->critic_dim, A = P->act_dim, H = hmax(P);
     return 2 * B * D + 2 * B * A      /* obs, final obs; actions, mu */
            + acts_floats(P, B)       /* policy stack at obs (from acting) */
            + acts_floats(P, 2 * B)   /* value stack (or trunk at next_obs) */
@@ -66,84 +65,6 @@ int64_t a2c_workspace_floats(const a2c_params *P) {
            + P->size                  /* gradient */
            + 2 * B * H + 2 * B * A    /* backward scratch; g_mu */
            + P->size + B * D;         /* transposed weights; gathered final observations */
-}
-
-static inline double clamp(double v, double lo, double hi) { return v < lo ? lo : (v > hi ? hi : v); }
-static inline double clip01(double v) { return clamp(v, 0.0, 1.0); }
-
-/* eq. 29e: task weights from the pre-softmax w̌ [3] */
-static void softmax3(const double *wl, double *w) {
-    double m = fmax(fmax(wl[0], wl[1]), wl[2]), sum = 0.0;
-    for (int k = 0; k < 3; k++) { w[k] = exp(wl[k] - m); sum += w[k]; }
-    for (int k = 0; k < 3; k++) w[k] /= sum;
-}
-
-/* ------------------------------------------------------------------ environment (envs/point_mass.py) */
-
-typedef struct {
-    double *x, *xd, *target, *wlog, *fd, *wall, *fenv, *fope;
-    uint8_t *has_wall;
-    int64_t *t, *scen, *slot;
-} state_ptrs;
-
-/* observe_state: eq. 26 observation (+ privileged_state), cast to float, for env i */
-static void observe(const a2c_params *P, const state_ptrs *s, int64_t i, float *out) {
-    double e = s->target[i] - s->x[i];
-    out[0] = (float)clip01(fabs(e) / P->e_max);
-    out[1] = (float)clip01(fabs(s->fenv[i]) / P->f_env_max);
-    out[2] = (float)clip01(fabs(s->fope[i]) / P->f_ope_max);
-    if (!P->privileged) return;
-    double w[3];
-    softmax3(s->wlog + 3 * i, w);
-    for (int k = 0; k < 3; k++) out[3 + k] = (float)w[k];
-    double has_wall = s->has_wall[i] ? 1.0 : 0.0;
-    double has_op = (s->scen[i] == 1 || s->scen[i] == 3) ? 1.0 : 0.0;
-    out[6] = (float)(s->fd[i] / P->f_d_max);
-    out[7] = (float)clamp(e / P->e_max, -1.0, 1.0);
-    out[8] = (float)clamp(s->fenv[i] / P->f_env_max, -1.0, 1.0);
-    out[9] = (float)clamp(s->fope[i] / P->f_ope_max, -1.0, 1.0);
-    out[10] = (float)tanh(s->xd[i]);
-    out[11] = (float)has_wall;
-    out[12] = (float)has_op;
-    out[13] = (float)(has_wall * clamp((s->wall[i] - s->x[i]) / P->e_max, -1.0, 1.0));
-}
-
-/* agent_step for env i with clipped action a (float): eq. 29, `substeps` x eq. 35, eq. 30; returns the reward */
-static double agent_step(const a2c_params *P, const state_ptrs *s, const double *sched, int64_t i, const float *a) {
-    double half = 0.5 * P->sigma_w, *wl = s->wlog + 3 * i, w[3];
-    for (int k = 0; k < 3; k++)  /* eq. 29a-c */
-        wl[k] = clamp(wl[k] + P->sigma_w * P->adapt_dt * clamp((double)a[k], -1.0, 1.0), -half, half);
-    softmax3(wl, w);
-    double fd = clamp(s->fd[i] + P->sigma_f * P->adapt_dt * clamp((double)a[3], -1.0, 1.0), 0.0, P->f_d_max);  /* 29d */
-    int64_t t = s->t[i], tt = t < P->sched_len - 1 ? t : P->sched_len - 1;
-    double f_cmd = sched[(s->slot[i] * P->N + i) * P->sched_len + tt];
-    double sgn = (f_cmd > 0.0) - (f_cmd < 0.0);
-    double mass = P->mass, adm = mass / P->lambda_d - 1.0, dt = P->physics_dt;
-    double x = s->x[i], v = s->xd[i], target = s->target[i], wall = s->wall[i], f_env = 0.0, f_ope = 0.0;
-    int has_wall = s->has_wall[i] != 0;
-    for (int64_t k = 0; k < P->substeps; k++) {
-        double pen = x - wall;
-        /* unilateral wall: pushes back only */
-        f_env = (has_wall && pen > 0.0) ? fmin(-P->wall_stiffness * pen - P->wall_damping * v, 0.0) : 0.0;
-        f_ope = f_cmd * clamp(1.0 - v * sgn / P->operator_v_hand, 0.0, 1.0);
-        double f_ext = f_env + f_ope, e = target - x;
-        double acc = (f_ext + w[0] * mass * (P->kp * e - P->kv * v) + w[1] * (adm * f_ext - P->c_d * v) + w[2] * fd) / mass;
-        v = v + acc * dt;  /* eq. 35, semi-implicit Euler */
-        x = x + v * dt;
-    }
-    s->x[i] = x; s->xd[i] = v; s->fd[i] = fd; s->fenv[i] = f_env; s->fope[i] = f_ope; s->t[i] = t + 1;
-    const double *al = P->alpha;  /* eq. 30 */
-    return -al[0] * clip01(fabs(target - x) / P->e_max) - al[1] * clip01(fabs(f_ope) / P->f_ope_max)
-           + al[2] * clip01(fabs(f_env) / P->f_env_max) - al[3] * clip01(fabs(fd) / P->f_d_max);
-}
-
-/* auto_reset for env i: switch to the pending episode */
-static void auto_reset(const state_ptrs *s, const state_ptrs *p, int64_t i) {
-    s->target[i] = p->target[i]; s->wall[i] = p->wall[i]; s->has_wall[i] = p->has_wall[i];
-    s->scen[i] = p->scen[i]; s->fd[i] = p->fd[i];
-    for (int k = 0; k < 3; k++) s->wlog[3 * i + k] = p->wlog[3 * i + k];
-    s->x[i] = 0.0; s->xd[i] = 0.0; s->t[i] = 0; s->fenv[i] = 0.0; s->fope[i] = 0.0;
-    s->slot[i] = 1 - s->slot[i];
 }
 
 /* ------------------------------------------------------------------ networks (algorithms/networks.py) */
@@ -293,11 +214,11 @@ static void head_backward(const float *h, int64_t rows, int64_t in, const float 
 
 /* returns the number of episode ends in the rollout */
 int64_t a2c_iteration(const a2c_params *P, void **buf) {
-    const int64_t N = P->N, n = P->n, B = n * N, D = P->critic_dim, A = P->act_dim;
+    const int64_t N = P->env.N, n = P->n, B = n * N, D = P->critic_dim, A = P->act_dim;
     const int64_t H = hmax(P), hl = P->hidden[P->depth - 1];
-    state_ptrs s = {buf[B_X], buf[B_XD], buf[B_TARGET], buf[B_WLOG], buf[B_FD], buf[B_WALL], buf[B_FENV], buf[B_FOPE],
+    pm_state s = {buf[B_X], buf[B_XD], buf[B_TARGET], buf[B_WLOG], buf[B_FD], buf[B_WALL], buf[B_FENV], buf[B_FOPE],
                     buf[B_HASWALL], buf[B_T], buf[B_SCEN], buf[B_SLOT]};
-    state_ptrs p = {NULL, NULL, buf[B_P_TARGET], buf[B_P_WLOG], buf[B_P_FD], buf[B_P_WALL], NULL, NULL,
+    pm_state p = {NULL, NULL, buf[B_P_TARGET], buf[B_P_WLOG], buf[B_P_FD], buf[B_P_WALL], NULL, NULL,
                     buf[B_P_HASWALL], NULL, buf[B_P_SCEN], NULL};
     const double *sched = buf[B_SCHED];
     const float *noise = buf[B_NOISE];
@@ -329,7 +250,7 @@ int64_t a2c_iteration(const a2c_params *P, void **buf) {
     for (int64_t j = 0; j < A; j++) sigma[j] = expf(log_std[j]);
 
     /* rollout (rollout_step x n): act with the policy mean + sigma * noise, step, observe, auto-reset */
-    for (int64_t i = 0; i < N; i++) observe(P, &s, i, obs + i * D);
+    for (int64_t i = 0; i < N; i++) pm_observe(&P->env, &s, i, (int)P->privileged, obs + i * D);
     int64_t ends = 0;
     for (int64_t t = 0; t < n; t++) {
         const float *h = stack_forward(P, flat, wt, 0, obs + t * N * D, N, D, pi_acts, B, t * N);
@@ -339,13 +260,13 @@ int64_t a2c_iteration(const a2c_params *P, void **buf) {
         for (int64_t i = 0; i < N; i++) {
             float clipped[16];
             for (int64_t j = 0; j < A; j++) clipped[j] = a[i * A + j] < -1.0f ? -1.0f : (a[i * A + j] > 1.0f ? 1.0f : a[i * A + j]);
-            rewards[t * N + i] = (float)agent_step(P, &s, sched, i, clipped);
-            observe(P, &s, i, fin + (t * N + i) * D);
-            int done = s.t[i] >= P->episode_steps;  /* truncation; eq. 35 has no terminal state */
+            rewards[t * N + i] = (float)pm_agent_step(&P->env, &s, sched, i, clipped);
+            pm_observe(&P->env, &s, i, (int)P->privileged, fin + (t * N + i) * D);
+            int done = s.t[i] >= P->env.episode_steps;  /* truncation; eq. 35 has no terminal state */
             dones[t * N + i] = (uint8_t)done;
             ends += done;
-            if (done) auto_reset(&s, &p, i);
-            if (t + 1 < n) observe(P, &s, i, obs + ((t + 1) * N + i) * D);
+            if (done) pm_auto_reset(&s, &p, i);
+            if (t + 1 < n) pm_observe(&P->env, &s, i, (int)P->privileged, obs + ((t + 1) * N + i) * D);
         }
     }
 

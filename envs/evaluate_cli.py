@@ -1,0 +1,135 @@
+"""`a3cqp evaluate`: learned adaptation policies in closed loop against fixed-weight baselines, on the same episodes.
+
+    a3cqp evaluate --env point_mass --policy PATH [PATH ...] [--episodes N] [--seed S] [--json PATH] [--config YAML]
+    a3cqp evaluate --scene peg_in_hole|polishing|guidance ...      (the Panda scenes: envs.panda_eval)
+
+Point mass: prints the closed-loop table (`envs.point_mass_eval`: free / contact / operator / guided contact, the
+baselines IK only, admittance only, force control, equal blend and a switching rule), then per policy the literal Fig. 5
+region check and pass/fail on the behaviour checks. PATH is a policy.pt, a checkpoint.pt or a run folder; with several
+(e.g. runs/sweep/seed_*) the last table is one row per policy: the seed-robustness table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from a3cqp_rl.exceptions import A3CQPError
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry; returns an exit code."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if any(a == "--scene" or a.startswith("--scene=") for a in argv):
+        try:
+            panda = importlib.import_module("envs.panda_eval")
+        except ModuleNotFoundError as exc:
+            if exc.name != "envs.panda_eval":
+                raise
+            print("error: the Panda scenes are not available in this version", file=sys.stderr)
+            return 2
+        return int(panda.main(argv) or 0)
+    p = argparse.ArgumentParser(prog="a3cqp evaluate", description=__doc__.splitlines()[0])
+    p.add_argument("--env", default="point_mass", choices=["point_mass"], help="environment (default: %(default)s)")
+    p.add_argument("--policy", nargs="*", default=[], help="policy.pt, checkpoint.pt or run folder(s); none: baselines only")
+    p.add_argument("--episodes", type=int, default=64, help="episodes per scenario (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="episode seed (default: %(default)s)")
+    p.add_argument("--json", default=None, help="also write the metrics as JSON to this file")
+    p.add_argument("--config", default=None,
+                   help="YAML whose dynamics, adaptation and reward the evaluation uses (default: the first policy's)")
+    p.add_argument("--scene", default=None, help="a Panda scene (envs.panda_eval)")
+    args = p.parse_args(argv)
+
+    import torch
+
+    torch.set_num_threads(1)
+    try:
+        from a3cqp_rl.config import load_config
+
+        config = load_config(args.config) if args.config else None
+        report(args.policy, config=config, episodes=args.episodes, seed=args.seed, json_path=args.json)
+    except (A3CQPError, FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _policy_file(path: str | Path) -> Path:
+    path = Path(path)
+    return path / "policy.pt" if path.is_dir() else path
+
+
+def _names(paths: Sequence[Path]) -> list[str]:
+    """Row names: the run folder's name (seed_3, ...), made unique."""
+    names: list[str] = []
+    for path in paths:
+        base = path.parent.name if path.name in ("policy.pt", "checkpoint.pt") else path.stem
+        name, k = base or "policy", 2
+        while name in names:
+            name, k = f"{base}_{k}", k + 1
+        names.append(name)
+    return names
+
+
+def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed: int = 0,
+           json_path: str | Path | None = None, out=None) -> dict[str, dict[str, bool]]:
+    """Evaluate the saved policies with the baselines; print the table, regions and checks (to `out`, default the
+    current sys.stdout); return the checks per policy.
+
+    `config` (an ExperimentConfig) gives the dynamics, adaptation and reward; default: the first policy's training
+    config (the paper's without a policy).
+    """
+    from a3cqp_rl.checkpoint import load_checkpoint
+    from a3cqp_rl.config import config_from_dict
+    from a3cqp_rl.regions import check_fig5_regions, format_regions
+    from algorithms.a2c import load_policy
+    from envs.point_mass_eval import CHECKS, baseline_policies, behaviour_checks, evaluate
+
+    out = sys.stdout if out is None else out  # looked up per call: a default bound at import outlives a redirect
+    paths = [_policy_file(p) for p in policies]
+    names = _names(paths)
+    learned = {n: load_policy(path) for n, path in zip(names, paths)}
+    if config is None and paths:
+        saved = load_checkpoint(paths[0], ("config",))["config"]
+        config = config_from_dict(saved, str(paths[0]))
+    baselines = baseline_policies()
+    clash = set(learned) & set(baselines)
+    if clash:
+        raise ValueError(f"policy name(s) {sorted(clash)} clash with the baselines; rename the run folder")
+    result = evaluate({**learned, **baselines}, episodes=episodes, seed=seed, config=config)
+    alpha = ", ".join(f"{a:g}" for a in result.alpha)
+    print(f"Closed loop, point mass: {episodes} episodes per scenario (seed {seed}), the same for every policy; "
+          f"returns with eq. 30 alpha = ({alpha})", file=out)
+    print(result.table(), file=out)
+    checks: dict[str, dict[str, bool]] = {}
+    regions: dict[str, int] = {}
+    for n in learned:
+        res = check_fig5_regions(learned[n])
+        regions[n] = sum(r.literal for r in res)
+        checks[n] = behaviour_checks(result, n, regions[n], against=list(baselines))
+        if len(learned) == 1:
+            print(format_regions(res), file=out)
+    if learned:
+        print("\nChecks (regions: all four literal Fig. 5 regions; reaches: >= 90 % of free targets within 2 cm; "
+              "bounded: >= 90 % of contact episodes in the force band; yields: |f_ope| <= 1.5 x admittance-only's "
+              "+ 0.5 N; best_return: mean return above every baseline's)", file=out)
+        print("| policy | " + " | ".join(CHECKS) + " | all |", file=out)
+        print("|---|" + "---|" * (len(CHECKS) + 1), file=out)
+        for n, c in checks.items():
+            print(f"| {n} | " + " | ".join("pass" if c[k] else "FAIL" for k in CHECKS) + f" | {'pass' if all(c.values()) else 'FAIL'} |",
+                  file=out)
+        if len(learned) > 1:
+            print(f"all checks on {sum(all(c.values()) for c in checks.values())} of {len(learned)} policies; per check: "
+                  + ", ".join(f"{k} {sum(c[k] for c in checks.values())}" for k in CHECKS), file=out)
+    if json_path:
+        result.write_json(json_path, {"checks": checks, "literal_regions": regions,
+                                      "policy_files": {n: str(p) for n, p in zip(names, paths)}})
+        print(f"wrote {json_path}", file=out)
+    return checks
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
