@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 
 import mujoco
 import numpy as np
@@ -80,13 +81,16 @@ class PandaEnv(EnvBase):
         controller_options: ControllerOptions for the A3CQP controller (default: the controller's defaults).
         trial_seeds: one seed per arm instead of `seed` (arms with the same seed run the same trials: the
             evaluation gives every controller the same trials this way).
+        controller_factory: builds the arms' controller instead of A3CQPController, called with the same arguments
+            (n, model=, config=, options=); e.g. a PopulationController with per-arm gains and priority levels.
     """
 
     _has_dynamic_specs = False
 
     def __init__(self, num_envs: int, config: ExperimentConfig | None = None, seed: int | None = None,
                  scene: str | None = None, controller_options: ControllerOptions | None = None,
-                 trial_seeds: list[int] | None = None, device: str | torch.device = "cpu") -> None:
+                 trial_seeds: list[int] | None = None, device: str | torch.device = "cpu",
+                 controller_factory: Callable[..., A3CQPController] | None = None) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
@@ -124,7 +128,7 @@ class PandaEnv(EnvBase):
         self.sim.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
         opts = dataclasses.replace(controller_options or ControllerOptions(), leak_axes=self.pcfg.state_leak,
                                    **TASK_BLENDS[self.pcfg.task_blend])
-        self.ctrl = A3CQPController(n, model=self.model, config=cfg.controller, options=opts)
+        self.ctrl = (controller_factory or A3CQPController)(n, model=self.model, config=cfg.controller, options=opts)
         self._geom_arm = self._geom_arms()
         lim = PANDA_LIMITS
         self._dq_max = np.array(lim.dq_max)
