@@ -28,6 +28,9 @@ __all__ = [
     "GAConfig",
     "GeneConfig",
     "NSGA2Config",
+    "PandaTuningConfig",
+    "FixedControllerConfig",
+    "FIXED_TASKS",
     "PointMassConfig",
     "SensorConfig",
     "OperatorConfig",
@@ -175,6 +178,11 @@ class A2CConfig:
     """Fraction in [0, 1) of the run, at its end, whose parameters policy.pt averages uniformly (stochastic weight
     averaging, Izmailov et al. 2018; for A2C, Nikishin et al. 2018). 0 = the last parameters (the paper). Training
     itself uses the raw parameters; the average only smooths the noise the last updates leave in the saved policy."""
+    init_policy: str | None = None
+    """Fine-tuning: a policy.pt (or checkpoint.pt, or run folder) whose parameters the run starts from instead of
+    the random init: every tensor whose name and shape match (the actor, its log σ, the critic where its input has
+    the same width); the rest keeps the init (e.g. a point-mass policy's privileged critic on the Panda env). None:
+    from scratch. Resuming a run restores its own checkpoint instead."""
     checkpoint_every: int = 5000
     """Updates between checkpoints."""
     log_every: int = 250
@@ -210,6 +218,8 @@ class A2CConfig:
             err.add("hidden", f"must be a non-empty list of positive sizes, got {self.hidden}")
         if self.critic == "privileged" and self.network != "separate":
             err.add("critic", "'privileged' needs network: separate (a shared trunk would pass the privileged state to the policy)")
+        if self.init_policy is not None and not self.init_policy.strip():
+            err.add("init_policy", "must be a path to a policy.pt, a checkpoint.pt or a run folder, or null")
 
 
 @dataclass
@@ -360,6 +370,55 @@ def _check_experiment_gene(gene: GeneConfig, err: _Errors) -> None:
 
 
 @dataclass
+class PandaTuningConfig:
+    """The Panda objective of NSGA-II (algorithms/tuning/panda_objectives.py, paper 002 eq. 5-6 on the Panda scenes).
+
+    Every genome (a fixed controller: FixedControllerConfig) runs `trials` trials of each scene; trial k of a scene is
+    the same for every genome (seeded from `trial_seed`): the misalignment, the operator's tremor, the sensor noise
+    and bias of `panda.sensors`, and a factor on the operator's stiffness, damping and force bound drawn uniformly in
+    `operator_force_scale`. The three objectives, all minimised, are means over the trials:
+    tracking [cm] (pose error where the scene expects IK to lead, orientation as arc length at `lever`),
+    interaction [N] (|f_ope| while the operator acts + contact-force error while the peg touches the block),
+    failure (failed insertion + lost episode fraction + fallback, torque-saturation and joint-limit fractions).
+    """
+
+    scenes: tuple[str, ...] = ("peg_in_hole",)
+    """Scenes each genome runs (envs/scenarios.py): peg_in_hole, guidance, polishing."""
+    trials: int = 2
+    """Trials per scene and genome."""
+    trial_seed: int = 1000
+    """Seed of the trials (a different stream than `a3cqp evaluate --seed 0`: tuned on other trials than tested)."""
+    operator_force_scale: tuple[float, ...] = (0.7, 1.3)
+    """Range of the per-trial factor on the operator's stiffness, damping and force bound (robustness)."""
+    contact_force: float = 10.0
+    """Pressing force along the tool axis the interaction objective asks for while the peg touches the block [N]
+    (the scripted force-control baseline's f_d)."""
+    lever: float = 0.1
+    """Orientation errors count as the arc length at this radius in the tracking objective [m] (paper 002: cm)."""
+    failure_tracking: float = 50.0
+    """α_F1 of eq. 6: tracking [cm] charged for the rest of the horizon after a robot diverged."""
+    failure_interaction: float = 50.0
+    """α_F2 of eq. 6: interaction [N] charged for the rest of the horizon after a robot diverged."""
+    joint_limit_margin: float = 0.01
+    """A joint within this distance of its datasheet limit counts as at the limit [rad]."""
+    batch: Literal["population", "per_genome"] = "population"
+    """"population": the genomes of an evaluation task share one simulation per scene (PopulationController);
+    "per_genome": one simulation per genome (the slower reference of the benchmark)."""
+
+    def _check(self, err: _Errors) -> None:
+        known = ("peg_in_hole", "guidance", "polishing")
+        bad = [s for s in self.scenes if s not in known]
+        if not self.scenes or bad or len(set(self.scenes)) != len(self.scenes):
+            err.add("scenes", f"must be distinct names among {list(known)}, got {list(self.scenes)}")
+        for name in ("trials", "contact_force", "lever", "failure_tracking", "failure_interaction"):
+            err.positive(self, name)
+        if self.joint_limit_margin < 0:
+            err.add("joint_limit_margin", f"must be >= 0, got {self.joint_limit_margin}")
+        if len(self.operator_force_scale) != 2 or not 0 < self.operator_force_scale[0] <= self.operator_force_scale[1]:
+            err.add("operator_force_scale", f"must be a range 0 < low <= high, got {list(self.operator_force_scale)}")
+
+
+@dataclass
 class NSGA2Config:
     """Multi-objective tuning with NSGA-II on pygad (Penco et al., paper 002): soft weights, levels, gains.
 
@@ -388,6 +447,11 @@ class NSGA2Config:
     """Probability per gene of a polynomial mutation; None = 1 / genes."""
     polynomial_eta: float = 20.0
     """Polynomial-mutation distribution index."""
+    chunk_size: int | None = None
+    """Genomes per evaluation task (a worker evaluates one task at a time); None = the objective's choice. A fixed
+    size keeps each task's batch the same whatever the number of workers."""
+    panda: PandaTuningConfig = field(default_factory=PandaTuningConfig)
+    """Settings of the Panda objective (ignored by the others)."""
 
     def _check(self, err: _Errors) -> None:
         for name in ("population", "generations", "sbx_eta", "polynomial_eta"):
@@ -398,6 +462,8 @@ class NSGA2Config:
             err.add("crossover_probability", f"must be in [0, 1], got {self.crossover_probability}")
         if self.mutation_probability is not None and not 0.0 <= self.mutation_probability <= 1.0:
             err.add("mutation_probability", f"must be in [0, 1] or null, got {self.mutation_probability}")
+        if self.chunk_size is not None and self.chunk_size < 1:
+            err.add("chunk_size", f"must be >= 1 or null, got {self.chunk_size}")
         names = [g.name for g in self.genes]
         for dup in sorted({n for n in names if names.count(n) > 1}):
             err.add("genes", f"{dup!r} appears more than once")
@@ -809,6 +875,17 @@ class PandaEnvConfig:
     toward the measured state where IK does not lead. "per_axis" (per local axis, so force control on z leaves the
     integral action of eq. 5-7 on the axes IK still tracks; without it the peg stays on the rim, held by friction:
     docs/panda.md) or "min_w1" (one rate for all joints, set by the smallest w1 of the six axes)."""
+    task_blend: Literal["eq35", "eq24"] = "eq35"
+    """How the env's controller blends the three tasks on each axis of L. "eq35": as the point-mass surrogate the
+    adaptation is trained on (eq. 35, a weighted sum: ẍ = w1 ẍ_IK on the acceleration, f* = w2 f_adm + w3 f_ctc on
+    the wrench), i.e. ControllerOptions(cartesian_regularization=1, wrench_blend="weighted_sum"). "eq24": the QP's
+    defaults (γ = 0.01: IK realised in full for any w1 ≫ γ; f* = (w2 f_adm + w3 f_ctc) / (w2 + w3)). With "eq24"
+    the weights w = (0.5, 0, 0.5), f_d = 20 N that the point-mass policy reaches in contact command full IK plus
+    20 N instead of the half-stiffness and 10 N it was trained with. Peg-in-hole, 26 trials, the same point-mass
+    policy: 24/26 with "eq35", 9/26 with "eq24" (docs/panda.md)."""
+    policy: str | None = None
+    """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
+    folder, relative to the working directory (None: --policy is needed for the learned controller)."""
     divergence_speed_factor: float = 3.0
     """A robot whose joint speed exceeds this multiple of its datasheet limit counts as diverged."""
     divergence_penetration: float = 0.01
@@ -823,9 +900,85 @@ class PandaEnvConfig:
         for name in ("e_max_rot", "f_env_max_rot", "f_ope_max_rot", "max_episode_time", "divergence_speed_factor",
                      "divergence_penetration"):
             err.positive(self, name)
+        if self.policy is not None and not self.policy.strip():
+            err.add("policy", "must be a path to a policy.pt or a run folder, or null")
         bad = [a for a in self.fd_axes if a not in ("x", "y", "z")]
         if bad or len(set(self.fd_axes)) != len(self.fd_axes):
             err.add("fd_axes", f"must be distinct names among x, y, z, got {list(self.fd_axes)}")
+
+
+FIXED_TASKS = ("ik", "ac", "fc", "jc", "cartesian_regularizer")
+"""Tasks of a fixed controller (a3cqp_rl.control.population.TASKS)."""
+
+
+def _fixed_levels() -> dict[str, int]:
+    return {name: 1 for name in FIXED_TASKS}
+
+
+def _fixed_weights() -> dict[str, tuple[float, ...]]:
+    return {"ik": (1.0,) * 6, "ac": (0.0,) * 6, "fc": (0.0,) * 6}
+
+
+@dataclass
+class FixedControllerConfig:
+    """A fixed controller on the Panda (paper 002's "control configuration"): constant per-axis task weights and f_d,
+    strict priority levels and gains, all the same for a whole episode (no adaptation). NSGA-II tunes them
+    (`a3cqp pareto --config configs/nsga2_peg.yaml`, `--pick K` writes one), `a3cqp evaluate --controller-config`
+    runs one next to the learned policy and the scripted baselines. Defaults: Table I gains, IK only, one level."""
+
+    name: str = "fixed"
+    """Name of the controller in evaluation tables."""
+    levels: dict[str, int] = field(default_factory=_fixed_levels)
+    """Priority level of each task: 1 (highest) .. 3, 0 = off (paper 002 eq. 3-4); tasks not named: level 1."""
+    weights: dict[str, tuple[float, ...]] = field(default_factory=_fixed_weights)
+    """Local per-axis weights (x, y, z, rx, ry, rz of the tool frame L) of ik, ac, fc, each in [0, 1] (eq. 8);
+    a task not named: 0 on every axis."""
+    f_d: float = 0.0
+    """Desired contact force along the tool axis (local z) [N], 0 .. adaptation.f_d_max (eq. 20-21)."""
+    kp: float = 150.0
+    """IK k_p [1/s²] (Table I)."""
+    k_theta: float = 20.0
+    """IK k_θ [1/s²] (Table I)."""
+    lambda_d: float = 5.0
+    """AC Λd [kg] (Table I)."""
+    c_d: float = 5.0
+    """AC Cd [N s/m] (Table I)."""
+    kq: float = 10.0
+    """JC k_q [1/s²] (Table I)."""
+    jc_weight: float = 1.0
+    """Multiplier of the JC weight (ε of Table I and ControllerOptions.jc_nullspace_weight)."""
+    cartesian_regularization: float = 1e-2
+    """γ of the Cartesian acceleration regularizer (ControllerOptions.cartesian_regularization)."""
+
+    def _check(self, err: _Errors) -> None:
+        builtin = ("learned", "ik", "ik_fc", "equal", "vic")  # envs/panda_eval.py's controllers
+        if not self.name or any(c in self.name for c in ",\n") or self.name in builtin:
+            err.add("name", f"must be a non-empty name without commas, other than the built-in controllers, got "
+                            f"{self.name!r}")
+        for task, level in self.levels.items():
+            if task not in FIXED_TASKS:
+                err.add("levels", f"unknown task {task!r}; tasks: {list(FIXED_TASKS)}")
+            elif not 0 <= level <= 3:
+                err.add(f"levels.{task}", f"must be 1, 2, 3 or 0 (off), got {level}")
+        for task, w in self.weights.items():
+            if task not in ("ik", "ac", "fc"):
+                err.add("weights", f"unknown task {task!r}; weighted tasks: ik, ac, fc")
+            elif len(w) != 6 or not all(0.0 <= v <= 1.0 for v in w):
+                err.add(f"weights.{task}", f"needs 6 values in [0, 1] (x, y, z, rx, ry, rz), got {list(w)}")
+        for name in ("kp", "k_theta", "lambda_d"):
+            err.positive(self, name)
+        for name in ("c_d", "kq", "jc_weight", "cartesian_regularization", "f_d"):
+            if not getattr(self, name) >= 0:
+                err.add(name, f"must be >= 0, got {getattr(self, name)}")
+
+    def level_row(self) -> tuple[int, ...]:
+        """Levels in FIXED_TASKS order (0 = off)."""
+        return tuple(int(self.levels.get(name, 1)) for name in FIXED_TASKS)
+
+    def weight_matrix(self) -> list[list[float]]:
+        """Local weights [6 axes][ik, ac, fc]."""
+        cols = [self.weights.get(name, (0.0,) * 6) for name in ("ik", "ac", "fc")]
+        return [[float(c[a]) for c in cols] for a in range(6)]
 
 
 @dataclass
@@ -846,6 +999,8 @@ class ExperimentConfig:
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     panda: PandaEnvConfig = field(default_factory=PandaEnvConfig)
     """The simulated Panda env (envs/panda.py): scene, operator, sensing, the rotational-axis bounds."""
+    fixed_controller: FixedControllerConfig | None = None
+    """A fixed controller (a Pareto pick): `a3cqp evaluate --controller-config FILE` reads this section."""
 
     def _check(self, err: _Errors) -> None:
         if self.env not in ENV_FACTORIES and not _is_gym_id(self.env):
@@ -854,6 +1009,9 @@ class ExperimentConfig:
         if self.env == "point_mass" and self.point_mass.episode_steps < self.a2c.n_steps:
             # fused rollouts draw one pending episode per env per iteration
             err.add("point_mass.episode_steps", f"must be >= a2c.n_steps ({self.a2c.n_steps}), got {self.point_mass.episode_steps}")
+        if self.fixed_controller is not None and self.fixed_controller.f_d > self.adaptation.f_d_max:
+            err.add("fixed_controller.f_d", f"must be <= adaptation.f_d_max ({self.adaptation.f_d_max}), got "
+                                            f"{self.fixed_controller.f_d}")
 
 
 def _is_gym_id(name: str) -> bool:

@@ -15,7 +15,12 @@ ZDT (the optimiser's reference check): on ZDT1 and ZDT2 with the configs' budget
 population 100, 150 generations = 15,200 evaluations), the hypervolume (reference point (1.1, 1.1)) of our final
 front and of pymoo's NSGA2 (pop_size 100, the same number of evaluations) on the same seeds; pymoo is a dev extra.
 
-Usage: python bench/tuning.py [--generations G] [--steps S] [--quick] [--only ga|nsga2|zdt] [--seeds N]
+Panda (`--only panda`): genome evaluations per second of the Panda objective (configs/nsga2_peg.yaml, P random
+genomes, 1 trial each, episodes cut at H simulated seconds) with the population in one batched simulation
+(`nsga2.panda.batch: population`, PopulationController) against one simulation per genome (`per_genome`), median over
+R repeats each, alternating; the two must give the same objectives to rounding (checked).
+
+Usage: python bench/tuning.py [--generations G] [--steps S] [--quick] [--only ga|nsga2|zdt|panda] [--seeds N]
 """
 
 from __future__ import annotations
@@ -153,13 +158,46 @@ def bench_zdt(seeds: int, generations: int = 150, population: int = 100) -> None
         print(f"({problem}: the known front's hypervolume is {ideal[problem]:.4f})")
 
 
+def bench_panda(genomes: int, horizon: float, repeats: int) -> None:
+    """Genome evaluations per second of the Panda objective: the population batch against one simulation per genome."""
+    import numpy as np
+
+    from a3cqp_rl.config import load_config
+    from algorithms.tuning.genome import GenomeSpec
+    from algorithms.tuning.panda_objectives import GENES, evaluate_fixed, fixed_from_genome
+
+    spec = GenomeSpec(GENES)
+    u = np.random.default_rng(0).random((genomes, spec.num_genes))
+    fixed = [fixed_from_genome(g, f"g{i}") for i, g in enumerate(spec.as_dicts(spec.decode_matrix(u)))]
+    print(f"Panda objective (peg-in-hole), {genomes} random genomes x 1 trial, episodes cut at {horizon:g} s, "
+          f"{repeats} repeats; load before: {os.getloadavg()[0]:.2f}", flush=True)
+    rates: dict[str, list[float]] = {"population": [], "per_genome": []}
+    values = {}
+    for _ in range(repeats):
+        for batch in rates:
+            cfg = load_config(_ROOT / "configs" / "nsga2_peg.yaml",
+                              {"panda": {"max_episode_time": horizon}, "nsga2": {"panda": {"trials": 1, "batch": batch}}})
+            res = evaluate_fixed(fixed, cfg)
+            rates[batch].append(genomes / res.wall_seconds)
+            values[batch] = res.objectives
+    for batch, r in rates.items():
+        print(f"  {batch:>10}: {statistics.median(r):6.3f} genome evaluations/s ({horizon:g} s episodes), "
+              f"{statistics.median(r) * horizon:5.2f}x real time in aggregate", flush=True)
+    same = np.allclose(values["population"], values["per_genome"], rtol=1e-6, atol=1e-9)
+    print(f"  population batch vs per genome: {statistics.median(rates['population']) / statistics.median(rates['per_genome']):.2f}x; "
+          f"same objectives: {same}")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the tuning benchmarks; returns an exit code."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--generations", type=int, default=3, help="GA generations bred after the initial one")
     p.add_argument("--steps", type=int, default=1_000_000, help="agent steps per GA trial (Table V run: 1e6)")
     p.add_argument("--quick", action="store_true", help="1 generation of 1e5-step trials; NSGA-II 10 generations")
-    p.add_argument("--only", choices=["ga", "nsga2", "zdt"], default=None)
+    p.add_argument("--only", choices=["ga", "nsga2", "zdt", "panda"], default=None)
+    p.add_argument("--genomes", type=int, default=8, help="genomes of the Panda benchmark")
+    p.add_argument("--horizon", type=float, default=2.0, help="simulated seconds per Panda episode")
+    p.add_argument("--repeats", type=int, default=3, help="repeats of the Panda benchmark")
     p.add_argument("--seeds", type=int, default=5, help="seeds of the ZDT reference check")
     args = p.parse_args(argv)
     import torch
@@ -173,6 +211,9 @@ def main(argv: list[str] | None = None) -> int:
         bench_nsga2(10 if args.quick else 30)
     if args.only in (None, "zdt"):
         bench_zdt(1 if args.quick else args.seeds, generations=30 if args.quick else 150)
+    if args.only in (None, "panda"):
+        bench_panda(4 if args.quick else args.genomes, 0.5 if args.quick else args.horizon,
+                    1 if args.quick else args.repeats)
     return 0
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
 
 import mujoco
 import numpy as np
@@ -40,12 +41,18 @@ from a3cqp_rl.control.frames import pose_error
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaModel, PandaSim
 from envs.scenarios import Operator, Scene, SceneInput, make_scene, rotvec_to_matrix
 
-__all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS"]
+__all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS", "TASK_BLENDS"]
 
 logger = logging.getLogger(__name__)
 
 AXES = ("x", "y", "z", "rx", "ry", "rz")
 """The six agents: translations then rotations along/about the local frame L."""
+TASK_BLENDS = {"eq35": {"cartesian_regularization": 1.0, "wrench_blend": "weighted_sum"},
+               "eq24": {"cartesian_regularization": ControllerOptions.cartesian_regularization,
+                        "wrench_blend": "normalized"}}
+"""ControllerOptions of PandaEnvConfig.task_blend: "eq35" makes the QP's per-axis blend the weighted sum of the
+point-mass surrogate (eq. 35): J q̈* = w1 ẍ_IK (the regularizer weighs the rest of ẍ with 1 − w1) and
+f* = w2 f_adm + w3 f_ctc (IK's weight pulls f toward zero); "eq24" keeps the controller's defaults."""
 INFO_KEYS = ("e_local", "f_env_local", "f_ope_local", "weights", "f_d", "phase", "time", "diverged")
 """Per-step entries written next to `observation` (plus the scene's signals, e.g. the peg's misalignment)."""
 
@@ -74,13 +81,16 @@ class PandaEnv(EnvBase):
         controller_options: ControllerOptions for the A3CQP controller (default: the controller's defaults).
         trial_seeds: one seed per arm instead of `seed` (arms with the same seed run the same trials: the
             evaluation gives every controller the same trials this way).
+        controller_factory: builds the arms' controller instead of A3CQPController, called with the same arguments
+            (n, model=, config=, options=); e.g. a PopulationController with per-arm gains and priority levels.
     """
 
     _has_dynamic_specs = False
 
     def __init__(self, num_envs: int, config: ExperimentConfig | None = None, seed: int | None = None,
                  scene: str | None = None, controller_options: ControllerOptions | None = None,
-                 trial_seeds: list[int] | None = None, device: str | torch.device = "cpu") -> None:
+                 trial_seeds: list[int] | None = None, device: str | torch.device = "cpu",
+                 controller_factory: Callable[..., A3CQPController] | None = None) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
@@ -116,8 +126,9 @@ class PandaEnv(EnvBase):
         self.sim = PandaSim(n, tool=tool, scene=self.scene.mjcf(), q0=PANDA_HOME, timestep=self.dt, control_site="tcp")
         # one diverging arm must not make MuJoCo reset the whole batch (its default on bad qpos/qvel/qacc)
         self.sim.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
-        opts = dataclasses.replace(controller_options or ControllerOptions(), leak_axes=self.pcfg.state_leak)
-        self.ctrl = A3CQPController(n, model=self.model, config=cfg.controller, options=opts)
+        opts = dataclasses.replace(controller_options or ControllerOptions(), leak_axes=self.pcfg.state_leak,
+                                   **TASK_BLENDS[self.pcfg.task_blend])
+        self.ctrl = (controller_factory or A3CQPController)(n, model=self.model, config=cfg.controller, options=opts)
         self._geom_arm = self._geom_arms()
         lim = PANDA_LIMITS
         self._dq_max = np.array(lim.dq_max)

@@ -1,8 +1,8 @@
 """`a3cqp evaluate --scene peg_in_hole|polishing|guidance`: the learned policy and scripted baselines on the same trials.
 
-    a3cqp evaluate --scene peg_in_hole --policy runs/pm_default/policy.pt --trials 26 [--seed 0] [--json F]
+    a3cqp evaluate --scene peg_in_hole [--policy runs/pm_default/policy.pt] --trials 26 [--seed 0] [--json F]
                    [--config configs/panda_peg_in_hole.yaml] [--controllers learned,ik,ik_fc,equal,vic]
-                   [--cycles 1] [--out RUN]
+                   [--cycles 1] [--out RUN] [--controller-config PICK.yaml [PICK.yaml ...]]
 
 Every controller runs the same K trials (trial k has the same seed, hence the same misalignment, operator tremor and
 sensor noise, for all of them), all in one batched simulation. Controllers (the adaptation law in the loop):
@@ -13,6 +13,10 @@ sensor noise, for all of them), all in one batched simulation. Controllers (the 
            (the paper's scripted trigger, section VI-B1): z weights go linearly to FC in `SWITCH_TIME`, f_d ramps at
            σf to `FC_FORCE`; back to IK when the phase ends.
 - equal:   fixed weights 1/3 each on every axis, f_d = `FC_FORCE` on z.
+- fixed controllers (`--controller-config FILE`, e.g. a Pareto pick of `a3cqp pareto --pick K`): the file's
+           `fixed_controller` section: constant per-axis weights and f_d, its own gains and strict priority levels
+           (envs/panda_fixed.py). With any of them, every arm of the batch runs the per-robot controller
+           (PopulationController, the Python QP path: slower, the same numbers to rounding for the others).
 - vic:     a variable-impedance baseline in the style of robosuite's OSC (impedance gains as actions): IK only, with
            a hand-tuned stiffness schedule per local axis (scales of Table I's k_p, k_θ): 1 in free motion; after
            the first contact force `VIC_CONTACT` (soft along the tool axis, stiff across it); `VIC_OPERATOR` while
@@ -31,6 +35,7 @@ import math
 import os
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,7 +44,7 @@ import torch
 
 from a3cqp_rl.exceptions import A3CQPError
 
-__all__ = ["main", "evaluate", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult"]
+__all__ = ["main", "evaluate", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult", "load_fixed_controller"]
 
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
 PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
@@ -107,10 +112,14 @@ def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, sin
 
 def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int = 0, config=None,  # noqa: ANN001
              controllers: tuple[str, ...] = CONTROLLERS, cycles: int | None = None,
-             progress: bool = True) -> EvalResult:
-    """Run every controller on the same `trials` trials of `scene` (one batched simulation); return the metrics."""
+             progress: bool = True, fixed: Sequence = ()) -> EvalResult:
+    """Run every controller on the same `trials` trials of `scene` (one batched simulation); return the metrics.
+
+    `policy_path` None: the config's panda.policy (for the learned controller). `fixed`: FixedControllerConfig
+    objects run after `controllers` under their own names."""
     from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict
     from envs.panda import PandaEnv
+    from envs.panda_fixed import FixedArms
 
     cfg = config or ExperimentConfig()
     if cycles is not None:
@@ -122,14 +131,24 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
         raise ValueError(f"unknown controller(s) {unknown}; choose from {list(CONTROLLERS)}")
     policy = None
     if "learned" in controllers:
+        policy_path = policy_path if policy_path is not None else cfg.panda.policy
         if policy_path is None:
-            raise ValueError("the learned controller needs --policy PATH (or leave it out of --controllers)")
+            raise ValueError("the learned controller needs --policy PATH or panda.policy (or leave it out of "
+                             "--controllers)")
         from algorithms.a2c import load_policy
 
         policy = load_policy(policy_path)
-    controllers = list(controllers)
+    by_name = {f.name: f for f in fixed}
+    if len(by_name) != len(fixed) or set(by_name) & set(CONTROLLERS):
+        raise ValueError(f"fixed controllers need distinct names other than {list(CONTROLLERS)}, got "
+                         f"{[f.name for f in fixed]}")
+    controllers = list(controllers) + list(by_name)
+    if not controllers:
+        raise ValueError("no controller to evaluate")
+    arms = FixedArms([by_name.get(c) for c in controllers for _ in range(trials)]) if fixed else None
     trial_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(trials)]
-    env = PandaEnv(len(controllers) * trials, cfg, scene=scene, trial_seeds=trial_seeds * len(controllers))
+    env = PandaEnv(len(controllers) * trials, cfg, scene=scene, trial_seeds=trial_seeds * len(controllers),
+                   controller_factory=arms.controller_factory if arms else None)
     contact_force = getattr(getattr(env.scene, "cfg", None), "contact_force", 1.0)
     n = env.num_envs
     latched, since = np.zeros(n, dtype=bool), np.zeros(n)
@@ -143,6 +162,8 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
     steps = 0
     while not finished.all():
         W, f_d, scale, scripted = _scripted(env, controllers, trials, latched, since, contact_force)
+        if arms is not None:  # fixed controllers: their own constant weights and f_d (scale 1, not 'learned')
+            W, f_d = arms.merge(W, f_d)
         env.hold_weights(scripted, W, f_d)
         env.stiffness_scale[:] = scale
         action = torch.zeros(n, 6, 4)
@@ -174,6 +195,18 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
     eps = {c: {**{k: np.asarray(v) for k, v in rec.items()}, **meta} for c, rec in episodes.items()}
     return EvalResult(scene=env.scene.name, summary=summary, per_trial=per_trial, episodes=eps, seconds=seconds,
                       sim_seconds=float(steps * env.adapt.dt * n))
+
+
+def load_fixed_controller(path: str | Path):  # noqa: ANN201
+    """The FixedControllerConfig of a YAML file's `fixed_controller` section (what `a3cqp pareto --pick K` writes)."""
+    from a3cqp_rl.config import load_config
+
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"controller config not found: {path}")
+    fixed = load_config(path).fixed_controller
+    if fixed is None:
+        raise ValueError(f"{path} has no fixed_controller section (write one with `a3cqp pareto --out DIR --pick K`)")
+    return fixed
 
 
 def _progress(total: float, enabled: bool):  # noqa: ANN202
@@ -288,7 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry for `a3cqp evaluate --scene ...`; returns an exit code."""
     p = argparse.ArgumentParser(prog="a3cqp evaluate", description=__doc__.splitlines()[0])
     p.add_argument("--scene", required=True, choices=["peg_in_hole", "polishing", "guidance"])
-    p.add_argument("--policy", default=None, help="policy.pt of the learned controller (a run folder also works)")
+    p.add_argument("--policy", default=None, help="policy.pt of the learned controller (a run folder also works; "
+                   "default: the config's panda.policy)")
     p.add_argument("--trials", type=int, default=26, help="trials per controller (default: 26, Table VI's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--config", default=None, help="YAML config (default: configs/panda_<scene>.yaml if present)")
@@ -298,6 +332,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default=None, help="write the metrics to this JSON file")
     p.add_argument("--out", default=None, help="run folder: results.json and the recorded episodes (episode_*.npz, "
                    "for `a3cqp plot episode`)")
+    p.add_argument("--controller-config", nargs="+", default=[], metavar="FILE",
+                   help="YAML file(s) with a fixed_controller section (e.g. a Pareto pick), evaluated as extra "
+                        "controllers")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -311,17 +348,22 @@ def main(argv: list[str] | None = None) -> int:
         if cfg_path is None and default.is_file():
             cfg_path = default
         cfg = load_config(cfg_path)
-        policy = args.policy
+        controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
+        fixed = [load_fixed_controller(f) for f in args.controller_config]
+        policy = args.policy if args.policy is not None else cfg.panda.policy  # the CLI's path wins
+        if "learned" not in controllers:
+            policy = None  # no policy is read: a configured one need not exist
         if policy is not None and Path(policy).is_dir():
             policy = Path(policy) / "policy.pt"
         if policy is not None and not Path(policy).is_file():
-            raise FileNotFoundError(f"policy file not found: {policy}")
-        controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
+            where = "" if args.policy is not None else (f" (panda.policy of {cfg_path}: train it, pass --policy PATH, "
+                                                         "or leave learned out of --controllers)")
+            raise FileNotFoundError(f"policy file not found: {policy}{where}")
         if policy is None and "learned" in controllers:
             controllers = tuple(c for c in controllers if c != "learned")
             print("no --policy given: evaluating the baselines only", file=sys.stderr)
         res = evaluate(args.scene, policy, args.trials, args.seed, cfg, controllers, args.cycles,
-                       progress=not args.quiet)
+                       progress=not args.quiet, fixed=fixed)
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -73,6 +73,9 @@ class Operator:
         """Number of completed grasps per arm (a scene sees a release as this count going up)."""
         self.reached = np.zeros(n, dtype=bool)
         """Whether the last grasp reached its goal before releasing."""
+        self.force_scale = np.ones(n)
+        """Per-arm factor on the hand's stiffness, damping and force/torque bounds (1 = the config's operator; the
+        robustness trials of NSGA-II's Panda objective draw it per trial)."""
         self._lag = max(1, int(round(cfg.delay / dt)))
         self._hist = np.zeros((self._lag, n, 18))  # ring buffer of (p, v, R, ω) of the handle
         self._k = 0
@@ -148,11 +151,12 @@ class Operator:
         p, v, R, w = old[:, :3], old[:, 3:6], old[:, 6:15].reshape(-1, 3, 3), old[:, 15:]
         grip = np.where(self.state == self.HOLD, np.clip((t - self.t_grasp) / c.grip_time, 0.0, 1.0),
                         np.clip(1.0 - (t - self.t_release) / c.grip_time, 0.0, 1.0))[:, None] * on[:, None]
-        force = c.stiffness * (self.attractor(t) - p) - c.damping * v
+        s = self.force_scale[:, None]
+        force = s * (c.stiffness * (self.attractor(t) - p) - c.damping * v)
         if c.noise > 0 and noise is not None:
             force = force + c.noise * noise
-        torque = c.rot_stiffness * rotation_log(self.rot_grasp @ np.swapaxes(R, -1, -2)) - c.rot_damping * w
-        return _clip_norm(grip * force, c.max_force), _clip_norm(grip * torque, c.max_torque)
+        torque = s * (c.rot_stiffness * rotation_log(self.rot_grasp @ np.swapaxes(R, -1, -2)) - c.rot_damping * w)
+        return _clip_norm(grip * force, c.max_force * s), _clip_norm(grip * torque, c.max_torque * s)
 
 
 # ---------------------------------------------------------------------------------------------------- scenes

@@ -52,7 +52,7 @@ def make_problem(cfg: ExperimentConfig) -> tuple[Problem, Objective]:
     )
     problem = Problem(kind="nsga2", spec=spec, evaluate=objective.fn, objectives=objective.objectives, maximize=False,
                       generations=s.generations, population=2 * s.population, ga_kwargs=ga_kwargs,
-                      chunk_size=objective.chunk_size)
+                      chunk_size=s.chunk_size or objective.chunk_size)
     return problem, objective
 
 
@@ -196,7 +196,7 @@ def pick(out: str | Path, k: int) -> Path:
     row = front[k]
     genome = problem.spec.as_dicts(np.array([[row[c] for c in problem.spec.columns]]))[0]
     values = {n: row[n] for n in state["objectives"]}
-    data = objective.to_config(genome, cfg) if objective.to_config else {"genes": genome, "objectives": values}
+    data = objective.to_config(genome, cfg, k) if objective.to_config else {"genes": genome, "objectives": values}
     path = out / f"pick_{k}.yaml"
     header = (f"# Pareto solution {k} of {len(front)} of the NSGA-II run in {out} (objective {cfg.nsga2.objective}: "
               + ", ".join(f"{n} = {v:.6g}" for n, v in values.items()) + ")\n")

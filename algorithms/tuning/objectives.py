@@ -39,8 +39,8 @@ class Objective:
     """Hypervolume reference (worse than every interesting point)."""
     reference_front: Callable[[int], np.ndarray] | None = None
     """n -> n points [n, M] of the known Pareto front (benchmarks only)."""
-    to_config: Callable[[dict, ExperimentConfig], dict] | None = None
-    """Genome and config -> the YAML mapping `a3cqp pareto --pick K` writes (default: genes and objectives)."""
+    to_config: Callable[[dict, ExperimentConfig, int], dict] | None = None
+    """Genome, config and K -> the YAML mapping `a3cqp pareto --pick K` writes (default: genes and objectives)."""
 
 
 OBJECTIVES: dict[str, Objective] = {}

@@ -1,0 +1,106 @@
+"""PopulationController: per-robot gains and strict levels in one batch equal one A3CQPController per robot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from a3cqp_rl.config import ControllerConfig
+from a3cqp_rl.control import A3CQPController, ControllerOptions
+from a3cqp_rl.control.exceptions import InvalidGainError, InvalidLevelError
+from a3cqp_rl.control.population import TASKS, PopulationController, RobotGains
+from test_control_native import random_inputs
+
+N = 12
+
+
+@pytest.fixture(scope="module")
+def states() -> tuple[dict, object]:
+    return random_inputs(N, seed=3)
+
+
+def _rows(inputs: dict, idx: list[int]) -> dict:
+    out = {}
+    for k, v in inputs.items():
+        if k == "kin":
+            out[k] = type(v)(**{f: getattr(v, f)[idx] for f in ("pos", "rot", "jac", "jdot_qdot", "twist")})
+        else:
+            out[k] = v[idx]
+    return out
+
+
+def _x(out) -> np.ndarray:  # noqa: ANN001
+    return torch.cat([out.qdd, out.wrench, out.tau], 1).numpy()
+
+
+def test_uniform_population_equals_the_controller(states) -> None:  # noqa: ANN001
+    """Table I gains, every task in level 1: the same torques as A3CQPController (Python objects) to rounding."""
+    inputs, model = states
+    ref = A3CQPController(N, model=model, options=ControllerOptions(backend="python"))
+    pop = PopulationController(N, model=model)
+    for _ in range(3):  # a few steps: q*, q̇* integrate identically too
+        a, b = ref.step(**inputs), pop.step(**inputs)
+        np.testing.assert_allclose(_x(b), _x(a), rtol=0, atol=1e-9)
+    assert str(pop.hierarchy) == "(" + " + ".join(TASKS) + ")"
+
+
+def _random_population(seed: int) -> tuple[RobotGains, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    gains = RobotGains(kp=rng.uniform(20, 600, N), k_theta=rng.uniform(5, 100, N), lambda_d=rng.uniform(1, 20, N),
+                       c_d=rng.uniform(1, 30, N), kq=rng.uniform(1, 50, N), jc_weight=10 ** rng.uniform(-1, 1, N),
+                       cartesian_regularization=10 ** rng.uniform(-3, -1, N))
+    levels = rng.integers(0, 4, size=(N, len(TASKS)))
+    levels[0] = 1  # one flat robot, one with a gap (levels 1 and 3), one with every task off
+    levels[1] = [1, 3, 3, 0, 1]
+    levels[2] = 0
+    return gains, levels
+
+
+def test_each_robot_equals_its_own_controller(states) -> None:  # noqa: ANN001
+    """Robot b of a population with random gains and levels gets what A3CQPController(levels=its levels) with its
+    gains computes for it alone (to the QP's tolerance)."""
+    inputs, model = states
+    gains, levels = _random_population(0)
+    pop = PopulationController(N, model=model, gains=gains, levels=levels)
+    out = pop.step(**inputs)
+    assert not out.fallback.any()
+    for b in range(N):
+        cfg = ControllerConfig(kp=gains.kp[b], k_theta=gains.k_theta[b], lambda_d=gains.lambda_d[b], c_d=gains.c_d[b],
+                               kq=gains.kq[b], epsilon=1e-4 * gains.jc_weight[b])
+        opt = ControllerOptions(backend="python", jc_nullspace_weight=1e-3 * gains.jc_weight[b],
+                                cartesian_regularization=gains.cartesian_regularization[b])
+        lv = {name: int(levels[b, t]) or None for t, name in enumerate(TASKS)}
+        one = A3CQPController(1, model=model, config=cfg, options=opt, levels=lv)
+        sub = _rows(inputs, [b])
+        for col, name in enumerate(("ik", "ac", "fc")):  # the population zeroes an off task's weights itself
+            if lv[name] is None:
+                sub["weights"] = sub["weights"].clone()
+                sub["weights"][..., col] = 0.0
+        ref = one.step(**sub)
+        assert pop.describe(b) == str(one.hierarchy)
+        np.testing.assert_allclose(_x(out)[b], _x(ref)[0], rtol=0, atol=2e-5 * (1 + np.abs(_x(ref)[0]).max()),
+                                   err_msg=f"robot {b}: {pop.describe(b)}")
+
+
+def test_levels_are_closed_up_and_validated() -> None:
+    pop = PopulationController(2, levels=np.array([[1, 3, 3, 0, 1], [2, 2, 2, 2, 2]]))
+    assert pop.robot_levels.tolist() == [[1, 2, 2, 0, 1], [1, 1, 1, 1, 1]]
+    assert pop.level_count.tolist() == [2, 1]
+    assert pop.describe(0) == "(ik + cartesian_regularizer) / (ac + fc); off: jc"
+    with pytest.raises(InvalidLevelError, match="robot 1, task 'fc'"):
+        pop.set_robot_levels(np.array([[1, 1, 1, 1, 1], [1, 1, 4, 1, 1]]))
+    with pytest.raises(InvalidLevelError, match="shape"):
+        pop.set_robot_levels(np.ones((3, 5), dtype=int))
+    pop.set_levels({"ik": 1, "ac": 2, "fc": 2, "jc": 3, "cartesian_regularizer": None})
+    assert pop.robot_levels.tolist() == [[1, 2, 2, 3, 0]] * 2
+
+
+def test_gains_are_validated() -> None:
+    g = RobotGains.uniform(3)
+    with pytest.raises(InvalidGainError, match="gain lambda_d of robot 1"):
+        PopulationController(3, gains=RobotGains(**{**g.__dict__, "lambda_d": np.array([1.0, 0.0, 1.0])}))
+    with pytest.raises(InvalidGainError, match="one value per robot"):
+        PopulationController(3, gains=RobotGains(**{**g.__dict__, "kp": np.ones(2)}))
+    with pytest.raises(InvalidGainError, match="native"):
+        PopulationController(3, options=ControllerOptions(backend="native"))
