@@ -178,6 +178,11 @@ class A2CConfig:
     """Fraction in [0, 1) of the run, at its end, whose parameters policy.pt averages uniformly (stochastic weight
     averaging, Izmailov et al. 2018; for A2C, Nikishin et al. 2018). 0 = the last parameters (the paper). Training
     itself uses the raw parameters; the average only smooths the noise the last updates leave in the saved policy."""
+    init_policy: str | None = None
+    """Fine-tuning: a policy.pt (or checkpoint.pt, or run folder) whose parameters the run starts from instead of
+    the random init: every tensor whose name and shape match (the actor, its log σ, the critic where its input has
+    the same width); the rest keeps the init (e.g. a point-mass policy's privileged critic on the Panda env). None:
+    from scratch. Resuming a run restores its own checkpoint instead."""
     checkpoint_every: int = 5000
     """Updates between checkpoints."""
     log_every: int = 250
@@ -213,6 +218,8 @@ class A2CConfig:
             err.add("hidden", f"must be a non-empty list of positive sizes, got {self.hidden}")
         if self.critic == "privileged" and self.network != "separate":
             err.add("critic", "'privileged' needs network: separate (a shared trunk would pass the privileged state to the policy)")
+        if self.init_policy is not None and not self.init_policy.strip():
+            err.add("init_policy", "must be a path to a policy.pt, a checkpoint.pt or a run folder, or null")
 
 
 @dataclass
@@ -868,6 +875,17 @@ class PandaEnvConfig:
     toward the measured state where IK does not lead. "per_axis" (per local axis, so force control on z leaves the
     integral action of eq. 5-7 on the axes IK still tracks; without it the peg stays on the rim, held by friction:
     docs/panda.md) or "min_w1" (one rate for all joints, set by the smallest w1 of the six axes)."""
+    task_blend: Literal["eq35", "eq24"] = "eq35"
+    """How the env's controller blends the three tasks on each axis of L. "eq35": as the point-mass surrogate the
+    adaptation is trained on (eq. 35, a weighted sum: ẍ = w1 ẍ_IK on the acceleration, f* = w2 f_adm + w3 f_ctc on
+    the wrench), i.e. ControllerOptions(cartesian_regularization=1, wrench_blend="weighted_sum"). "eq24": the QP's
+    defaults (γ = 0.01: IK realised in full for any w1 ≫ γ; f* = (w2 f_adm + w3 f_ctc) / (w2 + w3)). With "eq24"
+    the weights w = (0.5, 0, 0.5), f_d = 20 N that the point-mass policy reaches in contact command full IK plus
+    20 N instead of the half-stiffness and 10 N it was trained with. Peg-in-hole, 26 trials, the same point-mass
+    policy: 24/26 with "eq35", 9/26 with "eq24" (docs/panda.md)."""
+    policy: str | None = None
+    """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
+    folder, relative to the working directory (None: --policy is needed for the learned controller)."""
     divergence_speed_factor: float = 3.0
     """A robot whose joint speed exceeds this multiple of its datasheet limit counts as diverged."""
     divergence_penetration: float = 0.01
@@ -882,6 +900,8 @@ class PandaEnvConfig:
         for name in ("e_max_rot", "f_env_max_rot", "f_ope_max_rot", "max_episode_time", "divergence_speed_factor",
                      "divergence_penetration"):
             err.positive(self, name)
+        if self.policy is not None and not self.policy.strip():
+            err.add("policy", "must be a path to a policy.pt or a run folder, or null")
         bad = [a for a in self.fd_axes if a not in ("x", "y", "z")]
         if bad or len(set(self.fd_axes)) != len(self.fd_axes):
             err.add("fd_axes", f"must be distinct names among x, y, z, got {list(self.fd_axes)}")

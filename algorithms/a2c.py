@@ -41,7 +41,7 @@ from a3cqp_rl.config import A2CConfig, ExperimentConfig
 from a3cqp_rl.timing import Timer, process_age
 from algorithms.a2c_run import Checkpoints, ParameterAverage, RegionChecks, SigintCheckpoint, open_run_folder
 from algorithms.networks import LOG_2PI, ParamLayout, backward, forward, policy_forward
-from algorithms.policy import load_actor, load_policy
+from algorithms.policy import init_from_policy, load_actor, load_policy
 from algorithms.rmsprop import clip_grad_norm_, rmsprop_step_
 from a3cqp_rl.regions import REGION_COLUMNS
 from algorithms.run_log import CSV_COLUMNS, METRICS, RunLog, truncate_csv
@@ -556,6 +556,11 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     fused = getattr(type(env), "fused_functions", None) is not None and hp.rollout == "auto" and spec.unit_bounds()
     layout = ParamLayout(spec.obs_dim, spec.act_dim, hp.hidden, hp.network, _critic_input_dim(env, hp, fused, spec.obs_dim))
     flat = layout.init(gen, hp.log_std_init)
+    if hp.init_policy is not None and not resume:
+        copied = init_from_policy(hp.init_policy, layout, flat, spec.low, spec.high)
+        fresh = [k for k in layout.offsets if k not in copied]
+        print(f"a2c: starting from {hp.init_policy} ({len(copied)} of {len(layout.offsets)} tensors"
+              + (f"; initialised afresh: {', '.join(fresh)}" if fresh else "") + ")")
     square_avg = torch.full_like(flat, hp.rms_init)
     if fused and (hp.lr_schedule != "constant" or hp.reward_scale != 1.0):
         raise ValueError("a2c.lr_schedule and a2c.reward_scale apply to the TorchRL rollout (a2c.rollout: torchrl); "

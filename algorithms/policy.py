@@ -95,6 +95,33 @@ def load_policy(path: str | Path) -> A2CPolicy:
         raise CheckpointError(f"{path}: {exc}") from None
 
 
+def init_from_policy(path: str | Path, layout: ParamLayout, flat: Tensor, low: tuple | None = None,
+                     high: tuple | None = None) -> list[str]:
+    """Copy into `flat` (in place) the tensors of a saved policy whose name and shape match `layout`; their names.
+
+    A2CConfig.init_policy (fine-tuning). CheckpointError when nothing of the actor fits or the action bounds differ
+    (the network's outputs are in normalised units of the bounds it was trained with)."""
+    path = Path(path)
+    path = path / "policy.pt" if path.is_dir() else path
+    data = load_checkpoint(path, ("flat", "layout"))
+    obs_dim, act_dim, hidden, network, critic_dim = layout_key(data["layout"])
+    src = ParamLayout(obs_dim, act_dim, hidden, network, critic_dim).views(data["flat"].to(flat.dtype))
+    if low is not None and "action_low" in data:
+        if [float(v) for v in data["action_low"]] != list(low) or [float(v) for v in data["action_high"]] != list(high):
+            raise CheckpointError(f"{path}: action bounds {data['action_low']}..{data['action_high']} differ from the "
+                                  f"env's {list(low)}..{list(high)}")
+    dst = layout.views(flat)
+    copied = [k for k, t in dst.items() if k in src and src[k].shape == t.shape]
+    actor = [k for k in dst if k.startswith("pi.") or k == "log_std" or k.startswith("trunk.")]
+    if not set(actor) <= set(copied):
+        raise CheckpointError(f"{path}: its actor (obs {obs_dim}, act {act_dim}, hidden {list(hidden)}, {network}) "
+                              f"does not fit this run's (obs {layout.obs_dim}, act {layout.act_dim}, hidden "
+                              f"{list(layout.hidden)}, {layout.network})")
+    for k in copied:
+        dst[k].copy_(src[k])
+    return copied
+
+
 def load_actor(path: str | Path, sample: bool = False):
     """OUT/policy.pt as a TorchRL ProbabilisticActor ("observation" -> "action"); the mean unless `sample`."""
     from tensordict.nn import InteractionType, TensorDictModule

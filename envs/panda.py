@@ -41,12 +41,18 @@ from a3cqp_rl.control.frames import pose_error
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaModel, PandaSim
 from envs.scenarios import Operator, Scene, SceneInput, make_scene, rotvec_to_matrix
 
-__all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS"]
+__all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS", "TASK_BLENDS"]
 
 logger = logging.getLogger(__name__)
 
 AXES = ("x", "y", "z", "rx", "ry", "rz")
 """The six agents: translations then rotations along/about the local frame L."""
+TASK_BLENDS = {"eq35": {"cartesian_regularization": 1.0, "wrench_blend": "weighted_sum"},
+               "eq24": {"cartesian_regularization": ControllerOptions.cartesian_regularization,
+                        "wrench_blend": "normalized"}}
+"""ControllerOptions of PandaEnvConfig.task_blend: "eq35" makes the QP's per-axis blend the weighted sum of the
+point-mass surrogate (eq. 35): J q̈* = w1 ẍ_IK (the regularizer weighs the rest of ẍ with 1 − w1) and
+f* = w2 f_adm + w3 f_ctc (IK's weight pulls f toward zero); "eq24" keeps the controller's defaults."""
 INFO_KEYS = ("e_local", "f_env_local", "f_ope_local", "weights", "f_d", "phase", "time", "diverged")
 """Per-step entries written next to `observation` (plus the scene's signals, e.g. the peg's misalignment)."""
 
@@ -120,7 +126,8 @@ class PandaEnv(EnvBase):
         self.sim = PandaSim(n, tool=tool, scene=self.scene.mjcf(), q0=PANDA_HOME, timestep=self.dt, control_site="tcp")
         # one diverging arm must not make MuJoCo reset the whole batch (its default on bad qpos/qvel/qacc)
         self.sim.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
-        opts = dataclasses.replace(controller_options or ControllerOptions(), leak_axes=self.pcfg.state_leak)
+        opts = dataclasses.replace(controller_options or ControllerOptions(), leak_axes=self.pcfg.state_leak,
+                                   **TASK_BLENDS[self.pcfg.task_blend])
         self.ctrl = (controller_factory or A3CQPController)(n, model=self.model, config=cfg.controller, options=opts)
         self._geom_arm = self._geom_arms()
         lim = PANDA_LIMITS

@@ -1,6 +1,6 @@
 """`a3cqp evaluate --scene peg_in_hole|polishing|guidance`: the learned policy and scripted baselines on the same trials.
 
-    a3cqp evaluate --scene peg_in_hole --policy runs/pm_default/policy.pt --trials 26 [--seed 0] [--json F]
+    a3cqp evaluate --scene peg_in_hole [--policy runs/pm_default/policy.pt] --trials 26 [--seed 0] [--json F]
                    [--config configs/panda_peg_in_hole.yaml] [--controllers learned,ik,ik_fc,equal,vic]
                    [--cycles 1] [--out RUN] [--controller-config PICK.yaml [PICK.yaml ...]]
 
@@ -115,7 +115,8 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
              progress: bool = True, fixed: Sequence = ()) -> EvalResult:
     """Run every controller on the same `trials` trials of `scene` (one batched simulation); return the metrics.
 
-    `fixed`: FixedControllerConfig objects run after `controllers` under their own names."""
+    `policy_path` None: the config's panda.policy (for the learned controller). `fixed`: FixedControllerConfig
+    objects run after `controllers` under their own names."""
     from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict
     from envs.panda import PandaEnv
     from envs.panda_fixed import FixedArms
@@ -130,8 +131,10 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
         raise ValueError(f"unknown controller(s) {unknown}; choose from {list(CONTROLLERS)}")
     policy = None
     if "learned" in controllers:
+        policy_path = policy_path if policy_path is not None else cfg.panda.policy
         if policy_path is None:
-            raise ValueError("the learned controller needs --policy PATH (or leave it out of --controllers)")
+            raise ValueError("the learned controller needs --policy PATH or panda.policy (or leave it out of "
+                             "--controllers)")
         from algorithms.a2c import load_policy
 
         policy = load_policy(policy_path)
@@ -318,7 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     """CLI entry for `a3cqp evaluate --scene ...`; returns an exit code."""
     p = argparse.ArgumentParser(prog="a3cqp evaluate", description=__doc__.splitlines()[0])
     p.add_argument("--scene", required=True, choices=["peg_in_hole", "polishing", "guidance"])
-    p.add_argument("--policy", default=None, help="policy.pt of the learned controller (a run folder also works)")
+    p.add_argument("--policy", default=None, help="policy.pt of the learned controller (a run folder also works; "
+                   "default: the config's panda.policy)")
     p.add_argument("--trials", type=int, default=26, help="trials per controller (default: 26, Table VI's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--config", default=None, help="YAML config (default: configs/panda_<scene>.yaml if present)")
@@ -344,11 +348,13 @@ def main(argv: list[str] | None = None) -> int:
         if cfg_path is None and default.is_file():
             cfg_path = default
         cfg = load_config(cfg_path)
-        policy = args.policy
+        policy = args.policy if args.policy is not None else cfg.panda.policy  # the CLI's path wins
         if policy is not None and Path(policy).is_dir():
             policy = Path(policy) / "policy.pt"
         if policy is not None and not Path(policy).is_file():
-            raise FileNotFoundError(f"policy file not found: {policy}")
+            where = "" if args.policy is not None else (f" (panda.policy of {cfg_path}: train it, pass --policy PATH, "
+                                                         "or leave learned out of --controllers)")
+            raise FileNotFoundError(f"policy file not found: {policy}{where}")
         controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
         if policy is None and "learned" in controllers:
             controllers = tuple(c for c in controllers if c != "learned")

@@ -363,3 +363,35 @@ def test_tensorboard_scalars_match_metrics_csv_and_a_resume_hides_the_killed_run
     assert [e.value for e in loss] == pytest.approx([float(r["policy_loss"]) for r in rows], rel=1e-6)
     checks = [int(r["step"]) for r in rows if r["regions_ok"] != "nan"]
     assert [e.step for e in events.Scalars("a2c/regions_ok")] == checks  # NaN cells are not logged
+
+
+def test_init_policy_starts_from_a_saved_actor_and_keeps_a_critic_that_does_not_fit(tmp_path):
+    from a3cqp_rl.checkpoint import save_atomic
+    from algorithms.policy import init_from_policy
+
+    # a point-mass-style file with a privileged critic (input 3 + 3) onto a run whose critic reads eq. 26 only
+    src = ParamLayout(3, 4, (8, 6), "separate", 6)
+    flat_src = src.init(torch.Generator().manual_seed(1), -0.3)
+    save_atomic({"format": 1, "flat": flat_src, "layout": [3, 4, [8, 6], "separate", 6],
+                 "action_low": [-1.0] * 4, "action_high": [1.0] * 4}, tmp_path / "pm" / "policy.pt")
+    dst = ParamLayout(3, 4, (8, 6), "separate")
+    flat = dst.init(torch.Generator().manual_seed(2), -0.5)
+    before = dst.views(flat.clone())
+    copied = init_from_policy(tmp_path / "pm", dst, flat, (-1.0,) * 4, (1.0,) * 4)
+    got, want = dst.views(flat), src.views(flat_src)
+    assert "vf.0.w" not in copied and torch.equal(got["vf.0.w"], before["vf.0.w"])
+    for k in ("pi.0.w", "pi.1.b", "pi.out.w", "log_std", "vf.1.w", "vf.out.b"):
+        assert k in copied and torch.equal(got[k], want[k])
+    with pytest.raises(CheckpointError, match="action bounds"):
+        init_from_policy(tmp_path / "pm", dst, flat, (-2.0,) * 4, (2.0,) * 4)
+    with pytest.raises(CheckpointError, match="does not fit"):
+        wide = ParamLayout(3, 4, (16, 6), "separate")
+        init_from_policy(tmp_path / "pm", wide, wide.init())
+    # through train(): a run with a vanishing learning rate saves the actor it started from
+    cfg = config_from_dict({"a2c": {"compile": False, "hidden": [8, 6], "learning_rate": 1e-30, "critic": "privileged",
+                                    "init_policy": str(tmp_path / "pm" / "policy.pt"), "log_every": 5}})
+    train(cfg, tmp_path / "run", total_steps=16 * 10)
+    saved = torch.load(tmp_path / "run" / "policy.pt", weights_only=True)
+    run = ParamLayout(*saved["layout"]).views(saved["flat"])
+    for k in ("pi.0.w", "pi.0.b", "pi.1.w", "pi.out.w", "pi.out.b", "log_std"):
+        assert torch.allclose(run[k], want[k], atol=1e-6)

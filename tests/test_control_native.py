@@ -73,10 +73,12 @@ OPTION_VARIANTS = [
     {"joint_limit_target": "qdd", "torque_limits": False, "cartesian_regularization": 0.0},
     {"joint_limits_include_f_ext": True, "jc_nullspace_weight": 0.0, "desired_state_leak": 0.0},
     {"leak_axes": "per_axis", "desired_state_leak": 30.0},
+    {"wrench_blend": "weighted_sum", "cartesian_regularization": 1.0},
 ]
 
 
-@pytest.mark.parametrize("options", OPTION_VARIANTS, ids=["default", "paper-forms", "qdd-target", "f_ext", "per-axis-leak"])
+@pytest.mark.parametrize("options", OPTION_VARIANTS, ids=["default", "paper-forms", "qdd-target", "f_ext", "per-axis-leak",
+                                                          "weighted-sum"])
 @pytest.mark.parametrize("near_limits", [False, True], ids=["inside", "near-limits"])
 def test_native_qp_equals_the_python_objects(options: dict, near_limits: bool) -> None:
     inputs, model = random_inputs(N, seed=3 + near_limits, near_limits=near_limits)
@@ -104,11 +106,11 @@ def test_native_qp_equals_the_python_objects(options: dict, near_limits: bool) -
 
 
 def closed_loop(backend: str, steps: int, n: int = 3, seed: int = 0, scene: str = "",
-                leak_axes: str = "min_w1") -> tuple[list, A3CQPController]:
+                leak_axes: str = "min_w1", **options) -> tuple[list, A3CQPController]:
     """Torques and statuses of a closed loop with random weight switching every 20 ms and a push on arm 0."""
     gen = torch.Generator().manual_seed(seed)
     sim = PandaSim(n, control_site="tcp", scene=scene)
-    ctrl = A3CQPController(n, options=ControllerOptions(backend=backend, leak_axes=leak_axes))
+    ctrl = A3CQPController(n, options=ControllerOptions(backend=backend, leak_axes=leak_axes, **options))
     s = sim.observe()
     pos_d = s.kin.pos + 0.1 * (torch.rand(n, 3, generator=gen, dtype=torch.float64) - 0.5)
     rot_d = s.kin.rot.clone()
@@ -126,10 +128,12 @@ def closed_loop(backend: str, steps: int, n: int = 3, seed: int = 0, scene: str 
     return out_log, ctrl
 
 
-@pytest.mark.parametrize("leak_axes", ["min_w1", "per_axis"])
-def test_native_closed_loop_equals_python(leak_axes: str) -> None:
-    py, _ = closed_loop("python", 300, leak_axes=leak_axes)
-    nat, ctrl = closed_loop("native", 300, leak_axes=leak_axes)
+@pytest.mark.parametrize("leak_axes,options", [("min_w1", {}), ("per_axis", {}),
+                                               ("per_axis", {"wrench_blend": "weighted_sum"})],
+                         ids=["min_w1", "per_axis", "per_axis-weighted-sum"])
+def test_native_closed_loop_equals_python(leak_axes: str, options: dict) -> None:
+    py, _ = closed_loop("python", 300, leak_axes=leak_axes, **options)
+    nat, ctrl = closed_loop("native", 300, leak_axes=leak_axes, **options)
     assert ctrl._native is not None
     for k, (a, b) in enumerate(zip(py, nat)):
         for f in ("tau", "qdd", "wrench", "qdd_pd", "pose_error", "f_adm", "f_ctc"):
@@ -194,7 +198,7 @@ def test_parameters_come_from_the_objects_and_the_c_table() -> None:
     ctrl = A3CQPController(1)
     lib = native.load()
     c_names = [name for name, _ in lib.Params._fields_]
-    assert len(c_names) == len(set(c_names)) == 39
+    assert len(c_names) == len(set(c_names)) == 40
     # every C field is set by exactly one owner: a task, a limit or the step
     owners = {}
     for piece in [*ctrl.tasks, *ctrl.limits]:

@@ -203,6 +203,31 @@ def test_wrench_feedforward_is_the_unconstrained_wrench_optimum() -> None:
     assert grad.abs().max() < 1e-8
 
 
+def test_weighted_sum_wrench_blend_is_eq35_per_local_axis() -> None:
+    ctrl, ctx = make_context(seed=18, options=ControllerOptions(wrench_blend="weighted_sum"))
+    f_ff = ctrl.wrench_feedforward(ctx)
+    res = ctrl.task_residuals(ctx)
+    ac, fc, ik_f = res["ac"], res["fc"], res["ik_wrench"]
+    # stationarity of ½‖f − f_adm‖²_W2 + ½‖f − f_ctc‖²_W3 + ½‖f‖²_W1 + ½ r‖f‖²
+    grad = mv(ac.W, f_ff - ac.b) + mv(fc.W, f_ff - fc.b) + mv(ik_f.W, f_ff) + ctrl.options.regularization * f_ff
+    assert grad.abs().max() < 1e-8
+    # w1 + w2 + w3 = 1 per local axis: f*^L = w2 f_adm^L + w3 f_ctc^L (eq. 35), up to the regularizer r
+    local = lambda f: mv(ctx.D.mT, f)  # noqa: E731
+    w = ctx.weights_local
+    expected = w[..., 1] * local(ac.b) + w[..., 2] * local(fc.b)
+    assert torch.allclose(local(f_ff), expected, atol=1e-3 * expected.abs().max().item())
+    normalized, _ = make_context(seed=18)
+    assert not torch.allclose(normalized.wrench_feedforward(_), f_ff, atol=1e-3)
+
+
+def test_weighted_sum_wrench_blend_refuses_strict_levels() -> None:
+    ctrl = A3CQPController(1, options=ControllerOptions(wrench_blend="weighted_sum"))
+    with pytest.raises(InvalidGainError, match="weighted_sum"):
+        ctrl.set_levels([1, 2, 2, 3, 3])
+    with pytest.raises(InvalidGainError, match="wrench_blend"):
+        A3CQPController(1, options=ControllerOptions(wrench_blend="sum"))
+
+
 def test_cartesian_regularizer_weights_only_non_ik_axes() -> None:
     w = torch.zeros(B, 6, 3, dtype=torch.float64)
     w[:, :3, 0], w[:, 3:, 2] = 1.0, 1.0  # IK on the local forces' axes, FC on the rotations

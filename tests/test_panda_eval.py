@@ -6,8 +6,12 @@ import json
 
 import numpy as np
 import pytest
+import torch
+import yaml
 
+from a3cqp_rl.checkpoint import save_atomic
 from a3cqp_rl.config import config_from_dict
+from algorithms.networks import ParamLayout
 from envs.panda_eval import PAPER_TABLE_VI, evaluate, format_table, main, to_json
 
 FAST = {"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "align_time": 2.0, "time_limit": 2.0,
@@ -47,3 +51,23 @@ def test_main_reports_bad_input_in_one_line(tmp_path, capsys) -> None:  # noqa: 
     assert main(["--scene", "peg_in_hole", "--trials", "0"]) == 2
     with pytest.raises(SystemExit):
         main(["--scene", "kitchen"])
+
+
+def test_main_takes_the_learned_policy_from_the_config(tmp_path, capsys) -> None:  # noqa: ANN001
+    path = tmp_path / "pol" / "policy.pt"
+    layout = ParamLayout(3, 4, (64, 64), "separate")
+    save_atomic({"format": 1, "flat": layout.init(torch.Generator().manual_seed(0), 0.0),
+                 "layout": [3, 4, [64, 64], "separate", 3]}, path)
+    cfg = tmp_path / "peg.yaml"
+    cfg.write_text(yaml.safe_dump({"env": "panda", "panda": {**FAST["panda"], "policy": str(path.parent)}}))
+    out = tmp_path / "res.json"
+    assert main(["--scene", "peg_in_hole", "--config", str(cfg), "--controllers", "learned", "--trials", "1",
+                 "--quiet", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["controller"] == "learned" and doc["trials"] == 1
+    # a configured policy that is missing: one line naming panda.policy
+    cfg.write_text(yaml.safe_dump({"env": "panda", "panda": {**FAST["panda"], "policy": str(tmp_path / "no.pt")}}))
+    capsys.readouterr()
+    assert main(["--scene", "peg_in_hole", "--config", str(cfg), "--controllers", "learned", "--trials", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "panda.policy" in err and "no.pt" in err and "Traceback" not in err

@@ -222,7 +222,6 @@ def test_plot_ga_cli(tmp_path):
 
 
 def test_behaviour_fitness_trains_and_evaluates(tmp_path):
-    pytest.importorskip("envs.point_mass_eval")
     cfg = _cfg(1, steps_per_trial=2000, fitness="behaviour")
     genes = make_problem(cfg).spec.decode(np.full((1, 5), 0.5))
     value = ga_mod.behaviour(genes, cfg)

@@ -73,6 +73,14 @@ class ControllerOptions:
     peg-in-hole the scripted IK + FC trigger succeeds in 26/26 trials with "per_axis" and 3/26 with "min_w1"
     (friction holds the peg on the rim); on a flat table "per_axis" presses 10.8 N for f_d = 10 N (the IK axes'
     integral terms push through Λ's coupling) where "min_w1" presses 10.0 N."""
+    wrench_blend: Literal["normalized", "weighted_sum"] = "normalized"
+    """How the wrench sub-problem (eq. 24b) shares f* out on each axis of L. "normalized" (default, eq. 24b):
+    f* = (w2 f_adm + w3 f_ctc) / (w2 + w3), so an axis IK leads still commands the AC/FC mix at full size (on the
+    Panda, ½ f_adm on the rotational axes where w2 and w3 both sit at eq. 29's floor). "weighted_sum": IK's weight
+    counts in that sub-problem as a zero-wrench reference (‖f‖² weighted by W1), so with w1 + w2 + w3 = 1
+    f* = w2 f_adm + w3 f_ctc: the weighted sum of the point-mass surrogate the adaptation is trained on (eq. 35),
+    and "the optimization variable not associated with any active task is set to null" (section III-A) also when
+    the weights of the idle tasks are small but not zero."""
     joint_limit_target: Literal["total", "qdd"] = "total"
     """What the viable joint bounds constrain: the commanded total acceleration (default) or q̈* only (eq. 24a)."""
     joint_limits_include_f_ext: bool = False
@@ -305,6 +313,8 @@ class A3CQPController:
         self._native: native.NativeStep | None = None
         if opt.leak_axes not in ("per_axis", "min_w1"):
             raise InvalidGainError(f"leak_axes must be 'per_axis' or 'min_w1', got {opt.leak_axes!r}")
+        if opt.wrench_blend not in ("normalized", "weighted_sum"):
+            raise InvalidGainError(f"wrench_blend must be 'normalized' or 'weighted_sum', got {opt.wrench_blend!r}")
         if opt.backend not in ("auto", "python", "native"):
             raise InvalidGainError(f"backend must be 'auto', 'python' or 'native', got {opt.backend!r}")
         if opt.backend != "python":
@@ -319,6 +329,9 @@ class A3CQPController:
     def set_levels(self, levels: Mapping[str, int | None] | Sequence[int | None] | None) -> None:
         """Put each task in a strict level 1..3 or off (None); None: every task in level 1 (see `__init__`)."""
         hierarchy = Hierarchy.of([t.name for t in self.tasks], levels)
+        if not hierarchy.is_flat and self.options.wrench_blend == "weighted_sum":
+            raise InvalidGainError("wrench_blend='weighted_sum' weighs IK against AC and FC in one level; "
+                                   f"it has no meaning with strict levels ({hierarchy})")
         if not hierarchy.is_flat and self.options.backend == "native":
             raise InvalidGainError(f"backend='native' translates one level with every task active, not {hierarchy}")
         self.hierarchy = hierarchy
@@ -341,7 +354,8 @@ class A3CQPController:
                        "wrench_ff": float(opt.ik_wrench_feedforward), "pd_pinv": float(opt.pd_projection == "pinv"),
                        "reg": opt.regularization, "pinv_damping": opt.pinv_damping,
                        "nullspace_damping": opt.nullspace_damping, "tau_clip": self.tau_max.numpy(),
-                       "leak": self.dt * opt.desired_state_leak, "leak_per_axis": float(opt.leak_axes == "per_axis")}
+                       "leak": self.dt * opt.desired_state_leak, "leak_per_axis": float(opt.leak_axes == "per_axis"),
+                       "wrench_sum": float(opt.wrench_blend == "weighted_sum")}
         return native.compose_params([(type(t).__name__, t.c_params()) for t in self.tasks],
                                      [(type(x).__name__, x.c_params()) for x in self.limits], step_fields)
 
@@ -417,7 +431,8 @@ class A3CQPController:
     def wrench_feedforward(self, ctx: ControlContext, residuals: dict[str, Residual] | None = None) -> Array:
         """Unconstrained optimum of the wrench sub-problem (eq. 24b): (W2 + W3 + r I)⁻¹(W2 f_adm + W3 f_ctc) [B, 6].
 
-        With W_i = D diag(w_i) Dᵀ (eq. 8) the inverse is D diag(1 / (w2 + w3 + r)) Dᵀ, computed per local axis.
+        With W_i = D diag(w_i) Dᵀ (eq. 8) the inverse is D diag(1 / (w2 + w3 + r)) Dᵀ, computed per local axis;
+        wrench_blend "weighted_sum" adds W1 (IK's zero-wrench reference) to the inverted sum.
         """
         if residuals is None:
             residuals = {t.name: t.residual(ctx) for t in self.tasks if isinstance(t, (Admittance, ForceControl))}
@@ -431,7 +446,13 @@ class A3CQPController:
         w = ctx.weights_local[..., 1:3] if cols == [1, 2] else ctx.weights_local[..., cols]  # (B, 6, R)
         num = (w * local).sum(-1)
         den = w.sum(-1) + self.options.regularization
+        if self.options.wrench_blend == "weighted_sum":  # IK's zero-wrench reference (ControllerOptions)
+            den = den + ctx.weights_local[..., 0]
         return mv(ctx.D, num / den)
+
+    def _ik_wrench(self, ctx: ControlContext) -> Residual:
+        """‖f‖² weighted by W1 (ControllerOptions.wrench_blend "weighted_sum"): along the axes IK leads, no wrench."""
+        return Residual(A=None, b=zeros((ctx.batch, 6), ctx.q), W=ctx.W1, col=N_QDD)
 
     def task_residuals(self, ctx: ControlContext) -> dict[str, Residual]:
         """Residuals of the active tasks by name (kept in `self.residuals`; their b are the references f_adm, ...).
@@ -445,6 +466,9 @@ class A3CQPController:
         for task in active:
             if task.name not in residuals:
                 residuals[task.name] = task.residual(ctx)
+        if self.options.wrench_blend == "weighted_sum" and any(isinstance(t, (Admittance, ForceControl))
+                                                                for t in active):
+            residuals["ik_wrench"] = self._ik_wrench(ctx)
         self.residuals = residuals
         return residuals
 

@@ -45,7 +45,8 @@
     A(wrench_max, 6)                         /* WrenchBox */                                                       \
     S(mu)                                    /* FrictionPyramid */                                                 \
     S(has_torque_limits) A(torque_max, 7) S(torque_safe) /* TorqueLimits (scaled τ̄), anchored to the brake */      \
-    A(tau_clip, 7) S(leak) S(leak_per_axis)  /* torque clip ±τ_max; Δt · desired_state_leak; leak_axes */
+    A(tau_clip, 7) S(leak) S(leak_per_axis)  /* torque clip ±τ_max; Δt · desired_state_leak; leak_axes */   \
+    S(wrench_sum)                            /* ControllerOptions.wrench_blend == "weighted_sum" */
 
 #define DECLARE_S(f) double f;
 #define DECLARE_A(f, n) double f[n];
@@ -319,7 +320,8 @@ static void assemble_one(const a3cqp_params *p, const double *q, const double *q
         mtv(6, 6, cx.D, f_adm, la);
         mtv(6, 6, cx.D, f_ctc, lc);
         for (int i = 0; i < 6; i++)
-            r[i] = (w[i * 3 + 1] * la[i] + w[i * 3 + 2] * lc[i]) / (w[i * 3 + 1] + w[i * 3 + 2] + p->reg);
+            r[i] = (w[i * 3 + 1] * la[i] + w[i * 3 + 2] * lc[i])
+                   / (w[i * 3 + 1] + w[i * 3 + 2] + p->reg + (p->wrench_sum != 0.0 ? w[i * 3] : 0.0));
         mv(6, 6, cx.D, r, f_ff);
     }
     /* CartesianIK (eq. 10-11): J q̈ = ẍ_d − J̇q̇ − Λ⁻¹ f_ff */
@@ -346,13 +348,15 @@ static void assemble_one(const a3cqp_params *p, const double *q, const double *q
     double a2[6], a3[6];
     mv(6, 6, W2, f_adm, a2);
     mv(6, 6, W3, f_ctc, a3);
+    /* wrench_blend "weighted_sum": + W1 (IK's zero-wrench reference, A3CQPController._ik_wrench) */
+    double Wf[36];
+    for (int i = 0; i < 36; i++) Wf[i] = (W2[i] + W3[i]) + (p->wrench_sum != 0.0 ? W1[i] : 0.0);
     /* A3CQPController._assemble: P = ½ (H + Hᵀ) + r I on the block diagonal, c */
     memset(P, 0, sizeof(double) * NV * NV);
     for (int i = 0; i < 7; i++)
         for (int j = 0; j < 7; j++) P[i * NV + j] = 0.5 * (Hqq[i * 7 + j] + Hqq[j * 7 + i]);
     for (int i = 0; i < 6; i++)
-        for (int j = 0; j < 6; j++)
-            P[(i + 7) * NV + j + 7] = 0.5 * ((W2[i * 6 + j] + W3[i * 6 + j]) + (W2[j * 6 + i] + W3[j * 6 + i]));
+        for (int j = 0; j < 6; j++) P[(i + 7) * NV + j + 7] = 0.5 * (Wf[i * 6 + j] + Wf[j * 6 + i]);
     for (int i = 0; i < NV; i++) P[i * NV + i] += p->reg;
     for (int i = 0; i < 7; i++) c[i] = gqq[i];
     for (int i = 0; i < 6; i++) c[7 + i] = -(a2[i] + a3[i]);
