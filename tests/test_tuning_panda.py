@@ -96,11 +96,12 @@ def test_pareto_run_pick_is_evaluated(tmp_path: Path, capsys) -> None:  # noqa: 
 
 
 def test_evaluate_cli_reports_a_bad_controller_config_in_one_line(tmp_path: Path, capsys) -> None:  # noqa: ANN001
-    assert main(["--scene", "peg_in_hole", "--controller-config", str(tmp_path / "missing.yaml")]) == 2
+    assert main(["--scene", "peg_in_hole", "--controllers", "ik", "--controller-config",
+                 str(tmp_path / "missing.yaml")]) == 2
     assert "controller config not found" in capsys.readouterr().err
     plain = tmp_path / "plain.yaml"
     plain.write_text("seed: 1\n")
-    assert main(["--scene", "peg_in_hole", "--controller-config", str(plain)]) == 2
+    assert main(["--scene", "peg_in_hole", "--controllers", "ik", "--controller-config", str(plain)]) == 2
     assert "no fixed_controller section" in capsys.readouterr().err
 
 
