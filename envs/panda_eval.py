@@ -348,18 +348,20 @@ def main(argv: list[str] | None = None) -> int:
         if cfg_path is None and default.is_file():
             cfg_path = default
         cfg = load_config(cfg_path)
+        controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
+        fixed = [load_fixed_controller(f) for f in args.controller_config]
         policy = args.policy if args.policy is not None else cfg.panda.policy  # the CLI's path wins
+        if "learned" not in controllers:
+            policy = None  # no policy is read: a configured one need not exist
         if policy is not None and Path(policy).is_dir():
             policy = Path(policy) / "policy.pt"
         if policy is not None and not Path(policy).is_file():
             where = "" if args.policy is not None else (f" (panda.policy of {cfg_path}: train it, pass --policy PATH, "
                                                          "or leave learned out of --controllers)")
             raise FileNotFoundError(f"policy file not found: {policy}{where}")
-        controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
         if policy is None and "learned" in controllers:
             controllers = tuple(c for c in controllers if c != "learned")
             print("no --policy given: evaluating the baselines only", file=sys.stderr)
-        fixed = [load_fixed_controller(f) for f in args.controller_config]
         res = evaluate(args.scene, policy, args.trials, args.seed, cfg, controllers, args.cycles,
                        progress=not args.quiet, fixed=fixed)
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
