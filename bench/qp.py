@@ -11,6 +11,7 @@ as a user of those packages would call them (`pip install .[bench]`).
 
     python bench/qp.py [--quick] [--threads T] [--batches 1 64 1024] [--spread 0.35] [--clock cpu]
     python bench/qp.py --check [--sweep 30]
+    python bench/qp.py --blocks [--clock cpu]      # B = 1, each variant in blocks of 100 consecutive calls
 
 --clock cpu times with this thread's CPU time instead of wall time: on a machine shared with other jobs a 2 ms
 sample (B = 1024) that waits one 4 ms scheduler tick for a core reads 3x slower, and medians of wall time then
@@ -35,7 +36,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from a3cqp_rl.qp import solve_qp
+from a3cqp_rl.qp import qp_vjp, solve_qp
 from a3cqp_rl.qp.random_qp import RandomQP, clarabel_reference, random_qp_batch
 
 N_VARS, N_ROWS = 13, 30
@@ -62,14 +63,24 @@ def _weights(qp: RandomQP) -> torch.Tensor:
 # ------------------------------------------------------------------------------------------------
 
 
-def ours(qp: RandomQP, warm: bool = False):
-    """a3cqp_rl.qp.solve_qp (cold, or warm-started from the solution of the same batch)."""
+def ours(qp: RandomQP, warm: bool = False, vjp: bool = False):
+    """a3cqp_rl.qp.solve_qp (cold, or warm-started from the solution of the same batch); backward by autograd, or
+    with `vjp` by `qp_vjp` (the same gradients of Σ w·x with respect to P, q, G, h, without an autograd graph)."""
     sol0 = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h) if warm else None
 
     def fwd():
         return solve_qp(qp.P, qp.q, G=qp.G, h=qp.h, warm_start=sol0).x
 
-    w = _weights(qp)
+    w = _weights(qp).contiguous()
+
+    if vjp:
+        def fwd_vjp():
+            sol = solve_qp(qp.P, qp.q, G=qp.G, h=qp.h, warm_start=sol0)
+            g = qp_vjp(sol, w)
+            g.P, g.q, g.G, g.h  # noqa: B018 (every gradient made into a tensor, as autograd's .grad are)
+            return sol.x
+
+        return fwd, fwd_vjp
 
     def fwd_bwd():
         leaves = [t.detach().clone().requires_grad_() for t in (qp.P, qp.q, qp.G, qp.h)]
@@ -422,6 +433,54 @@ def check(sweep: int) -> int:
     return 0
 
 
+def blocks(repeats: int = 21, calls: int = 100) -> int:
+    """B = 1 timed in blocks of `calls` consecutive calls per variant (medians over `repeats` rounds; CPU clock).
+
+    The round robin of `main` runs each solver right after the others, which at B = 1 costs every one of them
+    cache and branch-predictor warmth (its medians move by 1-2 µs with the position in the round); here each
+    variant runs alone for its block, as in a control loop that calls one solver again and again."""
+    import daqp
+
+    qp = random_qp_batch(1, N_VARS, N_ROWS, seed=1001)
+    w = _weights(qp).contiguous()
+    P, q, G, h = qp.P, qp.q, qp.G, qp.h
+    H, f, C, bu = (np.ascontiguousarray(t[0].numpy()) for t in (P, q, G, h))
+    bl, sense = np.full(N_ROWS, -1e30), np.zeros(N_ROWS, dtype=np.int32)
+
+    def autograd_harness(solve: Callable) -> Callable:
+        def run() -> None:
+            leaves = [t.detach().clone().requires_grad_() for t in (P, q, G, h)]
+            (solve(*leaves) * w).sum().backward()
+        return run
+
+    def fwd_vjp() -> None:
+        g = qp_vjp(solve_qp(P, q, G=G, h=h), w)
+        g.P, g.q, g.G, g.h  # noqa: B018 (every gradient made into a tensor, as autograd's .grad are)
+
+    variants = {
+        "DAQP daqp.solve": lambda: daqp.solve(H, f, C, bu, bl, sense),
+        "ours forward (solve_qp(...).x)": lambda: solve_qp(P, q, G=G, h=h).x,
+        "ours forward + qp_vjp (P, q, G, h)": fwd_vjp,
+        "ours forward + autograd backward": autograd_harness(lambda P_, q_, G_, h_: solve_qp(P_, q_, G=G_, h=h_).x),
+        "autograd harness alone (x = q · 1)": autograd_harness(lambda P_, q_, G_, h_: q_ * 1.0),
+    }
+    samples: dict[str, list[float]] = {k: [] for k in variants}
+    for fn in variants.values():
+        fn()
+    for _ in range(repeats):
+        for name, fn in variants.items():
+            t0 = _clock()
+            for _ in range(calls):
+                fn()
+            samples[name].append((_clock() - t0) / calls * 1e6)
+    daqp_us = statistics.median(samples["DAQP daqp.solve"])
+    print(f"B = 1 in blocks of {calls} calls, medians of {repeats} rounds, {'cpu' if _clock is time.thread_time else 'wall'} clock:")
+    for name, v in samples.items():
+        us = statistics.median(v)
+        print(f"  {name:38s} {us:7.1f} µs   {us / daqp_us:5.2f}x DAQP")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the QP benchmark and print the table and ratios (or, with --check, the status tables); returns 0."""
     parser = argparse.ArgumentParser(prog="a3cqp bench qp", description=__doc__.splitlines()[0])
@@ -433,11 +492,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--clock", choices=["wall", "cpu"], default="wall", help="wall time or this thread's CPU time")
     parser.add_argument("--check", action="store_true", help="status tables of the peer problems instead of timings")
     parser.add_argument("--sweep", type=int, default=30, help="with --check: random members per family and route")
+    parser.add_argument("--blocks", action="store_true", help="B = 1 only, each variant timed in blocks of consecutive calls")
     args = parser.parse_args(argv)
     if args.check:
         return check(args.sweep)
     global _clock
     _clock = time.thread_time if args.clock == "cpu" else time.perf_counter
+    if args.blocks:
+        torch.set_num_threads(args.threads or 1)
+        return blocks(5 if args.quick else 21)
     if args.threads:
         torch.set_num_threads(args.threads)
     threads = torch.get_num_threads()
@@ -448,6 +511,7 @@ def main(argv: list[str] | None = None) -> int:
     peers: list[tuple[str, Callable, str]] = [
         ("a3cqp_rl.qp (cold)", lambda qp: ours(qp), "ours"),
         ("a3cqp_rl.qp (warm)", lambda qp: ours(qp, warm=True), "ours"),
+        ("a3cqp_rl.qp (cold, qp_vjp)", lambda qp: ours(qp, vjp=True), "ours"),
         ("daqp (loop)", daqp_solver, "daqp"),
         ("quadprog (loop)", quadprog_solver, "quadprog"),
         ("piqp (loop)", piqp_solver, "piqp"),

@@ -274,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
     print("one-time = first run's torch.compile + setup inside train() (excluded from steps/s, included in the "
           "projection; later runs in this process reuse the compiled code). SB3: construction not timed.")
     if args.only != "sb3":
-        make_config = str(_ROOT / "configs" / "point_mass_a2c_fig5_fd_1e6.yaml")  # what `make train` runs
+        make_config = str(_ROOT / "configs" / "point_mass_a2c_default.yaml")  # what `make train` runs
         values, line = startup(make_config)
         print(f"start-up of `a3cqp train` ({Path(make_config).name}, 2e5 steps, fresh processes): median "
               f"{statistics.median(values):.2f} s (runs: {', '.join(f'{v:.2f}' for v in values)}), process start to the "

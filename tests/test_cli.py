@@ -52,8 +52,8 @@ def test_final_message_says_when_no_episode_ended():
 
 def test_default_config_works_from_any_directory(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    assert main(["train", "--steps", "32", "--no-compile", "--quiet", "--no-plots", "--timings"]) == 0
-    assert (tmp_path / "runs" / "point_mass_a2c" / "policy.pt").is_file()
+    assert main(["train", "--steps", "512", "--no-compile", "--quiet", "--no-plots", "--timings"]) == 0
+    assert (tmp_path / "runs" / "point_mass_a2c_default" / "policy.pt").is_file()
     assert "timings: start-up " in capsys.readouterr().out  # what the train bench reads
 
 

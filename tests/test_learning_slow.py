@@ -64,3 +64,19 @@ def test_fd_1e6_config_learns_three_of_four_regions_in_1e6_steps(tmp_path, seed)
     results = check_fig5_regions(load_policy(res.policy_path))
     assert sum(r.ok for r in results) >= 3, results
     assert results[1].ok, results  # ẇ3, force control in contact: passed on all five seeds measured
+
+
+@pytest.mark.slow
+def test_default_config_behaves_in_closed_loop(tmp_path):
+    """configs/point_mass_a2c_default.yaml (`make train`; ~2-5 min on 2 cores), seed 100: all four literal regions
+    and every closed-loop check against the five baselines (docs/point_mass.md)."""
+    from envs.point_mass_eval import baseline_policies, behaviour_checks, evaluate
+
+    cfg = load_config(CONFIGS / "point_mass_a2c_default.yaml", {"seed": 100})
+    res = train(cfg, tmp_path)
+    policy = load_policy(res.policy_path)
+    literal = sum(r.literal for r in check_fig5_regions(policy))
+    baselines = baseline_policies()
+    result = evaluate({"policy": policy, **baselines}, episodes=64, seed=0, config=cfg)
+    checks = behaviour_checks(result, "policy", literal, against=list(baselines))
+    assert all(checks.values()), (checks, result.metrics["policy"])

@@ -36,3 +36,15 @@ def test_bench_qp_check_mode_prints_the_family_tables(capsys) -> None:
     assert "| LP |" in out and "| invalid |" in out and "Random family members" in out
     rows = [line.split("|") for line in out.splitlines() if line.startswith("| ") and "family" not in line]
     assert rows and all(int(r[4]) == 0 for r in rows)  # no silent wrong answer anywhere
+
+
+def test_bench_qp_blocks_mode_prints_every_variant_against_daqp(capsys) -> None:
+    pytest.importorskip("daqp")
+    spec = importlib.util.spec_from_file_location("bench_qp_blocks", BENCH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    assert module.main(["--blocks", "--quick"]) == 0
+    out = capsys.readouterr().out
+    lines = [line for line in out.splitlines() if "x DAQP" in line]
+    assert len(lines) == 5 and "1.00x DAQP" in lines[0] and "qp_vjp" in out

@@ -50,7 +50,7 @@ def c_solve(P, q, A, b, G, h, z0=None, tol=1e-9):  # noqa: ANN001
     if z0 is not None:
         z0 = np.ascontiguousarray(np.concatenate([z0, np.zeros((B, 2 * n))], 1))
         warm = (z0, solver_mod.address(z0), m + 2 * n)
-    buf, addr, _ = solver_mod._forward_c(native.load(), *t, None, None, B, n, p, m, warm, tol)
+    buf, addr, _, _ = solver_mod._forward_c(native.load(), *t, None, None, B, n, p, m, warm, tol)
     sol = solver_mod.QPSolution._from_buffer(buf, addr, B, n, p, m)
     return (sol._np("_x"), sol._np("_y"), sol._np("_z"), sol._np("_status"), sol._np("_iterations"))
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from a3cqp_rl.exceptions import A3CQPError
 
-__all__ = ["QPError", "QPShapeError", "QPBackendError", "QPInfeasibleError", "NotAQPError", "NotDPPError"]
+__all__ = ["QPError", "QPShapeError", "QPBackendError", "QPInfeasibleError", "QPGradientError", "NotAQPError", "NotDPPError"]
 
 
 class QPError(A3CQPError):
@@ -21,6 +21,10 @@ class QPBackendError(QPError, ValueError):
 
 class QPInfeasibleError(QPError, RuntimeError):
     """`QPLayer` met instances without a solution (infeasible, unbounded, ...) and was asked to raise."""
+
+
+class QPGradientError(QPError, RuntimeError):
+    """`qp_vjp` cannot give gradients: the solution carries no problem data, or that data changed in place since."""
 
 
 class NotAQPError(QPError, ValueError):

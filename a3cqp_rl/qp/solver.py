@@ -31,9 +31,10 @@ Every route solves in float64; float32 (or lower) inputs are solved in float64, 
 against `tol` in the input's precision (TOLERANCE_NOT_MET if the rounded answer misses it).
 
 Backward: implicit differentiation of the KKT system at the solution (as OptNet/qpth), with the
-active set read from the duals and slacks (z > h − Gx): the C adjoint (`gi_qp_adjoint`) where the C
+active set read from the duals and slacks (z > h − Gx): the C adjoint (`gi_qp_vjp`) where the C
 route solved the batch and P ≻ 0, else the torch adjoint (LU / Schur / augmented Lagrangian, `kkt.py`).
-Gradients flow to every tensor argument through x of SOLVED instances; nothing is unrolled.
+Gradients flow to every tensor argument through x of SOLVED instances; nothing is unrolled.  Without
+autograd, `vjp.qp_vjp(solution, gx)` gives the same gradients of a C-route solution from one C call.
 
 Code: `kkt.py` (working-set solves, the KKT certificate), `active_set.py`, `interior_point.py`,
 `batched.py` (the torch route), `native/` (the C route), this file (arguments, dispatch, autograd).
@@ -83,21 +84,22 @@ class QPSolution:
     of the solver's output buffer, made when first read (a tensor costs ~1 µs at B = 1).
     """
 
-    __slots__ = ("_x", "_y", "_z", "_z_lb", "_z_ub", "_status", "_iterations", "_dtype", "_buf", "_addr", "_dims")
+    __slots__ = ("_x", "_y", "_z", "_z_lb", "_z_ub", "_status", "_iterations", "_dtype", "_buf", "_addr", "_dims", "_data",
+                 "__weakref__")
 
     def __init__(self, x: Tensor, y: Tensor, z: Tensor, z_lb: Tensor, z_ub: Tensor, status: Tensor,
                  iterations: Tensor) -> None:
         self._x, self._y, self._z, self._z_lb, self._z_ub = x, y, z, z_lb, z_ub
         self._status, self._iterations = status, iterations
         self._dtype = x.dtype
-        self._buf = None
+        self._buf = self._data = None
 
     @classmethod
     def _from_buffer(cls, buf: np.ndarray, addr: int, B: int, n: int, p: int, m: int) -> "QPSolution":
         """A solution over gi_qp_solve's output buffer: x [B·n] | duals [B·(p + m + 2n)] | status [B] | solves [B]."""
         sol = cls.__new__(cls)
         sol._buf, sol._addr, sol._dims, sol._dtype = buf, addr, (B, n, p, m), _F64
-        sol._x = sol._y = sol._z = sol._z_lb = sol._z_ub = sol._status = sol._iterations = None
+        sol._x = sol._y = sol._z = sol._z_lb = sol._z_ub = sol._status = sol._iterations = sol._data = None
         return sol
 
     def _np(self, name: str) -> np.ndarray:
@@ -123,7 +125,10 @@ class QPSolution:
     def x(self) -> Tensor:
         """Primal solution [B, n] (zero where no answer exists: see `status`)."""
         v = self._x
-        return v if v is not None else self._get("_x")
+        if v is None:  # the common first read, without `_get`'s lookups (~0.3 µs of a B = 1 solve's ~8)
+            B, n = self._dims[:2]
+            v = self._x = torch.from_numpy(self._buf[: B * n].reshape(B, n))
+        return v
 
     y = _Field("Multipliers of A x = b [B, p].")
     z = _Field("Multipliers (≥ 0) of G x ≤ h [B, m].")
@@ -275,8 +280,9 @@ def _forward_c(
     lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Tensor | None, G: Tensor | None,
     h: Tensor | None, lb: Tensor | None, ub: Tensor | None, B: int, n: int, p: int, m: int,
     warm: tuple[np.ndarray, int, int] | None, tol: float,
-) -> tuple[np.ndarray, int, int]:
-    """One gi_qp_solve call on float64 CPU tensors (any batch layout); returns (output buffer, its address, worst status)."""
+) -> tuple[np.ndarray, int, int, list]:
+    """One gi_qp_solve call on float64 CPU tensors (any batch layout); returns (output buffer, its address, worst
+    status, the arguments as passed to C: (tensor kept alive, address, batch stride) each)."""
     keep = [_c_arg(P, 3, B), _c_arg(q, 2, B), _c_arg(A, 3, B), _c_arg(b, 2, B), _c_arg(G, 3, B), _c_arg(h, 2, B),
             _c_arg(lb, 2, B), _c_arg(ub, 2, B)]
     nout = p + m + 2 * n
@@ -287,7 +293,7 @@ def _forward_c(
                       MAX_STEPS, o)
     if worst < 0:
         raise MemoryError("a3cqp_rl.qp: the C route could not allocate its workspace")
-    return out, o, worst
+    return out, o, worst, keep
 
 
 def _warm_duals(warm_start: "QPSolution", B: int, n: int, p: int, m: int) -> tuple[np.ndarray, int, int]:
@@ -359,9 +365,15 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
     sa = _FAST_STRIDES.get(key)
     if sa is None:
         sa = _FAST_STRIDES[key] = _strides((n * n, n, p * n, p, m * n, m, n, n, zs))
-    worst = lib.solve(B, n, p, m, P.data_ptr(), q.data_ptr(), pA, pb, pG, ph, pl, pu, z0, sa, tol, MAX_STEPS, o)
+    pP = P.data_ptr()
+    worst = lib.solve(B, n, p, m, pP, q.data_ptr(), pA, pb, pG, ph, pl, pu, z0, sa, tol, MAX_STEPS, o)
     del keep
     sol = QPSolution._from_buffer(buf, o, B, n, p, m)
+    # What `qp_vjp` needs: the arguments (batched, contiguous), versions to notice in-place changes, what C read.
+    sol._data = (lib, (P, q, A, b, G, h, lb, ub),
+                 (P._version, q._version, -1 if A is None else A._version, -1 if b is None else b._version,
+                  -1 if G is None else G._version, -1 if h is None else h._version,
+                  -1 if lb is None else lb._version, -1 if ub is None else ub._version), (pP, pA, pG, ph, pl, pu))
     if worst >= native.HANDED_ON:  # some instances need the torch route
         _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
     elif worst < 0:
@@ -377,30 +389,30 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
 def _solve_canonical(
     lib: native.NativeQP | None, P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor,
     z_warm: Tensor | None, tol: float, max_iter: int, active_set_iter: int | None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, bool]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, tuple | None]:
     """Solve a canonical float64 batch (bounds stacked into G, h); returns x, y, z, status, iterations and
-    whether the C route certified every instance (its adjoint then applies)."""
+    the C route's output buffer and arguments when it certified every instance (its adjoint then applies), else None."""
     if lib is None:
-        return (*solve_torch(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter), False)
+        return (*solve_torch(P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter), None)
     B, n = q.shape
     p, m = A.shape[1], G.shape[1]
     warm = None
     if z_warm is not None:
         z0 = np.ascontiguousarray(torch.cat([z_warm.detach(), z_warm.new_zeros(B, 2 * n)], 1).numpy())
         warm = (z0, address(z0), m + 2 * n)
-    buf, addr, _ = _forward_c(lib, P, q, A, b, G, h, None, None, B, n, p, m, warm, tol)
+    buf, addr, _, keep = _forward_c(lib, P, q, A, b, G, h, None, None, B, n, p, m, warm, tol)
     c = QPSolution._from_buffer(buf, addr, B, n, p, m)
     st = c._np("_status")
     x, y, z, status, iters = c.x, c.y, c.z, c.status, c.iterations
     if st[st.argmax()] < native.HANDED_ON:
-        return x, y, z, status, iters, not st.any()
+        return x, y, z, status, iters, None if st.any() else (buf, addr, keep)
     left = np.flatnonzero(st >= native.HANDED_ON)
     idx = torch.from_numpy(left)
     sub = [t.index_select(0, idx) for t in (P, q, A, b, G, h)]
     zw = z_warm.index_select(0, idx) if z_warm is not None else None
     xs, ys, zs, ss, its = solve_torch(*sub, zw, tol, max_iter, active_set_iter)
     x[idx], y[idx], z[idx], status[idx], iters[idx] = xs, ys, zs, ss, its + iters[idx]
-    return x, y, z, status, iters, False
+    return x, y, z, status, iters, None
 
 
 def _backward_torch(P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Tensor, z: Tensor, gx: Tensor,
@@ -441,6 +453,26 @@ def _backward_torch(P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Te
     return gP, -wx, gA, wy, gG, wz
 
 
+def _backward_c(lib: native.NativeQP, c_run: tuple, B: int, n: int, p: int, m: int, gx: Tensor,
+                need: tuple[bool, ...]) -> tuple[Tensor | None, ...] | None:
+    """Gradients (P, q, A, b, G, h) of Σ gx·x on canonical rows by `gi_qp_vjp` from the C route's own output
+    buffer, per instance; None if the C adjoint declined an instance (the torch adjoint then runs)."""
+    buf, addr, keep = c_run
+    gx = gx.detach().to(_F64).contiguous()
+    sizes = (n * n, n, p * n, p, m * n, m)
+    offs, total = [], 0
+    for k, size in enumerate(sizes):
+        offs.append(total if need[k] else -1)
+        total += B * size if need[k] else 0
+    out = np.empty(total + B)
+    layout = _strides((*(keep[k][2] for k in (0, 2, 4, 5)), 0, 0, n, *offs, -1, -1, *sizes, 1, 1, total, 0))
+    if lib.vjp(B, n, p, m, keep[0][1], keep[2][1], keep[4][1], keep[5][1], 0, 0, addr, gx.data_ptr(), layout, address(out)):
+        return None
+    t = torch.from_numpy(out)
+    shapes = ((B, n, n), (B, n), (B, p, n), (B, p), (B, m, n), (B, m))
+    return tuple(t[offs[k] : offs[k] + B * sizes[k]].view(shapes[k]) if need[k] else None for k in range(6))
+
+
 class _QPFunction(torch.autograd.Function):
     """x*(P, q, A, b, G, h) with a backward by implicit differentiation of the KKT conditions."""
 
@@ -449,8 +481,8 @@ class _QPFunction(torch.autograd.Function):
         # Gradients of y, z, status, iterations are never used: without materialisation autograd
         # passes None for them instead of allocating zeros.
         ctx.set_materialize_grads(False)
-        x, y, z, status, iters, all_c = _solve_canonical(lib, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
-        ctx.lib = lib if all_c else None
+        x, y, z, status, iters, c_run = _solve_canonical(lib, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
+        ctx.lib, ctx.c_run = (lib, c_run) if c_run is not None else (None, None)
         ctx.save_for_backward(P, A, G, h, x, y, z, status)
         ctx.mark_non_differentiable(y, z, status, iters)
         return x, y, z, status, iters
@@ -464,9 +496,7 @@ class _QPFunction(torch.autograd.Function):
         # Gradients only flow through x of solved instances (duals are outputs for information and warm starts).
         grads = None
         if ctx.lib is not None:  # the C route certified every instance: its range-space adjoint
-            g = ctx.lib.adjoint(P.detach(), A.detach(), G.detach(), h.detach(), x, y, z, gx)
-            if g is not None:
-                grads = tuple(v if need[k] or k % 2 else None for k, v in enumerate(g))
+            grads = _backward_c(ctx.lib, ctx.c_run, x.shape[0], x.shape[1], A.shape[1], G.shape[1], gx, need)
         if grads is None:
             ok = status == QPStatus.SOLVED
             if not bool(ok.all()):
@@ -531,11 +561,19 @@ def solve_qp(
     lib = _resolve_backend(backend, q) if backend != "torch" else None
     tol = float(tol) if tol is not None else (1e-9 if dtype is _F64 else 1e-5)
     grad = torch.is_grad_enabled() and _needs_grad(P, q, A, b, G, h, lb, ub)
-    if lib is not None and not grad and dtype == _F64:
+    if lib is not None and dtype == _F64:
         # The control loop's call (batched contiguous float64 tensors): straight to the C routine.
-        sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
-        if sol is not None:
-            return sol
+        if not grad:
+            sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
+            if sol is not None:
+                return sol
+        else:  # the same, with x differentiable by `qp_vjp` (one autograd node, none of the general path's work)
+            with torch.no_grad():
+                sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
+            if sol is not None:
+                from a3cqp_rl.qp.vjp import with_grad  # (vjp imports this module)
+
+                return with_grad(sol)
     P, A, b, G, h, lb, ub = (t if t is None or isinstance(t, Tensor) else _as_tensor(t, nm)
                              for t, nm in zip((P, A, b, G, h, lb, ub), ("P", "A", "b", "G", "h", "lb", "ub")))
     if lib is not None and not grad and dtype == _F64:
@@ -551,8 +589,12 @@ def solve_qp(
         m = G.shape[-2] if G is not None else 0
         if _fast_shapes_ok(P, q, A, b, G, h, lb, ub, B, n, p, m):
             warm = _warm_duals(warm_start, B, n, p, m) if warm_start is not None else None
-            buf, addr, worst = _forward_c(lib, P, q, A, b, G, h, lb, ub, B, n, p, m, warm, tol)
+            buf, addr, worst, keep = _forward_c(lib, P, q, A, b, G, h, lb, ub, B, n, p, m, warm, tol)
             sol = QPSolution._from_buffer(buf, addr, B, n, p, m)
+            args = (P, q, A, b, G, h, lb, ub)
+            sol._data = (lib, args, tuple(-1 if t is None else t._version for t in args),
+                         tuple(keep[k][1] for k in (0, 2, 4, 5, 6, 7)), tuple(keep[k][2] for k in (0, 2, 4, 5, 6, 7)),
+                         keep)
             if worst >= native.HANDED_ON:
                 _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
             return sol

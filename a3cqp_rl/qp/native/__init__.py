@@ -1,12 +1,12 @@
-"""The C route of `solve_qp` (`gi_qp.c`: dense Goldfarb-Idnani per instance, and its adjoint, built at install
-time), through ctypes.
+"""The C route of `solve_qp` (`gi_qp.c`: dense Goldfarb-Idnani per instance, and the vector-Jacobian product of its
+solution, built at install time), through ctypes.
 
 Why C: at the controller's size (n = 13, m = 30) a whole solve is a few µs of arithmetic, while any
 interpreted loop pays ~1 µs per call (numpy) or ~5 µs per op (eager torch) many times per active-set
 step.  One C call runs the whole batch: input checks, bound handling, the active set and its certificate.
 
-`load()` returns a `NativeQP` with the raw ctypes functions (the B = 1 path of `solver.py` calls them with
-tensor data pointers, no conversions) or None: when the library was not built (no C compiler at install
+`load()` returns a `NativeQP` with the raw ctypes functions (`solver.py` calls them with tensor data pointers, no
+conversions) or None: when the library was not built (no C compiler at install
 time) or is older than its source (one warning), or when the environment variable A3CQP_NATIVE_QP=0
 switches the C code off; `solve_qp(backend="auto")` then takes the torch route and `backend="c"` raises.
 
@@ -20,11 +20,7 @@ import logging
 from pathlib import Path
 from typing import Callable, NamedTuple
 
-import numpy as np
-import torch
-from torch import Tensor
-
-from a3cqp_rl.native_build import LazyLibrary, address
+from a3cqp_rl.native_build import LazyLibrary
 
 __all__ = ["load", "NativeQP", "SOURCE", "HANDED_ON", "N_STRIDES"]
 
@@ -39,45 +35,24 @@ _log = logging.getLogger(__name__)
 
 
 class NativeQP(NamedTuple):
-    """The bound C entry points (ctypes functions taking data addresses) and a numpy-level adjoint."""
+    """The bound C entry points (ctypes functions taking data addresses; `solver.py` calls them with tensor data
+    pointers, no conversions)."""
 
     solve: Callable
     """gi_qp_solve(B, n, p, m, P, q, A, b, G, h, lb, ub, z0, strides, tol, max_steps, out) -> worst status."""
-    adjoint: Callable
-    """(P, A, G, h, x, y, z, gx) float64 CPU tensors -> (gP, gq, gA, gb, gG, gh) or None if an instance is declined."""
+    vjp: Callable
+    """gi_qp_vjp(B, n, p, m, P, A, G, h, lb, ub, solution buffer, gx, layout, out) -> worst adjoint status."""
 
 
 def _bind(path: Path) -> NativeQP:
-    """ctypes bindings of gi_qp_solve and gi_qp_adjoint."""
+    """ctypes bindings of gi_qp_solve and gi_qp_vjp."""
     lib = ctypes.CDLL(str(path))
-    fn, fn_adj = lib.gi_qp_solve, lib.gi_qp_adjoint
+    fn, fn_vjp = lib.gi_qp_solve, lib.gi_qp_vjp
     i64, dbl, ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
     fn.argtypes = [i64, i64, i64, i64, *[ptr] * 10, dbl, i64, ptr]
-    fn_adj.argtypes = [i64, i64, i64, i64, *[ptr] * 15]
-    fn.restype = fn_adj.restype = ctypes.c_int
-
-    def adjoint(P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Tensor, z: Tensor, gx: Tensor) -> tuple[Tensor, ...] | None:
-        """Gradients (gP, gq, gA, gb, gG, gh) of Σ gx·x by the range-space adjoint (`gi_qp_adjoint`), or None.
-
-        Float64 CPU tensors (made contiguous here); None when some instance's system is not accepted (the
-        caller then uses the torch backward)."""
-        B, n = x.shape
-        p, m = A.shape[1], G.shape[1]
-        ts = [t.contiguous() for t in (P, A, G, h, x, y, z, gx)]
-        sizes = (n * n, n, p * n, p, m * n, m)
-        offs = [0]
-        for s_ in sizes:
-            offs.append(offs[-1] + B * s_)
-        out = np.empty(offs[-1] + B)
-        o = address(out)
-        fn_adj(B, n, p, m, *(t.data_ptr() for t in ts), *(o + 8 * e for e in offs))
-        status = out[offs[-1]:].view(np.int64)
-        if status[status.argmax()]:  # any instance not accepted
-            return None
-        shapes = ((B, n, n), (B, n), (B, p, n), (B, p), (B, m, n), (B, m))
-        return tuple(torch.from_numpy(out[offs[i] : offs[i + 1]].reshape(shapes[i])) for i in range(6))
-
-    return NativeQP(fn, adjoint)
+    fn_vjp.argtypes = [i64, i64, i64, i64, *[ptr] * 10]
+    fn.restype = fn_vjp.restype = ctypes.c_int
+    return NativeQP(fn, fn_vjp)
 
 
 def load() -> NativeQP | None:

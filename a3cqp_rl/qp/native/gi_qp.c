@@ -605,6 +605,17 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
     return certify(w, k, lw, tol, x_out, out, nout, 0);
 }
 
+/* Hint that the `len` doubles at a (len 0: a shared array, already in cache) will be read soon.  The batch's data
+ * (P and G of 1024 instances: ~4.6 MB) does not fit in cache: without the hint each instance starts by waiting on
+ * memory (its input checks showed as 12 % of the batch's time). */
+static void prefetch(const double *a, int64_t len) {
+#if defined(__GNUC__)
+    for (int64_t i = 0; i < len; i += 8) __builtin_prefetch(a + i, 0, 3);
+#else
+    (void)a, (void)len;
+#endif
+}
+
 /* One workspace per thread, kept between calls and grown when a call needs more: a malloc and free of
  * ~80 kB per call cost as much as a whole small solve (the heap top is trimmed and faulted in again). */
 static __thread double *tls_mem = NULL;
@@ -683,6 +694,12 @@ int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
     for (int64_t i = 0; i < B; ++i) {
         double *xi = x + i * n, *oi = duals + i * nout;
         solves[i] = 0;
+        if (i + 1 < B) { /* the next instance's large arrays (~4.5 kB at the controller's size) stream in meanwhile;
+                          * q, h, b and the bounds too made no measurable difference */
+            prefetch(P + (i + 1) * stride[0], stride[0]);
+            prefetch(G + (i + 1) * stride[4], stride[4]);
+            if (A) prefetch(A + (i + 1) * stride[2], stride[2]);
+        }
         w.m = (int)m;
         int st = assemble(&w, P + i * stride[0], q + i * stride[1], A + i * stride[2], b + i * stride[3],
                           G + i * stride[4], h + i * stride[5], lb ? lb + i * stride[6] : NULL,
@@ -700,49 +717,95 @@ int gi_qp_solve(int64_t B, int64_t n, int64_t p, int64_t m,
 }
 
 /*
- * Backward: the adjoint of the KKT conditions and the gradients of Σ gx·x with respect to all QP
- * data (the closed forms of the torch backward in solver.py), per instance, on the canonical rows
- * (G, h with the bounds stacked, as the autograd path passes them; P is symmetrised here).
- * Working rows: the equalities and the strictly complementary active rows, z_i > max(h_i − G_i x, 0).
- * The adjoint system [[P, C_Wᵀ], [C_W, 0]] (wx, wν) = (gx, 0) is solved in the range space:
- * S_WW wν = C_W P⁻¹gx, wx = P⁻¹(gx − C_Wᵀ wν), and accepted with the torch backward's test on its
- * residual, ‖e‖₂ ≤ 1e-12 (1 + |gx|∞)(1 + |wν|∞).  Outputs (row-major): gP [B, n, n], gq [B, n], gA [B, p, n], gb [B, p], gG [B, m, n], gh [B, m]; status [B] is 0 where accepted, else non-zero
- * (P not definite, dependent rows, residual too large: the caller uses the torch backward).
+ * Backward: the vector-Jacobian product of the solution map, i.e. the gradients of Σ gx·x with respect to all
+ * QP data (P, q, A, b, G, h, lb, ub), per instance, on the arguments of gi_qp_solve as they were passed and on its
+ * output buffer (x | duals | status).  Implicit differentiation of the KKT conditions (as OptNet / qpth):
+ * working rows are the equalities and the strictly complementary active rows, z_i > max(slack_i, 0), of G x ≤ h,
+ * −x ≤ −lb and x ≤ ub.  The adjoint system [[P, C_Wᵀ], [C_W, 0]] (wx, wν) = (gx, 0) is solved in the range
+ * space: S_WW wν = C_W P⁻¹gx, wx = P⁻¹(gx − C_Wᵀ wν), and accepted with the torch backward's test on its
+ * residual, ‖e‖₂ ≤ 1e-12 (1 + |gx|∞)(1 + |wν|∞).  Gradients (P symmetrised as in the solve):
+ *   gP = −½(x wxᵀ + wx xᵀ), gq = −wx, gA = −(y wxᵀ + wy xᵀ), gb = wy, gG_i = −(z_i wxᵀ + wz_i xᵀ) and gh_i = wz_i on
+ *   the working G rows (zero elsewhere), g_lb_j = −wν and g_ub_j = wν on the working bound rows.
+ * Instances whose status is not SOLVED get zero gradients (no gradient through a point that is not an answer).
+ *
+ * layout[25] (int64): [0..6) batch strides of P, A, G, h, lb, ub (0: shared); [6] stride of gx; [7..15) offsets in
+ * `out` of gP, gq, gA, gb, gG, gh, g_lb, g_ub (−1: not wanted); [15..23) their batch strides (0: one array summed
+ * over the batch, the gradient of an argument shared by the batch); [23] offset of the adjoint status [B] (int64:
+ * 0 done, else GI_* — P not definite, dependent rows, residual too large — and that instance's gradients are left
+ * to the caller: zero in per-instance outputs, nothing added to summed ones); [24] unused.
+ * Returns the largest adjoint status.
  */
-int gi_qp_adjoint(int64_t B, int64_t n, int64_t p, int64_t m,
-                  const double *P, const double *A, const double *G, const double *h,
-                  const double *x, const double *y, const double *z, const double *gx,
-                  double *gP, double *gq, double *gA, double *gb, double *gG, double *gh, int64_t *status) {
+static void put(double *o, int acc, double v) { if (acc) *o += v; else *o = v; }
+
+int gi_qp_vjp(int64_t B, int64_t n, int64_t p, int64_t m,
+              const double *P, const double *A, const double *G, const double *h, const double *lb, const double *ub,
+              const double *sol, const double *gx, const int64_t *layout, double *out) {
+    const int64_t nout = p + m + 2 * n;
+    const double *X = sol, *D = sol + B * n;
+    const int64_t *st = (const int64_t *)(sol + B * (n + nout));
+    const int64_t *in_s = layout, gx_s = layout[6], *off = layout + 7, *os = layout + 15;
+    int64_t *adj = (int64_t *)(out + layout[23]);
+    const int64_t sizes[8] = {n * n, n, p * n, p, m * n, m, n, n};
     gi_ws w;
-    double *mem = ws_alloc(&w, n, p, m, p + m);
-    if (!mem) {
-        for (int64_t i = 0; i < B; ++i) status[i] = GI_NO_MEMORY;
-        return -1;
+    int worst = 0;
+    if (!ws_alloc(&w, n, p, m, p + m + 2 * n)) {
+        for (int64_t i = 0; i < B; ++i) adj[i] = GI_NO_MEMORY;
+        return GI_NO_MEMORY;
     }
+    /* Summed outputs start at zero; per-instance ones are written (zeros included) instance by instance. */
+    for (int g = 0; g < 8; ++g)
+        if (off[g] >= 0 && os[g] == 0) memset(out + off[g], 0, (size_t)sizes[g] * sizeof(double));
+    const int ni = (int)n, pi = (int)p, mi = (int)m;
     for (int64_t i = 0; i < B; ++i) {
-        const int ni = (int)n, pi = (int)p, mi = (int)m;
-        const double *Pi = P + i * n * n, *Ai = A + i * p * n, *Gi = G + i * m * n, *hi = h + i * m;
-        const double *xi = x + i * n, *yi = y + i * p, *zi = z + i * m, *gxi = gx + i * n;
-        double *gPi = gP + i * n * n, *gqi = gq + i * n, *gAi = gA + i * p * n, *gbi = gb + i * p;
-        double *gGi = gG + i * m * n, *ghi = gh + i * m;
-        status[i] = QP_SOLVED;
+        double *o[8];
+        int acc[8];
+        for (int g = 0; g < 8; ++g) o[g] = off[g] >= 0 ? out + off[g] + i * os[g] : NULL, acc[g] = os[g] == 0;
+        adj[i] = 0;
+        /* Per-instance outputs of this instance start at zero (rows off the working set stay so). */
+        for (int g = 0; g < 8; ++g)
+            if (o[g] && !acc[g]) memset(o[g], 0, (size_t)sizes[g] * sizeof(double));
+        if (st[i] != QP_SOLVED) continue;
+        const double *Pi = P + i * in_s[0], *Ai = A ? A + i * in_s[1] : NULL, *Gi = G ? G + i * in_s[2] : NULL;
+        const double *hi = h ? h + i * in_s[3] : NULL, *lbi = lb ? lb + i * in_s[4] : NULL;
+        const double *ubi = ub ? ub + i * in_s[5] : NULL, *gxi = gx + i * gx_s;
+        const double *xi = X + i * n, *yi = D + i * nout, *zi = yi + p, *zl = zi + m, *zu = zl + n;
         for (int a = 0; a < ni; ++a)
-            for (int c = 0; c < ni; ++c) w.Ps[(size_t)a * ni + c] = 0.5 * (Pi[(size_t)a * ni + c] + Pi[(size_t)c * ni + a]);
-        memcpy(w.L, w.Ps, (size_t)(n * n) * sizeof(double));
-        if (cholesky(w.L, w.Linv, ni, 0.0)) { status[i] = GI_NOT_DEFINITE; continue; }
-        /* Working rows and their gathered coefficients. */
+            for (int c = 0; c <= a; ++c)
+                w.L[(size_t)a * ni + c] = 0.5 * (Pi[(size_t)a * ni + c] + Pi[(size_t)c * ni + a]);
+        for (int a = 0; a < ni; ++a) /* upper triangle of Ps for the residual test */
+            for (int c = a + 1; c < ni; ++c) w.L[(size_t)a * ni + c] = w.L[(size_t)c * ni + a];
+        memcpy(w.Ps, w.L, (size_t)(n * n) * sizeof(double));
+        if (cholesky(w.L, w.Linv, ni, 0.0)) { adj[i] = GI_NOT_DEFINITE; worst = GI_NOT_DEFINITE > worst ? GI_NOT_DEFINITE : worst; continue; }
+        /* Working rows: code a < p equality a; p ≤ a < p + m row a − p of G; then −e_j (lb), +e_j (ub). */
         int k = 0;
         for (int a = 0; a < pi; ++a) w.buf[k++] = a;
         for (int a = 0; a < mi; ++a) {
-            double slack = hi[a] - dot(Gi + (size_t)a * ni, xi, ni);
+            const double slack = hi[a] - dot(Gi + (size_t)a * ni, xi, ni);
             if (zi[a] > (slack > 0.0 ? slack : 0.0)) w.buf[k++] = pi + a;
         }
-        if (k > ni) { status[i] = GI_DEPENDENT; continue; }
+        if (lbi)
+            for (int j = 0; j < ni; ++j) {
+                const double slack = xi[j] - lbi[j];
+                if (zl[j] > (slack > 0.0 ? slack : 0.0)) w.buf[k++] = pi + mi + j;
+            }
+        if (ubi)
+            for (int j = 0; j < ni; ++j) {
+                const double slack = ubi[j] - xi[j];
+                if (zu[j] > (slack > 0.0 ? slack : 0.0)) w.buf[k++] = pi + mi + ni + j;
+            }
+        if (k > ni) { adj[i] = GI_DEPENDENT; worst = GI_DEPENDENT > worst ? GI_DEPENDENT : worst; continue; }
         for (int a = 0; a < k; ++a) {
             const int row = w.buf[a];
-            memcpy(w.Ct + (size_t)a * ni, row < pi ? Ai + (size_t)row * ni : Gi + (size_t)(row - pi) * ni, (size_t)ni * sizeof(double));
+            double *ca = w.Ct + (size_t)a * ni;
+            if (row < pi) memcpy(ca, Ai + (size_t)row * ni, (size_t)ni * sizeof(double));
+            else if (row < pi + mi) memcpy(ca, Gi + (size_t)(row - pi) * ni, (size_t)ni * sizeof(double));
+            else {
+                const int j = (row - pi - mi) % ni;
+                memset(ca, 0, (size_t)ni * sizeof(double));
+                ca[j] = row < pi + mi + ni ? -1.0 : 1.0;
+            }
         }
-        /* u = P⁻¹gx; Mt rows (reusing S as k × n storage) m_a = L⁻¹ c_a; S_WW = M Mᵀ. */
+        /* u = P⁻¹gx; rows m_a = L⁻¹ c_a; S_WW = M Mᵀ; wν from S_WW wν = C_W u. */
         fwd_sub(w.L, w.Linv, ni, gxi, w.t);
         bwd_sub_t(w.L, w.Linv, ni, w.t, w.x0);
         for (int a = 0; a < k; ++a) fwd_sub(w.L, w.Linv, ni, w.Ct + (size_t)a * ni, w.Mt + (size_t)a * ni);
@@ -751,7 +814,7 @@ int gi_qp_adjoint(int64_t B, int64_t n, int64_t p, int64_t m,
             w.rhs[a] = dot(w.Ct + (size_t)a * ni, w.x0, ni);
         }
         if (k) {
-            if (cholesky(w.K, w.Kinv, k, DEP_REL)) { status[i] = GI_DEPENDENT; continue; }
+            if (cholesky(w.K, w.Kinv, k, DEP_REL)) { adj[i] = GI_DEPENDENT; worst = GI_DEPENDENT > worst ? GI_DEPENDENT : worst; continue; }
             fwd_sub(w.K, w.Kinv, k, w.rhs, w.t);
             bwd_sub_t(w.K, w.Kinv, k, w.t, w.lw);
         }
@@ -766,39 +829,49 @@ int gi_qp_adjoint(int64_t B, int64_t n, int64_t p, int64_t m,
         double e2 = 0.0, gmax = 0.0, numax = 0.0;
         mtv(w.Ps, ni, ni, w.x, w.t);
         for (int c = 0; c < ni; ++c) {
-            double e = w.t[c] + w.g[c] - gxi[c];
+            const double e = w.t[c] + w.g[c] - gxi[c];
             e2 += e * e;
             if (fabs(gxi[c]) > gmax) gmax = fabs(gxi[c]);
         }
         for (int a = 0; a < k; ++a) {
-            double e = dot(w.Ct + (size_t)a * ni, w.x, ni);
+            const double e = dot(w.Ct + (size_t)a * ni, w.x, ni);
             e2 += e * e;
             if (fabs(w.lw[a]) > numax) numax = fabs(w.lw[a]);
         }
-        if (!(sqrt(e2) <= 1e-12 * (1.0 + gmax) * (1.0 + numax))) { status[i] = GI_UNCERTIFIED; continue; }
-        /* Gradients: gP = −½(x wxᵀ + wx xᵀ), gq = −wx, gA = −(y wxᵀ + wy xᵀ), gb = wy,
-         * gG = −((z ∘ active) wxᵀ + wz xᵀ), gh = wz (wy, wz: wν on the equalities / active rows). */
-        const double *wx = w.x;
-        for (int a = 0; a < ni; ++a)
-            for (int c = 0; c < ni; ++c) gPi[(size_t)a * ni + c] = -0.5 * (xi[a] * wx[c] + wx[a] * xi[c]);
-        for (int c = 0; c < ni; ++c) gqi[c] = -wx[c];
-        memset(gbi, 0, (size_t)pi * sizeof(double));
-        memset(ghi, 0, (size_t)mi * sizeof(double));
-        memset(gGi, 0, (size_t)mi * ni * sizeof(double));
-        for (int a = 0; a < k; ++a) {
-            const int row = w.buf[a];
-            if (row < pi) gbi[row] = w.lw[a];
-            else ghi[row - pi] = w.lw[a];
+        if (!(sqrt(e2) <= 1e-12 * (1.0 + gmax) * (1.0 + numax))) {
+            adj[i] = GI_UNCERTIFIED;
+            worst = GI_UNCERTIFIED > worst ? GI_UNCERTIFIED : worst;
+            continue;
         }
-        for (int a = 0; a < pi; ++a)
-            for (int c = 0; c < ni; ++c) gAi[(size_t)a * ni + c] = -(yi[a] * wx[c] + gbi[a] * xi[c]);
-        for (int a = 0; a < k; ++a) {
+        const double *wx = w.x;
+        if (o[0])
+            for (int a = 0; a < ni; ++a)
+                for (int c = 0; c < ni; ++c) put(o[0] + (size_t)a * ni + c, acc[0], -0.5 * (xi[a] * wx[c] + wx[a] * xi[c]));
+        if (o[1])
+            for (int c = 0; c < ni; ++c) put(o[1] + c, acc[1], -wx[c]);
+        /* wy: wν on the equalities (the first p working rows). */
+        if (o[2])
+            for (int a = 0; a < pi; ++a)
+                for (int c = 0; c < ni; ++c) put(o[2] + (size_t)a * ni + c, acc[2], -(yi[a] * wx[c] + w.lw[a] * xi[c]));
+        if (o[3])
+            for (int a = 0; a < pi; ++a) put(o[3] + a, acc[3], w.lw[a]);
+        for (int a = pi; a < k; ++a) {
             const int row = w.buf[a];
-            if (row < pi) continue;
-            const double za = zi[row - pi], wz = w.lw[a];
-            double *gGa = gGi + (size_t)(row - pi) * ni;
-            for (int c = 0; c < ni; ++c) gGa[c] = -(za * wx[c] + wz * xi[c]);
+            const double wn = w.lw[a];
+            if (row < pi + mi) {
+                const int r = row - pi;
+                if (o[4]) {
+                    double *gGr = o[4] + (size_t)r * ni;
+                    const double zr = zi[r];
+                    for (int c = 0; c < ni; ++c) put(gGr + c, acc[4], -(zr * wx[c] + wn * xi[c]));
+                }
+                if (o[5]) put(o[5] + r, acc[5], wn);
+            } else if (row < pi + mi + ni) {
+                if (o[6]) put(o[6] + (row - pi - mi), acc[6], -wn);
+            } else if (o[7]) {
+                put(o[7] + (row - pi - mi - ni), acc[7], wn);
+            }
         }
     }
-    return 0;
+    return worst;
 }
