@@ -83,6 +83,21 @@ def test_each_robot_equals_its_own_controller(states) -> None:  # noqa: ANN001
                                    err_msg=f"robot {b}: {pop.describe(b)}")
 
 
+def test_weighted_sum_blend_equals_the_controller(states) -> None:  # noqa: ANN001
+    """wrench_blend "weighted_sum" (the env's eq. 35 blend, IK's zero-wrench residual): one level per robot equals
+    A3CQPController, and robots with strict levels still solve (IK's wrench residual goes in IK's level)."""
+    inputs, model = states
+    opt = ControllerOptions(backend="python", wrench_blend="weighted_sum", cartesian_regularization=1.0)
+    ref = A3CQPController(N, model=model, options=opt)
+    levels = np.ones((N, len(TASKS)), dtype=np.int64)
+    pop = PopulationController(N, model=model, options=opt, levels=levels)
+    np.testing.assert_allclose(_x(pop.step(**inputs)), _x(ref.step(**inputs)), rtol=0, atol=1e-9)
+    levels[: N // 2] = [2, 1, 1, 3, 1]  # IK below AC and FC
+    pop = PopulationController(N, model=model, options=opt, levels=levels)
+    out = pop.step(**inputs)
+    assert not out.fallback.any() and np.isfinite(_x(out)).all()
+
+
 def test_levels_are_closed_up_and_validated() -> None:
     pop = PopulationController(2, levels=np.array([[1, 3, 3, 0, 1], [2, 2, 2, 2, 2]]))
     assert pop.robot_levels.tolist() == [[1, 2, 2, 0, 1], [1, 1, 1, 1, 1]]

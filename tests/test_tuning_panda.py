@@ -101,5 +101,13 @@ def test_evaluate_cli_reports_a_bad_controller_config_in_one_line(tmp_path: Path
     assert "controller config not found" in capsys.readouterr().err
     plain = tmp_path / "plain.yaml"
     plain.write_text("seed: 1\n")
-    assert main(["--scene", "peg_in_hole", "--controller-config", str(plain)]) == 2
+    assert main(["--scene", "peg_in_hole", "--controllers", "ik", "--controller-config", str(plain)]) == 2
     assert "no fixed_controller section" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("scene", ["guidance", "polishing"])
+def test_objective_runs_on_the_other_scenes(scene: str) -> None:
+    fixed = [FixedControllerConfig(name="table_i")]
+    res = evaluate_fixed(fixed, _cfg(scenes=[scene]))
+    assert res.objectives.shape == (1, 3) and np.all(np.isfinite(res.objectives)) and np.all(res.objectives >= 0)
+    assert set(res.per_trial) == {scene} and res.per_trial[scene]["episode_s"][0, 0] == pytest.approx(0.3, abs=0.02)

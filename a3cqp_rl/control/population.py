@@ -156,6 +156,10 @@ def _scaled(res: Residual, mask: Array) -> Residual:
     return dataclasses.replace(res, W=res.W * mask[:, None, None])
 
 
+_LEVEL_OF = {"ik_wrench": "ik"}
+"""Residuals that are not tasks of their own -> the task whose level they share."""
+
+
 class PopulationController(A3CQPController):
     """N fixed controllers in one batch: per-robot gains (`RobotGains`) and strict levels ([N, 5], `TASKS` order).
 
@@ -264,7 +268,9 @@ class PopulationController(A3CQPController):
     def build_levels(self, ctx: ControlContext) -> tuple[list[tuple[Array, Array]], Array, Array]:
         """Level k's cost per robot: the tasks that robot puts in level k (paper 002 eq. 2); then the limit rows."""
         res = self.task_residuals(ctx)
-        costs = [self.task_cost(ctx, [_scaled(r, const(masks[name], ctx.q)) for name, r in res.items()])
+        # wrench_blend "weighted_sum" adds IK's zero-wrench residual (weight W1): it belongs to IK's level
+        costs = [self.task_cost(ctx, [_scaled(r, const(masks[_LEVEL_OF.get(name, name)], ctx.q))
+                                      for name, r in res.items()])
                  for masks in self._masks]
         return costs, *self.limit_rows(ctx)
 
