@@ -22,37 +22,36 @@ def _load_policy(path: Path):
     return getattr(importlib.import_module(module), func)(path)
 
 
+def _plot_parser(sub, name: str, text: str, first: str, help_first: str, **first_kwargs) -> argparse.ArgumentParser:
+    """A plot sub-command: its input argument, then the --out FILE and --pdf options every plot takes."""
+    q = sub.add_parser(name, help=text)
+    q.add_argument(first, help=help_first, **first_kwargs)
+    q.add_argument("--out", default=None, help="output image path (default: beside the input)")
+    q.add_argument("--pdf", action="store_true", help="write PDF instead of PNG")
+    return q
+
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry for the plot sub-commands; returns an exit code."""
     p = argparse.ArgumentParser(prog="a3cqp plot", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="what", required=True)
-    pm = sub.add_parser("policy-map", help="paper Fig. 5: actions over the normalised state space")
-    pm.add_argument("policy", help="OUT/policy.pt or OUT/checkpoint.pt (or a run folder)")
+    pm = _plot_parser(sub, "policy-map", "paper Fig. 5: actions over the normalised state space", "policy",
+                      "OUT/policy.pt or OUT/checkpoint.pt (or a run folder)")
     pm.add_argument("--x", default="f_ope", choices=["e", "f_env", "f_ope"])
     pm.add_argument("--y", default="f_env", choices=["e", "f_env", "f_ope"])
     pm.add_argument("--fixed", default="e", choices=["e", "f_env", "f_ope"])
     pm.add_argument("--levels", default="0,0.05,0.3", help="comma-separated levels of the fixed variable in [0, 1]")
-    pm.add_argument("--out", default=None)
-    pm.add_argument("--pdf", action="store_true")
     for name, text in (("loss-curves", "paper Fig. 4: policy/value loss, mean and IQR over runs"),
                        ("regions", "Fig. 5 regions passed over training (metrics.csv region checks)")):
-        runs = sub.add_parser(name, help=text)
-        runs.add_argument("runs", nargs="+", help="run folders holding metrics.csv (e.g. runs/sweep/seed_*)")
-        runs.add_argument("--out", default=None)
-        runs.add_argument("--pdf", action="store_true")
-    ep = sub.add_parser("episode", help="paper Fig. 7/8: one Panda episode of `a3cqp evaluate --scene ... --out RUN`")
-    ep.add_argument("run", help="RUN folder (or an episode_<controller>.npz)")
+        _plot_parser(sub, name, text, "runs", "run folders holding metrics.csv (e.g. runs/sweep/seed_*)", nargs="+")
+    ep = _plot_parser(sub, "episode", "paper Fig. 7/8: one Panda episode of `a3cqp evaluate --scene ... --out RUN`",
+                      "run", "RUN folder (or an episode_<controller>.npz)")
     ep.add_argument("--controller", default="learned", help="which controller's episode (default: learned)")
     ep.add_argument("--axis", default="z", choices=["x", "y", "z", "rx", "ry", "rz"], help="local axis (default z)")
     ep.add_argument("--strip", action="store_true", help="also an image strip of the scene (needs EGL or OSMesa)")
-    ep.add_argument("--out", default=None)
-    ep.add_argument("--pdf", action="store_true")
     for name, text in (("ga", "GA run (a3cqp tune): fitness per generation, best and spread, genes"),
                        ("pareto", "NSGA-II run (a3cqp pareto): evaluations and Pareto front, 2-D (and 3-D)")):
-        run = sub.add_parser(name, help=text)
-        run.add_argument("run", help="the run's folder (OUT of a3cqp tune / a3cqp pareto)")
-        run.add_argument("--out", default=None)
-        run.add_argument("--pdf", action="store_true")
+        _plot_parser(sub, name, text, "run", "the run's folder (OUT of a3cqp tune / a3cqp pareto)")
     args = p.parse_args(argv)
     if getattr(args, "strip", False):
         import os
