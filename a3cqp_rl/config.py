@@ -883,6 +883,13 @@ class PandaEnvConfig:
     the weights w = (0.5, 0, 0.5), f_d = 20 N that the point-mass policy reaches in contact command full IK plus
     20 N instead of the half-stiffness and 10 N it was trained with. Peg-in-hole, 26 trials, the same point-mass
     policy: 24/26 with "eq35", 9/26 with "eq24" (docs/panda.md)."""
+    idle_force: Literal["damps", "holds", "free"] = "damps"
+    """What the share of force control that does not push, w3 (1 − min(1, f_d / 1 N)) on an axis of L, does in the
+    controller (the share the per-axis leak, `state_leak: per_axis`, already counts as not pushing). "free": eq. 35
+    as is: it commands neither wrench nor acceleration, so the axis coasts; after the operator lets go in the
+    guidance scene the arm drifts ~0.1 m from the taught pose. "damps" (default): it damps like IK (IK's damping
+    is (w1 + share) k_v, its stiffness stays w1 k_p). "holds": it goes to IK (stiffness too), which also resists
+    the operator while guiding. Measured in docs/panda.md ("The idle force-control share")."""
     policy: str | None = None
     """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
     folder, relative to the working directory (None: --policy is needed for the learned controller)."""

@@ -268,6 +268,24 @@ class PandaEnv(EnvBase):
             self.w_logits[mask] = np.log(np.clip(w_o[mask], 1e-12, 1.0))
             self._override = None
 
+    def controller_weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """The local weights [N, 6, 3] the controller gets and the IK stiffness scale [N, 6] that goes with them.
+
+        `panda.idle_force` decides what the share of force control that does not push, w3 (1 − min(1, f_d / 1 N)),
+        does (the same share the per-axis leak treats as not pushing): "free" leaves it to eq. 35, where it commands
+        neither wrench nor acceleration; "holds" hands it to IK; "damps" hands it to IK with the reference moved
+        toward the tool so that IK's stiffness stays w1 k_p while its damping becomes (w1 + idle) k_v."""
+        ones = np.ones(self.weights.shape[:2])
+        if self.pcfg.idle_force == "free":
+            return self.weights, ones
+        idle = self.weights[..., 2] * (1.0 - np.clip(self.f_d, 0.0, 1.0))
+        w = self.weights.copy()
+        w[..., 0] += idle
+        w[..., 2] -= idle
+        if self.pcfg.idle_force == "holds":
+            return w, ones
+        return w, self.weights[..., 0] / np.maximum(w[..., 0], 1e-12)
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
         if tuple(action.shape) != (self.num_envs, 6, 4):
@@ -275,8 +293,9 @@ class PandaEnv(EnvBase):
         check_finite(action=action)
         self._adapt(action)
         self.max_penetration[:] = 0.0
-        weights, f_d = torch.from_numpy(self.weights), torch.from_numpy(self.f_d)
-        pos_d, rot_d = self._controller_reference()
+        w_ctrl, scale = self.controller_weights()
+        weights, f_d = torch.from_numpy(w_ctrl), torch.from_numpy(self.f_d)
+        pos_d, rot_d = self._controller_reference(scale)
         self._draw_noise()
         for k in range(self.substeps):
             self._tick(k, weights, f_d, pos_d, rot_d)
@@ -285,10 +304,11 @@ class PandaEnv(EnvBase):
         truncated = self.scene.done | (self.t >= self.pcfg.max_episode_time - 1e-9)
         return self._output(done=truncated | self.diverged, terminated=self.diverged.copy(), reward=True)
 
-    def _controller_reference(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """The scene's reference, moved toward the tool by `stiffness_scale` where it is not 1 (arm frame)."""
+    def _controller_reference(self, scale: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The scene's reference, moved toward the tool by `stiffness_scale` (times `scale` [N, 6]) where it is not 1
+        (arm frame)."""
         pos_d, rot_d = self.scene.pos_d.copy(), self.scene.rot_d.copy()
-        s = self.stiffness_scale
+        s = self.stiffness_scale if scale is None else self.stiffness_scale * scale
         if np.any(s != 1.0):
             e_loc = to_local(self.rot, pose_error(pos_d, rot_d, self.pos, self.rot)) * s
             pos_d = self.pos + (self.rot @ e_loc[:, :3, None])[..., 0]

@@ -1,0 +1,78 @@
+"""Why the learned controller drifts from the taught pose in the free-guidance scene: per-axis weights, pose error,
+f*, f_adm and tool speed after each release, for a given task blend.
+
+    python docs/experiments/guidance_drift.py [--blend eq35|eq24] [--trials 4] [--policy runs/pm_default/policy.pt]
+"""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+from a3cqp_rl.config import config_from_dict, config_to_dict, load_config
+from algorithms.a2c import load_policy
+from envs.panda import PandaEnv, to_local
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--blend", default=None, help="panda.task_blend (default: the config's)")
+    ap.add_argument("--trials", type=int, default=4)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--policy", default="runs/pm_default/policy.pt")
+    ap.add_argument("--config", default="configs/panda_guidance.yaml")
+    a = ap.parse_args()
+    cfg = load_config(a.config)
+    if a.blend:
+        d = config_to_dict(cfg)
+        d["panda"]["task_blend"] = a.blend
+        cfg = config_from_dict(d, "<--blend>")
+    policy = load_policy(a.policy)
+    seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(a.seed).spawn(a.trials)]
+    env = PandaEnv(a.trials, cfg, scene="guidance", trial_seeds=seeds)
+    last = {}
+    step = env.ctrl.step
+
+    def spy(*args, **kw):  # noqa: ANN002, ANN003, ANN202
+        out = step(*args, **kw)
+        last["f"], last["f_adm"], last["qd"] = out.wrench.numpy().copy(), out.f_adm.numpy().copy(), args[1]
+        return out
+
+    env.ctrl.step = spy
+    td = env.reset()
+    sc = env.scene
+    rows = []  # (arm, k, time since release, |e| mm, w_xyz, f*_L, f_adm_L, speed mm/s)
+    prev_phase = sc.phase.copy()
+    t_rel = np.full(a.trials, np.nan)
+    prev_pos = env.pos.copy()
+    while not td["done"].all():
+        with torch.no_grad():
+            td["action"] = policy(td["observation"])
+        td = env.step(td)["next"]
+        ph = sc.phase.copy()
+        t_rel[(ph == sc.PAUSE) & (prev_phase == sc.GUIDE)] = env.t[(ph == sc.PAUSE) & (prev_phase == sc.GUIDE)]
+        prev_phase = ph
+        for i in np.flatnonzero((ph == sc.PAUSE) & (sc.k > 0)):
+            dt = env.t[i] - t_rel[i]
+            e = np.linalg.norm(env.pos[i] - sc.pos_d[i]) * 1e3
+            jac = env.ctrl  # noqa: F841
+            f_l = to_local(env.rot[i:i + 1], last["f"][i:i + 1])[0]
+            fa_l = to_local(env.rot[i:i + 1], last["f_adm"][i:i + 1])[0]
+            v = to_local(env.rot[i:i + 1], np.concatenate([env.pos[i] - prev_pos[i], np.zeros(3)])[None])[0, :3] / env.adapt.dt
+            eL = to_local(env.rot[i:i + 1], np.concatenate([env.pos[i] - sc.pos_d[i], np.zeros(3)])[None])[0, :3]
+            rows.append((i, int(sc.k[i]), dt, e, env.weights[i, :3].copy(), f_l[:3], fa_l[:3], v, eL,
+                         to_local(env.rot[i:i + 1], env.f_ext[i:i + 1])[0, :3]))
+        prev_pos = env.pos.copy()
+    np.set_printoptions(precision=2, suppress=True)
+    print(f"task_blend={cfg.panda.task_blend} state_leak={cfg.panda.state_leak}")
+    print("drift per trial and waypoint [mm]:\n", sc.metrics()["drift"] * 1e3)
+    for r in rows:
+        i, k, dt, e, w, f, fa, v, eL, fx = r
+        if i == 0 and k == 1 and dt < 1.0 and (abs(dt - round(dt / 0.1) * 0.1) < 5e-3):
+            print(f"t+{dt:4.2f}s |x-x_d|={e:5.1f}mm x-x_d(L)={eL*1e3} v(L)={v*1e3} mm/s w1={w[:, 0]} w2={w[:, 1]} "
+                  f"f*={f} f_adm={fa} f_ext={fx}")
+
+
+if __name__ == "__main__":
+    main()
