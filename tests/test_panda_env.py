@@ -12,7 +12,7 @@ from torchrl.envs.utils import check_env_specs
 
 from a3cqp_rl.checkpoint import save_atomic
 from a3cqp_rl.config import OperatorConfig, config_from_dict
-from a3cqp_rl.robot import PANDA_LIMITS
+from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS
 from algorithms.a2c import load_policy
 from algorithms.networks import ParamLayout
 from envs.panda import PandaEnv, to_local
@@ -280,3 +280,31 @@ def test_axis_agents_view_trains_one_shared_policy_with_a2c(tmp_path) -> None:  
                                                           "region_checks": 0}})
     res = train(cfg, tmp_path / "run", total_steps=240)
     assert res.steps == 240 and load_policy(res.policy_path)(torch.zeros(6, 3)).shape == (6, 4)
+
+
+def _coast(idle_force: str) -> float:
+    """Largest tool displacement [m] in 0.5 s after the arm is let go at ~0.1 m/s with the weights the point-mass
+    policy leaves after guiding, w = (0, 0.5, 0.5) and f_d = 0 on every axis (no operator, no contact)."""
+    env = PandaEnv(1, _cfg({"panda": {"scene": "guidance", "idle_force": idle_force}}), seed=0)
+    env.reset()
+    q0 = np.array([PANDA_HOME])
+    qd0 = np.array([[0.0, 0.15, 0.0, -0.15, 0.0, 0.0, 0.0]])
+    env.sim.reset(q0, qd0, idx=[0])
+    env.ctrl.reset(torch.tensor(q0), torch.tensor(qd0), idx=torch.tensor([0]))
+    env._measure()
+    start, drift = env.pos[0].copy(), 0.0
+    w, f_d = np.tile([0.0, 0.5, 0.5], (1, 6, 1)), np.zeros((1, 6))
+    td = env._output(done=np.zeros(1, dtype=bool), terminated=np.zeros(1, dtype=bool))
+    for _ in range(50):
+        env.hold_weights(np.ones(1, dtype=bool), w, f_d)
+        td["action"] = torch.zeros(1, 6, 4)
+        td = env.step(td)["next"]
+        drift = max(drift, float(np.linalg.norm(env.pos[0] - start)))
+    return drift
+
+
+def test_force_control_that_does_not_push_damps_instead_of_letting_the_arm_coast() -> None:
+    # eq. 35 as is: w3 with f_d = 0 commands nothing, only w2's admittance damping (Cd/Λd = 1/s) slows the arm
+    free, damps = _coast("free"), _coast("damps")
+    assert free > 0.03
+    assert damps < 0.4 * free and damps < 0.015
