@@ -19,7 +19,9 @@ FAST = {"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "ali
 
 
 def test_every_controller_runs_the_same_trials_and_the_json_has_table_vi_keys() -> None:
-    cfg = config_from_dict(FAST)
+    # idle_force "free": both controllers then align alike before contact (with "damps" the equal blend's idle
+    # share damps its alignment, so its misalignment at contact is no longer a fingerprint of the trial)
+    cfg = config_from_dict({"panda": {**FAST["panda"], "idle_force": "free"}})
     res = evaluate("peg_in_hole", None, trials=1, seed=0, config=cfg, controllers=("ik_fc", "equal"), progress=False)
     s = res.summary
     # same trial for both: the same approach offset (the misalignment is measured at the first contact: close)
