@@ -35,6 +35,7 @@ import torch
 import a3cqp_rl.control.controller as controller_module
 from a3cqp_rl.control import A3CQPController, ControllerOptions
 from a3cqp_rl.robot import PandaSim
+from bench.arm_loop import PartTimer, drive
 
 
 def clarabel_solve(P: np.ndarray, c: np.ndarray, G: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -52,12 +53,8 @@ def clarabel_solve(P: np.ndarray, c: np.ndarray, G: np.ndarray, h: np.ndarray) -
 def run(n: int, steps: int, warmup: int, seed: int = 0, kin_source: str = "mujoco",
         clock=time.perf_counter, backend: str = "auto") -> dict[str, float]:  # noqa: ANN001
     """Closed-loop run of n arms; returns median timings (µs) and the QP peer's time."""
-    gen = torch.Generator().manual_seed(seed)
     sim = PandaSim(n, control_site="tcp" if kin_source == "mujoco" else None)
     ctrl = A3CQPController(n, options=ControllerOptions(backend=backend))
-    s = sim.observe()
-    pos0, rot0 = ctrl.model.fk(s.q.clone())
-    pos_d = pos0 + 0.2 * (torch.rand(n, 3, generator=gen, dtype=torch.float64) - 0.5)
     qp_times: list[float] = []
     qp_problems: list[tuple] = []
     real_solve = controller_module.solve_qp
@@ -71,40 +68,22 @@ def run(n: int, steps: int, warmup: int, seed: int = 0, kin_source: str = "mujoc
                                 kw["h"][0].numpy().copy()))
         return out
 
-    controller_module.solve_qp = timed_solve
-    # time the assembly (build_context + build_qp) and the torch kinematics inside step() by wrapping them
-    parts: dict[str, float] = {"asm": 0.0, "kin": 0.0}
-
-    def timed(name: str, fn):  # noqa: ANN001, ANN202
-        def wrapper(*a, **kw):  # noqa: ANN002, ANN003, ANN202
-            t = clock()
-            out = fn(*a, **kw)
-            parts[name] += clock() - t
-            return out
-        return wrapper
-
-    ctrl.build_context = timed("asm", ctrl.build_context)
-    ctrl.build_qp = timed("asm", ctrl.build_qp)
-    ctrl.assemble_native = timed("asm", ctrl.assemble_native)
-    ctrl.model.kinematics = timed("kin", ctrl.model.kinematics)
+    # the assembly (build_context + build_qp) and the torch kinematics inside step()
+    timer = PartTimer(clock)
+    for name in ("build_context", "build_qp", "assemble_native"):
+        timer.wrap(ctrl, name, "asm")
+    timer.wrap(ctrl.model, "kinematics", "kin")
     ctrl_t, sim_t, asm_t, kin_t = [], [], [], []
+
+    def record(t_ctrl: float, t_sim: float) -> None:
+        ctrl_t.append(t_ctrl)
+        sim_t.append(t_sim)
+        asm_t.append(timer.parts["asm"] - timer.parts["kin"])  # kinematics run inside build_context
+        kin_t.append(timer.parts["kin"])
+
+    controller_module.solve_qp = timed_solve
     try:
-        for k in range(warmup + steps):
-            if k % 50 == 0:
-                w = torch.softmax(6.0 * (torch.rand(n, 6, 3, generator=gen, dtype=torch.float64) - 0.5), -1)
-                f_d = 10.0 * torch.rand(n, 6, generator=gen, dtype=torch.float64)
-            parts["asm"] = parts["kin"] = 0.0
-            t0 = clock()
-            out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, f_d, pos_d, rot0, f_env=s.f_env, kin=s.kin)
-            t1 = clock()
-            sim.step(out.tau)
-            s = sim.observe()
-            t2 = clock()
-            if k >= warmup:
-                ctrl_t.append(t1 - t0)
-                sim_t.append(t2 - t1)
-                asm_t.append(parts["asm"] - parts["kin"])  # kinematics run inside build_context
-                kin_t.append(parts["kin"])
+        drive(ctrl, sim, steps, warmup, timer, record, seed)
     finally:
         controller_module.solve_qp = real_solve
     peer = []

@@ -25,6 +25,7 @@ import torch
 
 from a3cqp_rl.control import A3CQPController, ControllerOptions
 from a3cqp_rl.robot import PandaSim
+from bench.arm_loop import PartTimer, drive
 
 STACKS = {
     "default": (None, "auto"),
@@ -37,40 +38,20 @@ STACKS = {
 def run(n: int, levels: dict | None, backend: str, steps: int, warmup: int, seed: int = 0,
         clock=time.perf_counter) -> dict[str, float]:  # noqa: ANN001
     """Closed-loop run of n arms; returns the median µs per step of the whole step and of its parts."""
-    gen = torch.Generator().manual_seed(seed)
     sim = PandaSim(n, control_site="tcp")
     ctrl = A3CQPController(n, options=ControllerOptions(backend=backend), levels=levels)
-    s = sim.observe()
-    pos0, rot0 = ctrl.model.fk(s.q.clone())
-    pos_d = pos0 + 0.2 * (torch.rand(n, 3, generator=gen, dtype=torch.float64) - 0.5)
-    parts = {"asm": 0.0, "qp": 0.0}
-
-    def timed(name: str, fn):  # noqa: ANN001, ANN202
-        def wrapper(*a, **kw):  # noqa: ANN002, ANN003, ANN202
-            t = clock()
-            out = fn(*a, **kw)
-            parts[name] += clock() - t
-            return out
-        return wrapper
-
+    timer = PartTimer(clock)
     for name, part in (("build_context", "asm"), ("build_qp", "asm"), ("build_levels", "asm"),
                        ("assemble_native", "asm"), ("_solve", "qp"), ("_solve_levels", "qp")):
-        setattr(ctrl, name, timed(part, getattr(ctrl, name)))
+        timer.wrap(ctrl, name, part)
     rows: dict[str, list[float]] = {"ctrl": [], "asm": [], "qp": []}
-    for k in range(warmup + steps):
-        if k % 50 == 0:
-            w = torch.softmax(6.0 * (torch.rand(n, 6, 3, generator=gen, dtype=torch.float64) - 0.5), -1)
-            f_d = 10.0 * torch.rand(n, 6, generator=gen, dtype=torch.float64)
-        parts["asm"] = parts["qp"] = 0.0
-        t0 = clock()
-        out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, f_d, pos_d, rot0, f_env=s.f_env, kin=s.kin)
-        t1 = clock()
-        sim.step(out.tau)
-        s = sim.observe()
-        if k >= warmup:
-            rows["ctrl"].append(t1 - t0)
-            rows["asm"].append(parts["asm"])
-            rows["qp"].append(parts["qp"])
+
+    def record(t_ctrl: float, t_sim: float) -> None:
+        rows["ctrl"].append(t_ctrl)
+        rows["asm"].append(timer.parts["asm"])
+        rows["qp"].append(timer.parts["qp"])
+
+    drive(ctrl, sim, steps, warmup, timer, record, seed)
     med = {key: 1e6 * statistics.median(v) for key, v in rows.items()}
     med["rest"] = 1e6 * statistics.median([c - a - q for c, a, q in zip(rows["ctrl"], rows["asm"], rows["qp"])])
     med["fallbacks"] = ctrl.fallback_count
