@@ -284,7 +284,8 @@ class PandaEnv(EnvBase):
         w[..., 2] -= idle
         if self.pcfg.idle_force == "holds":
             return w, ones
-        return w, self.weights[..., 0] / np.maximum(w[..., 0], 1e-12)
+        # the reference scale w1 / (w1 + share) only where there is a share (elsewhere IK is the policy's own)
+        return w, np.where(idle > 0.0, self.weights[..., 0] / np.maximum(w[..., 0], 1e-300), 1.0)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
