@@ -34,7 +34,7 @@ from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, confi
 from a3cqp_rl.exceptions import A3CQPError, ConfigError
 
 from .genome import GenomeSpec
-from .runner import Problem, RunResult, run
+from .runner import Problem, RunResult, cli_config, run
 
 __all__ = ["FITNESS", "make_problem", "tune", "trial_config", "episode_reward", "behaviour", "write_best", "main"]
 
@@ -198,19 +198,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
 
-    from a3cqp_rl.config import load_config
-
     try:
-        overrides: dict = {"ga": {}}
-        if args.generations is not None:
-            overrides["ga"]["num_generations"] = args.generations
-        if args.steps_per_trial is not None:
-            overrides["ga"]["steps_per_trial"] = args.steps_per_trial
-        config = args.config
-        if config is None:
-            config = str(Path(args.out) / "config.yaml") if args.resume and args.out else "configs/ga_point_mass.yaml"
-        out = Path(args.out or Path("runs") / f"tune_{Path(config).stem}")
-        cfg = load_config(config, overrides)
+        cfg, out = cli_config(args.config, args.out, args.resume, "configs/ga_point_mass.yaml", "tune", "ga",
+                              {"num_generations": args.generations, "steps_per_trial": args.steps_per_trial})
         import torch
 
         torch.set_num_threads(1)

@@ -33,7 +33,7 @@ from a3cqp_rl.tuning_files import read_rows, read_state
 from .genome import GenomeSpec
 from .objectives import Objective, get_objective
 from .pareto import hypervolume, non_dominated
-from .runner import Problem, RunResult, run
+from .runner import Problem, RunResult, cli_config, run
 
 __all__ = ["make_problem", "tune_pareto", "crowded_tournament_sbx", "rank_and_crowding", "pareto_front", "read_front",
            "pick", "main"]
@@ -221,24 +221,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
 
-    from a3cqp_rl.config import load_config
-
     try:
         if args.pick is not None:
             if not args.out:
                 raise A3CQPError("--pick needs --out DIR (a finished run)")
             print(f"wrote {pick(args.out, args.pick)}")
             return 0
-        overrides: dict = {"nsga2": {}}
-        if args.generations is not None:
-            overrides["nsga2"]["generations"] = args.generations
-        if args.population is not None:
-            overrides["nsga2"]["population"] = args.population
-        config = args.config
-        if config is None:
-            config = str(Path(args.out) / "config.yaml") if args.resume and args.out else "configs/nsga2_zdt1.yaml"
-        out = Path(args.out or Path("runs") / f"pareto_{Path(config).stem}")
-        cfg = load_config(config, overrides)
+        cfg, out = cli_config(args.config, args.out, args.resume, "configs/nsga2_zdt1.yaml", "pareto", "nsga2",
+                              {"generations": args.generations, "population": args.population})
         result = tune_pareto(cfg, out, workers=args.workers, ray=args.ray, resume=args.resume, progress=not args.quiet)
         front = read_front(out)
         objective = get_objective(cfg.nsga2.objective)

@@ -138,6 +138,18 @@ def run(problem: Problem, cfg: ExperimentConfig, out: str | Path, *, workers: in
                      resumed_from=start_gen)
 
 
+def cli_config(config: str | None, out: str | None, resume: bool, default: str, prefix: str,
+               section: str, overrides: dict) -> tuple[ExperimentConfig, Path]:
+    """The config and output folder of a tuner's CLI run: `config`, else OUT/config.yaml on --resume, else `default`;
+    OUT defaults to runs/<prefix>_<config name>; `overrides` (None values dropped) go into `section`."""
+    from a3cqp_rl.config import load_config
+
+    if config is None:
+        config = str(Path(out) / "config.yaml") if resume and out else default
+    given = {k: v for k, v in overrides.items() if v is not None}
+    return load_config(config, {section: given}), Path(out or Path("runs") / f"{prefix}_{Path(config).stem}")
+
+
 def build_ga(problem: Problem, cfg: ExperimentConfig, fitness_func: Callable, state: dict | None = None,
              **callbacks) -> GA:
     """The pygad.GA of `problem` (seeded by cfg.seed; genes u in [0, 1]); from `state`, continuing a saved run."""
