@@ -233,6 +233,16 @@ class Scene:
         self.phase[mask] = phase
         self.t0[mask] = t[mask]
 
+    def _add_operator_force(self, acc: dict[str, np.ndarray], keys: tuple[str, str, str], a: np.ndarray,
+                            inp: SceneInput) -> None:
+        """Add |f_ope| [N] of arms `a` while their operator holds to the count, sum and peak named by `keys`."""
+        n, total, peak = keys
+        hold = self.operator.active[a]
+        f = np.where(hold, np.linalg.norm(inp.f_ope[a, :3], axis=1), 0.0)
+        acc[n][a] += hold
+        acc[total][a] += f
+        acc[peak][a] = np.maximum(acc[peak][a], f)
+
 
 class PegInHole(Scene):
     """Peg-in-hole (paper 000, Fig. 7, Table VI); see PegInHoleConfig for the procedure."""
@@ -517,11 +527,7 @@ class Polishing(Scene):
             a = arms[m]
             # while the operator guides, the reference follows the tool (Fig. 8: x_d changes with the operator)
             self.pos_d[a] = inp.pos[a]
-            hold = self.operator.active[a]
-            f = np.linalg.norm(inp.f_ope[a, :3], axis=1)
-            self._acc["n_rel"][a] += hold
-            self._acc["f_rel"][a] += np.where(hold, f, 0.0)
-            self._acc["f_rel_max"][a] = np.maximum(self._acc["f_rel_max"][a], np.where(hold, f, 0.0))
+            self._add_operator_force(self._acc, ("n_rel", "f_rel", "f_rel_max"), a, inp)
             released = self.operator.releases[a] > self._releases[a]
             if released.any():
                 r = a[released]
@@ -623,11 +629,7 @@ class Guidance(Scene):
         m = ph == self.GUIDE
         if m.any():
             a = arms[m]
-            hold = self.operator.active[a]
-            f = np.linalg.norm(inp.f_ope[a, :3], axis=1)
-            self._acc["n"][a] += hold
-            self._acc["f"][a] += np.where(hold, f, 0.0)
-            self._acc["f_max"][a] = np.maximum(self._acc["f_max"][a], np.where(hold, f, 0.0))
+            self._add_operator_force(self._acc, ("n", "f", "f_max"), a, inp)
             released = self.operator.releases[a] > self._releases[a]
             if released.any():
                 r = a[released]
