@@ -141,6 +141,7 @@ class PandaEnv(EnvBase):
         self.w_logits = np.tile(self._ik_logits, (n, 6, 1))
         self.weights = np.zeros((n, 6, 3))
         self.f_d = np.zeros((n, 6))
+        self._idle_leak: np.ndarray | None = None  # extra q* relaxation of `idle_force: damps` [N, 6] (1/s)
         self.t = np.zeros(n)
         self.diverged = np.zeros(n, dtype=bool)
         self.stiffness_scale = np.ones((n, 6))
@@ -287,6 +288,44 @@ class PandaEnv(EnvBase):
         # the reference scale w1 / (w1 + share) only where there is a share (elsewhere IK is the policy's own)
         return w, np.where(idle > 0.0, self.weights[..., 0] / np.maximum(w[..., 0], 1e-300), 1.0)
 
+    def idle_share_leak(self, w_ctrl: np.ndarray) -> np.ndarray | None:
+        """The extra relaxation rate [N, 6] (1/s) of the controller's q*, q̇* along each axis of L that `idle_force:
+        damps` adds, or None where there is none.
+
+        The controller's per-axis leak relaxes q* at rate leak × (w2 + w3 · min(1, f_d / 1 N)) of the weights it gets,
+        and there the idle share counts as IK, whose integral (eq. 5-7) holds the pose. But the share is a damper: it
+        has no position of its own to hold. So the share relaxes q* in the proportion the tasks that act do: the
+        axis relaxes at leak × a / (w1 + a), a = w2 + w3 · min(1, f_d / 1 N) (the policy's weights). Where the
+        operator leads an axis (w2 ≫ w1) the share then follows the operator (in a relocation, where q* would
+        otherwise pull the hand back); where IK leads (w1 ≫ w2, as across the hole during an insertion) it keeps
+        IK's integral."""
+        if self.pcfg.idle_force != "damps" or self.pcfg.state_leak != "per_axis":
+            return None
+        w, m = self.weights, np.clip(self.f_d, 0.0, 1.0)
+        idle = w[..., 2] * (1.0 - m)
+        if not np.any(idle > 0.0):
+            return None
+        act = w[..., 1] + w[..., 2] * m
+        target = act / np.maximum(w[..., 0] + act, 1e-12)
+        given = w_ctrl[..., 1] + w_ctrl[..., 2] * m  # what the controller's own leak does with w_ctrl
+        extra = np.where(idle > 0.0, np.clip(target - given, 0.0, 1.0), 0.0)
+        return self.ctrl.options.desired_state_leak * extra if np.any(extra > 0.0) else None
+
+    def _relax_idle_share(self) -> None:
+        """q*, q̇* toward (q, q̇) along the axes of L at `self._idle_leak` for one control period (the task-space
+        part only, as the controller's per-axis leak)."""
+        rate = np.clip(self._idle_leak * self.dt, 0.0, 1.0)  # [N, 6]
+        J = self._jac
+        Jt = np.swapaxes(J, 1, 2)
+        jpinv = Jt @ np.linalg.inv(J @ Jt + self.ctrl.options.nullspace_damping * np.eye(6))
+        rot = self.rot
+        for name, meas in (("q_des", self.q), ("qd_des", self.qd)):
+            des = getattr(self.ctrl, name)
+            d = des.numpy() - meas
+            loc = to_local(rot, (J @ d[..., None])[..., 0]) * rate
+            back = np.concatenate([(rot @ loc[:, :3, None])[..., 0], (rot @ loc[:, 3:, None])[..., 0]], axis=1)
+            des.copy_(torch.from_numpy(des.numpy() - (jpinv @ back[..., None])[..., 0]))
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
         if tuple(action.shape) != (self.num_envs, 6, 4):
@@ -295,6 +334,7 @@ class PandaEnv(EnvBase):
         self._adapt(action)
         self.max_penetration[:] = 0.0
         w_ctrl, scale = self.controller_weights()
+        self._idle_leak = self.idle_share_leak(w_ctrl)
         weights, f_d = torch.from_numpy(w_ctrl), torch.from_numpy(self.f_d)
         pos_d, rot_d = self._controller_reference(scale)
         self._draw_noise()
@@ -339,6 +379,8 @@ class PandaEnv(EnvBase):
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin)
         self.fallbacks += out.fallback.numpy()
+        if self._idle_leak is not None:
+            self._relax_idle_share()
         tau = out.tau.numpy()
         self.tau[:] = tau
         # the operator's hand at the handle (above the F/T sensor: read by the joint torques only)
