@@ -356,8 +356,8 @@ def main(argv: list[str] | None = None) -> int:
         if policy is not None and Path(policy).is_dir():
             policy = Path(policy) / "policy.pt"
         if policy is not None and not Path(policy).is_file():
-            where = "" if args.policy is not None else (f" (panda.policy of {cfg_path}: train it, pass --policy PATH, "
-                                                         "or leave learned out of --controllers)")
+            where = "" if args.policy is not None else (f" (panda.policy of {cfg_path}: train it with `make policy`, "
+                                                         "pass --policy PATH, or leave learned out of --controllers)")
             raise FileNotFoundError(f"policy file not found: {policy}{where}")
         if policy is None and "learned" in controllers:
             controllers = tuple(c for c in controllers if c != "learned")
