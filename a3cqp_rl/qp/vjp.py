@@ -22,7 +22,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from a3cqp_rl.native_build import address
 from a3cqp_rl.qp.exceptions import QPGradientError, QPShapeError
 from a3cqp_rl.qp.solver import QPSolution, _as_tensor, _backward_torch, _stack_rows, _strides
 
@@ -116,7 +115,7 @@ def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | list[str] | str |
         hit = _LAYOUTS[key] = _layout(args, strides, wrt, B, n, p, m)
     spec, layout, total = hit
     out = np.empty(total + B)
-    if lib.vjp(B, n, p, m, *ptrs, sol._addr, gx.data_ptr(), layout, address(out)):
+    if lib.vjp(B, n, p, m, *ptrs, sol._buf, gx.data_ptr(), layout, out):  # (arrays go to C as they are)
         _declined(sol, args, gx, out, spec, total)
     return QPGrad(out, spec)
 
