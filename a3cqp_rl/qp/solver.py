@@ -373,8 +373,9 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
                   -1 if G is None else G._version, -1 if h is None else h._version,
                   -1 if lb is None else lb._version, -1 if ub is None else ub._version), (pP, pA, pG, ph, pl, pu))
     if worst:
-        if worst >= native.HANDED_ON:  # some instances need the torch route
-            _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
+        if worst >= native.HANDED_ON:  # some instances need the torch route (no graph: x's node is `qp_vjp`)
+            with torch.no_grad():
+                _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
         elif worst < 0:
             raise MemoryError("a3cqp_rl.qp: the C route could not allocate its workspace")
     return sol
@@ -554,11 +555,12 @@ def solve_qp(
         # contiguous (`_fast_c`); everything below checks and explains, and is ~1 µs slower at B = 1.
         lib = native.load()
         if lib is not None and (A is None) == (b is None) and (G is None) == (h is None):
-            tol_c = 1e-9 if tol is None else float(tol)
-            if not (torch.is_grad_enabled() and _needs_grad(P, q, A, b, G, h, lb, ub)):
-                sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol_c, max_iter, active_set_iter)
-                if sol is not None:
-                    return sol
+            sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, 1e-9 if tol is None else float(tol), max_iter,
+                          active_set_iter)
+            if sol is not None:
+                if torch.is_grad_enabled() and _needs_grad(P, q, A, b, G, h, lb, ub):
+                    return _with_grad(sol)  # x differentiable by `qp_vjp`: one autograd node
+                return sol
     qd = q.dim()
     if qd not in (1, 2):
         raise QPShapeError(f"q must be [B, n] or [n], got shape {tuple(q.shape)}")
@@ -577,12 +579,9 @@ def solve_qp(
             if sol is not None:
                 return sol
         else:  # the same, with x differentiable by `qp_vjp` (one autograd node, none of the general path's work)
-            with torch.no_grad():
-                sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
+            sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
             if sol is not None:
-                from a3cqp_rl.qp.vjp import with_grad  # (vjp imports this module)
-
-                return with_grad(sol)
+                return _with_grad(sol)
     P, A, b, G, h, lb, ub = (t if t is None or isinstance(t, Tensor) else _as_tensor(t, nm)
                              for t, nm in zip((P, A, b, G, h, lb, ub), ("P", "A", "b", "G", "h", "lb", "ub")))
     if lib is not None and not grad and dtype == _F64:
@@ -608,6 +607,15 @@ def solve_qp(
                 _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
             return sol
     return _solve_general(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter, dtype, grad)
+
+
+def _with_grad(sol: QPSolution) -> QPSolution:
+    """`vjp.with_grad` (vjp imports this module; bound here on first use)."""
+    global _with_grad
+    from a3cqp_rl.qp.vjp import with_grad
+
+    _with_grad = with_grad
+    return with_grad(sol)
 
 
 def _needs_grad(P, q, A, b, G, h, lb, ub) -> bool:  # noqa: ANN001
