@@ -130,10 +130,18 @@ class _SolvedX(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gx):  # type: ignore[override]
-        wrt = tuple(nm for nm, need in zip(GRAD_NAMES, ctx.needs_input_grad[2:]) if need)
+        need = ctx.needs_input_grad
+        wrt = _WRT.get(need)
+        if wrt is None:
+            wrt = _WRT[need] = tuple(nm for nm, nd in zip(GRAD_NAMES, need[2:]) if nd)
         sol = ctx.sol()  # while the user's solution lives, its fields are checked for in-place changes
         g = qp_vjp(sol if sol is not None else ctx.inner, gx, wrt)
-        return (None, None, *(g._get(k) for k in range(8)))
+        get = g._get
+        return None, None, get(0), get(1), get(2), get(3), get(4), get(5), get(6), get(7)
+
+
+_WRT: dict[tuple[bool, ...], tuple[str, ...]] = {}
+"""needs_input_grad of `_SolvedX` -> the names asked of `qp_vjp` (the same few patterns recur)."""
 
 
 def with_grad(sol: QPSolution) -> QPSolution:
