@@ -6,8 +6,8 @@ interpreted loop pays ~1 µs per call (numpy) or ~5 µs per op (eager torch) man
 step.  One C call runs the whole batch: input checks, bound handling, the active set and its certificate.
 
 `load()` returns a `NativeQP` with the module's two functions (`solver.py` calls them with tensor data pointers as
-ints; at B = 1 ctypes' conversion of the 17 arguments cost ~2 µs of a ~9 µs `solve_qp`, the extension's parsing ~0.1)
-or None: when the library was not built (no C compiler at install
+ints and its numpy buffers as the arrays themselves: taking an array's address in Python costs ~0.3 µs, of a B = 1
+`solve_qp` of ~7; ctypes' own argument conversion measured no slower than the module's parsing) or None: when the library was not built (no C compiler at install
 time) or is older than its source (one warning), or when the environment variable A3CQP_NATIVE_QP=0
 switches the C code off; `solve_qp(backend="auto")` then takes the torch route and `backend="c"` raises.
 
