@@ -322,7 +322,7 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
     size), straight from the tensors' data to gi_qp_solve and back; None when the call does not fit (the general
     path then checks, explains and converts).  q is a float64 CPU tensor (checked by the caller)."""
     # At B = 1 each check is ~50 ns and the whole Python side of a solve ~3 µs: the checks are written out
-    # (no helper calls) and the output buffer goes to C as the array itself (no address taken here).
+    # (no nested function calls) and the output buffer goes to C as the array itself (no address taken here).
     if type(P) is not Tensor or P.dtype is not _F64 or q.dim() != 2 or not (P.is_cpu and P.is_contiguous() and q.is_contiguous()):
         return None
     B, n = q.shape
