@@ -315,16 +315,19 @@ class PandaEnv(EnvBase):
         """q*, q̇* toward (q, q̇) along the axes of L at `self._idle_leak` for one control period (the task-space
         part only, as the controller's per-axis leak)."""
         rate = np.clip(self._idle_leak * self.dt, 0.0, 1.0)  # [N, 6]
-        J = self._jac
+        # only the arms with a share to relax and a finite state (a diverged arm is parked by its own path)
+        idx = np.flatnonzero((rate > 0.0).any(1) & ~self.diverged & np.isfinite(self._jac).all((1, 2)))
+        if len(idx) == 0:
+            return
+        J, rot, rate = self._jac[idx], self.rot[idx], rate[idx]
         Jt = np.swapaxes(J, 1, 2)
         jpinv = Jt @ np.linalg.inv(J @ Jt + self.ctrl.options.nullspace_damping * np.eye(6))
-        rot = self.rot
         for name, meas in (("q_des", self.q), ("qd_des", self.qd)):
-            des = getattr(self.ctrl, name)
-            d = des.numpy() - meas
+            des = getattr(self.ctrl, name).numpy()  # shares memory with the controller's tensor
+            d = des[idx] - meas[idx]
             loc = to_local(rot, (J @ d[..., None])[..., 0]) * rate
             back = np.concatenate([(rot @ loc[:, :3, None])[..., 0], (rot @ loc[:, 3:, None])[..., 0]], axis=1)
-            des.copy_(torch.from_numpy(des.numpy() - (jpinv @ back[..., None])[..., 0]))
+            des[idx] -= (jpinv @ back[..., None])[..., 0]
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
