@@ -40,7 +40,7 @@ from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.control import A3CQPController, ControllerOptions, wrench_from_joint_torques
 from a3cqp_rl.control.frames import pose_error
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaModel, PandaSim
-from a3cqp_rl.robot.sim import ShardedPandaSim
+from a3cqp_rl.robot.sim import ShardedPandaSim, cross3
 from envs.scenarios import Operator, Scene, SceneInput, make_scene, rotvec_to_matrix
 
 __all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS", "TASK_BLENDS"]
@@ -63,11 +63,6 @@ def default_sim_threads(num_envs: int) -> int:
     """MuJoCo threads for `num_envs` arms: 2 from 8 arms up where the machine has 2 cores (below that the threads'
     hand-over, ~30 µs per control period, costs more than half the arms' physics saves)."""
     return 2 if num_envs >= 8 and (os.cpu_count() or 1) >= 2 else 1
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
 
 
 def to_local(rot: np.ndarray, v6: np.ndarray) -> np.ndarray:
@@ -346,7 +341,7 @@ class PandaEnv(EnvBase):
         v, w = s.kin.twist.numpy()[:, :3], s.kin.twist.numpy()[:, 3:]
         r = (self.rot @ self._o_handle)
         hand = self._noise.get("hand")
-        force, torque = self.operator.wrench(self.t + k * self.dt, self.pos + r, v + _cross(w, r), self.rot, w,
+        force, torque = self.operator.wrench(self.t + k * self.dt, self.pos + r, v + cross3(w, r), self.rot, w,
                                              None if hand is None else hand[:, k])
         self.handle_force[:] = force
         if np.any(force) or np.any(torque):
@@ -375,7 +370,7 @@ class PandaEnv(EnvBase):
             ft[:, :3] += (self.rot @ err[:, :3, None])[..., 0]  # sensor frame = tool frame
             ft[:, 3:] += (self.rot @ err[:, 3:, None])[..., 0]
         # moment about the tool tip: τ_tip = τ_site + (p_site − p_tip) × F
-        ft[:, 3:] += _cross(self.rot @ self._o_ft, ft[:, :3])
+        ft[:, 3:] += cross3(self.rot @ self._o_ft, ft[:, :3])
         self.f_env = ft
         self.f_ope = self.f_ext - self.f_env
         self.handle_pos = self.pos + self.rot @ self._o_handle

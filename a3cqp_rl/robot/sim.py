@@ -14,7 +14,7 @@ from a3cqp_rl.robot.kinematics import Kinematics
 from a3cqp_rl.robot.mjcf import DEFAULT_TOOL, compose_mjcf
 from a3cqp_rl.robot.specs import PANDA_HOME
 
-__all__ = ["SimState", "PandaSim", "ShardedPandaSim", "full_mass_matrix", "mujoco_dynamics"]
+__all__ = ["SimState", "PandaSim", "ShardedPandaSim", "cross3", "full_mass_matrix", "mujoco_dynamics"]
 
 
 def full_mass_matrix(m: mujoco.MjModel, d: mujoco.MjData, dst: np.ndarray) -> None:
@@ -25,12 +25,13 @@ def full_mass_matrix(m: mujoco.MjModel, d: mujoco.MjData, dst: np.ndarray) -> No
         mujoco.mj_fullM(m, d, dst)
 
 
-_I1, _I2 = [1, 2, 0], [2, 0, 1]
+_I1, _I2 = np.array([1, 2, 0], dtype=np.intp), np.array([2, 0, 1], dtype=np.intp)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross product over the last axis of [..., 3] arrays, broadcast (np.cross has ~10 µs of overhead per call)."""
-    return a[..., _I1] * b[..., _I2] - a[..., _I2] * b[..., _I1]
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis of [..., 3] arrays, broadcast (np.cross has ~10 µs of overhead per call;
+    `take` with index arrays is ~3x faster than indexing with lists, the same products)."""
+    return a.take(_I1, axis=-1) * b.take(_I2, axis=-1) - a.take(_I2, axis=-1) * b.take(_I1, axis=-1)
 
 
 def mujoco_dynamics(model: mujoco.MjModel, q: torch.Tensor, qd: torch.Tensor | None = None
@@ -402,12 +403,12 @@ class PandaSim:
         acceleration of the subtree's centre of mass p as lin + α × (p − c) + ω × v_p (as mj_objectAcceleration).
         """
         r = self._com - self._root_com  # (N, 3)
-        w, v = self._cvel[:, :3], self._cvel[:, 3:] + _cross(self._cvel[:, :3], r)
-        a_com = self._cacc[:, 3:] + _cross(self._cacc[:, :3], r) + _cross(w, v)
+        w, v = self._cvel[:, :3], self._cvel[:, 3:] + cross3(self._cvel[:, :3], r)
+        a_com = self._cacc[:, 3:] + cross3(self._cacc[:, :3], r) + cross3(w, v)
         support = self._tool_mass * a_com  # weight support + m a
         flange = self._R @ self._ft.reshape(-1, 2, 3).transpose(0, 2, 1)  # (N, 3, 2): R·force, R·torque
         self._f_env[:, :3] = support - flange[:, :, 0]
-        self._f_env[:, 3:] = _cross(self._com - self._site_pos, support) - flange[:, :, 1]
+        self._f_env[:, 3:] = cross3(self._com - self._site_pos, support) - flange[:, :, 1]
 
     def push(self, force_world: np.ndarray | torch.Tensor, site: str = "handle",
              torque_world: np.ndarray | torch.Tensor | None = None) -> None:
@@ -427,10 +428,10 @@ class PandaSim:
         p = d.site_xpos[sid]
         # a body force (xfrc_applied, at the body CoM) so that the F/T sensor sees pushes below it
         d.xfrc_applied[body, :3] += force
-        d.xfrc_applied[body, 3:] += torque + _cross(p - d.xipos[body], force)
+        d.xfrc_applied[body, 3:] += torque + cross3(p - d.xipos[body], force)
         # its joint torques Jᵀ(f; τ) at p (as mj_applyFT), for tau_ext: cdof_lin·f + cdof_ang·(r × f + τ)
         cdof = d.cdof[self._dadr]
-        moment = _cross(p - d.subtree_com[self.model.body_rootid[body]], force) + torque
+        moment = cross3(p - d.subtree_com[self.model.body_rootid[body]], force) + torque
         tau = np.einsum("nkj,nj->nk", cdof[:, :, 3:], force) + np.einsum("nkj,nj->nk", cdof[:, :, :3], moment)
         self._tau_push += tau if mask is None else tau * mask
         self._pushed = True
