@@ -86,8 +86,10 @@ class PandaEnv(EnvBase):
             evaluation gives every controller the same trials this way).
         controller_factory: builds the arms' controller instead of A3CQPController, called with the same arguments
             (n, model=, config=, options=); e.g. a PopulationController with per-arm gains and priority levels.
-        sim_threads: MuJoCo models the arms are split into, stepped in as many threads (ShardedPandaSim; the same
-            numbers as one model, bit for bit); default `default_sim_threads(num_envs)`.
+        sim_threads: MuJoCo models the arms are split into, stepped in as many threads (ShardedPandaSim). Default 1
+            (one PandaSim). Without contact the numbers are the same bit for bit; with contact they differ at the
+            solver's round-off (MuJoCo chooses its warm start for a whole model at once), as between batches of
+            different compositions. `default_sim_threads(num_envs)` is what `a3cqp evaluate` uses.
     """
 
     _has_dynamic_specs = False
@@ -96,7 +98,7 @@ class PandaEnv(EnvBase):
                  scene: str | None = None, controller_options: ControllerOptions | None = None,
                  trial_seeds: list[int] | None = None, device: str | torch.device = "cpu",
                  controller_factory: Callable[..., A3CQPController] | None = None,
-                 sim_threads: int | None = None) -> None:
+                 sim_threads: int = 1) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
@@ -129,7 +131,9 @@ class PandaEnv(EnvBase):
         # handle and F/T site in the tool tip's frame (rigidly attached: constant)
         self._o_handle, self._o_ft = t_rot.T @ (h_pos - t_pos), t_rot.T @ (f_pos - t_pos)
         self.scene: Scene = make_scene(scene_name, n, self.operator, home_pos, home_rot, self.pcfg, h_pos)
-        threads = default_sim_threads(n) if sim_threads is None else int(sim_threads)
+        threads = min(int(sim_threads), n)
+        if threads < 1:
+            raise ValueError(f"sim_threads must be >= 1, got {sim_threads}")
         sim_args = dict(tool=tool, scene=self.scene.mjcf(), q0=PANDA_HOME, timestep=self.dt, control_site="tcp")
         self.sim: PandaSim | ShardedPandaSim = (PandaSim(n, **sim_args) if threads == 1 else
                                                 ShardedPandaSim(n, parts=threads, **sim_args))
