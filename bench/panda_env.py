@@ -4,17 +4,16 @@ peg-in-hole scene's contacts on.
 Every arm runs the peg-in-hole procedure with the scripted IK + force-control weights until its peg is on the block
 (the insertion phase: peg on the rim or in the bore), then the timed agent steps start (each = 10 control periods of
 controller + MuJoCo + sensing + operator/scene at 100 Hz). Reported per N (medians over repeats):
-  steps/s    batched env.step() calls per second (TorchRL EnvBase.step, tensordict in and out)
+  steps/s    batched env.step() calls per second (TorchRL EnvBase.step, tensordict in and out), physics in one thread
   RTF        aggregate real-time factor N · 10 ms · steps/s
-  threads    MuJoCo threads of the env (ShardedPandaSim; `default_sim_threads`: 2 from N = 8 on 2 cores)
   contacts   mean MuJoCo contacts per arm in the timed window
-  1-thread   RTF of the same env with its physics in one thread (one PandaSim): the peer of the threads;
-             `x threads` = RTF / 1-thread RTF
+  2 threads  RTF of the same env with its arms in 2 MuJoCo models stepped in 2 threads (ShardedPandaSim), N >= 8;
+             `x 2 thr` = its RTF / RTF (the one-thread env is its peer)
   bare RTF   the same arms, the same number of control periods, run as the bare loop of bench/controller.py (PandaSim
-             + A3CQPController, free motion, no env): `env cost` = bare RTF / 1-thread RTF
+             + A3CQPController, free motion, no env): `env cost` = bare RTF / RTF
 Target: RTF >= 10x at N = 32 on this machine (2 cores).  `--eval POLICY` also times `a3cqp evaluate --scene
-peg_in_hole` on 26 trials (learned policy alone, and all five controllers with `--eval-all`) with the default
-threads and with one, and prints the ratio (target: under a minute).
+peg_in_hole` on 26 trials (learned policy alone, and all five controllers with `--eval-all`) on 1 and 2 threads
+(target: under a minute).
 
     python bench/panda_env.py [--quick] [--sizes 1 8 32] [--repeats R] [--eval POLICY [--eval-all]]
 """
@@ -31,7 +30,7 @@ import torch
 
 from a3cqp_rl.control import A3CQPController
 from a3cqp_rl.robot import PandaSim
-from envs.panda import PandaEnv, default_sim_threads
+from envs.panda import PandaEnv
 
 
 def _scripted(env: PandaEnv) -> None:
@@ -101,35 +100,34 @@ def main(argv: list[str] | None = None) -> int:
     repeats = 1 if args.quick else args.repeats
     print(f"PandaEnv benchmark (peg-in-hole, contacts on): {steps} timed agent steps (x10 control periods), "
           f"median of {repeats}")
-    print(f"{'N':>4} {'threads':>7} {'steps/s':>9} {'RTF':>8} {'contacts/arm':>13} {'1-thread':>9} {'x threads':>9} "
-          f"{'bare RTF':>9} {'env cost':>9} {'target':>18}")
+    print(f"{'N':>4} {'steps/s':>9} {'RTF':>8} {'contacts/arm':>13} {'2 threads':>10} {'x 2 thr':>8} {'bare RTF':>9} "
+          f"{'env cost':>9} {'target':>18}")
     for n in args.sizes:
-        threads = default_sim_threads(n)
-        one, many = [], []
+        one, two = [], []
         for _ in range(repeats):  # interleaved, so that both see the same load
             one.append(run_env(n, steps, threads=1))
-            many.append(run_env(n, steps, threads=threads) if threads > 1 else one[-1])
-        r = sorted(many, key=lambda x: x["rtf"])[len(many) // 2]
-        rtf1 = statistics.median(x["rtf"] for x in one)
+            if n >= 8:
+                two.append(run_env(n, steps, threads=2)["rtf"])
+        r = sorted(one, key=lambda x: x["rtf"])[len(one) // 2]
+        rtf2 = f"{statistics.median(two):>9.2f}x {statistics.median(two) / r['rtf']:>7.2f}x" if two else f"{'-':>10} {'-':>8}"
         bare = statistics.median(run_bare(n, steps * 10) for _ in range(repeats))
         target = f">=10x RT: {'met' if r['rtf'] >= 10 else 'NOT met'}" if n == 32 else "-"
-        print(f"{n:>4} {threads:>7} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {rtf1:>8.2f}x "
-              f"{r['rtf'] / rtf1:>8.2f}x {bare:>8.2f}x {bare / rtf1:>8.2f}x {target:>18}")
+        print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {rtf2} {bare:>8.2f}x "
+              f"{bare / r['rtf']:>8.2f}x {target:>18}")
     if args.eval:
         from envs.panda_eval import CONTROLLERS, evaluate
 
         for label, controllers in [("learned policy", ("learned",))] + ([("5 controllers", CONTROLLERS)]
                                                                          if args.eval_all else []):
             walls = {}
-            for threads in (None, 1):
+            for threads in (2, 1):
                 t0 = time.perf_counter()
                 res = evaluate("peg_in_hole", args.eval, 26, 0, controllers=controllers, progress=False,
                                sim_threads=threads)
                 walls[threads] = time.perf_counter() - t0
-            wall = walls[None]
-            print(f"26-trial evaluation, {label}: {wall:.1f} s ({res.sim_seconds:.0f} s simulated, "
-                  f"{default_sim_threads(len(controllers) * 26)} threads; 1 thread: {walls[1]:.1f} s, "
-                  f"x{walls[1] / wall:.2f}; target < 60 s: {'met' if wall < 60 else 'NOT met'})")
+            print(f"26-trial evaluation, {label}: {walls[1]:.1f} s on 1 thread ({res.sim_seconds:.0f} s simulated; "
+                  f"target < 60 s: {'met' if walls[1] < 60 else 'NOT met'}); 2 threads: {walls[2]:.1f} s, "
+                  f"x{walls[1] / walls[2]:.2f}")
     return 0
 
 

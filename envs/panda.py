@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 from collections.abc import Callable
 
 import mujoco
@@ -59,12 +58,6 @@ INFO_KEYS = ("e_local", "f_env_local", "f_ope_local", "weights", "f_d", "phase",
 """Per-step entries written next to `observation` (plus the scene's signals, e.g. the peg's misalignment)."""
 
 
-def default_sim_threads(num_envs: int) -> int:
-    """MuJoCo threads for `num_envs` arms: 2 from 8 arms up where the machine has 2 cores (below that the threads'
-    hand-over, ~30 µs per control period, costs more than half the arms' physics saves)."""
-    return 2 if num_envs >= 8 and (os.cpu_count() or 1) >= 2 else 1
-
-
 def to_local(rot: np.ndarray, v6: np.ndarray) -> np.ndarray:
     """World 6-vectors [N, 6] (linear; angular) into the local frames of `rot` [N, 3, 3]: D^T v (eq. 3)."""
     rt = np.swapaxes(rot, 1, 2)
@@ -89,7 +82,7 @@ class PandaEnv(EnvBase):
         sim_threads: MuJoCo models the arms are split into, stepped in as many threads (ShardedPandaSim). Default 1
             (one PandaSim). Without contact the numbers are the same bit for bit; with contact they differ at the
             solver's round-off (MuJoCo chooses its warm start for a whole model at once), as between batches of
-            different compositions. `default_sim_threads(num_envs)` is what `a3cqp evaluate` uses.
+            different compositions. On a loaded 2-core machine 2 threads are slower (docs/panda.md, Benchmark).
     """
 
     _has_dynamic_specs = False
