@@ -397,3 +397,53 @@ int64_t a2c_iteration(const a2c_params *P, void **buf) {
     metrics[4] = (float)(1.0 - res_var / (ret_var + 1e-8));
     return ends;
 }
+
+/* ------------------------------------------------------------------ many iterations per call */
+
+/* out[i] = sum over t of x[t, i], x [rows, cols], as torch's `x.sum(0)` adds a contiguous [rows, cols] float32 block
+ * over its outer dim (aten/src/ATen/native/cpu/SumKernel.cpp, multi_row_sum): rows go into level 0 in blocks of 16;
+ * after each block the levels carry upwards (level j after blocks that are multiples of 16^j); at the end the last
+ * partial block is in level 0 and levels 1-3 are added to it.  Up to 17 rows this is the plain sequential sum.
+ * algorithms/native checks it against torch for the trainer's shape before it relies on it. */
+void a2c_outer_sum(const float *x, int64_t rows, int64_t cols, float *out) {
+    enum { LEVELS = 4, STEP = 16 };
+    for (int64_t c = 0; c < cols; c++) {
+        float acc[LEVELS] = {0.0f, 0.0f, 0.0f, 0.0f};
+        int64_t i = 0;
+        while (i + STEP <= rows) {
+            for (int64_t j = 0; j < STEP; j++, i++) acc[0] += x[i * cols + c];
+            for (int64_t j = 1; j < LEVELS; j++) {
+                acc[j] += acc[j - 1];
+                acc[j - 1] = 0.0f;
+                if ((i & ((int64_t)(STEP - 1) << (4 * j))) != 0) break;
+            }
+        }
+        for (; i < rows; i++) acc[0] += x[i * cols + c];
+        for (int64_t j = 1; j < LEVELS; j++) acc[0] += acc[j];
+        out[c] = acc[0];
+    }
+}
+
+/* `count` iterations, the noise of iteration k at noise + k n N A.  Each adds its metrics to metric_sum [5] (as
+ * Checkpoints.add_metrics); every iteration but the last adds its rewards summed over the rollout to ep_return [N]
+ * and n to ep_length [N] (as FusedRollout.iterate does for a rollout without an episode end); the last iteration's
+ * rewards and dones stay in their buffers for the caller.  An episode end before the last iteration stops the call:
+ * returns the number of iterations run (count, unless one ended an episode early). */
+int64_t a2c_iterations(const a2c_params *P, void **buf, int64_t count, float *metric_sum, float *ep_return,
+                       int64_t *ep_length) {
+    const int64_t N = P->env.N, n = P->n, stride = n * N * P->act_dim;
+    void *table[B_COUNT];
+    memcpy(table, buf, sizeof table);
+    const float *metrics = buf[B_METRICS], *rewards = buf[B_REWARDS];
+    float sums[N > 0 ? N : 1];
+    for (int64_t k = 0; k < count; k++) {
+        table[B_NOISE] = (float *)buf[B_NOISE] + k * stride;
+        int64_t ends = a2c_iteration(P, table);
+        for (int j = 0; j < 5; j++) metric_sum[j] += metrics[j];
+        if (k + 1 == count) break;
+        if (ends) return k + 1;
+        a2c_outer_sum(rewards, n, N, sums);
+        for (int64_t i = 0; i < N; i++) { ep_return[i] += sums[i]; ep_length[i] += n; }
+    }
+    return count;
+}
