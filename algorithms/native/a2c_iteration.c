@@ -79,15 +79,52 @@ static inline float exp_nonpos(float z) {
     float fn = (float)n, r = (z - fn * 0.693145751953125f) - fn * 1.428606765330187e-06f;
     float p = 1.0f + r * (1.0f + r * (0.5f + r * (0.16666667f + r * (0.041666668f + r * (0.008333334f
                                                                                        + r * 0.0013888889f)))));
-    int32_t bits = (n + 127) << 23;  /* 2^n */
-    float scale;
-    memcpy(&scale, &bits, sizeof scale);
-    return p * scale;
+    union { int32_t i; float f; } scale = {.i = (n + 127) << 23};  /* 2^n (a union, not memcpy: the loop vectorises) */
+    return p * scale.f;
+}
+
+/* Four floats in one register (GNU C vector extension, GCC and clang: SSE on x86-64, NEON on arm64, plain scalars
+ * elsewhere).  v + s * w is a multiply then an add, each rounded, as the scalar code: the kernels below keep each
+ * sum's order of terms, they only hold the partial sums in registers across a whole sum instead of in memory. */
+typedef float v4 __attribute__((vector_size(16)));
+static inline v4 ld4(const float *p) { v4 v; memcpy(&v, p, sizeof v); return v; }
+static inline void st4(float *p, v4 v) { memcpy(p, &v, sizeof v); }
+static inline v4 bc4(float s) { return (v4){s, s, s, s}; }
+typedef int32_t v4i __attribute__((vector_size(16)));
+static inline v4i bc4i(int32_t s) { return (v4i){s, s, s, s}; }
+static inline v4 sel4(v4i mask, v4 a, v4 b) { return (v4)(((v4i)a & mask) | ((v4i)b & ~mask)); } /* mask ? a : b */
+
+/* Elementwise loops that run faster on wider registers (RMSProp's square roots and divisions) get an AVX2 copy,
+ * chosen at load time (GCC's target_clones, x86-64 Linux): the same IEEE operations lane by lane (no FMA: the C
+ * standard mode keeps a * b + c two roundings), so the same numbers on every machine.  Reductions never get one:
+ * their order of terms follows the register width. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && __GNUC__ >= 8
+#define ELEMENTWISE_CLONES __attribute__((target_clones("avx2", "default")))
+#else
+#define ELEMENTWISE_CLONES
+#endif
+
+
+/* exp_nonpos and tanh_row's arithmetic on four lanes, operation for operation (GCC does not vectorise the scalar
+ * loop: the clamp and the sign are control flow to it) */
+static inline v4 tanh4(v4 y) {
+    const v4i sign = bc4i(INT32_MIN);
+    v4 a = (v4)((v4i)y & ~sign), z = bc4(-2.0f) * a;
+    z = sel4(z < bc4(-87.0f), bc4(-87.0f), z);
+    v4i n = __builtin_convertvector(z * bc4(1.44269504f) - bc4(0.5f), v4i);
+    v4 fn = __builtin_convertvector(n, v4);
+    v4 r = (z - fn * bc4(0.693145751953125f)) - fn * bc4(1.428606765330187e-06f);
+    v4 p = bc4(1.0f) + r * (bc4(1.0f) + r * (bc4(0.5f) + r * (bc4(0.16666667f) + r * (bc4(0.041666668f)
+                                                  + r * (bc4(0.008333334f) + r * bc4(0.0013888889f))))));
+    v4 t = p * (v4)((n + bc4i(127)) << 23);
+    v4 v = (bc4(1.0f) - t) / (bc4(1.0f) + t);
+    return sel4(y < bc4(0.0f), -v, v);
 }
 
 static void tanh_row(float *y, int64_t len) {
-#pragma omp simd
-    for (int64_t i = 0; i < len; i++) {
+    int64_t i = 0;
+    for (; i + 4 <= len; i += 4) st4(y + i, tanh4(ld4(y + i)));
+    for (; i < len; i++) {
         float a = fabsf(y[i]), t = exp_nonpos(-2.0f * a), v = (1.0f - t) / (1.0f + t);
         y[i] = y[i] < 0.0f ? -v : v;
     }
@@ -107,14 +144,6 @@ static void linear(const float *x, int64_t rows, int64_t in, int64_t ldx, const 
         }
     }
 }
-
-/* Four floats in one register (GNU C vector extension, GCC and clang: SSE on x86-64, NEON on arm64, plain scalars
- * elsewhere).  v + s * w is a multiply then an add, each rounded, as the scalar code: the kernels below keep each
- * sum's order of terms, they only hold the partial sums in registers across a whole sum instead of in memory. */
-typedef float v4 __attribute__((vector_size(16)));
-static inline v4 ld4(const float *p) { v4 v; memcpy(&v, p, sizeof v); return v; }
-static inline void st4(float *p, v4 v) { memcpy(p, &v, sizeof v); }
-static inline v4 bc4(float s) { return (v4){s, s, s, s}; }
 
 /* the same with W^T [in, out] (`transpose`), then tanh: y[r, o] = ((b[o] + x[r,0] W[o,0]) + x[r,1] W[o,1]) + ...,
  * the terms in input order.  Four rows by eight outputs at a time, the 32 partial sums in registers over the inputs
@@ -170,8 +199,31 @@ static void linear_t(const float *x, int64_t rows, int64_t in, int64_t ldx, cons
     tanh_row(y, rows * out);
 }
 
+#if defined(__clang__) || __GNUC__ >= 12
+#define SHUFFLE4(a, b, i, j, k, l) __builtin_shufflevector(a, b, i, j, k, l)
+#else
+#define SHUFFLE4(a, b, i, j, k, l) __builtin_shuffle(a, b, (v4i){i, j, k, l})
+#endif
+
+/* Wt [in, out] = W^T: 4 x 4 blocks through registers, the edges one by one */
 static void transpose(const float *W, int64_t out, int64_t in, float *Wt) {
-    for (int64_t o = 0; o < out; o++)
+    int64_t o = 0;
+    for (; o + 4 <= out; o += 4) {
+        int64_t k = 0;
+        for (; k + 4 <= in; k += 4) {
+            v4 r0 = ld4(W + o * in + k), r1 = ld4(W + (o + 1) * in + k), r2 = ld4(W + (o + 2) * in + k),
+               r3 = ld4(W + (o + 3) * in + k);
+            v4 t0 = SHUFFLE4(r0, r1, 0, 4, 1, 5), t1 = SHUFFLE4(r2, r3, 0, 4, 1, 5);
+            v4 t2 = SHUFFLE4(r0, r1, 2, 6, 3, 7), t3 = SHUFFLE4(r2, r3, 2, 6, 3, 7);
+            st4(Wt + k * out + o, SHUFFLE4(t0, t1, 0, 1, 4, 5));
+            st4(Wt + (k + 1) * out + o, SHUFFLE4(t0, t1, 2, 3, 6, 7));
+            st4(Wt + (k + 2) * out + o, SHUFFLE4(t2, t3, 0, 1, 4, 5));
+            st4(Wt + (k + 3) * out + o, SHUFFLE4(t2, t3, 2, 3, 6, 7));
+        }
+        for (; k < in; k++)
+            for (int64_t j = o; j < o + 4; j++) Wt[k * out + j] = W[j * in + k];
+    }
+    for (; o < out; o++)
         for (int64_t k = 0; k < in; k++) Wt[k * out + o] = W[o * in + k];
 }
 
@@ -299,6 +351,18 @@ static void head_backward(const float *h, int64_t rows, int64_t in, const float 
             for (int64_t k = 0; k < in; k++) { gwo[k] += go * hr[k]; ghr[k] += go * wo[k]; }
             gb[o] += go;
         }
+    }
+}
+
+/* eq. 32 on the clipped gradient grad * scale */
+ELEMENTWISE_CLONES
+static void rmsprop(float *flat, float *sq, const float *grad, int64_t size, float scale, float al, float lr,
+                    float eps) {
+#pragma omp simd
+    for (int64_t k = 0; k < size; k++) {
+        float g = grad[k] * scale;
+        sq[k] = sq[k] * al + (1.0f - al) * g * g;
+        flat[k] -= lr * g / sqrtf(sq[k] + eps);
     }
 }
 
@@ -475,13 +539,7 @@ int64_t a2c_iteration(const a2c_params *P, void **buf) {
     float norm = (float)sqrt(sumsq);
     float scale = (float)P->max_grad_norm / (norm + 1e-6f);
     if (scale > 1.0f) scale = 1.0f;
-    float al = (float)P->rms_alpha, lr = (float)P->lr, eps = (float)P->rms_eps;
-#pragma omp simd
-    for (int64_t k = 0; k < P->size; k++) {
-        float g = grad[k] * scale;
-        sq[k] = sq[k] * al + (1.0f - al) * g * g;
-        flat[k] -= lr * g / sqrtf(sq[k] + eps);
-    }
+    rmsprop(flat, sq, grad, P->size, scale, (float)P->rms_alpha, (float)P->lr, (float)P->rms_eps);
     metrics[0] = (float)policy_loss;
     metrics[1] = (float)value_loss;
     metrics[2] = (float)entropy;
