@@ -148,6 +148,7 @@ static void linear(const float *x, int64_t rows, int64_t in, int64_t ldx, const 
 /* the same with W^T [in, out] (`transpose`), then tanh: y[r, o] = ((b[o] + x[r,0] W[o,0]) + x[r,1] W[o,1]) + ...,
  * the terms in input order.  Four rows by eight outputs at a time, the 32 partial sums in registers over the inputs
  * (the hidden layers; `linear` is kept for 1-4 outputs) */
+ELEMENTWISE_CLONES
 static void linear_t(const float *x, int64_t rows, int64_t in, int64_t ldx, const float *Wt, const float *b,
                      int64_t out, float *y) {
     int64_t r = 0;
@@ -251,6 +252,7 @@ static const float *last_layer(const a2c_params *P, const float *acts, int64_t r
 
 /* dW[o, k] += sum over rows r (in row order) of g[r, o] inp[r, k]; db[o] likewise: eight k at a time, the sums over
  * the rows in registers */
+ELEMENTWISE_CLONES
 static void weight_grad(const float *g, int64_t rows, int64_t h, const float *inp, int64_t ld, int64_t in, float *gw,
                         float *gb) {
     for (int64_t o = 0; o < h; o++) {
@@ -276,6 +278,7 @@ static void weight_grad(const float *g, int64_t rows, int64_t h, const float *in
 }
 
 /* g_prev[r, k] = sum over o (in order, from 0) of g[r, o] W[o, k]: four rows by eight k, the sums in registers */
+ELEMENTWISE_CLONES
 static void input_grad(const float *g, int64_t rows, int64_t h, const float *W, int64_t in, float *g_prev) {
     int64_t r = 0;
     const v4 zero = bc4(0.0f);
