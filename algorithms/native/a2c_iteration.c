@@ -100,30 +100,40 @@ static inline v4 sel4(v4i mask, v4 a, v4 b) { return (v4)(((v4i)a & mask) | ((v4
  * their order of terms follows the register width. */
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && __GNUC__ >= 8
 #define ELEMENTWISE_CLONES __attribute__((target_clones("avx2", "default")))
+#define ELEMENTWISE_CLONES_512 __attribute__((target_clones("avx512f", "avx2", "default")))
 #else
 #define ELEMENTWISE_CLONES
+#define ELEMENTWISE_CLONES_512
 #endif
 
 
-/* exp_nonpos and tanh_row's arithmetic on four lanes, operation for operation (GCC does not vectorise the scalar
+/* exp_nonpos and tanh_row's arithmetic on eight lanes, operation for operation (GCC does not vectorise the scalar
  * loop: the clamp and the sign are control flow to it) */
-static inline v4 tanh4(v4 y) {
-    const v4i sign = bc4i(INT32_MIN);
-    v4 a = (v4)((v4i)y & ~sign), z = bc4(-2.0f) * a;
-    z = sel4(z < bc4(-87.0f), bc4(-87.0f), z);
-    v4i n = __builtin_convertvector(z * bc4(1.44269504f) - bc4(0.5f), v4i);
-    v4 fn = __builtin_convertvector(n, v4);
-    v4 r = (z - fn * bc4(0.693145751953125f)) - fn * bc4(1.428606765330187e-06f);
-    v4 p = bc4(1.0f) + r * (bc4(1.0f) + r * (bc4(0.5f) + r * (bc4(0.16666667f) + r * (bc4(0.041666668f)
-                                                  + r * (bc4(0.008333334f) + r * bc4(0.0013888889f))))));
-    v4 t = p * (v4)((n + bc4i(127)) << 23);
-    v4 v = (bc4(1.0f) - t) / (bc4(1.0f) + t);
-    return sel4(y < bc4(0.0f), -v, v);
-}
+typedef float v8 __attribute__((vector_size(32)));
+typedef int32_t v8i __attribute__((vector_size(32)));
+#define BC8I(s) ((v8i){s, s, s, s, s, s, s, s})
+#define BC8(s) ((v8){s, s, s, s, s, s, s, s})
+#define SEL8(mask, a, b) ((v8)(((v8i)(a) & (mask)) | ((v8i)(b) & ~(mask))))
 
+ELEMENTWISE_CLONES
 static void tanh_row(float *y, int64_t len) {
     int64_t i = 0;
-    for (; i + 4 <= len; i += 4) st4(y + i, tanh4(ld4(y + i)));
+    for (; i + 8 <= len; i += 8) {
+        v8 x, z;
+        memcpy(&x, y + i, sizeof x);
+        v8 a = (v8)((v8i)x & ~BC8I(INT32_MIN));
+        z = BC8(-2.0f) * a;
+        z = SEL8(z < BC8(-87.0f), BC8(-87.0f), z);
+        v8i n = __builtin_convertvector(z * BC8(1.44269504f) - BC8(0.5f), v8i);
+        v8 fn = __builtin_convertvector(n, v8);
+        v8 r = (z - fn * BC8(0.693145751953125f)) - fn * BC8(1.428606765330187e-06f);
+        v8 p = BC8(1.0f) + r * (BC8(1.0f) + r * (BC8(0.5f) + r * (BC8(0.16666667f) + r * (BC8(0.041666668f)
+                                                    + r * (BC8(0.008333334f) + r * BC8(0.0013888889f))))));
+        v8 t = p * (v8)((n + BC8I(127)) << 23);
+        v8 v = (BC8(1.0f) - t) / (BC8(1.0f) + t);
+        v = SEL8(x < BC8(0.0f), -v, v);
+        memcpy(y + i, &v, sizeof v);
+    }
     for (; i < len; i++) {
         float a = fabsf(y[i]), t = exp_nonpos(-2.0f * a), v = (1.0f - t) / (1.0f + t);
         y[i] = y[i] < 0.0f ? -v : v;
@@ -358,7 +368,7 @@ static void head_backward(const float *h, int64_t rows, int64_t in, const float 
 }
 
 /* eq. 32 on the clipped gradient grad * scale */
-ELEMENTWISE_CLONES
+ELEMENTWISE_CLONES_512
 static void rmsprop(float *flat, float *sq, const float *grad, int64_t size, float scale, float al, float lr,
                     float eps) {
 #pragma omp simd
