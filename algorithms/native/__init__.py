@@ -8,6 +8,13 @@ which stays the definition: tests/test_a2c_native.py checks 60 iterations in loc
 (three network/option sets) and the first update of whole runs against the torch trainer. Results agree to float32 round-off, not bit for bit (MKL sums in its own order);
 each path is deterministic on its own.
 
+`NativeIteration.run` runs many iterations in one call (`a2c_iterations`): `a2c.train` returns to Python only at log
+rows, checkpoints, updates inside the `average_last` window and episode ends (new episodes are drawn by the env's
+torch generator), so at n = 1 (250,000 updates per 1e6 steps) the loop is not bound by Python per update. It adds
+each rollout's rewards to the running episode returns in the order torch's `rewards.sum(0)` adds them (checked for
+the trainer's shape when it is built; other shapes keep one call per iteration): the results are bit for bit those
+of one call per iteration (tests/test_a2c_chunked.py, also against numbers stored before the change).
+
 `FusedRollout` takes it when `a2c.backend` allows (`auto`: PointMassEnv on the CPU and at most
 `AUTO_MAX_BATCH` samples per update, where it is faster; bigger batches are GEMM-bound, where MKL wins).
 `A3CQP_NATIVE_A2C=0` switches it off; a library not built at install time (no compiler) or stale logs one warning and the torch path runs.
