@@ -1,11 +1,14 @@
-"""CPU time of the C A2C iteration's trainings: the GA's trial (configs/ga_point_mass.yaml, 4 envs, 1e6 steps) at
-n = 1, 4 and 32, and the steps/s of `make train`'s config (configs/point_mass_a2c_default.yaml, shortened).
+"""CPU time of A2C trainings on the C iteration: the GA's trial (configs/ga_point_mass.yaml: Table IV, 4 envs, 1e6
+steps) at n = 1, 4 and 32, and the steps/s of `make train`'s config (configs/point_mass_a2c_default.yaml, shortened).
 
-CPU seconds (this process's user + system time around `train`) do not depend on what else runs on the machine;
-wall-clock steps/s do. Medians of `--repeats` runs, one after the other in this process (torch with one thread, as
-a GA worker).
+The baseline in the same run: the same training with one C call per update (`FusedRollout.max_updates` held at 1,
+how the loop ran before many updates went into one call; same numbers, checked). Runs alternate between the two.
+CPU seconds (this process's user + system time around `train`) depend less on the machine's other jobs than wall
+time does (though not entirely: a busy sibling core slows this one). Medians of `--repeats` runs, torch with one
+thread (as a GA worker).
 
-Usage: python bench/a2c_cpu.py [--repeats 3] [--steps 1000000] [--default-steps 4000000] [--only ga|default]
+Usage: python bench/a2c_cpu.py [--repeats 3] [--steps 1000000] [--default-steps 4000000] [--n 1 4 32]
+                               [--only ga|default] [--quick]
 """
 
 from __future__ import annotations
@@ -15,10 +18,12 @@ import os
 import statistics
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 _ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(_ROOT))
+if str(_ROOT) not in sys.path:
+    sys.path.insert(0, str(_ROOT))
 
 
 def _config(path: str, overrides: dict):
@@ -27,13 +32,45 @@ def _config(path: str, overrides: dict):
     return load_config(_ROOT / "configs" / path, overrides)
 
 
-def _run(cfg, steps: int) -> tuple[float, float, float]:
-    """(CPU s, wall s, steps/s) of one training."""
+@contextmanager
+def _one_update_per_call(enabled: bool):
+    """Hold FusedRollout.max_updates at 1 (the per-update loop) while `enabled`."""
+    from algorithms.a2c import FusedRollout
+
+    saved = FusedRollout.max_updates
+    if enabled:
+        FusedRollout.max_updates = lambda self: 1
+    try:
+        yield
+    finally:
+        FusedRollout.max_updates = saved
+
+
+def _run(cfg, steps: int, per_update: bool) -> tuple[float, float, float, float]:
+    """(CPU s, wall s, steps/s, mean of the episode returns) of one training."""
     from algorithms.a2c import train
 
-    c0, w0 = time.process_time(), time.perf_counter()
-    res = train(cfg, None, total_steps=steps)
-    return time.process_time() - c0, time.perf_counter() - w0, res.steps_per_second
+    with _one_update_per_call(per_update):
+        c0, w0 = time.process_time(), time.perf_counter()
+        res = train(cfg, None, total_steps=steps)
+        cpu, wall = time.process_time() - c0, time.perf_counter() - w0
+    returns = res.episode_returns
+    return cpu, wall, res.steps_per_second, sum(returns) / max(len(returns), 1)
+
+
+def _pair(cfg, steps: int, repeats: int) -> dict[str, list[tuple]]:
+    """`repeats` runs of each loop shape, alternating; checks they trained the same."""
+    runs: dict[str, list[tuple]] = {"batched": [], "per update": []}
+    for _ in range(repeats):
+        runs["batched"].append(_run(cfg, steps, False))
+        runs["per update"].append(_run(cfg, steps, True))
+    if runs["batched"][0][3] != runs["per update"][0][3]:
+        raise SystemExit(f"the two loops trained differently: {runs['batched'][0][3]} vs {runs['per update'][0][3]}")
+    return runs
+
+
+def _load() -> str:
+    return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,26 +80,33 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--default-steps", type=int, default=4_000_000, help="steps of the make-train config run")
     p.add_argument("--n", type=int, nargs="+", default=[1, 4, 32], help="n_steps values of the GA trial")
     p.add_argument("--only", choices=("ga", "default"), default=None)
+    p.add_argument("--quick", action="store_true", help="1 repeat, 1e5-step trials, 2e5 steps of the default config")
     args = p.parse_args(argv)
+    if args.quick:
+        args.repeats, args.steps, args.default_steps = 1, 100_000, 204_800
     import torch
 
     torch.set_num_threads(1)
-    print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f}")
+    print(f"A2C on the C iteration, CPU time per training (median of {args.repeats}); load {_load()}", flush=True)
+    med = statistics.median
     if args.only != "default":
         for n in args.n:
             cfg = _config("ga_point_mass.yaml", {"a2c": {"n_steps": n, "region_checks": 0}})
-            runs = [_run(cfg, args.steps) for _ in range(args.repeats)]
-            cpu, wall = statistics.median(r[0] for r in runs), statistics.median(r[1] for r in runs)
-            print(f"GA trial n = {n:2d}: {cpu:6.2f} CPU s, {wall:6.2f} wall s per {args.steps:,} steps "
-                  f"({args.steps / cpu:,.0f} steps per CPU s); runs {[round(r[0], 2) for r in runs]}")
+            runs = _pair(cfg, args.steps, args.repeats)
+            new, old = med(r[0] for r in runs["batched"]), med(r[0] for r in runs["per update"])
+            print(f"  GA trial n = {n:2d}, {args.steps:,} steps: {new:6.2f} CPU s ({args.steps / new:,.0f} steps per "
+                  f"CPU s); one C call per update {old:6.2f} CPU s; {old / new:.2f}x; runs "
+                  f"{[round(r[0], 2) for r in runs['batched']]} / {[round(r[0], 2) for r in runs['per update']]}",
+                  flush=True)
     if args.only != "ga":
-        cfg = _config("point_mass_a2c_default.yaml", {})
-        runs = [_run(cfg, args.default_steps) for _ in range(args.repeats)]
-        cpu, sps = statistics.median(r[0] for r in runs), statistics.median(r[2] for r in runs)
-        print(f"make train config: {sps:,.0f} steps/s (wall), {args.default_steps / cpu:,.0f} steps per CPU s over "
-              f"{args.default_steps:,} steps; projected {2e7 / sps:.0f} s for its 2e7 steps; runs "
-              f"{[round(r[2]) for r in runs]}")
-    print(f"load: {os.getloadavg()[0]:.2f} {os.getloadavg()[1]:.2f} {os.getloadavg()[2]:.2f}")
+        cfg = _config("point_mass_a2c_default.yaml", {"a2c": {"region_checks": 0}})
+        runs = _pair(cfg, args.default_steps, args.repeats)
+        for name, rs in runs.items():
+            cpu, sps = med(r[0] for r in rs), med(r[2] for r in rs)
+            print(f"  make train config ({name}), {args.default_steps:,} steps: {sps:,.0f} steps/s wall, "
+                  f"{args.default_steps / cpu:,.0f} steps per CPU s; 2e7 steps: {2e7 / sps:.0f} s at this load, "
+                  f"{2e7 * cpu / args.default_steps:.0f} s of CPU", flush=True)
+    print(f"  load after: {_load()}")
     return 0
 
 
