@@ -3,7 +3,8 @@ steps) at n = 1, 4 and 32, and the steps/s of `make train`'s config (configs/poi
 
 The baseline in the same run: the same training with one C call per update (`FusedRollout.max_updates` held at 1,
 how the loop ran before many updates went into one call; same numbers, checked). Runs alternate between the two.
-CPU seconds (this process's user + system time around `train`) depend less on the machine's other jobs than wall
+A short training first takes the process's one-time costs (~1.5 s: first imports and calls). CPU seconds (this
+process's user + system time around `train`) depend less on the machine's other jobs than wall
 time does (though not entirely: a busy sibling core slows this one). Medians of `--repeats` runs, torch with one
 thread (as a GA worker).
 
@@ -88,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(1)
     print(f"A2C on the C iteration, CPU time per training (median of {args.repeats}); load {_load()}", flush=True)
+    _run(_config("ga_point_mass.yaml", {"a2c": {"region_checks": 0}}), 4_000, False)  # the process's one-time costs
     med = statistics.median
     if args.only != "default":
         for n in args.n:
