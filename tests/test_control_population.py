@@ -156,3 +156,18 @@ def test_native_population_refuses_replaced_tasks(states) -> None:  # noqa: ANN0
     pop.tasks[0] = type(pop.tasks[0])(pop.gains.kp * 2, pop.gains.k_theta)
     out = pop.step(**inputs)  # the composition changed: the Python objects run (and agree with themselves)
     assert np.isfinite(_x(out)).all()
+
+
+def test_native_robot_rows_are_checked(states) -> None:  # noqa: ANN001
+    """The per-robot rows of the C step name every field once and have one row per arm."""
+    _, model = states
+    pop = PopulationController(N, model=model)
+    step = pop._native
+    with pytest.raises(ValueError, match="missing or unknown"):
+        step.robot_rows(kp=np.ones((N, 6)))
+    rows = pop._robot_rows[0]
+    assert rows.shape == (N, step.lib.a3cqp_robot_size())
+    inputs, _ = states
+    with pytest.raises(ValueError, match="per-robot rows must have shape"):
+        pop.step(**inputs)  # fills q*, q̇*
+        step.assemble(robots=rows[:-1], packed=np.zeros((N, step.lib.a3cqp_input_size())))
