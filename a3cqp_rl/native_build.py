@@ -2,8 +2,8 @@
 `a3cqp_rl.native_sources`).
 
 Each C source `dir/name.c` is built by `pip install` into `dir/_name<extension suffix>` (in place for an editable
-install).  The libraries are plain C called through ctypes, not Python extension modules: they hold no Python
-state and are loaded with `ctypes.CDLL`.  Where a library is absent (no compiler at install time: setuptools
+install).  Most are plain C called through ctypes (loaded with `ctypes.CDLL`, no Python state); the QP solver's
+`_gi_qp` is also a CPython extension module, imported by `a3cqp_rl.qp.native` for its entry points.  Where a library is absent (no compiler at install time: setuptools
 skips the optional extension with a warning), switched off by its environment variable, or older than its source
 (edited after the build), the caller's pure-Python route runs after one warning naming the reason.
 """

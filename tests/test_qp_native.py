@@ -309,3 +309,47 @@ def test_large_batches_send_only_what_c_leaves_to_the_torch_route(monkeypatch) -
     assert torch.equal(sol.status, ref.status) and int((sol.status != QPStatus.SOLVED).sum()) == 2
     ok = sol.status == QPStatus.SOLVED
     assert (sol.x[ok] - ref.x[ok]).abs().max().item() <= 1e-8
+
+
+@needs_lib
+def test_non_finite_entries_are_invalid_before_any_infeasible_row() -> None:
+    """P and G are tested for inf/NaN while symmetrised and copied: rows without a constraint (h ≥ 1e20) and
+    infeasible rows (h ≤ −1e20) are tested too, and INVALID_INPUT wins over PRIMAL_INFEASIBLE, on both routes."""
+    n, m = 3, 4
+    P = torch.eye(n, dtype=DT).expand(6, n, n).clone()
+    q = torch.ones(6, n, dtype=DT)
+    G = torch.ones(6, m, n, dtype=DT)
+    h = torch.ones(6, m, dtype=DT)
+    G[0, 1, 2] = float("inf")  # in a row that is no constraint
+    h[0, 1] = float("inf")
+    G[1, 2, 0] = float("nan")  # in an infeasible row
+    h[1, 2] = -float("inf")
+    h[2, 3] = -1e20  # infeasible, every entry finite
+    P[3, 0, 1], P[3, 1, 0] = float("inf"), -float("inf")  # ½(P + Pᵀ) would be NaN, P itself is not finite
+    P[4, 2, 1] = float("nan")  # below the diagonal: read as P[1, 2]'s partner too
+    want = [QPStatus.INVALID_INPUT, QPStatus.INVALID_INPUT, QPStatus.PRIMAL_INFEASIBLE, QPStatus.INVALID_INPUT,
+            QPStatus.INVALID_INPUT, QPStatus.SOLVED]
+    for backend in ("c", "torch"):
+        sol = solve_qp(P, q, G=G, h=h, backend=backend)
+        assert sol.status.tolist() == [int(s) for s in want], backend
+    assert torch.allclose(solve_qp(P[5:], q[5:], G=G[5:], h=h[5:], backend="c").x, -torch.ones(1, n, dtype=DT))
+
+
+@needs_lib
+def test_module_takes_addresses_or_arrays_and_refuses_a_wrong_call() -> None:
+    """The extension's entry points read an address as an int or as a contiguous numpy array alike; a wrong number
+    of arguments or a non-contiguous array raises instead of reading memory."""
+    lib = native.load()
+    qp = random_qp_batch(4, 13, 30, spread=0.35, seed=77)
+    B, n, m = 4, 13, 30
+    strides = np.array([n * n, n, 0, 0, m * n, m, n, n, 0], dtype=np.int64)
+    args = (qp.P.data_ptr(), qp.q.data_ptr(), 0, 0, qp.G.data_ptr(), qp.h.data_ptr(), 0, 0, 0)
+    out_int, out_arr = np.empty(B * (3 * n + m + 2)), np.empty(B * (3 * n + m + 2))
+    lib.solve(B, n, 0, m, *args, solver_mod.address(strides), 1e-9, 100, solver_mod.address(out_int))
+    lib.solve(B, n, 0, m, *args, strides, 1e-9, 100, out_arr)
+    assert np.array_equal(out_int, out_arr)
+    assert np.array_equal(out_arr[: B * n].reshape(B, n), solve_qp(qp.P, qp.q, G=qp.G, h=qp.h).x.numpy())
+    with pytest.raises(TypeError, match="17 arguments"):
+        lib.solve(B, n, 0, m, *args, strides, 1e-9, 100)
+    with pytest.raises((BufferError, ValueError, TypeError)):
+        lib.solve(B, n, 0, m, *args, strides, 1e-9, 100, np.empty((B * (3 * n + m + 2), 2))[:, 0])

@@ -96,7 +96,8 @@ class QPSolution:
 
     @classmethod
     def _from_buffer(cls, buf: np.ndarray, addr: int, B: int, n: int, p: int, m: int) -> "QPSolution":
-        """A solution over gi_qp_solve's output buffer: x [B·n] | duals [B·(p + m + 2n)] | status [B] | solves [B]."""
+        """A solution over gi_qp_solve's output buffer: x [B·n] | duals [B·(p + m + 2n)] | status [B] | solves [B]
+        (addr: its data address, or None where it was not taken: the C functions take the array itself)."""
         sol = cls.__new__(cls)
         sol._buf, sol._addr, sol._dims, sol._dtype = buf, addr, (B, n, p, m), _F64
         sol._x = sol._y = sol._z = sol._z_lb = sol._z_ub = sol._status = sol._iterations = sol._data = None
@@ -299,7 +300,8 @@ def _forward_c(
 def _warm_duals(warm_start: "QPSolution", B: int, n: int, p: int, m: int) -> tuple[np.ndarray, int, int]:
     """Warm-start multipliers for the C route as (array kept alive, address of z | z_lb | z_ub, stride)."""
     if warm_start._buf is not None and warm_start._dims == (B, n, p, m):  # a C solve's own buffer: no copies
-        return warm_start._buf, warm_start._addr + 8 * (B * n + p), p + m + 2 * n
+        base = warm_start._addr if warm_start._addr is not None else address(warm_start._buf)
+        return warm_start._buf, base + 8 * (B * n + p), p + m + 2 * n
     parts = [warm_start.z, warm_start.z_lb, warm_start.z_ub]
     want = ((B, m), (B, n), (B, n))
     for t, w, nm in zip(parts, want, ("z", "z_lb", "z_ub")):
@@ -307,16 +309,6 @@ def _warm_duals(warm_start: "QPSolution", B: int, n: int, p: int, m: int) -> tup
             raise QPShapeError(f"warm_start.{nm} has shape {tuple(t.shape)}, expected {w}")
     z0 = np.ascontiguousarray(torch.cat([t.detach().to(_F64).cpu() for t in parts], 1).numpy())
     return z0, address(z0), m + 2 * n
-
-
-def _fast_rows(M: Tensor, r: Tensor, B: int, n: int) -> tuple[int, int, int] | None:
-    """(row count, data addresses) of a batched contiguous float64 CPU pair (A, b) or (G, h), else None."""
-    if type(M) is not Tensor or type(r) is not Tensor or M.dtype is not _F64 or r.dtype is not _F64 or M.dim() != 3:
-        return None
-    k = M.shape[1]
-    if M.shape != (B, k, n) or r.shape != (B, k) or not (M.is_cpu and r.is_cpu and M.is_contiguous() and r.is_contiguous()):
-        return None
-    return k, M.data_ptr(), r.data_ptr()
 
 
 _FAST_STRIDES: dict[tuple[int, ...], int] = {}
@@ -327,25 +319,33 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
             h: Tensor | None, lb: Tensor | None, ub: Tensor | None, warm_start: QPSolution | None, tol: float,
             max_iter: int, active_set_iter: int | None) -> QPSolution | None:
     """The C route for the common call (every argument a batched, contiguous float64 CPU tensor of one batch
-    size, no gradients), straight from the tensors' data to gi_qp_solve and back; None when the call does
-    not fit (the general path then checks, explains and converts)."""
-    if type(P) is not Tensor or q.dim() != 2 or P.dtype is not _F64 or not (P.is_cpu and q.is_contiguous() and P.is_contiguous()):
+    size), straight from the tensors' data to gi_qp_solve and back; None when the call does not fit (the general
+    path then checks, explains and converts).  q is a float64 CPU tensor (checked by the caller)."""
+    # At B = 1 each check is ~50 ns and the whole Python side of a solve ~3 µs: the checks are written out
+    # (no nested function calls) and the output buffer goes to C as the array itself (no address taken here).
+    if type(P) is not Tensor or P.dtype is not _F64 or q.dim() != 2 or not (P.is_cpu and P.is_contiguous() and q.is_contiguous()):
         return None
     B, n = q.shape
     if P.shape != (B, n, n):
         return None
     p = m = 0
     pA = pb = pG = ph = pl = pu = 0
-    if A is not None:
-        rows = _fast_rows(A, b, B, n)
-        if rows is None:
-            return None
-        p, pA, pb = rows
     if G is not None:
-        rows = _fast_rows(G, h, B, n)
-        if rows is None:
+        if (type(G) is not Tensor or type(h) is not Tensor or G.dtype is not _F64 or h.dtype is not _F64
+                or not (G.is_cpu and h.is_cpu and G.is_contiguous() and h.is_contiguous())):
             return None
-        m, pG, ph = rows
+        m = G.shape[1] if G.dim() == 3 else -1
+        if G.shape != (B, m, n) or h.shape != (B, m):
+            return None
+        pG, ph = G.data_ptr(), h.data_ptr()
+    if A is not None:
+        if (type(A) is not Tensor or type(b) is not Tensor or A.dtype is not _F64 or b.dtype is not _F64
+                or not (A.is_cpu and b.is_cpu and A.is_contiguous() and b.is_contiguous())):
+            return None
+        p = A.shape[1] if A.dim() == 3 else -1
+        if A.shape != (B, p, n) or b.shape != (B, p):
+            return None
+        pA, pb = A.data_ptr(), b.data_ptr()
     if lb is not None:
         if type(lb) is not Tensor or lb.dtype is not _F64 or lb.shape != (B, n) or not (lb.is_cpu and lb.is_contiguous()):
             return None
@@ -354,30 +354,30 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
         if type(ub) is not Tensor or ub.dtype is not _F64 or ub.shape != (B, n) or not (ub.is_cpu and ub.is_contiguous()):
             return None
         pu = ub.data_ptr()
-    nout = p + m + 2 * n
     z0 = zs = 0
     keep = None
     if warm_start is not None:
         keep, z0, zs = _warm_duals(warm_start, B, n, p, m)
-    buf = np.empty(B * (n + nout + 2))
-    o = address(buf)
+    buf = np.empty(B * (3 * n + p + m + 2))
     key = (n, p, m, zs)
     sa = _FAST_STRIDES.get(key)
     if sa is None:
         sa = _FAST_STRIDES[key] = _strides((n * n, n, p * n, p, m * n, m, n, n, zs))
     pP = P.data_ptr()
-    worst = lib.solve(B, n, p, m, pP, q.data_ptr(), pA, pb, pG, ph, pl, pu, z0, sa, tol, MAX_STEPS, o)
+    worst = lib.solve(B, n, p, m, pP, q.data_ptr(), pA, pb, pG, ph, pl, pu, z0, sa, tol, MAX_STEPS, buf)
     del keep
-    sol = QPSolution._from_buffer(buf, o, B, n, p, m)
+    sol = QPSolution._from_buffer(buf, None, B, n, p, m)
     # What `qp_vjp` needs: the arguments (batched, contiguous), versions to notice in-place changes, what C read.
     sol._data = (lib, (P, q, A, b, G, h, lb, ub),
                  (P._version, q._version, -1 if A is None else A._version, -1 if b is None else b._version,
                   -1 if G is None else G._version, -1 if h is None else h._version,
                   -1 if lb is None else lb._version, -1 if ub is None else ub._version), (pP, pA, pG, ph, pl, pu))
-    if worst >= native.HANDED_ON:  # some instances need the torch route
-        _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
-    elif worst < 0:
-        raise MemoryError("a3cqp_rl.qp: the C route could not allocate its workspace")
+    if worst:
+        if worst >= native.HANDED_ON:  # some instances need the torch route (no graph: x's node is `qp_vjp`)
+            with torch.no_grad():
+                _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
+        elif worst < 0:
+            raise MemoryError("a3cqp_rl.qp: the C route could not allocate its workspace")
     return sol
 
 
@@ -550,6 +550,17 @@ def solve_qp(
     """
     if type(q) is not Tensor:
         q = _as_tensor(q, "q")
+    if q.dtype is _F64 and backend == "auto" and q.is_cpu:
+        # The control loop's call (float64 CPU tensors): straight to the C routine when every argument is batched and
+        # contiguous (`_fast_c`); everything below checks and explains, and is ~1 µs slower at B = 1.
+        lib = native.load()
+        if lib is not None and (A is None) == (b is None) and (G is None) == (h is None):
+            sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, 1e-9 if tol is None else float(tol), max_iter,
+                          active_set_iter)
+            if sol is not None:
+                if torch.is_grad_enabled() and _needs_grad(P, q, A, b, G, h, lb, ub):
+                    return _with_grad(sol)  # x differentiable by `qp_vjp`: one autograd node
+                return sol
     qd = q.dim()
     if qd not in (1, 2):
         raise QPShapeError(f"q must be [B, n] or [n], got shape {tuple(q.shape)}")
@@ -568,12 +579,9 @@ def solve_qp(
             if sol is not None:
                 return sol
         else:  # the same, with x differentiable by `qp_vjp` (one autograd node, none of the general path's work)
-            with torch.no_grad():
-                sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
+            sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
             if sol is not None:
-                from a3cqp_rl.qp.vjp import with_grad  # (vjp imports this module)
-
-                return with_grad(sol)
+                return _with_grad(sol)
     P, A, b, G, h, lb, ub = (t if t is None or isinstance(t, Tensor) else _as_tensor(t, nm)
                              for t, nm in zip((P, A, b, G, h, lb, ub), ("P", "A", "b", "G", "h", "lb", "ub")))
     if lib is not None and not grad and dtype == _F64:
@@ -599,6 +607,15 @@ def solve_qp(
                 _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
             return sol
     return _solve_general(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter, dtype, grad)
+
+
+def _with_grad(sol: QPSolution) -> QPSolution:
+    """`vjp.with_grad` (vjp imports this module; bound here on first use)."""
+    global _with_grad
+    from a3cqp_rl.qp.vjp import with_grad
+
+    _with_grad = with_grad
+    return with_grad(sol)
 
 
 def _needs_grad(P, q, A, b, G, h, lb, ub) -> bool:  # noqa: ANN001

@@ -22,7 +22,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from a3cqp_rl.native_build import address
 from a3cqp_rl.qp.exceptions import QPGradientError, QPShapeError
 from a3cqp_rl.qp.solver import QPSolution, _as_tensor, _backward_torch, _stack_rows, _strides
 
@@ -116,7 +115,7 @@ def qp_vjp(sol: QPSolution, gx: Tensor, wrt: tuple[str, ...] | list[str] | str |
         hit = _LAYOUTS[key] = _layout(args, strides, wrt, B, n, p, m)
     spec, layout, total = hit
     out = np.empty(total + B)
-    if lib.vjp(B, n, p, m, *ptrs, sol._addr, gx.data_ptr(), layout, address(out)):
+    if lib.vjp(B, n, p, m, *ptrs, sol._buf, gx.data_ptr(), layout, out):  # (arrays go to C as they are)
         _declined(sol, args, gx, out, spec, total)
     return QPGrad(out, spec)
 
@@ -131,10 +130,18 @@ class _SolvedX(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gx):  # type: ignore[override]
-        wrt = tuple(nm for nm, need in zip(GRAD_NAMES, ctx.needs_input_grad[2:]) if need)
+        need = ctx.needs_input_grad
+        wrt = _WRT.get(need)
+        if wrt is None:
+            wrt = _WRT[need] = tuple(nm for nm, nd in zip(GRAD_NAMES, need[2:]) if nd)
         sol = ctx.sol()  # while the user's solution lives, its fields are checked for in-place changes
         g = qp_vjp(sol if sol is not None else ctx.inner, gx, wrt)
-        return (None, None, *(g._get(k) for k in range(8)))
+        get = g._get
+        return None, None, get(0), get(1), get(2), get(3), get(4), get(5), get(6), get(7)
+
+
+_WRT: dict[tuple[bool, ...], tuple[str, ...]] = {}
+"""needs_input_grad of `_SolvedX` -> the names asked of `qp_vjp` (the same few patterns recur)."""
 
 
 def with_grad(sol: QPSolution) -> QPSolution:

@@ -1,12 +1,13 @@
 """The C route of `solve_qp` (`gi_qp.c`: dense Goldfarb-Idnani per instance, and the vector-Jacobian product of its
-solution, built at install time), through ctypes.
+solution, built at install time as a CPython extension module whose two functions take data addresses).
 
 Why C: at the controller's size (n = 13, m = 30) a whole solve is a few µs of arithmetic, while any
 interpreted loop pays ~1 µs per call (numpy) or ~5 µs per op (eager torch) many times per active-set
 step.  One C call runs the whole batch: input checks, bound handling, the active set and its certificate.
 
-`load()` returns a `NativeQP` with the raw ctypes functions (`solver.py` calls them with tensor data pointers, no
-conversions) or None: when the library was not built (no C compiler at install
+`load()` returns a `NativeQP` with the module's two functions (`solver.py` calls them with tensor data pointers as
+ints and its numpy buffers as the arrays themselves: taking an array's address in Python costs ~0.3 µs, of a B = 1
+`solve_qp` of ~7; ctypes' own argument conversion measured no slower than the module's parsing) or None: when the library was not built (no C compiler at install
 time) or is older than its source (one warning), or when the environment variable A3CQP_NATIVE_QP=0
 switches the C code off; `solve_qp(backend="auto")` then takes the torch route and `backend="c"` raises.
 
@@ -15,7 +16,8 @@ Build: setup.py at install time (flags in `a3cqp_rl.native_sources`); loading: `
 
 from __future__ import annotations
 
-import ctypes
+import importlib.machinery
+import importlib.util
 import logging
 from pathlib import Path
 from typing import Callable, NamedTuple
@@ -35,8 +37,8 @@ _log = logging.getLogger(__name__)
 
 
 class NativeQP(NamedTuple):
-    """The bound C entry points (ctypes functions taking data addresses; `solver.py` calls them with tensor data
-    pointers, no conversions)."""
+    """The C entry points (functions of the extension module taking sizes, data addresses as ints, and floats;
+    `solver.py` calls them with tensor data pointers, no conversions)."""
 
     solve: Callable
     """gi_qp_solve(B, n, p, m, P, q, A, b, G, h, lb, ub, z0, strides, tol, max_steps, out) -> worst status."""
@@ -45,14 +47,12 @@ class NativeQP(NamedTuple):
 
 
 def _bind(path: Path) -> NativeQP:
-    """ctypes bindings of gi_qp_solve and gi_qp_vjp."""
-    lib = ctypes.CDLL(str(path))
-    fn, fn_vjp = lib.gi_qp_solve, lib.gi_qp_vjp
-    i64, dbl, ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
-    fn.argtypes = [i64, i64, i64, i64, *[ptr] * 10, dbl, i64, ptr]
-    fn_vjp.argtypes = [i64, i64, i64, i64, *[ptr] * 10]
-    fn.restype = fn_vjp.restype = ctypes.c_int
-    return NativeQP(fn, fn_vjp)
+    """The extension module at `path` (a3cqp_rl.qp.native._gi_qp), imported from that file."""
+    name = f"{__name__}._gi_qp"
+    spec = importlib.util.spec_from_file_location(name, path, loader=importlib.machinery.ExtensionFileLoader(name, str(path)))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return NativeQP(mod.solve, mod.vjp)
 
 
 def load() -> NativeQP | None:
