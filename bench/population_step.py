@@ -5,7 +5,7 @@ N arms on random states (the controller tests' `random_inputs`), random per-robo
 cascade, one group per level count). Median ms per step over R repeats of 20 steps, single-threaded torch (as the
 NSGA-II objective runs); both backends in the same run, so the ratio is what to read under a shared load.
 
-Usage: python bench/population_step.py [--arms N] [--repeats R]
+Usage: python bench/population_step.py [--arms N] [--repeats R] [--quick]   (or `a3cqp bench population`)
 """
 
 from __future__ import annotations
@@ -30,7 +30,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--arms", type=int, default=16)
     p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--quick", action="store_true", help="3 repeats")
     args = p.parse_args(argv)
+    if args.quick:
+        args.repeats = 3
     torch.set_num_threads(1)
     logging.disable(logging.WARNING)  # random states make a few robots fall back: not what is timed
     from test_control_native import random_inputs
