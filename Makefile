@@ -11,7 +11,7 @@ TRAIN_CONFIG ?= configs/point_mass_a2c_default.yaml
 STEPS ?=
 OUT ?= runs/point_mass_default
 
-.PHONY: install train test test-slow bench clean
+.PHONY: install train test test-slow bench clean policy peg fig7
 
 NATIVE := setup.py a3cqp_rl/native_sources.py $(wildcard a3cqp_rl/*/native/*.c algorithms/native/*.c envs/native/*.c envs/native/*.h)
 
@@ -39,6 +39,33 @@ test-slow: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/pip install -q -c constraints.txt -e '.[bench]'
 	$(BIN)/a3cqp bench all
+
+# --- The Panda (docs/panda.md). `make peg` evaluates the default learned policy on peg-in-hole against the four
+# scripted baselines on 26 trials and prints Table VI. The policy is the one configs/panda_*.yaml name (panda.policy):
+# the point-mass policy of configs/point_mass_a2c_fig5_fd_1e6.yaml (seed 0, ~25 s, the same parameters on every
+# run), trained first when the file is missing. To retrain, delete its run folder.
+#   make peg PEG_SEED=3                                  other trials
+#   make peg PEG_ARGS="--controllers learned,ik_fc"      a subset of the controllers
+#   make fig7      Fig. 7: three insertions with the operator, learned and IK + FC, plotted into runs/peg_fig7
+#                  (add the snapshots with: a3cqp plot episode runs/peg_fig7 --strip, needs EGL or OSMesa)
+PANDA_POLICY := runs/pm_default/policy.pt
+PEG_SEED ?= 0
+PEG_ARGS ?=
+A3CQP := $(BIN)/a3cqp
+
+# order-only prerequisites: an edited config or a reinstall does not retrain a finished run
+$(PANDA_POLICY): | $(STAMP) configs/point_mass_a2c_fig5_fd_1e6.yaml
+	$(A3CQP) train --config configs/point_mass_a2c_fig5_fd_1e6.yaml --out $(@D) --no-plots $(if $(wildcard $(@D)/checkpoint.pt),--resume)
+
+policy: $(PANDA_POLICY)
+
+peg: $(PANDA_POLICY)
+	$(A3CQP) evaluate --scene peg_in_hole --trials 26 --seed $(PEG_SEED) --out runs/peg26_seed$(PEG_SEED) $(PEG_ARGS)
+
+fig7: $(PANDA_POLICY)
+	$(A3CQP) evaluate --scene peg_in_hole --trials 1 --cycles 3 --controllers learned,ik_fc --out runs/peg_fig7
+	$(A3CQP) plot episode runs/peg_fig7
+	$(A3CQP) plot episode runs/peg_fig7 --controller ik_fc
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -4,15 +4,18 @@ peg-in-hole scene's contacts on.
 Every arm runs the peg-in-hole procedure with the scripted IK + force-control weights until its peg is on the block
 (the insertion phase: peg on the rim or in the bore), then the timed agent steps start (each = 10 control periods of
 controller + MuJoCo + sensing + operator/scene at 100 Hz). Reported per N (medians over repeats):
-  steps/s    batched env.step() calls per second (TorchRL EnvBase.step, tensordict in and out)
+  steps/s    batched env.step() calls per second (TorchRL EnvBase.step, tensordict in and out), physics in one thread
   RTF        aggregate real-time factor N · 10 ms · steps/s
   contacts   mean MuJoCo contacts per arm in the timed window
+  2 threads  RTF of the same env with its arms in 2 MuJoCo models stepped in 2 threads (ShardedPandaSim), N >= 8;
+             `x 2 thr` = its RTF / RTF (the one-thread env is its peer)
   bare RTF   the same arms, the same number of control periods, run as the bare loop of bench/controller.py (PandaSim
-             + A3CQPController, free motion, no env): the peer; `env cost` = bare RTF / RTF
-Target: RTF >= 10x at N = 32 on this machine (2 cores).  `--eval` also times `a3cqp evaluate --scene peg_in_hole`
-for the learned policy alone on 26 trials (target: under a minute).
+             + A3CQPController, free motion, no env): `env cost` = bare RTF / RTF
+Target: RTF >= 10x at N = 32 on this machine (2 cores).  `--eval POLICY` also times `a3cqp evaluate --scene
+peg_in_hole` on 26 trials (learned policy alone, and all five controllers with `--eval-all`) on 1 and 2 threads
+(target: under a minute).
 
-    python bench/panda_env.py [--quick] [--sizes 1 8 32] [--repeats R] [--eval POLICY]
+    python bench/panda_env.py [--quick] [--sizes 1 8 32] [--repeats R] [--eval POLICY [--eval-all]]
 """
 
 from __future__ import annotations
@@ -42,9 +45,9 @@ def _scripted(env: PandaEnv) -> None:
     env.hold_weights(np.ones(n, dtype=bool), W, f_d)
 
 
-def run_env(n: int, steps: int) -> dict[str, float]:
+def run_env(n: int, steps: int, threads: int = 1) -> dict[str, float]:
     """Agent steps/s of PandaEnv(n) in the insertion phase and the mean number of contacts per arm."""
-    env = PandaEnv(n, seed=0)
+    env = PandaEnv(n, seed=0, sim_threads=threads)
     td = env.reset()
     action = torch.zeros(n, 6, 4)
     guard = 0
@@ -61,7 +64,7 @@ def run_env(n: int, steps: int) -> dict[str, float]:
         _scripted(env)
         td["action"] = action
         td = env.step(td)["next"]
-        contacts.append(env.sim.data.ncon / n)
+        contacts.append(env.sim.ncon / n)
     wall = time.perf_counter() - t0
     return {"steps_s": steps / wall, "rtf": n * env.adapt.dt * steps / wall, "contacts": float(np.mean(contacts))}
 
@@ -90,28 +93,41 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[1, 8, 32])
     p.add_argument("--repeats", type=int, default=3, help="runs per N; the row shows the median")
     p.add_argument("--eval", default=None, metavar="POLICY", help="also time the 26-trial learned-policy evaluation")
+    p.add_argument("--eval-all", action="store_true", help="with --eval: also the 5-controller evaluation")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(1)
     steps = 20 if args.quick else 200
     repeats = 1 if args.quick else args.repeats
     print(f"PandaEnv benchmark (peg-in-hole, contacts on): {steps} timed agent steps (x10 control periods), "
           f"median of {repeats}")
-    print(f"{'N':>4} {'steps/s':>9} {'RTF':>8} {'contacts/arm':>13} {'bare RTF':>9} {'env cost':>9} {'target':>18}")
+    print(f"{'N':>4} {'steps/s':>9} {'RTF':>8} {'contacts/arm':>13} {'2 threads':>10} {'x 2 thr':>8} {'bare RTF':>9} "
+          f"{'env cost':>9} {'target':>18}")
     for n in args.sizes:
-        runs = sorted((run_env(n, steps) for _ in range(repeats)), key=lambda r: r["rtf"])
-        r = runs[len(runs) // 2]
+        one, two = [], []
+        for _ in range(repeats):  # interleaved, so that both see the same load
+            one.append(run_env(n, steps, threads=1))
+            if n >= 8:
+                two.append(run_env(n, steps, threads=2)["rtf"])
+        r = sorted(one, key=lambda x: x["rtf"])[len(one) // 2]
+        rtf2 = f"{statistics.median(two):>9.2f}x {statistics.median(two) / r['rtf']:>7.2f}x" if two else f"{'-':>10} {'-':>8}"
         bare = statistics.median(run_bare(n, steps * 10) for _ in range(repeats))
         target = f">=10x RT: {'met' if r['rtf'] >= 10 else 'NOT met'}" if n == 32 else "-"
-        print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {bare:>8.2f}x "
+        print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {rtf2} {bare:>8.2f}x "
               f"{bare / r['rtf']:>8.2f}x {target:>18}")
     if args.eval:
-        from envs.panda_eval import evaluate
+        from envs.panda_eval import CONTROLLERS, evaluate
 
-        t0 = time.perf_counter()
-        res = evaluate("peg_in_hole", args.eval, 26, 0, controllers=("learned",), progress=False)
-        wall = time.perf_counter() - t0
-        print(f"26-trial evaluation of the learned policy: {wall:.1f} s ({res.sim_seconds:.0f} s simulated; "
-              f"target < 60 s: {'met' if wall < 60 else 'NOT met'})")
+        for label, controllers in [("learned policy", ("learned",))] + ([("5 controllers", CONTROLLERS)]
+                                                                         if args.eval_all else []):
+            walls = {}
+            for threads in (2, 1):
+                t0 = time.perf_counter()
+                res = evaluate("peg_in_hole", args.eval, 26, 0, controllers=controllers, progress=False,
+                               sim_threads=threads)
+                walls[threads] = time.perf_counter() - t0
+            print(f"26-trial evaluation, {label}: {walls[1]:.1f} s on 1 thread ({res.sim_seconds:.0f} s simulated; "
+                  f"target < 60 s: {'met' if walls[1] < 60 else 'NOT met'}); 2 threads: {walls[2]:.1f} s, "
+                  f"x{walls[1] / walls[2]:.2f}")
     return 0
 
 

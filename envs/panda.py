@@ -39,6 +39,7 @@ from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.control import A3CQPController, ControllerOptions, wrench_from_joint_torques
 from a3cqp_rl.control.frames import pose_error
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaModel, PandaSim
+from a3cqp_rl.robot.sim import ShardedPandaSim, cross3
 from envs.scenarios import Operator, Scene, SceneInput, make_scene, rotvec_to_matrix
 
 __all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS", "TASK_BLENDS"]
@@ -55,11 +56,6 @@ point-mass surrogate (eq. 35): J q̈* = w1 ẍ_IK (the regularizer weighs the re
 f* = w2 f_adm + w3 f_ctc (IK's weight pulls f toward zero); "eq24" keeps the controller's defaults."""
 INFO_KEYS = ("e_local", "f_env_local", "f_ope_local", "weights", "f_d", "phase", "time", "diverged")
 """Per-step entries written next to `observation` (plus the scene's signals, e.g. the peg's misalignment)."""
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
 
 
 def to_local(rot: np.ndarray, v6: np.ndarray) -> np.ndarray:
@@ -83,6 +79,10 @@ class PandaEnv(EnvBase):
             evaluation gives every controller the same trials this way).
         controller_factory: builds the arms' controller instead of A3CQPController, called with the same arguments
             (n, model=, config=, options=); e.g. a PopulationController with per-arm gains and priority levels.
+        sim_threads: MuJoCo models the arms are split into, stepped in as many threads (ShardedPandaSim). Default 1
+            (one PandaSim). Without contact the numbers are the same bit for bit; with contact they differ at the
+            solver's round-off (MuJoCo chooses its warm start for a whole model at once), as between batches of
+            different compositions. On a loaded 2-core machine 2 threads are slower (docs/panda.md, Benchmark).
     """
 
     _has_dynamic_specs = False
@@ -90,7 +90,8 @@ class PandaEnv(EnvBase):
     def __init__(self, num_envs: int, config: ExperimentConfig | None = None, seed: int | None = None,
                  scene: str | None = None, controller_options: ControllerOptions | None = None,
                  trial_seeds: list[int] | None = None, device: str | torch.device = "cpu",
-                 controller_factory: Callable[..., A3CQPController] | None = None) -> None:
+                 controller_factory: Callable[..., A3CQPController] | None = None,
+                 sim_threads: int = 1) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
@@ -123,13 +124,17 @@ class PandaEnv(EnvBase):
         # handle and F/T site in the tool tip's frame (rigidly attached: constant)
         self._o_handle, self._o_ft = t_rot.T @ (h_pos - t_pos), t_rot.T @ (f_pos - t_pos)
         self.scene: Scene = make_scene(scene_name, n, self.operator, home_pos, home_rot, self.pcfg, h_pos)
-        self.sim = PandaSim(n, tool=tool, scene=self.scene.mjcf(), q0=PANDA_HOME, timestep=self.dt, control_site="tcp")
-        # one diverging arm must not make MuJoCo reset the whole batch (its default on bad qpos/qvel/qacc)
-        self.sim.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
+        threads = min(int(sim_threads), n)
+        if threads < 1:
+            raise ValueError(f"sim_threads must be >= 1, got {sim_threads}")
+        sim_args = dict(tool=tool, scene=self.scene.mjcf(), q0=PANDA_HOME, timestep=self.dt, control_site="tcp")
+        self.sim: PandaSim | ShardedPandaSim = (PandaSim(n, **sim_args) if threads == 1 else
+                                                ShardedPandaSim(n, parts=threads, **sim_args))
+        for m in self.sim.models:  # one diverging arm must not make MuJoCo reset the whole batch (its default on bad
+            m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)  # qpos/qvel/qacc)
         opts = dataclasses.replace(controller_options or ControllerOptions(), leak_axes=self.pcfg.state_leak,
                                    **TASK_BLENDS[self.pcfg.task_blend])
         self.ctrl = (controller_factory or A3CQPController)(n, model=self.model, config=cfg.controller, options=opts)
-        self._geom_arm = self._geom_arms()
         lim = PANDA_LIMITS
         self._dq_max = np.array(lim.dq_max)
         # per-axis bounds (translations: Table II; rotations: PandaEnvConfig)
@@ -141,6 +146,7 @@ class PandaEnv(EnvBase):
         self.w_logits = np.tile(self._ik_logits, (n, 6, 1))
         self.weights = np.zeros((n, 6, 3))
         self.f_d = np.zeros((n, 6))
+        self._idle_leak: np.ndarray | None = None  # extra q* relaxation of `idle_force: damps` [N, 6] (1/s)
         self.t = np.zeros(n)
         self.diverged = np.zeros(n, dtype=bool)
         self.stiffness_scale = np.ones((n, 6))
@@ -196,18 +202,6 @@ class PandaEnv(EnvBase):
     def _draw(self, idx: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
         """Standard normal draws [len(idx), *shape] from each arm's own stream."""
         return np.array([self.arm_rngs[i].standard_normal(shape) for i in idx]).reshape(len(idx), *shape)
-
-    def _geom_arms(self) -> np.ndarray:
-        """Arm index of every geom of the composite model (-1: none)."""
-        m = self.sim.model
-        if self.num_envs == 1:
-            return np.zeros(m.ngeom, dtype=np.int64)
-        body_arm = np.full(m.nbody, -1)
-        for b in range(1, m.nbody):
-            name = m.body(b).name
-            if name.startswith("arm") and "/" in name:
-                body_arm[b] = int(name[3:name.index("/")])
-        return body_arm[m.geom_bodyid]
 
     # ------------------------------------------------------------------ reset
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
@@ -287,6 +281,47 @@ class PandaEnv(EnvBase):
         # the reference scale w1 / (w1 + share) only where there is a share (elsewhere IK is the policy's own)
         return w, np.where(idle > 0.0, self.weights[..., 0] / np.maximum(w[..., 0], 1e-300), 1.0)
 
+    def idle_share_leak(self, w_ctrl: np.ndarray) -> np.ndarray | None:
+        """The extra relaxation rate [N, 6] (1/s) of the controller's q*, q̇* along each axis of L that `idle_force:
+        damps` adds, or None where there is none.
+
+        The controller's per-axis leak relaxes q* at rate leak × (w2 + w3 · min(1, f_d / 1 N)) of the weights it gets,
+        and there the idle share counts as IK, whose integral (eq. 5-7) holds the pose. But the share is a damper: it
+        has no position of its own to hold. So the share relaxes q* in the proportion the tasks that act do: the
+        axis relaxes at leak × a / (w1 + a), a = w2 + w3 · min(1, f_d / 1 N) (the policy's weights). Where the
+        operator leads an axis (w2 ≫ w1) the share then follows the operator (in a relocation, where q* would
+        otherwise pull the hand back); where IK leads (w1 ≫ w2, as across the hole during an insertion) it keeps
+        IK's integral."""
+        if self.pcfg.idle_force != "damps" or self.pcfg.state_leak != "per_axis":
+            return None
+        w, m = self.weights, np.clip(self.f_d, 0.0, 1.0)
+        idle = w[..., 2] * (1.0 - m)
+        if not np.any(idle > 0.0):
+            return None
+        act = w[..., 1] + w[..., 2] * m
+        target = act / np.maximum(w[..., 0] + act, 1e-12)
+        given = w_ctrl[..., 1] + w_ctrl[..., 2] * m  # what the controller's own leak does with w_ctrl
+        extra = np.where(idle > 0.0, np.clip(target - given, 0.0, 1.0), 0.0)
+        return self.ctrl.options.desired_state_leak * extra if np.any(extra > 0.0) else None
+
+    def _relax_idle_share(self) -> None:
+        """q*, q̇* toward (q, q̇) along the axes of L at `self._idle_leak` for one control period (the task-space
+        part only, as the controller's per-axis leak)."""
+        rate = np.clip(self._idle_leak * self.dt, 0.0, 1.0)  # [N, 6]
+        # only the arms with a share to relax and a finite state (a diverged arm is parked by its own path)
+        idx = np.flatnonzero((rate > 0.0).any(1) & ~self.diverged & np.isfinite(self._jac).all((1, 2)))
+        if len(idx) == 0:
+            return
+        J, rot, rate = self._jac[idx], self.rot[idx], rate[idx]
+        Jt = np.swapaxes(J, 1, 2)
+        jpinv = Jt @ np.linalg.inv(J @ Jt + self.ctrl.options.nullspace_damping * np.eye(6))
+        for name, meas in (("q_des", self.q), ("qd_des", self.qd)):
+            des = getattr(self.ctrl, name).numpy()  # shares memory with the controller's tensor
+            d = des[idx] - meas[idx]
+            loc = to_local(rot, (J @ d[..., None])[..., 0]) * rate
+            back = np.concatenate([(rot @ loc[:, :3, None])[..., 0], (rot @ loc[:, 3:, None])[..., 0]], axis=1)
+            des[idx] -= (jpinv @ back[..., None])[..., 0]
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
         if tuple(action.shape) != (self.num_envs, 6, 4):
@@ -295,6 +330,7 @@ class PandaEnv(EnvBase):
         self._adapt(action)
         self.max_penetration[:] = 0.0
         w_ctrl, scale = self.controller_weights()
+        self._idle_leak = self.idle_share_leak(w_ctrl)
         weights, f_d = torch.from_numpy(w_ctrl), torch.from_numpy(self.f_d)
         pos_d, rot_d = self._controller_reference(scale)
         self._draw_noise()
@@ -339,13 +375,15 @@ class PandaEnv(EnvBase):
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin)
         self.fallbacks += out.fallback.numpy()
+        if self._idle_leak is not None:
+            self._relax_idle_share()
         tau = out.tau.numpy()
         self.tau[:] = tau
         # the operator's hand at the handle (above the F/T sensor: read by the joint torques only)
         v, w = s.kin.twist.numpy()[:, :3], s.kin.twist.numpy()[:, 3:]
         r = (self.rot @ self._o_handle)
         hand = self._noise.get("hand")
-        force, torque = self.operator.wrench(self.t + k * self.dt, self.pos + r, v + _cross(w, r), self.rot, w,
+        force, torque = self.operator.wrench(self.t + k * self.dt, self.pos + r, v + cross3(w, r), self.rot, w,
                                              None if hand is None else hand[:, k])
         self.handle_force[:] = force
         if np.any(force) or np.any(torque):
@@ -374,7 +412,7 @@ class PandaEnv(EnvBase):
             ft[:, :3] += (self.rot @ err[:, :3, None])[..., 0]  # sensor frame = tool frame
             ft[:, 3:] += (self.rot @ err[:, 3:, None])[..., 0]
         # moment about the tool tip: τ_tip = τ_site + (p_site − p_tip) × F
-        ft[:, 3:] += _cross(self.rot @ self._o_ft, ft[:, :3])
+        ft[:, 3:] += cross3(self.rot @ self._o_ft, ft[:, :3])
         self.f_env = ft
         self.f_ope = self.f_ext - self.f_env
         self.handle_pos = self.pos + self.rot @ self._o_handle
@@ -386,16 +424,9 @@ class PandaEnv(EnvBase):
         finite = np.isfinite(self.q).all(1) & np.isfinite(self.qd).all(1)
         with np.errstate(invalid="ignore"):
             fast = (np.abs(self.qd) > p.divergence_speed_factor * self._dq_max).any(1)
-        d = self.sim.data
-        deep = np.zeros(self.num_envs, dtype=bool)
-        if d.ncon:
-            dist = d.contact.dist[:d.ncon]
-            arm = np.maximum(self._geom_arm[d.contact.geom1[:d.ncon]], self._geom_arm[d.contact.geom2[:d.ncon]])
-            pen = np.zeros(self.num_envs)
-            ok = arm >= 0
-            np.maximum.at(pen, arm[ok], -dist[ok])
-            np.maximum(self.max_penetration, pen, out=self.max_penetration)
-            deep = pen > p.divergence_penetration
+        pen = self.sim.max_penetration()
+        np.maximum(self.max_penetration, pen, out=self.max_penetration)
+        deep = pen > p.divergence_penetration
         bad = (~finite | fast | deep) & ~self.diverged
         for i in np.flatnonzero(bad):
             why = "non-finite state" if not finite[i] else ("joint speed beyond limit" if fast[i] else

@@ -112,11 +112,11 @@ def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, sin
 
 def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int = 0, config=None,  # noqa: ANN001
              controllers: tuple[str, ...] = CONTROLLERS, cycles: int | None = None,
-             progress: bool = True, fixed: Sequence = ()) -> EvalResult:
+             progress: bool = True, fixed: Sequence = (), sim_threads: int = 1) -> EvalResult:
     """Run every controller on the same `trials` trials of `scene` (one batched simulation); return the metrics.
 
     `policy_path` None: the config's panda.policy (for the learned controller). `fixed`: FixedControllerConfig
-    objects run after `controllers` under their own names."""
+    objects run after `controllers` under their own names. `sim_threads`: PandaEnv's (MuJoCo models and threads)."""
     from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict
     from envs.panda import PandaEnv
     from envs.panda_fixed import FixedArms
@@ -147,8 +147,10 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
         raise ValueError("no controller to evaluate")
     arms = FixedArms([by_name.get(c) for c in controllers for _ in range(trials)]) if fixed else None
     trial_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(trials)]
-    env = PandaEnv(len(controllers) * trials, cfg, scene=scene, trial_seeds=trial_seeds * len(controllers),
-                   controller_factory=arms.controller_factory if arms else None)
+    n = len(controllers) * trials
+    env = PandaEnv(n, cfg, scene=scene, trial_seeds=trial_seeds * len(controllers),
+                   controller_factory=arms.controller_factory if arms else None,
+                   sim_threads=sim_threads)
     contact_force = getattr(getattr(env.scene, "cfg", None), "contact_force", 1.0)
     n = env.num_envs
     latched, since = np.zeros(n, dtype=bool), np.zeros(n)
@@ -335,6 +337,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--controller-config", nargs="+", default=[], metavar="FILE",
                    help="YAML file(s) with a fixed_controller section (e.g. a Pareto pick), evaluated as extra "
                         "controllers")
+    p.add_argument("--threads", type=int, default=1, help="threads (MuJoCo models) the arms' physics is split into "
+                   "(default 1; the same numbers up to the solver's round-off in contact; slower on a loaded machine)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -343,6 +347,8 @@ def main(argv: list[str] | None = None) -> int:
 
         if args.trials < 1:
             raise ValueError(f"--trials must be >= 1, got {args.trials}")
+        if args.threads < 1:
+            raise ValueError(f"--threads must be >= 1, got {args.threads}")
         cfg_path = args.config
         default = Path("configs") / f"panda_{args.scene}.yaml"
         if cfg_path is None and default.is_file():
@@ -356,14 +362,14 @@ def main(argv: list[str] | None = None) -> int:
         if policy is not None and Path(policy).is_dir():
             policy = Path(policy) / "policy.pt"
         if policy is not None and not Path(policy).is_file():
-            where = "" if args.policy is not None else (f" (panda.policy of {cfg_path}: train it, pass --policy PATH, "
-                                                         "or leave learned out of --controllers)")
+            where = "" if args.policy is not None else (f" (panda.policy of {cfg_path}: train it with `make policy`, "
+                                                         "pass --policy PATH, or leave learned out of --controllers)")
             raise FileNotFoundError(f"policy file not found: {policy}{where}")
         if policy is None and "learned" in controllers:
             controllers = tuple(c for c in controllers if c != "learned")
             print("no --policy given: evaluating the baselines only", file=sys.stderr)
         res = evaluate(args.scene, policy, args.trials, args.seed, cfg, controllers, args.cycles,
-                       progress=not args.quiet, fixed=fixed)
+                       progress=not args.quiet, fixed=fixed, sim_threads=args.threads)
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -22,7 +22,8 @@ def test_every_controller_runs_the_same_trials_and_the_json_has_table_vi_keys() 
     # idle_force "free": both controllers then align alike before contact (with "damps" the equal blend's idle
     # share damps its alignment, so its misalignment at contact is no longer a fingerprint of the trial)
     cfg = config_from_dict({"panda": {**FAST["panda"], "idle_force": "free"}})
-    res = evaluate("peg_in_hole", None, trials=1, seed=0, config=cfg, controllers=("ik_fc", "equal"), progress=False)
+    res = evaluate("peg_in_hole", None, trials=1, seed=0, config=cfg, controllers=("ik_fc", "equal"), progress=False,
+                   sim_threads=2)  # the arms in 2 MuJoCo models (ShardedPandaSim)
     s = res.summary
     # same trial for both: the same approach offset (the misalignment is measured at the first contact: close)
     mt = {c: np.array(res.per_trial[c]["misalign_translation"], dtype=float) for c in s}
@@ -51,6 +52,8 @@ def test_main_reports_bad_input_in_one_line(tmp_path, capsys) -> None:  # noqa: 
     err = capsys.readouterr().err
     assert "policy file not found" in err and "Traceback" not in err
     assert main(["--scene", "peg_in_hole", "--trials", "0"]) == 2
+    assert main(["--scene", "peg_in_hole", "--trials", "1", "--threads", "0"]) == 2
+    assert "--threads must be >= 1" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--scene", "kitchen"])
 

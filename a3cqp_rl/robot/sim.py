@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import weakref
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import mujoco
@@ -12,7 +14,7 @@ from a3cqp_rl.robot.kinematics import Kinematics
 from a3cqp_rl.robot.mjcf import DEFAULT_TOOL, compose_mjcf
 from a3cqp_rl.robot.specs import PANDA_HOME
 
-__all__ = ["SimState", "PandaSim", "full_mass_matrix", "mujoco_dynamics"]
+__all__ = ["SimState", "PandaSim", "ShardedPandaSim", "cross3", "full_mass_matrix", "mujoco_dynamics"]
 
 
 def full_mass_matrix(m: mujoco.MjModel, d: mujoco.MjData, dst: np.ndarray) -> None:
@@ -23,12 +25,13 @@ def full_mass_matrix(m: mujoco.MjModel, d: mujoco.MjData, dst: np.ndarray) -> No
         mujoco.mj_fullM(m, d, dst)
 
 
-_I1, _I2 = [1, 2, 0], [2, 0, 1]
+_I1, _I2 = np.array([1, 2, 0], dtype=np.intp), np.array([2, 0, 1], dtype=np.intp)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross product over the last axis of [..., 3] arrays, broadcast (np.cross has ~10 µs of overhead per call)."""
-    return a[..., _I1] * b[..., _I2] - a[..., _I2] * b[..., _I1]
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product over the last axis of [..., 3] arrays, broadcast (np.cross has ~10 µs of overhead per call;
+    `take` with index arrays is ~3x faster than indexing with lists, the same products)."""
+    return a.take(_I1, axis=-1) * b.take(_I2, axis=-1) - a.take(_I2, axis=-1) * b.take(_I1, axis=-1)
 
 
 def mujoco_dynamics(model: mujoco.MjModel, q: torch.Tensor, qd: torch.Tensor | None = None
@@ -75,24 +78,29 @@ class SimState:
     A3CQPController.step(kin=...) to skip the torch FK."""
 
 
-def _replicate(text: str, n: int) -> tuple[mujoco.MjModel, list[str], np.ndarray]:
-    """One model holding n copies of the MJCF `text` (arm, tool and scene), prefixed "arm{i}/" and placed on a grid
-    far enough apart that no copy can touch another (returns the model, the prefixes and the copies' origins
-    [n, 3] in the composite's world)."""
+def _grid(text: str, n: int) -> np.ndarray:
+    """Origins [n, 3] of n copies of the MJCF `text` on a square grid around the world origin (small coordinates,
+    small round-off), far enough apart that no copy can touch another."""
+    spacing = 2.0 * _reach(mujoco.MjModel.from_xml_string(text)) + 1.0
+    side = int(np.ceil(np.sqrt(n)))
+    return np.array([[spacing * (i % side - (side - 1) / 2), spacing * (i // side - (side - 1) / 2), 0.0]
+                     for i in range(n)])
+
+
+def _replicate(text: str, n: int, origins: np.ndarray | None = None) -> tuple[mujoco.MjModel, list[str], np.ndarray]:
+    """One model holding n copies of the MJCF `text` (arm, tool and scene), prefixed "arm{i}/" and placed at
+    `origins` [n, 3] (default `_grid(text, n)`) (returns the model, the prefixes and the copies' origins)."""
     child = mujoco.MjSpec.from_string(text)
     for key in list(child.keys):  # keyframes are per-copy qpos vectors: not valid in the composite
         child.delete(key)
-    spacing = 2.0 * _reach(mujoco.MjModel.from_xml_string(text)) + 1.0
+    origins = _grid(text, n) if origins is None else np.asarray(origins, dtype=np.float64).reshape(n, 3)
     parent = mujoco.MjSpec()
     parent.copy_during_attach = True  # attach the same child n times
     for name in [a for a in dir(child.option) if not a.startswith("_")]:
         setattr(parent.option, name, getattr(child.option, name))
     for name in ("degree", "autolimits", "eulerseq"):
         setattr(parent.compiler, name, getattr(child.compiler, name))
-    side = int(np.ceil(np.sqrt(n)))
     prefixes = [f"arm{i}/" for i in range(n)]
-    origins = np.array([[spacing * (i % side - (side - 1) / 2), spacing * (i // side - (side - 1) / 2), 0.0]
-                        for i in range(n)])  # a grid around the origin: small coordinates, small round-off
     for prefix, pos in zip(prefixes, origins):
         parent.attach(child, prefix=prefix, frame=parent.worldbody.add_frame(pos=pos))
     return parent.compile(), prefixes, origins
@@ -130,6 +138,27 @@ def _can_collide(m: mujoco.MjModel) -> bool:
     return bool((compatible & (m.geom_bodyid[:, None] != m.geom_bodyid[None, :])).any())
 
 
+_OUTPUTS = {"_q": (7,), "_qd": (7,), "_mass": (7, 7), "_bias": (7,), "_tau_ext": (7,), "_ft": (6,), "_f_env": (6,),
+            "_cs_pos": (3,), "_cs_rot": (3, 3), "_jt": (7, 12), "_jdot_qdot": (6,), "_twist": (6,)}
+"""Per-arm shapes of the arrays behind SimState (`_jt` = [Jᵀ | J̇ᵀ] of the control site, see `_site_kinematics`)."""
+
+
+def _output_buffers(n: int) -> dict[str, np.ndarray]:
+    """Zeroed arrays [n, ...] for the outputs of PandaSim.observe (see `_OUTPUTS`)."""
+    return {name: np.zeros((n, *shape)) for name, shape in _OUTPUTS.items()}
+
+
+def _sim_state(sim: PandaSim | ShardedPandaSim, kin: bool) -> SimState:
+    """SimState of the arrays `sim` holds (tensors sharing their memory), with the control site's kinematics."""
+    t = torch.from_numpy
+    k = None
+    if kin:
+        k = Kinematics(pos=t(sim._cs_pos), rot=t(sim._cs_rot), jac=t(sim._jt[:, :, :6].transpose(0, 2, 1)),
+                       jdot_qdot=t(sim._jdot_qdot), twist=t(sim._twist))
+    return SimState(q=t(sim._q), qd=t(sim._qd), mass=t(sim._mass), bias=t(sim._bias), tau_ext=t(sim._tau_ext),
+                    ft=t(sim._ft), f_env=t(sim._f_env), kin=k)
+
+
 class PandaSim:
     """N Panda arms in MuJoCo, split-stepped so control sees fresh B(q), h + g.
 
@@ -155,14 +184,21 @@ class PandaSim:
         q0: initial joint configuration [7] (rad); default the "ready" pose.
         timestep: simulation period [s] (default the MJCF's 1 ms).
         control_site: site whose kinematics `observe()` returns in `SimState.kin` (None: skip them).
+        origins: where the arms' copies sit in the composite's world [n, 3] (m); default a grid around the origin
+            (n = 1: the bare model). ShardedPandaSim gives each of its parts the places its arms have in the grid
+            of all N, so that every arm computes with the same coordinates, hence the same round-off, either way.
+        buffers: arrays [n, ...] to write the outputs of `observe()` into (ShardedPandaSim: views of its own);
+            default new ones (see `_output_buffers`).
     """
 
     def __init__(self, n: int = 1, tool: str = DEFAULT_TOOL, scene: str = "", q0: tuple[float, ...] = PANDA_HOME,
-                 timestep: float | None = None, control_site: str = "tcp") -> None:
+                 timestep: float | None = None, control_site: str = "tcp", origins: np.ndarray | None = None,
+                 buffers: dict[str, np.ndarray] | None = None) -> None:
         text = compose_mjcf(tool, scene)
         m1 = mujoco.MjModel.from_xml_string(text)
         # positions of arm i are reported in its own copy's frame: composite world minus self._origin[i]
-        self.model, self._prefixes, self._origin = (m1, [""], np.zeros((1, 3))) if n == 1 else _replicate(text, n)
+        self.model, self._prefixes, self._origin = ((m1, [""], np.zeros((1, 3))) if n == 1 and origins is None
+                                                    else _replicate(text, n, origins))
         if timestep is not None:
             self.model.opt.timestep = timestep
         if not _can_collide(m1):  # e.g. no scene: skip the collision pass (~1/3 of mj_step1 at N = 64), same physics
@@ -176,6 +212,7 @@ class PandaSim:
         for i, p in enumerate(self._prefixes):
             assert body_arm[m.body(p + "link0").id] == i, "attached copies are not contiguous"
         jnt_arm = body_arm[m.jnt_bodyid]
+        self._geom_arm = body_arm[m.geom_bodyid]
         qsize = {int(mujoco.mjtJoint.mjJNT_FREE): (7, 6), int(mujoco.mjtJoint.mjJNT_BALL): (4, 3)}
         self._arm_qpos, self._arm_dof, self._arm_bodies, self._arm_act, self._arm_mocap = [], [], [], [], []
         for i in range(n):
@@ -206,10 +243,12 @@ class PandaSim:
         # ids in self.model of arm 0's named sites (those of arm i: self._site_index(name)[i])
         self.site_ids = {name: int(self._site_index(name)[0]) for name in ("tcp", "handle", "ft_site", "flange")}
         self._t0 = np.zeros(n)  # data.time at each arm's last reset
-        # --- output buffers (the tensors of SimState share their memory)
-        self._mass = np.zeros((n, 7, 7))
-        self._bias, self._q, self._qd, self._tau_ext, self._tau_push = (np.zeros((n, 7)) for _ in range(5))
-        self._ft, self._f_env = np.zeros((n, 6)), np.zeros((n, 6))
+        # --- output buffers (the tensors of SimState share their memory) and scratch
+        for name, buf in (_output_buffers(n) if buffers is None else buffers).items():
+            if buf.shape != (n, *_OUTPUTS[name]):
+                raise ValueError(f"buffers[{name!r}] has shape {buf.shape}, expected {(n, *_OUTPUTS[name])}")
+            setattr(self, name, buf)
+        self._tau_push = np.zeros((n, 7))
         self._R = np.zeros((n, 3, 3))
         self._site_pos, self._com, self._root_com = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
         self._cacc, self._cvel = np.zeros((n, 6)), np.zeros((n, 6))
@@ -220,8 +259,7 @@ class PandaSim:
             self._cs_body = m.site_bodyid[self._cs].astype(np.intp)
             self._cs_mask = self._ancestor_mask(self._cs_body[0])
         # [Jᵀ | J̇ᵀ] [N, 7, 12] of the control site (rows: dofs; columns: linear, angular) and what makes it
-        self._jt, self._dd, self._vel = np.zeros((n, 7, 12)), np.zeros((n, 7, 12)), np.zeros((n, 12))
-        self._jac, self._jac_dot = self._jt[:, :, :6].transpose(0, 2, 1), self._jt[:, :, 6:].transpose(0, 2, 1)
+        self._dd, self._vel = np.zeros((n, 7, 12)), np.zeros((n, 12))
         self._w = np.zeros((n, 12, 12))
         for blk in (0, 6):
             self._w[:, blk + 3:blk + 6, blk:blk + 3] = self._w[:, blk:blk + 3, blk + 3:blk + 6] = np.eye(3)
@@ -231,8 +269,7 @@ class PandaSim:
         self._skew_idx = np.array([12 * (r0 + i) + c0 + j for r0, c0 in ((0, 0), (6, 6), (0, 6))
                                    for i, j in plus + minus], dtype=np.intp)
         self._skew_src = np.array([2, 0, 1, 5, 3, 4, 8, 6, 7, 11, 9, 10], dtype=np.intp)
-        self._cs_pos, self._cs_rot = np.zeros((n, 3)), np.zeros((n, 3, 3))
-        self._jdot_qdot, self._twist = np.zeros((n, 6)), np.zeros((n, 6))
+        self._site_cache: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
         self.reset(np.broadcast_to(np.asarray(q0, dtype=np.float64), (n, 7)))
 
     @staticmethod
@@ -308,6 +345,11 @@ class PandaSim:
     def observe(self) -> SimState:
         """Run mj_step1 (all arms) and return state, B(q), h + g, last-step sensors and the control site's
         kinematics as float64 tensors."""
+        self._observe_arrays()
+        return _sim_state(self, self._cs is not None)
+
+    def _observe_arrays(self) -> None:
+        """mj_step1 and the outputs of `observe` into this sim's arrays."""
         m, d, take = self.model, self.data, np.take
         if self._pushed:  # forces of push() last only one step
             d.xfrc_applied[:] = 0.0
@@ -326,15 +368,8 @@ class PandaSim:
         take(d.cacc, self._ft_body, axis=0, out=self._cacc)
         take(d.cvel, self._ft_body, axis=0, out=self._cvel)
         self._update_f_env()
-        kin = None
         if self._cs is not None:
             self._site_kinematics()
-            kin = Kinematics(pos=torch.from_numpy(self._cs_pos), rot=torch.from_numpy(self._cs_rot),
-                             jac=torch.from_numpy(self._jac), jdot_qdot=torch.from_numpy(self._jdot_qdot),
-                             twist=torch.from_numpy(self._twist))
-        return SimState(q=torch.from_numpy(self._q), qd=torch.from_numpy(self._qd), mass=torch.from_numpy(self._mass),
-                        bias=torch.from_numpy(self._bias), tau_ext=torch.from_numpy(self._tau_ext),
-                        ft=torch.from_numpy(self._ft), f_env=torch.from_numpy(self._f_env), kin=kin)
 
     def _site_kinematics(self) -> None:
         """Pose, Jacobian J, J̇, ẋ = J q̇ and J̇q̇ of the control site for all arms at once, from MuJoCo's com-based
@@ -368,12 +403,12 @@ class PandaSim:
         acceleration of the subtree's centre of mass p as lin + α × (p − c) + ω × v_p (as mj_objectAcceleration).
         """
         r = self._com - self._root_com  # (N, 3)
-        w, v = self._cvel[:, :3], self._cvel[:, 3:] + _cross(self._cvel[:, :3], r)
-        a_com = self._cacc[:, 3:] + _cross(self._cacc[:, :3], r) + _cross(w, v)
+        w, v = self._cvel[:, :3], self._cvel[:, 3:] + cross3(self._cvel[:, :3], r)
+        a_com = self._cacc[:, 3:] + cross3(self._cacc[:, :3], r) + cross3(w, v)
         support = self._tool_mass * a_com  # weight support + m a
         flange = self._R @ self._ft.reshape(-1, 2, 3).transpose(0, 2, 1)  # (N, 3, 2): R·force, R·torque
         self._f_env[:, :3] = support - flange[:, :, 0]
-        self._f_env[:, 3:] = _cross(self._com - self._site_pos, support) - flange[:, :, 1]
+        self._f_env[:, 3:] = cross3(self._com - self._site_pos, support) - flange[:, :, 1]
 
     def push(self, force_world: np.ndarray | torch.Tensor, site: str = "handle",
              torque_world: np.ndarray | torch.Tensor | None = None) -> None:
@@ -384,17 +419,20 @@ class PandaSim:
         if not pushed.any():
             return
         force, torque = force * pushed[:, None], torque * pushed[:, None]
-        d, sid = self.data, self._site_index(site)
-        body = self.model.site_bodyid[sid]
+        d = self.data
+        if site not in self._site_cache:  # (a name lookup per arm costs ~1 µs: once per site, not per push)
+            sid = self._site_index(site)
+            body = self.model.site_bodyid[sid]
+            self._site_cache[site] = sid, body, self._ancestor_mask(body[0])
+        sid, body, mask = self._site_cache[site]
         p = d.site_xpos[sid]
         # a body force (xfrc_applied, at the body CoM) so that the F/T sensor sees pushes below it
         d.xfrc_applied[body, :3] += force
-        d.xfrc_applied[body, 3:] += torque + _cross(p - d.xipos[body], force)
+        d.xfrc_applied[body, 3:] += torque + cross3(p - d.xipos[body], force)
         # its joint torques Jᵀ(f; τ) at p (as mj_applyFT), for tau_ext: cdof_lin·f + cdof_ang·(r × f + τ)
         cdof = d.cdof[self._dadr]
-        moment = _cross(p - d.subtree_com[self.model.body_rootid[body]], force) + torque
+        moment = cross3(p - d.subtree_com[self.model.body_rootid[body]], force) + torque
         tau = np.einsum("nkj,nj->nk", cdof[:, :, 3:], force) + np.einsum("nkj,nj->nk", cdof[:, :, :3], moment)
-        mask = self._ancestor_mask(body[0])
         self._tau_push += tau if mask is None else tau * mask
         self._pushed = True
 
@@ -407,6 +445,25 @@ class PandaSim:
         np.add(d.qfrc_constraint[self._dadr], d.qfrc_applied[self._dadr], out=self._tau_ext)
         if self._pushed:
             self._tau_ext += self._tau_push
+
+    @property
+    def models(self) -> list[mujoco.MjModel]:
+        """The MuJoCo models simulating the arms (one here; ShardedPandaSim: one per part)."""
+        return [self.model]
+
+    @property
+    def ncon(self) -> int:
+        """Number of MuJoCo contacts (all arms) found by the last mj_step1."""
+        return int(self.data.ncon)
+
+    def max_penetration(self) -> np.ndarray:
+        """Deepest penetration [N] (m, 0 without contact) of each arm's contacts found by the last mj_step1."""
+        d, out = self.data, np.zeros(self.n)
+        if d.ncon:
+            arm = np.maximum(self._geom_arm[d.contact.geom1[:d.ncon]], self._geom_arm[d.contact.geom2[:d.ncon]])
+            ok = arm >= 0
+            np.maximum.at(out, arm[ok], -d.contact.dist[:d.ncon][ok])
+        return out
 
     def site_pose(self, site: str = "tcp") -> tuple[np.ndarray, np.ndarray]:
         """World position [N, 3] (m) and rotation [N, 3, 3] of a site after the last step (kinematics of step1)."""
@@ -431,3 +488,107 @@ class PandaSim:
             else:
                 out[arm_of[geom2[c]]] += f_world
         return out
+
+
+class ShardedPandaSim:
+    """PandaSim's N arms split into `parts` MuJoCo models (contiguous ranges of arms) stepped in as many threads.
+
+    The same interface as PandaSim (observe, push, step, reset, site_pose, contact_force, max_penetration, ncon);
+    the tensors of `observe()` are [N, ...] as there. Why: MuJoCo is ~55 % of a peg-in-hole control period (mostly
+    the peg's collision against the bore's boxes), and the Python bindings release the GIL in mj_step1 and
+    mj_step2, so the parts' physics runs on separate cores. Each part places its arms where they sit in the grid of
+    all N arms (PandaSim's `origins`), and the arms are independent in MuJoCo (no contacts between copies, one
+    constraint island each), so every arm computes the same numbers as in one PandaSim(N), bit for bit
+    (tests/test_sim_batched.py). The threads only change when the numbers are computed, never which.
+
+    Args:
+        n: number of arms (>= parts).
+        parts: number of MuJoCo models and threads (1 works too: one part, no thread).
+        **kwargs: PandaSim's (tool, scene, q0, timestep, control_site).
+    """
+
+    def __init__(self, n: int, parts: int = 2, **kwargs) -> None:
+        if not 1 <= parts <= n:
+            raise ValueError(f"ShardedPandaSim needs 1 <= parts <= n, got parts={parts}, n={n}")
+        self.n = n
+        origins = _grid(compose_mjcf(kwargs.get("tool", DEFAULT_TOOL), kwargs.get("scene", "")), n)
+        bufs = _output_buffers(n)
+        for name, buf in bufs.items():
+            setattr(self, name, buf)
+        self._ranges = [(int(r[0]), int(r[-1]) + 1) for r in np.array_split(np.arange(n), parts)]
+        self.parts = [PandaSim(b - a, origins=origins[a:b], buffers={k: v[a:b] for k, v in bufs.items()}, **kwargs)
+                      for a, b in self._ranges]
+        self._origin = origins
+        self.control_site = self.parts[0].control_site
+        self._pool = ThreadPoolExecutor(max_workers=parts - 1, thread_name_prefix="PandaSim") if parts > 1 else None
+        if self._pool is not None:
+            weakref.finalize(self, self._pool.shutdown, wait=False)
+
+    def _each(self, method: str, args: list[tuple] | None = None) -> list:
+        """Call `method` of every part (part 0 in this thread, the others in the pool) and return the results."""
+        args = args or [()] * len(self.parts)
+        futures = [self._pool.submit(getattr(p, method), *a) for p, a in zip(self.parts[1:], args[1:])]
+        first = getattr(self.parts[0], method)(*args[0])
+        return [first] + [f.result() for f in futures]
+
+    @property
+    def models(self) -> list[mujoco.MjModel]:
+        """The parts' MuJoCo models."""
+        return [p.model for p in self.parts]
+
+    @property
+    def dt(self) -> float:
+        """Simulation (= control) period [s]."""
+        return self.parts[0].dt
+
+    @property
+    def time(self) -> float:
+        """Simulated time of arm 0 [s] (since its last reset)."""
+        return self.parts[0].time
+
+    @property
+    def ncon(self) -> int:
+        """Number of MuJoCo contacts (all arms) found by the last mj_step1."""
+        return sum(p.ncon for p in self.parts)
+
+    def observe(self) -> SimState:
+        """mj_step1 of every part (in parallel); PandaSim.observe's tensors [N, ...]."""
+        self._each("_observe_arrays")
+        return _sim_state(self, self.control_site is not None)
+
+    def push(self, force_world: np.ndarray | torch.Tensor, site: str = "handle",
+             torque_world: np.ndarray | torch.Tensor | None = None) -> None:
+        """Apply a world-frame force [N, 3] (N) (and torque [N, 3], N m) at `site` during the next step()."""
+        force = np.asarray(force_world, dtype=np.float64).reshape(self.n, 3)
+        torque = None if torque_world is None else np.asarray(torque_world, np.float64).reshape(self.n, 3)
+        for p, (a, b) in zip(self.parts, self._ranges):
+            p.push(force[a:b], site=site, torque_world=None if torque is None else torque[a:b])
+
+    def step(self, tau: torch.Tensor | np.ndarray) -> None:
+        """Apply joint torques [N, 7] (N m) and run mj_step2 of every part (in parallel)."""
+        tau = tau.detach().cpu().numpy() if isinstance(tau, torch.Tensor) else np.asarray(tau, dtype=np.float64)
+        self._each("step", [(tau[a:b],) for a, b in self._ranges])
+
+    def reset(self, q: np.ndarray | torch.Tensor, qd: np.ndarray | torch.Tensor | None = None,
+              idx: list[int] | None = None) -> None:
+        """Set joint positions [N or len(idx), 7] (rad) and velocities (rad/s, default 0) and clear forces."""
+        arms = np.arange(self.n) if idx is None else np.asarray(list(idx), dtype=np.intp).reshape(-1)
+        q = np.asarray(q, dtype=np.float64).reshape(len(arms), 7)
+        qd = np.zeros_like(q) if qd is None else np.asarray(qd, dtype=np.float64).reshape(len(arms), 7)
+        for p, (a, b) in zip(self.parts, self._ranges):
+            mine = (arms >= a) & (arms < b)
+            if mine.any():
+                p.reset(q[mine], qd[mine], idx=(arms[mine] - a).tolist())
+
+    def site_pose(self, site: str = "tcp") -> tuple[np.ndarray, np.ndarray]:
+        """World position [N, 3] (m) and rotation [N, 3, 3] of a site after the last step (kinematics of step1)."""
+        poses = [p.site_pose(site) for p in self.parts]
+        return np.concatenate([x for x, _ in poses]), np.concatenate([r for _, r in poses])
+
+    def contact_force(self, geom: str) -> np.ndarray:
+        """World-frame force [N, 3] (N) that all contacts involving `geom` exert on `geom`."""
+        return np.concatenate([p.contact_force(geom) for p in self.parts])
+
+    def max_penetration(self) -> np.ndarray:
+        """Deepest penetration [N] (m, 0 without contact) of each arm's contacts found by the last mj_step1."""
+        return np.concatenate([p.max_penetration() for p in self.parts])

@@ -1,0 +1,55 @@
+"""`make peg` / `make fig7`: the default Panda policy is the one the Panda configs name, and a dry run trains it only
+when its file is missing."""
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+MAKEFILE = (ROOT / "Makefile").read_text()
+
+
+def test_the_makefile_trains_the_policy_the_panda_configs_name() -> None:
+    m = re.search(r"^PANDA_POLICY := (\S+)$", MAKEFILE, re.M)
+    assert m, "PANDA_POLICY not set in the Makefile"
+    for scene in ("peg_in_hole", "polishing", "guidance"):
+        cfg = yaml.safe_load((ROOT / "configs" / f"panda_{scene}.yaml").read_text())
+        assert cfg["panda"]["policy"] == m.group(1), scene
+    # the rule that makes it trains the config whose run folder that is
+    rule = re.search(r"^\$\(PANDA_POLICY\):.*\n\t(.*)$", MAKEFILE, re.M)
+    assert rule and "train --config configs/point_mass_a2c_fig5_fd_1e6.yaml --out $(@D)" in rule.group(1)
+    assert Path(m.group(1)).name == "policy.pt"
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
+def test_make_peg_dry_run_trains_only_when_the_policy_is_missing(tmp_path: Path) -> None:
+    for f in ("Makefile", "configs/point_mass_a2c_fig5_fd_1e6.yaml", "pyproject.toml", "constraints.txt", "setup.py",
+              "a3cqp_rl/native_sources.py"):
+        (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy(ROOT / f, tmp_path / f)
+    (tmp_path / ".venv").mkdir()
+    (tmp_path / ".venv/.installed").touch()  # newer than its prerequisites: no install in the dry run
+
+    def dry(target: str) -> list[str]:
+        out = subprocess.run(["make", "-n", target], cwd=tmp_path, capture_output=True, text=True, check=True)
+        return [ln for ln in out.stdout.splitlines() if ln.strip()]
+
+    lines = dry("peg")
+    assert len(lines) == 2, lines
+    assert "a3cqp train --config configs/point_mass_a2c_fig5_fd_1e6.yaml --out runs/pm_default --no-plots" in lines[0]
+    assert "a3cqp evaluate --scene peg_in_hole --trials 26 --seed 0" in lines[1]
+    (tmp_path / "runs/pm_default").mkdir(parents=True)
+    (tmp_path / "runs/pm_default/policy.pt").touch()
+    lines = dry("peg")
+    assert len(lines) == 1 and "evaluate --scene peg_in_hole" in lines[0]
+    fig7 = dry("fig7")
+    assert len(fig7) == 3 and "--cycles 3" in fig7[0]
+    assert all("a3cqp plot episode runs/peg_fig7" in ln for ln in fig7[1:])
+    # an edited config does not retrain a finished run (order-only prerequisite)
+    (tmp_path / "configs/point_mass_a2c_fig5_fd_1e6.yaml").touch()
+    assert len(dry("peg")) == 1
