@@ -9,7 +9,7 @@ per batch against -O2)."""
 NATIVE_SOURCES = {
     "a3cqp_rl/qp/native/gi_qp.c": (),  # also a CPython extension module (_gi_qp: solve, vjp), loaded by a3cqp_rl.qp.native
     "a3cqp_rl/control/native/a3cqp_step.c": (),
-    "algorithms/native/a2c_iteration.c": ("-fopenmp-simd", "-fno-math-errno"),
+    "algorithms/native/a2c_iteration.c": ("-fopenmp-simd", "-fno-math-errno", "-ffp-contract=off"),
     "envs/native/point_mass.c": ("-fno-math-errno",),
 }
 """Every C source (path from the project root) and its extra flags; each builds into `dir/_stem<ext suffix>`."""

@@ -319,6 +319,10 @@ class FusedRollout:
         self.ep_return = torch.zeros(self.num_envs)
         self.ep_length = torch.zeros(self.num_envs, dtype=torch.int64)
         self.finished: list[tuple[float, int]] = []
+        # Many C iterations per call must add the rollouts' rewards as `rewards.sum(0)` does (checked for this shape);
+        # a noise draw for many iterations is one torch.randn where that gives the same numbers as one per iteration.
+        self._many = self._native is not None and self._native.sums_like_torch()
+        self._noise_splits = _randn_splits(hp.n_steps, (self.num_envs, layout.act_dim))
 
     def set_progress(self, fraction: float) -> None:
         """The fused iteration's learning rate is constant (a2c.lr_schedule is refused before it is built)."""
@@ -340,13 +344,42 @@ class FusedRollout:
                 rewards, dones = batch.rewards, batch.terminated | batch.truncated
             self.env.fused_commit(state)
             any_done = bool(dones.any())
+        self._book_episodes(rewards, dones, any_done)
+        return metrics
+
+    def _book_episodes(self, rewards: Tensor, dones: Tensor, any_done: bool) -> None:
+        """Add a rollout's rewards [n, N] to the running episodes; record those that ended and draw their successors."""
         if any_done:
             _count_episodes(self, rewards, dones)
             self.env.refill(dones.any(0))
         else:
             self.ep_return += rewards.sum(0)
             self.ep_length += rewards.shape[0]
-        return metrics
+
+    def max_updates(self) -> int:
+        """How many iterations one `iterate_many` call may run now: up to the one in which the next episode ends on
+        the C iteration (new episodes are drawn in Python between calls), else 1."""
+        if not self._many:
+            return 1
+        left = self.env.cfg.episode_steps - int(self.env.fused_inputs()[0]["t"].max())
+        return max(1, -(-left // self.hp.n_steps))
+
+    def iterate_many(self, count: int, flat: Tensor, square_avg: Tensor, metric_sum: Tensor) -> None:
+        """`count` (<= `max_updates()`) iterations, as `count` calls of `iterate` whose METRICS are added to
+        `metric_sum` [5], bit for bit; on the C iteration in one call."""
+        if count == 1:
+            metric_sum += self.iterate(flat, square_avg)
+            return
+        if count > self.max_updates():
+            raise ValueError(f"{count} iterations cross an episode end ({self.max_updates()} may run in one call)")
+        n = self.hp.n_steps
+        noise = self.noise.draw(count * n) if self._noise_splits else torch.cat([self.noise.draw(n) for _ in range(count)])
+        state, pending, schedule = self.env.fused_inputs()
+        ran = self._native.run(count, flat, square_avg, state, pending, schedule, noise, metric_sum, self.ep_return,
+                               self.ep_length)
+        if ran != count:  # the bound above comes from the same step counters: a broken invariant, not a user error
+            raise RuntimeError(f"an episode ended in iteration {ran} of {count}, before the env's step counters said")
+        self._book_episodes(self._native.rewards, self._native.dones, self._native.done_count > 0)
 
     def state_dict(self) -> dict:
         """Everything needed to resume bit-identically."""
@@ -377,6 +410,15 @@ def _native_iteration(env, layout: ParamLayout, hp: A2CConfig):
             raise ValueError(f"a2c.backend: native is not available here: {reason}")
         return None
     return native.NativeIteration(lib, env, layout, hp)
+
+
+def _randn_splits(n: int, shape: tuple[int, ...]) -> bool:
+    """Whether one torch.randn of [k·n, *shape] equals k draws of [n, *shape] from the same generator (torch's CPU
+    normal fills blocks of 16 independently: true when n·prod(shape) is a multiple of 16)."""
+    one, many = torch.Generator().manual_seed(1), torch.Generator().manual_seed(1)
+    joint = torch.randn(3 * n, *shape, generator=one)
+    split = torch.cat([torch.randn(n, *shape, generator=many) for _ in range(3)])
+    return torch.equal(joint, split) and torch.equal(one.get_state(), many.get_state())
 
 
 def _count_episodes(runner, rewards: Tensor, dones: Tensor) -> None:
@@ -482,6 +524,16 @@ class TorchRLRollout:
             return self._update(self.layout, flat, square_avg, batch, self.hp)
         return self._update(self.layout, flat, square_avg, batch, self.hp, self.lr)
 
+    def max_updates(self) -> int:
+        """One update per `iterate_many` call (the collector yields one batch at a time)."""
+        return 1
+
+    def iterate_many(self, count: int, flat: Tensor, square_avg: Tensor, metric_sum: Tensor) -> None:
+        """`iterate` once (count must be 1), its METRICS added to `metric_sum`."""
+        if count != 1:
+            raise ValueError(f"the TorchRL rollout runs one update per call, not {count}")
+        metric_sum += self.iterate(flat, square_avg)
+
     def state_dict(self) -> dict:
         """Collector-driven envs cannot be snapshotted in general; resume restarts their episodes."""
         return {}
@@ -577,15 +629,18 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     bar = _ProgressBar(num_updates * per_update, start * per_update, progress, runner.compiles and start < num_updates)
     timer, compile_s, startup_s, last = Timer(), 0.0, float("nan"), {}
     t_start = time.perf_counter()
+    u = start
     with SigintCheckpoint(enabled=folder is not None) as sigint:
-        for u in range(start, num_updates):
+        while u < num_updates:
             t0 = time.perf_counter()
             runner.set_progress(u / num_updates)  # the learning-rate schedule's clock
+            k = _updates_before_python(u, start, num_updates, hp, average, runner)
             with timer("iterate"):
-                ckpt.add_metrics(runner.iterate(flat, square_avg))
-            done = u + 1
+                runner.iterate_many(k, flat, square_avg, ckpt.metric_sum)
+            ckpt.metric_count += k
+            u = done = u + k
             average.update(done, flat)
-            if u == start:  # the first iteration pays for torch.compile
+            if done - k == start:  # the first iteration pays for torch.compile
                 startup_s = process_age()
                 compile_s = time.perf_counter() - t0 if runner.compiles else 0.0
                 bar.compiled()
@@ -599,7 +654,7 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
                 if callback:
                     callback(done * per_update, last)
                 bar.set_postfix(ep_reward=f"{last['episode_reward']:.2f}", refresh=False)
-            bar.update(per_update)
+            bar.update(per_update * k)
             if folder and (done % hp.checkpoint_every == 0 or done == num_updates or sigint.requested):
                 with timer("checkpoint"):
                     ckpt.save(done)
@@ -620,6 +675,18 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
 
 
 # ------------------------------------------------------------------------------ helpers
+
+
+def _updates_before_python(u: int, start: int, num_updates: int, hp: A2CConfig, average: ParameterAverage,
+                           runner) -> int:
+    """How many updates the loop may run, after `u` done, before Python must look again: the next log row,
+    checkpoint or end of the run, each update of the parameter-averaging window, the first update (its time is the
+    start-up's) and what the rollout allows (`max_updates`: its next episode end)."""
+    if u == start or u + 1 >= average.first:
+        return 1
+    stops = (num_updates, (u // hp.log_every + 1) * hp.log_every, (u // hp.checkpoint_every + 1) * hp.checkpoint_every,
+             average.first - 1)
+    return max(1, min(min(stops) - u, runner.max_updates()))
 
 
 def _prepare_env(env, cfg: ExperimentConfig):

@@ -161,9 +161,12 @@ def bench_zdt(seeds: int, generations: int = 150, population: int = 100) -> None
 def bench_panda(genomes: int, horizon: float, repeats: int) -> None:
     """Genome evaluations per second of the Panda objective: the population batch against one simulation per genome."""
     import numpy as np
+    import torch
 
     from a3cqp_rl.config import load_config
     from algorithms.tuning.genome import GenomeSpec
+
+    torch.set_num_threads(1)  # as the objective itself (panda_objectives.panda): a second thread only contends
     from algorithms.tuning.panda_objectives import GENES, evaluate_fixed, fixed_from_genome
 
     spec = GenomeSpec(GENES)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -117,5 +119,55 @@ def test_gains_are_validated() -> None:
         PopulationController(3, gains=RobotGains(**{**g.__dict__, "lambda_d": np.array([1.0, 0.0, 1.0])}))
     with pytest.raises(InvalidGainError, match="one value per robot"):
         PopulationController(3, gains=RobotGains(**{**g.__dict__, "kp": np.ones(2)}))
-    with pytest.raises(InvalidGainError, match="native"):
-        PopulationController(3, options=ControllerOptions(backend="native"))
+    assert PopulationController(3, options=ControllerOptions(backend="native"))._native is not None
+
+
+@pytest.mark.parametrize("blend", ["normalized", "weighted_sum"])
+@pytest.mark.parametrize("strict", [False, True])
+def test_native_population_equals_the_python_objects(states, blend: str, strict: bool) -> None:  # noqa: ANN001
+    """The C step with random per-robot gains (and, `strict`, random levels: the cascade fed one C cost per level)
+    computes the Python objects' torques to rounding, over a few steps (q*, q̇* integrate identically)."""
+    inputs, model = states
+    gains, levels = _random_population(7)
+    if not strict:  # one level per robot, random tasks off
+        levels = np.minimum(levels, 1)
+        levels[0] = 1
+    opt = ControllerOptions(wrench_blend=blend, cartesian_regularization=1.0 if blend == "weighted_sum" else 1e-2)
+    ref = PopulationController(N, model=model, options=dataclasses.replace(opt, backend="python"), gains=gains,
+                               levels=levels)
+    pop = PopulationController(N, model=model, options=dataclasses.replace(opt, backend="native"), gains=gains,
+                               levels=levels)
+    assert pop._native is not None and ref._native is None
+    for _ in range(3):
+        a, b = ref.step(**inputs), pop.step(**inputs)
+        assert not a.fallback.any()
+        tol = 1e-9 if not strict else 1e-7  # the cascade's level tolerances amplify the assembly's rounding
+        np.testing.assert_allclose(_x(b), _x(a), rtol=0, atol=tol * (1 + np.abs(_x(a)).max()))
+        np.testing.assert_allclose(b.f_adm.numpy()[levels[:, 1] > 0], a.f_adm.numpy()[levels[:, 1] > 0], atol=1e-9)
+    np.testing.assert_array_equal(pop.saturated_periods, ref.saturated_periods)
+
+
+def test_native_population_refuses_replaced_tasks(states) -> None:  # noqa: ANN001
+    """backend "native" with a population whose tasks were swapped after construction keeps to the objects."""
+    inputs, model = states
+    pop = PopulationController(N, model=model)
+    assert pop._native is not None
+    pop.tasks = list(pop.tasks)
+    pop.tasks[0] = type(pop.tasks[0])(pop.gains.kp * 2, pop.gains.k_theta)
+    out = pop.step(**inputs)  # the composition changed: the Python objects run (and agree with themselves)
+    assert np.isfinite(_x(out)).all()
+
+
+def test_native_robot_rows_are_checked(states) -> None:  # noqa: ANN001
+    """The per-robot rows of the C step name every field once and have one row per arm."""
+    _, model = states
+    pop = PopulationController(N, model=model)
+    step = pop._native
+    with pytest.raises(ValueError, match="missing or unknown"):
+        step.robot_rows(kp=np.ones((N, 6)))
+    rows = pop._robot_rows[0]
+    assert rows.shape == (N, step.lib.a3cqp_robot_size())
+    inputs, _ = states
+    with pytest.raises(ValueError, match="per-robot rows must have shape"):
+        pop.step(**inputs)  # fills q*, q̇*
+        step.assemble(robots=rows[:-1], packed=np.zeros((N, step.lib.a3cqp_input_size())))

@@ -132,6 +132,31 @@ def test_same_result_whatever_the_worker_count(tmp_path):
     np.testing.assert_array_equal(one.values, two.values)
 
 
+def test_longest_trainings_start_first_and_results_do_not_depend_on_it(tmp_path, monkeypatch):
+    """The pool gets the genomes with the smallest n (the longest trainings) first; the run is the same as in
+    population order."""
+    cfg = _cfg(3)
+    assert ga_mod.trial_cost(cfg, {"n_steps": 1}) > ga_mod.trial_cost(cfg, {"n_steps": 4}) > ga_mod.trial_cost(cfg, {"n_steps": 32})
+    from algorithms.tuning.pool import SerialPool
+
+    dispatched = []
+    imap = SerialPool.imap
+
+    def recording(self, fn, chunks, args=()):
+        dispatched.append([c[0]["n_steps"] for c in chunks])
+        return imap(self, fn, chunks, args)
+
+    monkeypatch.setattr(SerialPool, "imap", recording)
+    by_cost = tune(cfg, tmp_path / "cost", fitness=toy_fitness, progress=False, plots=False)
+    assert all(order == sorted(order) for order in dispatched) and any(len(set(o)) > 1 for o in dispatched)
+    monkeypatch.setattr(ga_mod, "trial_cost", lambda cfg, genes: 1.0)  # all equal: population order
+    dispatched.clear()
+    in_order = tune(cfg, tmp_path / "order", fitness=toy_fitness, progress=False, plots=False)
+    assert any(order != sorted(order) for order in dispatched)
+    assert _rows(tmp_path / "cost") == _rows(tmp_path / "order")
+    np.testing.assert_array_equal(by_cost.values, in_order.values)
+
+
 def test_real_trainings_end_to_end_and_best_yaml_trains(tmp_path):
     """Eq. 34 on real (tiny) trainings; `a3cqp train --config best.yaml` accepts the result."""
     cfg = _cfg(1, steps_per_trial=4000, fitness_episodes=5)

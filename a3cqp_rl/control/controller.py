@@ -347,8 +347,9 @@ class A3CQPController:
             return None, "the C library is not available (see the warning above)"
         return native.NativeStep(lib, fields), ""
 
-    def _native_fields(self) -> tuple[dict | None, str]:
-        """The C step's parameters: each task and limit hands its own, the step-level ones come from here."""
+    def _native_fields(self, tasks: list[Task] | None = None) -> tuple[dict | None, str]:
+        """The C step's parameters: each task (of `tasks`, default this controller's) and limit hands its own, the
+        step-level ones come from here."""
         cfg, opt = self.config, self.options
         step_fields = {"dt": self.dt, "cv": cfg.cv, "cp": cfg.cp, "f_d_max": self.f_d_max,
                        "wrench_ff": float(opt.ik_wrench_feedforward), "pd_pinv": float(opt.pd_projection == "pinv"),
@@ -356,7 +357,7 @@ class A3CQPController:
                        "nullspace_damping": opt.nullspace_damping, "tau_clip": self.tau_max.numpy(),
                        "leak": self.dt * opt.desired_state_leak, "leak_per_axis": float(opt.leak_axes == "per_axis"),
                        "wrench_sum": float(opt.wrench_blend == "weighted_sum")}
-        return native.compose_params([(type(t).__name__, t.c_params()) for t in self.tasks],
+        return native.compose_params([(type(t).__name__, t.c_params()) for t in (self.tasks if tasks is None else tasks)],
                                      [(type(x).__name__, x.c_params()) for x in self.limits], step_fields)
 
     # ------------------------------------------------------------------ state
@@ -596,7 +597,7 @@ class A3CQPController:
         compensation, `fallback` True and status INVALID_INPUT (or the QP's status).
         """
         inp = self._prepare(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, f_env, kin)
-        if inp.all_valid and inp.xp is np and self._native is not None and self.hierarchy.is_flat and (
+        if inp.all_valid and inp.xp is np and self._native is not None and self._native_fits() and (
                 self._native_for == (tuple(map(id, self.tasks)), tuple(map(id, self.limits)))):
             return self._step_native(inp)
         if not inp.all_valid:
@@ -716,11 +717,19 @@ class A3CQPController:
             rot=kin.rot, weights=weights, f_d=f_d, pos_d=pos_d, rot_d=rot_d, f_ext=f_ext, in_contact=in_contact,
             q_des=_np(self.q_des), qd_des=_np(self.qd_des))
 
-    def _step_native(self, inp: _StepInputs) -> ControlOutput:
-        """Stages 3-4 by the C translation of the default tasks, limits and torque law (finite numpy inputs)."""
+    def _native_fits(self) -> bool:
+        """Whether the C step translates this controller's stack (one level with every task active)."""
+        return self.hierarchy.is_flat
+
+    def _native_qp(self, inp: _StepInputs) -> tuple[native.Assembled, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The C assembly and the QP's (x, status, iterations) of a native step."""
         asm = self.assemble_native(inp.q, inp.qd, inp.mass, inp.bias, inp.weights, inp.f_d, inp.pos_d, inp.rot_d,
                                    inp.f_ext, inp.in_contact, inp.kin)
-        x, qp_status, iterations = self._solve(*(torch.from_numpy(a) for a in (asm.P, asm.c, asm.G, asm.h)))
+        return asm, *self._solve(*(torch.from_numpy(a) for a in (asm.P, asm.c, asm.G, asm.h)))
+
+    def _step_native(self, inp: _StepInputs) -> ControlOutput:
+        """Stages 3-4 by the C translation of the default tasks, limits and torque law (finite numpy inputs)."""
+        asm, x, qp_status, iterations = self._native_qp(inp)
         xn = _np(x)
         ok = (_np(qp_status) == 0) & np.isfinite(xn).all(axis=1)
         tau, qdd, f, qdd_pd, q_des, qd_des, saturated = self._native.torque(xn, ok, asm)

@@ -13,6 +13,10 @@ per robot). `PopulationController` is that batch:
   builds: a task is added to level k's cost only for the robots that put it there, an off task for none of them,
   and the robots are solved in groups of equal level count (one `solve_cascade` call per group: 1 to 3 calls).
 
+On the CPU the population runs the C step (control/native, `a3cqp_assemble_robots`): each arm its own gains and,
+per level, which of its tasks count in that level's cost; one C call per level (1 to 3), then the same QP or cascade
+as the Python objects, which stay the reference (`options.backend` "python"; tests: agreement to rounding).
+
 A robot with Table I gains and every task in level 1 gets the same torques as `A3CQPController` (tested). The
 weights of IK, AC and FC come in per step as for `A3CQPController` (columns of `weights`); for a robot with one of
 them off, its column is zeroed here (so the feed-forward of the wrench tasks and the joint feedback of eq. 5, which
@@ -31,7 +35,9 @@ import torch
 from a3cqp_rl.config import ControllerConfig
 from a3cqp_rl.control.arrays import Array, const, mv, zeros
 from a3cqp_rl.control.context import ControlContext
-from a3cqp_rl.control.controller import A3CQPController, ControllerOptions, ControlOutput
+from a3cqp_rl.control import native
+from a3cqp_rl.control.controller import (A3CQPController, ControllerOptions, ControlOutput, _model_kinematics, _np,
+                                         _StepInputs)
 from a3cqp_rl.control.exceptions import InvalidGainError, InvalidLevelError
 from a3cqp_rl.control.hierarchy import MAX_LEVEL, Hierarchy, solve_cascade
 from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer, CartesianIK, ForceControl,
@@ -166,7 +172,8 @@ class PopulationController(A3CQPController):
     Args:
         n: number of robots N.
         model, config, options, limits: as A3CQPController (config gives ε, the wrench box and the defaults of the
-            gains; the population always runs the Python objects: `options.backend` "native" is refused).
+            gains; `options.backend`: "auto" the C step on the CPU when available, "python" the objects, "native"
+            the C step or an error).
         gains: per-robot gains (default: `RobotGains.uniform(n, config, options)`).
         levels: per-robot levels [N, 5] (1..3, 0 = off) in the order of `TASKS` (default: all in level 1).
     """
@@ -175,10 +182,6 @@ class PopulationController(A3CQPController):
                  options: ControllerOptions | None = None, limits: PandaLimits = PANDA_LIMITS,
                  gains: RobotGains | None = None, levels: np.ndarray | None = None) -> None:
         config, options = config or ControllerConfig(), options or ControllerOptions()
-        if options.backend == "native":
-            raise InvalidGainError("a population controller has per-robot gains, which the native step does not "
-                                   "translate: use backend 'auto' or 'python'")
-        options = dataclasses.replace(options, backend="python")
         g = (gains or RobotGains.uniform(n, config, options)).check(n)
         self.gains = g
         tasks = [_RobotIK(g.kp, g.k_theta), _RobotAdmittance(g.lambda_d, g.c_d, options.admittance_form),
@@ -225,6 +228,7 @@ class PopulationController(A3CQPController):
         self.level_count = np.maximum(compact.max(1), 1)
         """Number of levels of each robot's stack [N] (a robot with every task off has one, empty)."""
         K = int(self.level_count.max())
+        self._robot_rows = self._native_rows(compact, K) if self._native is not None else []
         self._masks = [{name: torch.from_numpy((compact[:, t] == k + 1).astype(np.float64))
                         for t, name in enumerate(TASKS)} for k in range(K)]
         self._on = {name: torch.from_numpy((compact[:, t] > 0).astype(np.float64)) for t, name in enumerate(TASKS)}
@@ -237,6 +241,52 @@ class PopulationController(A3CQPController):
         self.hierarchy = Hierarchy(levels=union or ((),), off=tuple(n for t, n in enumerate(TASKS)
                                                                      if (compact[:, t] == 0).all()))
         self._warm, self._warm_levels, self._warm_groups = None, (), {}
+
+    def _native_fields(self, tasks=None) -> tuple[dict | None, str]:  # noqa: ANN001
+        """The C parameters of the default composition (the per-robot gains come in `_robot_rows`)."""
+        if tasks is not None:
+            return super()._native_fields(tasks)
+        kinds = (_RobotIK, _RobotAdmittance, ForceControl, _RobotJointCentering, _RobotCartesianRegularizer)
+        if len(self.tasks) != len(kinds) or not all(type(t) is k for t, k in zip(self.tasks, kinds)):
+            return None, "the population's tasks were replaced"
+        cfg, opt = self.config, self.options
+        # stand-ins of the default classes (their gain fields are replaced per robot by the C call)
+        return super()._native_fields([
+            CartesianIK(cfg.kp, cfg.k_theta), Admittance(cfg.lambda_d, cfg.c_d, form=opt.admittance_form),
+            ForceControl(), JointCentering(self.tasks[3].q_center, cfg.kq, cfg.epsilon, opt.jc_nullspace_weight),
+            CartesianAccelerationRegularizer(1.0)])
+
+    def _native_rows(self, compact: np.ndarray, K: int) -> list[np.ndarray]:
+        """Per level k < K, the C step's per-robot rows [N, R]: the robot's gains and which of its tasks count in
+        level k's cost (IK, AC, FC by cost shares; JC and the regularizer by their weights)."""
+        g, jc = self.gains, self.tasks[3]
+        kp = np.stack([g.kp] * 3 + [g.k_theta] * 3, axis=1)
+        rows = []
+        for k in range(1, K + 1):
+            on = {name: (compact[:, t] == k).astype(np.float64) for t, name in enumerate(TASKS)}
+            rows.append(self._native.robot_rows(
+                kp=kp, kv=2.0 * np.sqrt(kp), lambda_d=g.lambda_d, c_d=g.c_d, kq=g.kq,
+                jc_eps=jc.epsilon * g.jc_weight * on["jc"], jc_eps_n=jc.nullspace_weight * g.jc_weight * on["jc"],
+                creg_gamma=g.cartesian_regularization * on["cartesian_regularizer"], cost_ik=on["ik"],
+                cost_ac=on["ac"], cost_fc=on["fc"]))
+        return rows
+
+    def _native_fits(self) -> bool:
+        """Any stack: the C step assembles each level's cost with the robots' own tasks (`_robot_rows`)."""
+        return True
+
+    def _native_qp(self, inp: _StepInputs) -> tuple[native.Assembled, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One C assembly per level, then the single QP (every robot one level) or the cascade per group."""
+        kin = inp.kin if inp.kin is not None else _model_kinematics(self.model, inp.q, inp.qd)
+        packed = self._native.pack(
+            q=inp.q, qd=inp.qd, mass=inp.mass, bias=inp.bias, jac=kin.jac, jdot_qdot=kin.jdot_qdot, twist=kin.twist,
+            pos=kin.pos, rot=kin.rot, weights=inp.weights, f_d=inp.f_d, pos_d=inp.pos_d, rot_d=inp.rot_d,
+            f_ext=inp.f_ext, in_contact=inp.in_contact, q_des=_np(self.q_des), qd_des=_np(self.qd_des))
+        levels = [self._native.assemble(robots=rows, packed=packed) for rows in self._robot_rows]
+        t, asm = torch.from_numpy, levels[0]
+        if len(levels) == 1:
+            return asm, *self._solve(t(asm.P), t(asm.c), t(asm.G), t(asm.h))
+        return asm, *self._solve_levels([(t(a.P), t(a.c)) for a in levels], t(asm.G), t(asm.h))
 
     def describe(self, b: int) -> str:
         """Robot b's stack in the notation of eq. 3, e.g. "(ik + cartesian_regularizer) / (ac + fc) / (jc)"."""

@@ -8,6 +8,13 @@ which stays the definition: tests/test_a2c_native.py checks 60 iterations in loc
 (three network/option sets) and the first update of whole runs against the torch trainer. Results agree to float32 round-off, not bit for bit (MKL sums in its own order);
 each path is deterministic on its own.
 
+`NativeIteration.run` runs many iterations in one call (`a2c_iterations`): `a2c.train` returns to Python only at log
+rows, checkpoints, updates inside the `average_last` window and episode ends (new episodes are drawn by the env's
+torch generator), so at n = 1 (250,000 updates per 1e6 steps) the loop is not bound by Python per update. It adds
+each rollout's rewards to the running episode returns in the order torch's `rewards.sum(0)` adds them (checked for
+the trainer's shape when it is built; other shapes keep one call per iteration): the results are bit for bit those
+of one call per iteration (tests/test_a2c_chunked.py, also against numbers stored before the change).
+
 `FusedRollout` takes it when `a2c.backend` allows (`auto`: PointMassEnv on the CPU and at most
 `AUTO_MAX_BATCH` samples per update, where it is faster; bigger batches are GEMM-bound, where MKL wins).
 `A3CQP_NATIVE_A2C=0` switches it off; a library not built at install time (no compiler) or stale logs one warning and the torch path runs.
@@ -72,6 +79,11 @@ def _bind(path: Path) -> ctypes.CDLL:
     lib.a2c_workspace_floats.argtypes = [ctypes.c_void_p]
     lib.a2c_iteration.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
     lib.a2c_iteration.restype = ctypes.c_int64
+    lib.a2c_iterations.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p, ctypes.c_void_p,
+                                   ctypes.c_void_p]
+    lib.a2c_iterations.restype = ctypes.c_int64
+    lib.a2c_outer_sum.argtypes = [ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p]
+    lib.a2c_outer_sum.restype = None
     return lib
 
 
@@ -165,6 +177,39 @@ class NativeIteration:
         if noise.shape != self._noise_shape or noise.dtype != torch.float32 or not noise.is_contiguous():
             raise ValueError(f"noise must be a contiguous float32 tensor of shape {tuple(self._noise_shape)}, "
                              f"got {noise.dtype} {tuple(noise.shape)}")
+        self._bind_tensors(flat, square_avg, state, pending, schedule, noise)
+        self.done_count = self.lib.a2c_iteration(self._params_ref, self.table)
+        return state, self.metrics, self.rewards, self.dones
+
+    def run(self, count: int, flat: Tensor, square_avg: Tensor, state: dict, pending: dict, schedule: Tensor,
+            noise: Tensor, metric_sum: Tensor, ep_return: Tensor, ep_length: Tensor) -> int:
+        """`count` iterations in one C call, noise [count·n, N, act]: each adds its metrics to `metric_sum` [5], and
+        each but the last its rollout's reward sums to `ep_return` [N] (float32) and n to `ep_length` [N] (int64), as
+        per-iteration calls and `FusedRollout.iterate` would; the last one's metrics, rewards and dones stay in this
+        object's buffers, `done_count` its episode ends. Returns the iterations run: fewer than `count` only when an
+        episode ended before the last (the caller's noise is then used up to that point only)."""
+        n, N, A = self._noise_shape
+        if tuple(noise.shape) != (count * n, N, A) or noise.dtype != torch.float32 or not noise.is_contiguous():
+            raise ValueError(f"noise must be a contiguous float32 tensor of shape {(count * n, N, A)}, "
+                             f"got {noise.dtype} {tuple(noise.shape)}")
+        for name, t, shape, dtype in (("metric_sum", metric_sum, (5,), torch.float32),
+                                      ("ep_return", ep_return, (N,), torch.float32),
+                                      ("ep_length", ep_length, (N,), torch.int64)):
+            if tuple(t.shape) != shape or t.dtype != dtype or not t.is_contiguous():
+                raise ValueError(f"{name} must be a contiguous {dtype} tensor of shape {shape}, got {t.dtype} {tuple(t.shape)}")
+        self._bind_tensors(flat, square_avg, state, pending, schedule, noise)
+        done = self.lib.a2c_iterations(self._params_ref, self.table, count, metric_sum.data_ptr(), ep_return.data_ptr(),
+                                       ep_length.data_ptr())
+        self.done_count = int(self.dones.sum()) if done else 0
+        return int(done)
+
+    def sums_like_torch(self) -> bool:
+        """Whether `run` adds each rollout's rewards [n, N] as torch's `rewards.sum(0)` does (see `outer_sum_matches_torch`)."""
+        n, N, _ = self._noise_shape
+        return outer_sum_matches_torch(self.lib, n, N)
+
+    def _bind_tensors(self, flat: Tensor, square_avg: Tensor, state: dict, pending: dict, schedule: Tensor,
+                      noise: Tensor) -> None:
         seen = self._seen
         # The env swaps its state dicts only on reset/resume (and edits their tensors in place): check layouts and
         # take addresses then, not on every call (holding the objects, so their addresses stay theirs).
@@ -177,5 +222,16 @@ class NativeIteration:
                 self.table[k] = t.data_ptr()
             self._seen = (state, pending, schedule, flat, square_avg)
         self.table[_NOISE] = noise.data_ptr()
-        self.done_count = self.lib.a2c_iteration(self._params_ref, self.table)
-        return state, self.metrics, self.rewards, self.dones
+
+
+def outer_sum_matches_torch(lib: ctypes.CDLL, rows: int, cols: int, trials: int = 64) -> bool:
+    """Whether a2c_outer_sum adds [rows, cols] float32 blocks bit for bit as torch's `x.sum(0)` does (random blocks
+    whose entries span ~20 binary orders, where any other order of the additions shows)."""
+    gen = torch.Generator().manual_seed(0)
+    out = torch.empty(cols, dtype=torch.float32)
+    for _ in range(trials):
+        x = (torch.randn(rows, cols, generator=gen) * torch.exp2(torch.randint(-10, 10, (rows, cols), generator=gen))).float()
+        lib.a2c_outer_sum(x.data_ptr(), rows, cols, out.data_ptr())
+        if not torch.equal(out, x.sum(0)):
+            return False
+    return True

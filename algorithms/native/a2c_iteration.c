@@ -79,15 +79,62 @@ static inline float exp_nonpos(float z) {
     float fn = (float)n, r = (z - fn * 0.693145751953125f) - fn * 1.428606765330187e-06f;
     float p = 1.0f + r * (1.0f + r * (0.5f + r * (0.16666667f + r * (0.041666668f + r * (0.008333334f
                                                                                        + r * 0.0013888889f)))));
-    int32_t bits = (n + 127) << 23;  /* 2^n */
-    float scale;
-    memcpy(&scale, &bits, sizeof scale);
-    return p * scale;
+    union { int32_t i; float f; } scale = {.i = (n + 127) << 23};  /* 2^n (a union, not memcpy: the loop vectorises) */
+    return p * scale.f;
 }
 
+/* Four floats in one register (GNU C vector extension, GCC and clang: SSE on x86-64, NEON on arm64, plain scalars
+ * elsewhere).  v + s * w is a multiply then an add, each rounded, as the scalar code: the kernels below keep each
+ * sum's order of terms, they only hold the partial sums in registers across a whole sum instead of in memory. */
+typedef float v4 __attribute__((vector_size(16)));
+static inline v4 ld4(const float *p) { v4 v; memcpy(&v, p, sizeof v); return v; }
+static inline void st4(float *p, v4 v) { memcpy(p, &v, sizeof v); }
+static inline v4 bc4(float s) { return (v4){s, s, s, s}; }
+typedef int32_t v4i __attribute__((vector_size(16)));
+static inline v4i bc4i(int32_t s) { return (v4i){s, s, s, s}; }
+static inline v4 sel4(v4i mask, v4 a, v4 b) { return (v4)(((v4i)a & mask) | ((v4i)b & ~mask)); } /* mask ? a : b */
+
+/* Elementwise loops that run faster on wider registers (RMSProp's square roots and divisions) get an AVX2 copy,
+ * chosen at load time (GCC's target_clones, x86-64 Linux): the same IEEE operations lane by lane (no FMA: the C
+ * standard mode keeps a * b + c two roundings), so the same numbers on every machine.  Reductions never get one:
+ * their order of terms follows the register width. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && __GNUC__ >= 8
+#define ELEMENTWISE_CLONES __attribute__((target_clones("avx2", "default")))
+#define ELEMENTWISE_CLONES_512 __attribute__((target_clones("avx512f", "avx2", "default")))
+#else
+#define ELEMENTWISE_CLONES
+#define ELEMENTWISE_CLONES_512
+#endif
+
+
+/* exp_nonpos and tanh_row's arithmetic on eight lanes, operation for operation (GCC does not vectorise the scalar
+ * loop: the clamp and the sign are control flow to it) */
+typedef float v8 __attribute__((vector_size(32)));
+typedef int32_t v8i __attribute__((vector_size(32)));
+#define BC8I(s) ((v8i){s, s, s, s, s, s, s, s})
+#define BC8(s) ((v8){s, s, s, s, s, s, s, s})
+#define SEL8(mask, a, b) ((v8)(((v8i)(a) & (mask)) | ((v8i)(b) & ~(mask))))
+
+ELEMENTWISE_CLONES
 static void tanh_row(float *y, int64_t len) {
-#pragma omp simd
-    for (int64_t i = 0; i < len; i++) {
+    int64_t i = 0;
+    for (; i + 8 <= len; i += 8) {
+        v8 x, z;
+        memcpy(&x, y + i, sizeof x);
+        v8 a = (v8)((v8i)x & ~BC8I(INT32_MIN));
+        z = BC8(-2.0f) * a;
+        z = SEL8(z < BC8(-87.0f), BC8(-87.0f), z);
+        v8i n = __builtin_convertvector(z * BC8(1.44269504f) - BC8(0.5f), v8i);
+        v8 fn = __builtin_convertvector(n, v8);
+        v8 r = (z - fn * BC8(0.693145751953125f)) - fn * BC8(1.428606765330187e-06f);
+        v8 p = BC8(1.0f) + r * (BC8(1.0f) + r * (BC8(0.5f) + r * (BC8(0.16666667f) + r * (BC8(0.041666668f)
+                                                    + r * (BC8(0.008333334f) + r * BC8(0.0013888889f))))));
+        v8 t = p * (v8)((n + BC8I(127)) << 23);
+        v8 v = (BC8(1.0f) - t) / (BC8(1.0f) + t);
+        v = SEL8(x < BC8(0.0f), -v, v);
+        memcpy(y + i, &v, sizeof v);
+    }
+    for (; i < len; i++) {
         float a = fabsf(y[i]), t = exp_nonpos(-2.0f * a), v = (1.0f - t) / (1.0f + t);
         y[i] = y[i] < 0.0f ? -v : v;
     }
@@ -108,25 +155,86 @@ static void linear(const float *x, int64_t rows, int64_t in, int64_t ldx, const 
     }
 }
 
-/* the same with W^T [in, out] (`transpose`): each input scales a contiguous row of W^T, so the loop over outputs
- * vectorises without a horizontal sum per output (the hidden layers; `linear` is kept for 1-4 outputs) */
+/* the same with W^T [in, out] (`transpose`), then tanh: y[r, o] = ((b[o] + x[r,0] W[o,0]) + x[r,1] W[o,1]) + ...,
+ * the terms in input order.  Four rows by eight outputs at a time, the 32 partial sums in registers over the inputs
+ * (the hidden layers; `linear` is kept for 1-4 outputs) */
+ELEMENTWISE_CLONES
 static void linear_t(const float *x, int64_t rows, int64_t in, int64_t ldx, const float *Wt, const float *b,
                      int64_t out, float *y) {
-    for (int64_t r = 0; r < rows; r++) {
+    int64_t r = 0;
+    for (; r + 4 <= rows; r += 4) {
+        const float *x0 = x + r * ldx, *x1 = x0 + ldx, *x2 = x1 + ldx, *x3 = x2 + ldx;
+        float *y0 = y + r * out, *y1 = y0 + out, *y2 = y1 + out, *y3 = y2 + out;
+        int64_t o = 0;
+        for (; o + 8 <= out; o += 8) {
+            v4 b0 = ld4(b + o), b1 = ld4(b + o + 4);
+            v4 a00 = b0, a01 = b1, a10 = b0, a11 = b1, a20 = b0, a21 = b1, a30 = b0, a31 = b1;
+            for (int64_t k = 0; k < in; k++) {
+                const float *wk = Wt + k * out + o;
+                v4 w0 = ld4(wk), w1 = ld4(wk + 4), s;
+                s = bc4(x0[k]); a00 += s * w0; a01 += s * w1;
+                s = bc4(x1[k]); a10 += s * w0; a11 += s * w1;
+                s = bc4(x2[k]); a20 += s * w0; a21 += s * w1;
+                s = bc4(x3[k]); a30 += s * w0; a31 += s * w1;
+            }
+            st4(y0 + o, a00); st4(y0 + o + 4, a01); st4(y1 + o, a10); st4(y1 + o + 4, a11);
+            st4(y2 + o, a20); st4(y2 + o + 4, a21); st4(y3 + o, a30); st4(y3 + o + 4, a31);
+        }
+        for (; o < out; o++) {
+            float a0 = b[o], a1 = b[o], a2 = b[o], a3 = b[o];
+            for (int64_t k = 0; k < in; k++) {
+                float w = Wt[k * out + o];
+                a0 += x0[k] * w; a1 += x1[k] * w; a2 += x2[k] * w; a3 += x3[k] * w;
+            }
+            y0[o] = a0; y1[o] = a1; y2[o] = a2; y3[o] = a3;
+        }
+    }
+    for (; r < rows; r++) {
         const float *xr = x + r * ldx;
         float *yr = y + r * out;
-        memcpy(yr, b, sizeof(float) * out);
-        for (int64_t k = 0; k < in; k++) {
-            const float xk = xr[k], *wk = Wt + k * out;
-#pragma omp simd
-            for (int64_t o = 0; o < out; o++) yr[o] += xk * wk[o];
+        int64_t o = 0;
+        for (; o + 8 <= out; o += 8) {
+            v4 a0 = ld4(b + o), a1 = ld4(b + o + 4);
+            for (int64_t k = 0; k < in; k++) {
+                v4 s = bc4(xr[k]);
+                a0 += s * ld4(Wt + k * out + o); a1 += s * ld4(Wt + k * out + o + 4);
+            }
+            st4(yr + o, a0); st4(yr + o + 4, a1);
         }
-        tanh_row(yr, out);
+        for (; o < out; o++) {
+            float a = b[o];
+            for (int64_t k = 0; k < in; k++) a += xr[k] * Wt[k * out + o];
+            yr[o] = a;
+        }
     }
+    tanh_row(y, rows * out);
 }
 
+#if defined(__clang__) || __GNUC__ >= 12
+#define SHUFFLE4(a, b, i, j, k, l) __builtin_shufflevector(a, b, i, j, k, l)
+#else
+#define SHUFFLE4(a, b, i, j, k, l) __builtin_shuffle(a, b, (v4i){i, j, k, l})
+#endif
+
+/* Wt [in, out] = W^T: 4 x 4 blocks through registers, the edges one by one */
 static void transpose(const float *W, int64_t out, int64_t in, float *Wt) {
-    for (int64_t o = 0; o < out; o++)
+    int64_t o = 0;
+    for (; o + 4 <= out; o += 4) {
+        int64_t k = 0;
+        for (; k + 4 <= in; k += 4) {
+            v4 r0 = ld4(W + o * in + k), r1 = ld4(W + (o + 1) * in + k), r2 = ld4(W + (o + 2) * in + k),
+               r3 = ld4(W + (o + 3) * in + k);
+            v4 t0 = SHUFFLE4(r0, r1, 0, 4, 1, 5), t1 = SHUFFLE4(r2, r3, 0, 4, 1, 5);
+            v4 t2 = SHUFFLE4(r0, r1, 2, 6, 3, 7), t3 = SHUFFLE4(r2, r3, 2, 6, 3, 7);
+            st4(Wt + k * out + o, SHUFFLE4(t0, t1, 0, 1, 4, 5));
+            st4(Wt + (k + 1) * out + o, SHUFFLE4(t0, t1, 2, 3, 6, 7));
+            st4(Wt + (k + 2) * out + o, SHUFFLE4(t2, t3, 0, 1, 4, 5));
+            st4(Wt + (k + 3) * out + o, SHUFFLE4(t2, t3, 2, 3, 6, 7));
+        }
+        for (; k < in; k++)
+            for (int64_t j = o; j < o + 4; j++) Wt[k * out + j] = W[j * in + k];
+    }
+    for (; o < out; o++)
         for (int64_t k = 0; k < in; k++) Wt[k * out + o] = W[o * in + k];
 }
 
@@ -152,6 +260,75 @@ static const float *last_layer(const a2c_params *P, const float *acts, int64_t r
     return acts;
 }
 
+/* dW[o, k] += sum over rows r (in row order) of g[r, o] inp[r, k]; db[o] likewise: eight k at a time, the sums over
+ * the rows in registers */
+ELEMENTWISE_CLONES
+static void weight_grad(const float *g, int64_t rows, int64_t h, const float *inp, int64_t ld, int64_t in, float *gw,
+                        float *gb) {
+    for (int64_t o = 0; o < h; o++) {
+        float *gwo = gw + o * in;
+        int64_t k = 0;
+        for (; k + 8 <= in; k += 8) {
+            v4 a0 = ld4(gwo + k), a1 = ld4(gwo + k + 4);
+            for (int64_t r = 0; r < rows; r++) {
+                v4 s = bc4(g[r * h + o]);
+                a0 += s * ld4(inp + r * ld + k); a1 += s * ld4(inp + r * ld + k + 4);
+            }
+            st4(gwo + k, a0); st4(gwo + k + 4, a1);
+        }
+        for (; k < in; k++) {
+            float a = gwo[k];
+            for (int64_t r = 0; r < rows; r++) a += g[r * h + o] * inp[r * ld + k];
+            gwo[k] = a;
+        }
+        float a = gb[o];
+        for (int64_t r = 0; r < rows; r++) a += g[r * h + o];
+        gb[o] = a;
+    }
+}
+
+/* g_prev[r, k] = sum over o (in order, from 0) of g[r, o] W[o, k]: four rows by eight k, the sums in registers */
+ELEMENTWISE_CLONES
+static void input_grad(const float *g, int64_t rows, int64_t h, const float *W, int64_t in, float *g_prev) {
+    int64_t r = 0;
+    const v4 zero = bc4(0.0f);
+    for (; r + 4 <= rows; r += 4) {
+        const float *g0 = g + r * h, *g1 = g0 + h, *g2 = g1 + h, *g3 = g2 + h;
+        float *p0 = g_prev + r * in, *p1 = p0 + in, *p2 = p1 + in, *p3 = p2 + in;
+        int64_t k = 0;
+        for (; k + 8 <= in; k += 8) {
+            v4 a00 = zero, a01 = zero, a10 = zero, a11 = zero, a20 = zero, a21 = zero, a30 = zero, a31 = zero;
+            for (int64_t o = 0; o < h; o++) {
+                const float *wo = W + o * in + k;
+                v4 w0 = ld4(wo), w1 = ld4(wo + 4), s;
+                s = bc4(g0[o]); a00 += s * w0; a01 += s * w1;
+                s = bc4(g1[o]); a10 += s * w0; a11 += s * w1;
+                s = bc4(g2[o]); a20 += s * w0; a21 += s * w1;
+                s = bc4(g3[o]); a30 += s * w0; a31 += s * w1;
+            }
+            st4(p0 + k, a00); st4(p0 + k + 4, a01); st4(p1 + k, a10); st4(p1 + k + 4, a11);
+            st4(p2 + k, a20); st4(p2 + k + 4, a21); st4(p3 + k, a30); st4(p3 + k + 4, a31);
+        }
+        for (; k < in; k++) {
+            float a0 = 0.0f, a1 = 0.0f, a2 = 0.0f, a3 = 0.0f;
+            for (int64_t o = 0; o < h; o++) {
+                float w = W[o * in + k];
+                a0 += g0[o] * w; a1 += g1[o] * w; a2 += g2[o] * w; a3 += g3[o] * w;
+            }
+            p0[k] = a0; p1[k] = a1; p2[k] = a2; p3[k] = a3;
+        }
+    }
+    for (; r < rows; r++) {
+        const float *gr = g + r * h;
+        float *pr = g_prev + r * in;
+        for (int64_t k = 0; k < in; k++) {
+            float a = 0.0f;
+            for (int64_t o = 0; o < h; o++) a += gr[o] * W[o * in + k];
+            pr[k] = a;
+        }
+    }
+}
+
 /* backward through hidden layers of stack `st`: g [rows, h_last] -> weight/bias grads (acts at the layer inputs) */
 static void stack_backward(const a2c_params *P, const float *flat, int st, const float *x, int64_t ldx,
                            const float *acts, int64_t rows, float *g, float *g_prev, float *grad) {
@@ -165,29 +342,9 @@ static void stack_backward(const a2c_params *P, const float *flat, int st, const
         float *gw = grad + P->off_w[st][l], *gb = grad + P->off_b[st][l];
         const float *inp = l == 0 ? x : layer_out[l - 1];
         int64_t ld = l == 0 ? ldx : in;
-        for (int64_t r = 0; r < rows; r++) {
-            const float *gr = g + r * h, *ir = inp + r * ld;
-            for (int64_t o = 0; o < h; o++) {
-                float go = gr[o];
-                float *gwo = gw + o * in;
-#pragma omp simd
-                for (int64_t k = 0; k < in; k++) gwo[k] += go * ir[k];
-                gb[o] += go;
-            }
-        }
+        weight_grad(g, rows, h, inp, ld, in, gw, gb);
         if (l > 0) {  /* g_prev = g @ W */
-            const float *W = flat + P->off_w[st][l];
-            memset(g_prev, 0, sizeof(float) * rows * in);
-            for (int64_t r = 0; r < rows; r++) {
-                const float *gr = g + r * h;
-                float *pr = g_prev + r * in;
-                for (int64_t o = 0; o < h; o++) {
-                    float go = gr[o];
-                    const float *wo = W + o * in;
-#pragma omp simd
-                    for (int64_t k = 0; k < in; k++) pr[k] += go * wo[k];
-                }
-            }
+            input_grad(g, rows, h, flat + P->off_w[st][l], in, g_prev);
             float *tmp = g; g = g_prev; g_prev = tmp;
         }
     }
@@ -207,6 +364,18 @@ static void head_backward(const float *h, int64_t rows, int64_t in, const float 
             for (int64_t k = 0; k < in; k++) { gwo[k] += go * hr[k]; ghr[k] += go * wo[k]; }
             gb[o] += go;
         }
+    }
+}
+
+/* eq. 32 on the clipped gradient grad * scale */
+ELEMENTWISE_CLONES_512
+static void rmsprop(float *flat, float *sq, const float *grad, int64_t size, float scale, float al, float lr,
+                    float eps) {
+#pragma omp simd
+    for (int64_t k = 0; k < size; k++) {
+        float g = grad[k] * scale;
+        sq[k] = sq[k] * al + (1.0f - al) * g * g;
+        flat[k] -= lr * g / sqrtf(sq[k] + eps);
     }
 }
 
@@ -383,17 +552,61 @@ int64_t a2c_iteration(const a2c_params *P, void **buf) {
     float norm = (float)sqrt(sumsq);
     float scale = (float)P->max_grad_norm / (norm + 1e-6f);
     if (scale > 1.0f) scale = 1.0f;
-    float al = (float)P->rms_alpha, lr = (float)P->lr, eps = (float)P->rms_eps;
-#pragma omp simd
-    for (int64_t k = 0; k < P->size; k++) {
-        float g = grad[k] * scale;
-        sq[k] = sq[k] * al + (1.0f - al) * g * g;
-        flat[k] -= lr * g / sqrtf(sq[k] + eps);
-    }
+    rmsprop(flat, sq, grad, P->size, scale, (float)P->rms_alpha, (float)P->lr, (float)P->rms_eps);
     metrics[0] = (float)policy_loss;
     metrics[1] = (float)value_loss;
     metrics[2] = (float)entropy;
     metrics[3] = norm;
     metrics[4] = (float)(1.0 - res_var / (ret_var + 1e-8));
     return ends;
+}
+
+/* ------------------------------------------------------------------ many iterations per call */
+
+/* out[i] = sum over t of x[t, i], x [rows, cols], as torch's `x.sum(0)` adds a contiguous [rows, cols] float32 block
+ * over its outer dim (aten/src/ATen/native/cpu/SumKernel.cpp, multi_row_sum): rows go into level 0 in blocks of 16;
+ * after each block the levels carry upwards (level j after blocks that are multiples of 16^j); at the end the last
+ * partial block is in level 0 and levels 1-3 are added to it.  Up to 17 rows this is the plain sequential sum.
+ * algorithms/native checks it against torch for the trainer's shape before it relies on it. */
+void a2c_outer_sum(const float *x, int64_t rows, int64_t cols, float *out) {
+    enum { LEVELS = 4, STEP = 16 };
+    for (int64_t c = 0; c < cols; c++) {
+        float acc[LEVELS] = {0.0f, 0.0f, 0.0f, 0.0f};
+        int64_t i = 0;
+        while (i + STEP <= rows) {
+            for (int64_t j = 0; j < STEP; j++, i++) acc[0] += x[i * cols + c];
+            for (int64_t j = 1; j < LEVELS; j++) {
+                acc[j] += acc[j - 1];
+                acc[j - 1] = 0.0f;
+                if ((i & ((int64_t)(STEP - 1) << (4 * j))) != 0) break;
+            }
+        }
+        for (; i < rows; i++) acc[0] += x[i * cols + c];
+        for (int64_t j = 1; j < LEVELS; j++) acc[0] += acc[j];
+        out[c] = acc[0];
+    }
+}
+
+/* `count` iterations, the noise of iteration k at noise + k n N A.  Each adds its metrics to metric_sum [5] (as
+ * Checkpoints.add_metrics); every iteration but the last adds its rewards summed over the rollout to ep_return [N]
+ * and n to ep_length [N] (as FusedRollout.iterate does for a rollout without an episode end); the last iteration's
+ * rewards and dones stay in their buffers for the caller.  An episode end before the last iteration stops the call:
+ * returns the number of iterations run (count, unless one ended an episode early). */
+int64_t a2c_iterations(const a2c_params *P, void **buf, int64_t count, float *metric_sum, float *ep_return,
+                       int64_t *ep_length) {
+    const int64_t N = P->env.N, n = P->n, stride = n * N * P->act_dim;
+    void *table[B_COUNT];
+    memcpy(table, buf, sizeof table);
+    const float *metrics = buf[B_METRICS], *rewards = buf[B_REWARDS];
+    float sums[N > 0 ? N : 1];
+    for (int64_t k = 0; k < count; k++) {
+        table[B_NOISE] = (float *)buf[B_NOISE] + k * stride;
+        int64_t ends = a2c_iteration(P, table);
+        for (int j = 0; j < 5; j++) metric_sum[j] += metrics[j];
+        if (k + 1 == count) break;
+        if (ends) return k + 1;
+        a2c_outer_sum(rewards, n, N, sums);
+        for (int64_t i = 0; i < N; i++) { ep_return[i] += sums[i]; ep_length[i] += n; }
+    }
+    return count;
 }

@@ -69,6 +69,9 @@ class Problem:
     """Genomes per task; None = the genomes to evaluate split evenly over the workers."""
     preload: tuple[str, ...] = ()
     """Modules local workers import when they start (so the first evaluation's time is not mostly imports)."""
+    cost: Callable[[dict], float] | None = None
+    """A genome's expected evaluation time (any unit): the pool starts the costliest first, so a generation's last
+    round is not a long evaluation on one worker while the others idle. Results never depend on it."""
 
 
 @dataclass
@@ -215,6 +218,8 @@ class _Loop:
         genomes = self.p.spec.as_dicts(np.array(todo, dtype=np.float64))
         size = self.p.chunk_size or math.ceil(len(todo) / self.pool.workers)
         starts = list(range(0, len(todo), size))
+        if self.p.cost is not None:  # longest first (a stable sort: ties keep the population's order)
+            starts.sort(key=lambda s: -sum(self.p.cost(g) for g in genomes[s:s + size]))
         done = 0
         for i, values, seconds in self.pool.imap(_evaluate_chunk, [genomes[s:s + size] for s in starts],
                                                  (self.p.evaluate, self.cfg, len(self.p.objectives))):

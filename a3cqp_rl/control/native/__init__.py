@@ -108,7 +108,13 @@ def _bind(path: Path) -> ctypes.CDLL:
     offsets = [offset for _, offset, _ in _table(lib.a3cqp_input_fields)]
     if offsets != list(np.cumsum([0] + [c for _, c in lib.inputs[:-1]])) or sum(c for _, c in lib.inputs) != lib.a3cqp_input_size():
         raise RuntimeError("the input row of a3cqp_step.c is not packed in table order")
+    lib.robot_fields = [(name, count) for name, _, count in _table(lib.a3cqp_robot_fields)]
+    lib.a3cqp_robot_size.restype = ctypes.c_int64
+    if sum(c for _, c in lib.robot_fields) != lib.a3cqp_robot_size():
+        raise RuntimeError("the per-robot row of a3cqp_step.c is not packed in table order")
     lib.a3cqp_rows.argtypes = [ctypes.c_void_p]
+    lib.a3cqp_assemble_robots.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 4]
+    lib.a3cqp_assemble_robots.restype = None
     lib.a3cqp_assemble.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 3]
     lib.a3cqp_torque.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 6]
     lib.a3cqp_assemble.restype = lib.a3cqp_torque.restype = None
@@ -183,19 +189,43 @@ class NativeStep:
             self._layout[n] = out
         return out
 
-    def assemble(self, **inputs: np.ndarray) -> Assembled:
+    def pack(self, **inputs: np.ndarray) -> np.ndarray:
+        """The inputs (entries of `lib.inputs`) as the C call's packed rows [N, IN_SIZE] (contiguous float64)."""
+        n = inputs["q"].shape[0]
+        return np.concatenate([inputs[name].reshape(n, width) for name, width in self.lib.inputs], axis=1,
+                              dtype=np.float64)
+
+    def assemble(self, robots: np.ndarray | None = None, packed: np.ndarray | None = None,
+                 **inputs: np.ndarray) -> Assembled:
         """build_context + build_qp of the default composition for N arms.
 
         `inputs`: the entries of the C input table (`lib.inputs`: q, qd, mass, bias, jac, jdot_qdot, twist, pos, rot,
-        weights, f_d, pos_d, rot_d, f_ext, in_contact, q_des, qd_des), batch first, shapes as A3CQPController.step."""
-        n = inputs["q"].shape[0]
+        weights, f_d, pos_d, rot_d, f_ext, in_contact, q_des, qd_des), batch first, shapes as A3CQPController.step
+        (or `packed`, `pack`'s rows, to assemble several costs of the same inputs).  `robots` [N, R]: a population's
+        per-robot rows (`robot_rows`: gains, and each task's share of this cost), else every arm runs the parameters."""
         # one packed copy of the inputs in the C table's order: also makes strided views contiguous
-        packed = np.concatenate([inputs[name].reshape(n, width) for name, width in self.lib.inputs], axis=1,
-                                dtype=np.float64)
+        packed = self.pack(**inputs) if packed is None else packed
+        n = packed.shape[0]
         sl = self._slices(n)
         out = np.empty(sl[-1][1])
-        self.lib.a3cqp_assemble(n, self._p, address(packed), address(out))
+        if robots is None:
+            self.lib.a3cqp_assemble(n, self._p, address(packed), address(out))
+        else:
+            robots = np.ascontiguousarray(robots, dtype=np.float64)
+            if robots.shape != (n, self.lib.a3cqp_robot_size()):
+                raise ValueError(f"per-robot rows must have shape ({n}, {self.lib.a3cqp_robot_size()}), "
+                                 f"got {robots.shape}")
+            self.lib.a3cqp_assemble_robots(n, self._p, address(packed), address(robots), address(out))
         return Assembled(*(out[a:b].reshape(shape) for a, b, shape in sl), packed=(packed, out))
+
+    def robot_rows(self, **fields: np.ndarray) -> np.ndarray:
+        """Per-robot rows [N, R] for `assemble(robots=...)` from the fields of `lib.robot_fields` ([N] or [N, count])."""
+        missing = {name for name, _ in self.lib.robot_fields} ^ fields.keys()
+        if missing:
+            raise ValueError(f"per-robot fields: missing or unknown {sorted(missing)}")
+        n = len(next(iter(fields.values())))
+        return np.concatenate([np.asarray(fields[name], dtype=np.float64).reshape(n, count)
+                               for name, count in self.lib.robot_fields], axis=1)
 
     def torque(self, x: np.ndarray, ok: np.ndarray, asm: Assembled) -> tuple[np.ndarray, ...]:
         """Eq. 4-7 (or the brake where not ok), the q*/q̇* relaxation and the clip: (τ, q̈*, f, q̈_pd, q*, q̇*, sat)."""

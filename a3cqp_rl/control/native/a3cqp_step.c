@@ -65,6 +65,25 @@ int64_t a3cqp_param_fields(const a3cqp_field **out) {
 
 int64_t a3cqp_params_size(void) { return (int64_t)sizeof(a3cqp_params); }
 
+/* Per-robot fields of a population (PopulationController: each arm its own gains and, per strict level, which
+ * tasks count in that level's cost): a3cqp_assemble_robots reads one row of these per arm; they replace the
+ * parameter of the same name (kp .. creg_gamma) or scale a task's cost (cost_ik: IK's W1 in the q̈ block and, with
+ * wrench_sum, in the f block; cost_ac: W2; cost_fc: W3; JC and the regularizer are scaled through their own
+ * jc_eps, jc_eps_n, creg_gamma). The weights w stay whole: eq. 5's P W1 J and the wrench feed-forward use them. */
+#define A3CQP_ROBOT(S, A)                                                                                          \
+    A(kp, 6) A(kv, 6) S(lambda_d) S(c_d) S(kq) S(jc_eps) S(jc_eps_n) S(creg_gamma) S(cost_ik) S(cost_ac) S(cost_fc)
+typedef struct { A3CQP_ROBOT(DECLARE_S, DECLARE_A) } a3cqp_robot;
+#define RFIELD_S(f) {#f, (int64_t)(offsetof(a3cqp_robot, f) / sizeof(double)), 1},
+#define RFIELD_A(f, n) {#f, (int64_t)(offsetof(a3cqp_robot, f) / sizeof(double)), n},
+static const a3cqp_field ROBOT_FIELDS[] = { A3CQP_ROBOT(RFIELD_S, RFIELD_A) };
+
+int64_t a3cqp_robot_fields(const a3cqp_field **out) {
+    *out = ROBOT_FIELDS;
+    return (int64_t)(sizeof(ROBOT_FIELDS) / sizeof(ROBOT_FIELDS[0]));
+}
+
+int64_t a3cqp_robot_size(void) { return (int64_t)(sizeof(a3cqp_robot) / sizeof(double)); }
+
 /* Rows of the inequality block: joint limits (2 or 4 sets of 7), wrench box 12, friction 4, torque 14. */
 int64_t a3cqp_rows(const a3cqp_params *p) {
     return (p->target_total != 0.0 ? 28 : 14) + 12 + 4 + (p->has_torque_limits != 0.0 ? 14 : 0);
@@ -299,7 +318,7 @@ static void assemble_one(const a3cqp_params *p, const double *q, const double *q
                          const double *J, const double *jdqd, const double *twist, const double *pos, const double *rot,
                          const double *w, const double *f_d, const double *pos_d, const double *rot_d,
                          const double *f_ext, int contact, const double *q_des, const double *qd_des,
-                         double *P, double *c, double *G, double *h, double *pd_out, double *pose_out,
+                         const double *cost, double *P, double *c, double *G, double *h, double *pd_out, double *pose_out,
                          double *f_adm, double *f_ctc, double *safe) {
     context cx;
     build_context(p, q, qd, M, J, pos, rot, w, f_d, pos_d, rot_d, q_des, qd_des, &cx);
@@ -333,10 +352,13 @@ static void assemble_one(const a3cqp_params *p, const double *q, const double *q
     for (int i = 0; i < 7; i++) b_jc[i] = p->kq * (p->q_center[i] - q[i]) - sk * qd[i];
 
     /* q̈ block: Jᵀ (W1 + γ(I − W1)) J, −Jᵀ W1 b_ik (IK and the regularizer share A = J), + the JC weight */
+    /* cost[0..2]: IK, AC, FC's share of this cost (1 1 1: the single QP; a population's level: 0 or 1 per arm) */
     double Wg[36], wb[6], WJ[42], Hqq[49], gqq[7], Wjc[49], wjb[7];
     for (int i = 0; i < 36; i++)
-        Wg[i] = W1[i] + (p->creg_gamma != 0.0 ? (i % 7 == 0 ? p->creg_gamma : 0.0) - p->creg_gamma * W1[i] : 0.0);
+        Wg[i] = cost[0] * W1[i]
+                + (p->creg_gamma != 0.0 ? (i % 7 == 0 ? p->creg_gamma : 0.0) - p->creg_gamma * W1[i] : 0.0);
     mv(6, 6, W1, b_ik, wb);
+    for (int i = 0; i < 6; i++) wb[i] *= cost[0];
     mm(6, 6, 7, Wg, J, WJ);
     mm_tn(7, 6, 7, J, WJ, Hqq);
     mtv(7, 6, J, wb, gqq);
@@ -348,9 +370,10 @@ static void assemble_one(const a3cqp_params *p, const double *q, const double *q
     double a2[6], a3[6];
     mv(6, 6, W2, f_adm, a2);
     mv(6, 6, W3, f_ctc, a3);
+    for (int i = 0; i < 6; i++) { a2[i] *= cost[1]; a3[i] *= cost[2]; }
     /* wrench_blend "weighted_sum": + W1 (IK's zero-wrench reference, A3CQPController._ik_wrench) */
     double Wf[36];
-    for (int i = 0; i < 36; i++) Wf[i] = (W2[i] + W3[i]) + (p->wrench_sum != 0.0 ? W1[i] : 0.0);
+    for (int i = 0; i < 36; i++) Wf[i] = (cost[1] * W2[i] + cost[2] * W3[i]) + (p->wrench_sum != 0.0 ? cost[0] * W1[i] : 0.0);
     /* A3CQPController._assemble: P = ½ (H + Hᵀ) + r I on the block diagonal, c */
     memset(P, 0, sizeof(double) * NV * NV);
     for (int i = 0; i < 7; i++)
@@ -446,6 +469,8 @@ int64_t a3cqp_input_size(void) { return IN_SIZE; }
 /* A3CQPController.build_context + build_qp for n arms.  in: n rows of IN_SIZE doubles.  out, one array after the
  * other: P [n 13 13], c [n 13], G [n m 13], h [n m] (m = a3cqp_rows(p)), then what the step needs afterwards:
  * pd = P W1 J [n 7 7], e_x [n 6], f_adm [n 6], f_ctc [n 6], the viable brake q̈_safe [n 7]. */
+static const double ALL_COSTS[3] = {1.0, 1.0, 1.0};
+
 void a3cqp_assemble(int64_t n, const a3cqp_params *p, const double *in, double *out) {
     int64_t m = a3cqp_rows(p);
     double *P = out, *c = P + NV * NV * n, *G = c + NV * n, *h = G + m * NV * n, *pd = h + m * n;
@@ -454,8 +479,35 @@ void a3cqp_assemble(int64_t n, const a3cqp_params *p, const double *in, double *
         const double *a = in + IN_SIZE * k;
         assemble_one(p, a + IN_Q, a + IN_QD, a + IN_M, a + IN_BIAS, a + IN_J, a + IN_JDQD, a + IN_TWIST, a + IN_POS,
                      a + IN_ROT, a + IN_W, a + IN_FD, a + IN_POSD, a + IN_ROTD, a + IN_FEXT, a[IN_CONTACT] != 0.0,
-                     a + IN_QDES, a + IN_QDDES, P + NV * NV * k, c + NV * k, G + m * NV * k, h + m * k, pd + 49 * k,
+                     a + IN_QDES, a + IN_QDDES, ALL_COSTS, P + NV * NV * k, c + NV * k, G + m * NV * k, h + m * k, pd + 49 * k,
                      pose + 6 * k, f_adm + 6 * k, f_ctc + 6 * k, safe + 7 * k);
+    }
+}
+
+/* a3cqp_assemble for a population: arm k runs with the parameters p, its row robot[k] (a3cqp_robot) replacing the
+ * per-robot fields and scaling the task costs.  Same outputs. */
+void a3cqp_assemble_robots(int64_t n, const a3cqp_params *p, const double *in, const double *robot, double *out) {
+    int64_t m = a3cqp_rows(p);
+    double *P = out, *c = P + NV * NV * n, *G = c + NV * n, *h = G + m * NV * n, *pd = h + m * n;
+    double *pose = pd + 49 * n, *f_adm = pose + 6 * n, *f_ctc = f_adm + 6 * n, *safe = f_ctc + 6 * n;
+    const int64_t R = (int64_t)(sizeof(a3cqp_robot) / sizeof(double));
+    for (int64_t k = 0; k < n; k++) {
+        const double *a = in + IN_SIZE * k;
+        const a3cqp_robot *r = (const a3cqp_robot *)(robot + R * k);
+        a3cqp_params pk = *p;
+        memcpy(pk.kp, r->kp, sizeof pk.kp);
+        memcpy(pk.kv, r->kv, sizeof pk.kv);
+        pk.lambda_d = r->lambda_d;
+        pk.c_d = r->c_d;
+        pk.kq = r->kq;
+        pk.jc_eps = r->jc_eps;
+        pk.jc_eps_n = r->jc_eps_n;
+        pk.creg_gamma = r->creg_gamma;
+        const double cost[3] = {r->cost_ik, r->cost_ac, r->cost_fc};
+        assemble_one(&pk, a + IN_Q, a + IN_QD, a + IN_M, a + IN_BIAS, a + IN_J, a + IN_JDQD, a + IN_TWIST, a + IN_POS,
+                     a + IN_ROT, a + IN_W, a + IN_FD, a + IN_POSD, a + IN_ROTD, a + IN_FEXT, a[IN_CONTACT] != 0.0,
+                     a + IN_QDES, a + IN_QDDES, cost, P + NV * NV * k, c + NV * k, G + m * NV * k, h + m * k,
+                     pd + 49 * k, pose + 6 * k, f_adm + 6 * k, f_ctc + 6 * k, safe + 7 * k);
     }
 }
 
