@@ -2,6 +2,7 @@
 when its file is missing."""
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -36,7 +37,10 @@ def test_make_peg_dry_run_trains_only_when_the_policy_is_missing(tmp_path: Path)
     (tmp_path / ".venv/.installed").touch()  # newer than its prerequisites: no install in the dry run
 
     def dry(target: str) -> list[str]:
-        out = subprocess.run(["make", "-n", target], cwd=tmp_path, capture_output=True, text=True, check=True)
+        # under `make test` the parent make's variables would turn on "Entering directory" lines
+        env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MAKELEVEL", "MFLAGS", "MAKEOVERRIDES")}
+        out = subprocess.run(["make", "--no-print-directory", "-n", target], cwd=tmp_path, capture_output=True,
+                             text=True, check=True, env=env)
         return [ln for ln in out.stdout.splitlines() if ln.strip()]
 
     lines = dry("peg")
