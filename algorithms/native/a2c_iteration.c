@@ -155,58 +155,69 @@ static void linear(const float *x, int64_t rows, int64_t in, int64_t ldx, const 
     }
 }
 
-/* the same with W^T [in, out] (`transpose`), then tanh: y[r, o] = ((b[o] + x[r,0] W[o,0]) + x[r,1] W[o,1]) + ...,
- * the terms in input order.  Four rows by eight outputs at a time, the 32 partial sums in registers over the inputs
- * (the hidden layers; `linear` is kept for 1-4 outputs) */
+/* y[r, c] = ((init[c] + x[r,0] M[0,c]) + x[r,1] M[1,c]) + ..., the n terms in order (init NULL: from 0), for x
+ * [rows, n] (row stride ldx) and M [n, cols] row-major.  Four rows by eight columns at a time, the 32 partial sums
+ * in registers over k; the same operations in the same order on every path (no FMA: -ffp-contract=off) */
 ELEMENTWISE_CLONES
-static void linear_t(const float *x, int64_t rows, int64_t in, int64_t ldx, const float *Wt, const float *b,
-                     int64_t out, float *y) {
+static void rows_times(const float *x, int64_t rows, int64_t n, int64_t ldx, const float *M, int64_t cols,
+                       const float *init, float *y) {
+    float zeros[8] = {0};
     int64_t r = 0;
     for (; r + 4 <= rows; r += 4) {
         const float *x0 = x + r * ldx, *x1 = x0 + ldx, *x2 = x1 + ldx, *x3 = x2 + ldx;
-        float *y0 = y + r * out, *y1 = y0 + out, *y2 = y1 + out, *y3 = y2 + out;
-        int64_t o = 0;
-        for (; o + 8 <= out; o += 8) {
-            v4 b0 = ld4(b + o), b1 = ld4(b + o + 4);
+        float *y0 = y + r * cols, *y1 = y0 + cols, *y2 = y1 + cols, *y3 = y2 + cols;
+        int64_t c = 0;
+        for (; c + 8 <= cols; c += 8) {
+            const float *i0 = init ? init + c : zeros;
+            v4 b0 = ld4(i0), b1 = ld4(i0 + 4);
             v4 a00 = b0, a01 = b1, a10 = b0, a11 = b1, a20 = b0, a21 = b1, a30 = b0, a31 = b1;
-            for (int64_t k = 0; k < in; k++) {
-                const float *wk = Wt + k * out + o;
-                v4 w0 = ld4(wk), w1 = ld4(wk + 4), s;
+            for (int64_t k = 0; k < n; k++) {
+                const float *mk = M + k * cols + c;
+                v4 w0 = ld4(mk), w1 = ld4(mk + 4), s;
                 s = bc4(x0[k]); a00 += s * w0; a01 += s * w1;
                 s = bc4(x1[k]); a10 += s * w0; a11 += s * w1;
                 s = bc4(x2[k]); a20 += s * w0; a21 += s * w1;
                 s = bc4(x3[k]); a30 += s * w0; a31 += s * w1;
             }
-            st4(y0 + o, a00); st4(y0 + o + 4, a01); st4(y1 + o, a10); st4(y1 + o + 4, a11);
-            st4(y2 + o, a20); st4(y2 + o + 4, a21); st4(y3 + o, a30); st4(y3 + o + 4, a31);
+            st4(y0 + c, a00); st4(y0 + c + 4, a01); st4(y1 + c, a10); st4(y1 + c + 4, a11);
+            st4(y2 + c, a20); st4(y2 + c + 4, a21); st4(y3 + c, a30); st4(y3 + c + 4, a31);
         }
-        for (; o < out; o++) {
-            float a0 = b[o], a1 = b[o], a2 = b[o], a3 = b[o];
-            for (int64_t k = 0; k < in; k++) {
-                float w = Wt[k * out + o];
+        for (; c < cols; c++) {
+            float i0 = init ? init[c] : 0.0f;
+            float a0 = i0, a1 = i0, a2 = i0, a3 = i0;
+            for (int64_t k = 0; k < n; k++) {
+                float w = M[k * cols + c];
                 a0 += x0[k] * w; a1 += x1[k] * w; a2 += x2[k] * w; a3 += x3[k] * w;
             }
-            y0[o] = a0; y1[o] = a1; y2[o] = a2; y3[o] = a3;
+            y0[c] = a0; y1[c] = a1; y2[c] = a2; y3[c] = a3;
         }
     }
     for (; r < rows; r++) {
         const float *xr = x + r * ldx;
-        float *yr = y + r * out;
-        int64_t o = 0;
-        for (; o + 8 <= out; o += 8) {
-            v4 a0 = ld4(b + o), a1 = ld4(b + o + 4);
-            for (int64_t k = 0; k < in; k++) {
+        float *yr = y + r * cols;
+        int64_t c = 0;
+        for (; c + 8 <= cols; c += 8) {
+            const float *i0 = init ? init + c : zeros;
+            v4 a0 = ld4(i0), a1 = ld4(i0 + 4);
+            for (int64_t k = 0; k < n; k++) {
                 v4 s = bc4(xr[k]);
-                a0 += s * ld4(Wt + k * out + o); a1 += s * ld4(Wt + k * out + o + 4);
+                a0 += s * ld4(M + k * cols + c); a1 += s * ld4(M + k * cols + c + 4);
             }
-            st4(yr + o, a0); st4(yr + o + 4, a1);
+            st4(yr + c, a0); st4(yr + c + 4, a1);
         }
-        for (; o < out; o++) {
-            float a = b[o];
-            for (int64_t k = 0; k < in; k++) a += xr[k] * Wt[k * out + o];
-            yr[o] = a;
+        for (; c < cols; c++) {
+            float a = init ? init[c] : 0.0f;
+            for (int64_t k = 0; k < n; k++) a += xr[k] * M[k * cols + c];
+            yr[c] = a;
         }
     }
+}
+
+/* the same as `linear` with W^T [in, out] (`transpose`), then tanh: y[r, o] = ((b[o] + x[r,0] W[o,0]) + x[r,1]
+ * W[o,1]) + ..., the terms in input order (the hidden layers; `linear` is kept for 1-4 outputs) */
+static void linear_t(const float *x, int64_t rows, int64_t in, int64_t ldx, const float *Wt, const float *b,
+                     int64_t out, float *y) {
+    rows_times(x, rows, in, ldx, Wt, out, b, y);
     tanh_row(y, rows * out);
 }
 
@@ -287,49 +298,11 @@ static void weight_grad(const float *g, int64_t rows, int64_t h, const float *in
     }
 }
 
-/* g_prev[r, k] = sum over o (in order, from 0) of g[r, o] W[o, k]: four rows by eight k, the sums in registers */
-ELEMENTWISE_CLONES
+/* g_prev[r, k] = sum over o (in order, from 0) of g[r, o] W[o, k] */
 static void input_grad(const float *g, int64_t rows, int64_t h, const float *W, int64_t in, float *g_prev) {
-    int64_t r = 0;
-    const v4 zero = bc4(0.0f);
-    for (; r + 4 <= rows; r += 4) {
-        const float *g0 = g + r * h, *g1 = g0 + h, *g2 = g1 + h, *g3 = g2 + h;
-        float *p0 = g_prev + r * in, *p1 = p0 + in, *p2 = p1 + in, *p3 = p2 + in;
-        int64_t k = 0;
-        for (; k + 8 <= in; k += 8) {
-            v4 a00 = zero, a01 = zero, a10 = zero, a11 = zero, a20 = zero, a21 = zero, a30 = zero, a31 = zero;
-            for (int64_t o = 0; o < h; o++) {
-                const float *wo = W + o * in + k;
-                v4 w0 = ld4(wo), w1 = ld4(wo + 4), s;
-                s = bc4(g0[o]); a00 += s * w0; a01 += s * w1;
-                s = bc4(g1[o]); a10 += s * w0; a11 += s * w1;
-                s = bc4(g2[o]); a20 += s * w0; a21 += s * w1;
-                s = bc4(g3[o]); a30 += s * w0; a31 += s * w1;
-            }
-            st4(p0 + k, a00); st4(p0 + k + 4, a01); st4(p1 + k, a10); st4(p1 + k + 4, a11);
-            st4(p2 + k, a20); st4(p2 + k + 4, a21); st4(p3 + k, a30); st4(p3 + k + 4, a31);
-        }
-        for (; k < in; k++) {
-            float a0 = 0.0f, a1 = 0.0f, a2 = 0.0f, a3 = 0.0f;
-            for (int64_t o = 0; o < h; o++) {
-                float w = W[o * in + k];
-                a0 += g0[o] * w; a1 += g1[o] * w; a2 += g2[o] * w; a3 += g3[o] * w;
-            }
-            p0[k] = a0; p1[k] = a1; p2[k] = a2; p3[k] = a3;
-        }
-    }
-    for (; r < rows; r++) {
-        const float *gr = g + r * h;
-        float *pr = g_prev + r * in;
-        for (int64_t k = 0; k < in; k++) {
-            float a = 0.0f;
-            for (int64_t o = 0; o < h; o++) a += gr[o] * W[o * in + k];
-            pr[k] = a;
-        }
-    }
+    rows_times(g, rows, h, h, W, in, NULL, g_prev);
 }
 
-/* backward through hidden layers of stack `st`: g [rows, h_last] -> weight/bias grads (acts at the layer inputs) */
 static void stack_backward(const a2c_params *P, const float *flat, int st, const float *x, int64_t ldx,
                            const float *acts, int64_t rows, float *g, float *g_prev, float *grad) {
     const float *layer_out[MAX_DEPTH];
