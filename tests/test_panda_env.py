@@ -282,6 +282,18 @@ def test_axis_agents_view_trains_one_shared_policy_with_a2c(tmp_path) -> None:  
     assert res.steps == 240 and load_policy(res.policy_path)(torch.zeros(6, 3)).shape == (6, 4)
 
 
+def _steps_held(env: PandaEnv, steps: int):  # noqa: ANN201
+    """Step a one-arm env `steps` agent periods with w = (0, 0.5, 0.5) and f_d = 0 held on every axis (the weights
+    the point-mass policy leaves after guiding), yielding after each step."""
+    w, f_d = np.tile([0.0, 0.5, 0.5], (1, 6, 1)), np.zeros((1, 6))
+    td = env._output(done=np.zeros(1, dtype=bool), terminated=np.zeros(1, dtype=bool))
+    for _ in range(steps):
+        env.hold_weights(np.ones(1, dtype=bool), w, f_d)
+        td["action"] = torch.zeros(1, 6, 4)
+        td = env.step(td)["next"]
+        yield
+
+
 def _coast(idle_force: str) -> float:
     """Largest tool displacement [m] in 0.5 s after the arm is let go at ~0.1 m/s with the weights the point-mass
     policy leaves after guiding, w = (0, 0.5, 0.5) and f_d = 0 on every axis (no operator, no contact)."""
@@ -293,12 +305,7 @@ def _coast(idle_force: str) -> float:
     env.ctrl.reset(torch.tensor(q0), torch.tensor(qd0), idx=torch.tensor([0]))
     env._measure()
     start, drift = env.pos[0].copy(), 0.0
-    w, f_d = np.tile([0.0, 0.5, 0.5], (1, 6, 1)), np.zeros((1, 6))
-    td = env._output(done=np.zeros(1, dtype=bool), terminated=np.zeros(1, dtype=bool))
-    for _ in range(50):
-        env.hold_weights(np.ones(1, dtype=bool), w, f_d)
-        td["action"] = torch.zeros(1, 6, 4)
-        td = env.step(td)["next"]
+    for _ in _steps_held(env, 50):
         drift = max(drift, float(np.linalg.norm(env.pos[0] - start)))
     return drift
 
@@ -337,12 +344,8 @@ def _yield_to_push(relax: bool) -> float:
     env._measure()
     start = env.pos[0, 1]
     env.operator.wrench = lambda *args: (np.array([[0.0, 10.0, 0.0]]), np.zeros((1, 3)))
-    w, f_d = np.tile([0.0, 0.5, 0.5], (1, 6, 1)), np.zeros((1, 6))
-    td = env._output(done=np.zeros(1, dtype=bool), terminated=np.zeros(1, dtype=bool))
-    for _ in range(100):
-        env.hold_weights(np.ones(1, dtype=bool), w, f_d)
-        td["action"] = torch.zeros(1, 6, 4)
-        td = env.step(td)["next"]
+    for _ in _steps_held(env, 100):
+        pass
     return float(env.pos[0, 1] - start)
 
 
