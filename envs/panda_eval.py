@@ -112,14 +112,15 @@ def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, sin
 
 def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int = 0, config=None,  # noqa: ANN001
              controllers: tuple[str, ...] = CONTROLLERS, cycles: int | None = None,
-             progress: bool = True, fixed: Sequence = (), sim_threads: int = 1) -> EvalResult:
+             progress: bool = True, fixed: Sequence = (), sim_threads: int = 1, workers: int = 1) -> EvalResult:
     """Run every controller on the same `trials` trials of `scene` (one batched simulation); return the metrics.
 
     `policy_path` None: the config's panda.policy (for the learned controller). `fixed`: FixedControllerConfig
-    objects run after `controllers` under their own names. `sim_threads`: PandaEnv's (MuJoCo models and threads)."""
+    objects run after `controllers` under their own names. `sim_threads`: PandaEnv's (MuJoCo models and threads).
+    `workers` > 1: the trials are split into that many contiguous groups, each run (all controllers) as its own
+    batched simulation in its own process; the metrics are the same up to the solver's round-off in contact (a
+    batch's composition moves it, see PandaEnv's `sim_threads`)."""
     from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict
-    from envs.panda import PandaEnv
-    from envs.panda_fixed import FixedArms
 
     cfg = config or ExperimentConfig()
     if cycles is not None:
@@ -129,36 +130,77 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
     unknown = [c for c in controllers if c not in CONTROLLERS]
     if unknown:
         raise ValueError(f"unknown controller(s) {unknown}; choose from {list(CONTROLLERS)}")
-    policy = None
     if "learned" in controllers:
         policy_path = policy_path if policy_path is not None else cfg.panda.policy
         if policy_path is None:
             raise ValueError("the learned controller needs --policy PATH or panda.policy (or leave it out of "
                              "--controllers)")
-        from algorithms.a2c import load_policy
-
-        policy = load_policy(policy_path)
     by_name = {f.name: f for f in fixed}
     if len(by_name) != len(fixed) or set(by_name) & set(CONTROLLERS):
         raise ValueError(f"fixed controllers need distinct names other than {list(CONTROLLERS)}, got "
                          f"{[f.name for f in fixed]}")
-    controllers = list(controllers) + list(by_name)
-    if not controllers:
+    names = list(controllers) + list(by_name)
+    if not names:
         raise ValueError("no controller to evaluate")
-    arms = FixedArms([by_name.get(c) for c in controllers for _ in range(trials)]) if fixed else None
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
     trial_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(trials)]
+    groups = [g.tolist() for g in np.array_split(np.arange(trials), min(workers, trials))]
+    jobs = [(scene, policy_path, [trial_seeds[k] for k in g], cfg, tuple(controllers), tuple(fixed), sim_threads,
+             progress and i == 0, i == 0) for i, g in enumerate(groups)]
+    t_wall = time.perf_counter()
+    if len(jobs) == 1:
+        parts = [_run(*jobs[0])]
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        # spawn: a fresh interpreter per worker (no forked torch or MuJoCo state)
+        with ProcessPoolExecutor(len(jobs), mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=torch.set_num_threads, initargs=(1,)) as pool:
+            parts = list(pool.map(_run_job, jobs))
+    seconds = time.perf_counter() - t_wall
+    scene_name = parts[0]["scene"]
+    summary, per_trial = {}, {}
+    for c in names:
+        m = {k: np.concatenate([p["metrics"][c][k] for p in parts]) for k in parts[0]["metrics"][c]}
+        summary[c] = _summarise(scene_name, m)
+        per_trial[c] = {k: _json_list(v) for k, v in m.items()}
+    return EvalResult(scene=scene_name, summary=summary, per_trial=per_trial, episodes=parts[0]["episodes"],
+                      seconds=seconds, sim_seconds=float(sum(p["sim_seconds"] for p in parts)))
+
+
+def _run_job(job: tuple) -> dict:
+    return _run(*job)
+
+
+def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tuple[str, ...],  # noqa: ANN001
+         fixed: tuple, sim_threads: int, progress: bool, record: bool) -> dict:
+    """One batched simulation of every controller on the trials of `trial_seeds`: the per-controller metrics
+    (arrays [trials, ...]), the recorded episodes of its first trial (`record`) and the simulated arm-seconds."""
+    from envs.panda import PandaEnv
+    from envs.panda_fixed import FixedArms
+
+    policy = None
+    if "learned" in controllers:
+        from algorithms.a2c import load_policy
+
+        policy = load_policy(policy_path)
+    by_name = {f.name: f for f in fixed}
+    controllers = list(controllers) + list(by_name)
+    trials = len(trial_seeds)
+    arms = FixedArms([by_name.get(c) for c in controllers for _ in range(trials)]) if fixed else None
     n = len(controllers) * trials
-    env = PandaEnv(n, cfg, scene=scene, trial_seeds=trial_seeds * len(controllers),
+    env = PandaEnv(n, cfg, scene=scene, trial_seeds=list(trial_seeds) * len(controllers),
                    controller_factory=arms.controller_factory if arms else None,
                    sim_threads=sim_threads)
     contact_force = getattr(getattr(env.scene, "cfg", None), "contact_force", 1.0)
     n = env.num_envs
     latched, since = np.zeros(n, dtype=bool), np.zeros(n)
     rec_arms = np.arange(len(controllers)) * trials  # trial 0 of each controller
-    episodes = {c: {k: [] for k in RECORD_KEYS + env.signal_keys + ("q",)} for c in controllers}
+    episodes = {c: {k: [] for k in RECORD_KEYS + env.signal_keys + ("q",)} for c in controllers} if record else {}
     td = env.reset()
     finished = np.zeros(n, dtype=bool)
-    t_wall = time.perf_counter()
     limit = cfg.panda.max_episode_time
     bar = _progress(limit, progress)
     steps = 0
@@ -175,7 +217,7 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
         td["action"] = action
         td = env.step(td)["next"]
         steps += 1
-        for c, arm in zip(controllers, rec_arms):
+        for c, arm in zip(episodes, rec_arms):
             if not finished[arm]:
                 for k in episodes[c]:
                     episodes[c][k].append(env.q[arm].copy() if k == "q" else td[k][arm].numpy().copy())
@@ -183,20 +225,14 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
         if steps % 100 == 0:
             bar.update(min(1.0, max(0.0, limit - bar.n)))
     bar.close()
-    seconds = time.perf_counter() - t_wall
     metrics = env.scene.metrics()
     metrics["diverged"] = env.diverged.copy()
-    summary, per_trial = {}, {}
-    for j, c in enumerate(controllers):
-        sl = slice(j * trials, (j + 1) * trials)
-        m = {k: np.asarray(v)[sl] for k, v in metrics.items()}
-        summary[c] = _summarise(env.scene.name, m)
-        per_trial[c] = {k: _json_list(v) for k, v in m.items()}
+    per = {c: {k: np.asarray(v)[j * trials:(j + 1) * trials] for k, v in metrics.items()}
+           for j, c in enumerate(controllers)}
     meta = {"scene": env.scene.name, "tool": env.scene.tool, "scene_xml": env.scene.mjcf(),
             "phase_names": np.array(env.scene.phase_names), "phase_task": np.array(env.scene.phase_task)}
     eps = {c: {**{k: np.asarray(v) for k, v in rec.items()}, **meta} for c, rec in episodes.items()}
-    return EvalResult(scene=env.scene.name, summary=summary, per_trial=per_trial, episodes=eps, seconds=seconds,
-                      sim_seconds=float(steps * env.adapt.dt * n))
+    return {"scene": env.scene.name, "metrics": per, "episodes": eps, "sim_seconds": steps * env.adapt.dt * n}
 
 
 def load_fixed_controller(path: str | Path):  # noqa: ANN201
@@ -339,6 +375,9 @@ def main(argv: list[str] | None = None) -> int:
                         "controllers")
     p.add_argument("--threads", type=int, default=1, help="threads (MuJoCo models) the arms' physics is split into "
                    "(default 1; the same numbers up to the solver's round-off in contact; slower on a loaded machine)")
+    p.add_argument("--workers", type=int, default=1, help="processes the trials are split among, each simulating "
+                   "its share of the trials for every controller (default 1; the same numbers up to the solver's "
+                   "round-off in contact; pays where a core is free)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -349,6 +388,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--trials must be >= 1, got {args.trials}")
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
+        if args.workers < 1:
+            raise ValueError(f"--workers must be >= 1, got {args.workers}")
         cfg_path = args.config
         default = Path("configs") / f"panda_{args.scene}.yaml"
         if cfg_path is None and default.is_file():
@@ -369,7 +410,8 @@ def main(argv: list[str] | None = None) -> int:
             controllers = tuple(c for c in controllers if c != "learned")
             print("no --policy given: evaluating the baselines only", file=sys.stderr)
         res = evaluate(args.scene, policy, args.trials, args.seed, cfg, controllers, args.cycles,
-                       progress=not args.quiet, fixed=fixed, sim_threads=args.threads)
+                       progress=not args.quiet, fixed=fixed, sim_threads=args.threads,
+                       workers=args.workers)
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
