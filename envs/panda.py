@@ -163,6 +163,8 @@ class PandaEnv(EnvBase):
         self.handle_pos, self.handle_force = np.zeros((n, 3)), np.zeros((n, 3))
         self.max_penetration = np.zeros(n)
         """Deepest contact penetration of each arm in the last agent period [m]."""
+        self.parked = np.zeros(n, dtype=bool)
+        """Arms set aside by `park` (until their reset): no collisions, IK holding, no divergence checks."""
         self.fallbacks = np.zeros(n, dtype=np.int64)
         """Control periods in which the controller's QP fell back to braking, per arm, this episode."""
         self.signal_keys = tuple(self.scene.signals(self._scene_input()).keys())
@@ -227,6 +229,7 @@ class PandaEnv(EnvBase):
         self.weights[idx] = _softmax(self.w_logits[idx])
         self.t[idx] = 0.0
         self.diverged[idx] = False
+        self.parked[idx] = False
         self.fallbacks[idx] = 0
         self.stiffness_scale[idx] = 1.0
         s = self.pcfg.sensors
@@ -260,6 +263,11 @@ class PandaEnv(EnvBase):
             self.weights[mask] = w_o[mask]
             self.f_d[mask] = f_o[mask]
             self.w_logits[mask] = np.log(np.clip(w_o[mask], 1e-12, 1.0))
+        if self.parked.any():  # IK holds a parked arm's pose
+            p = self.parked
+            self.w_logits[p] = self._ik_logits
+            self.weights[p] = _softmax(self.w_logits[p])
+            self.f_d[p] = 0.0
             self._override = None
 
     def controller_weights(self) -> tuple[np.ndarray, np.ndarray]:
@@ -427,12 +435,22 @@ class PandaEnv(EnvBase):
         pen = self.sim.max_penetration()
         np.maximum(self.max_penetration, pen, out=self.max_penetration)
         deep = pen > p.divergence_penetration
-        bad = (~finite | fast | deep) & ~self.diverged
+        bad = (~finite | fast | deep) & ~self.diverged & ~self.parked
         for i in np.flatnonzero(bad):
             why = "non-finite state" if not finite[i] else ("joint speed beyond limit" if fast[i] else
                                                            f"contact penetration {1e3 * self.max_penetration[i]:.1f} mm")
             logger.warning("panda env: robot %d diverged at t = %.3f s (%s); its episode ends", i, self.t[i], why)
         return bad
+
+    def park(self, idx: np.ndarray) -> None:
+        """Set aside arms `idx` whose episode is over while the batch runs on (until their reset): their collisions
+        off (PandaSim.park: a peg left in its bore costs collision and solver time at every step), IK weights and
+        f_d = 0 from now on (free of contact, the arm holds its pose), no divergence checks (their motion no longer
+        counts). The other arms compute the same up to the contact solver's round-off."""
+        idx = np.asarray(idx, dtype=np.intp).reshape(-1)
+        if len(idx):
+            self.sim.park(idx)
+            self.parked[idx] = True
 
     def _end_diverged(self, bad: np.ndarray) -> None:
         """Flag the diverged arms and park them at home (their episode is over; the batch runs on)."""

@@ -112,14 +112,17 @@ def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, sin
 
 def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int = 0, config=None,  # noqa: ANN001
              controllers: tuple[str, ...] = CONTROLLERS, cycles: int | None = None,
-             progress: bool = True, fixed: Sequence = (), sim_threads: int = 1, workers: int = 1) -> EvalResult:
+             progress: bool = True, fixed: Sequence = (), sim_threads: int = 1, workers: int = 1,
+             park: bool = True) -> EvalResult:
     """Run every controller on the same `trials` trials of `scene` (one batched simulation); return the metrics.
 
     `policy_path` None: the config's panda.policy (for the learned controller). `fixed`: FixedControllerConfig
     objects run after `controllers` under their own names. `sim_threads`: PandaEnv's (MuJoCo models and threads).
     `workers` > 1: the trials are split into that many contiguous groups, each run (all controllers) as its own
     batched simulation in its own process; the metrics are the same up to the solver's round-off in contact (a
-    batch's composition moves it, see PandaEnv's `sim_threads`)."""
+    batch's composition moves it, see PandaEnv's `sim_threads`). `park`: an arm whose episode is over is parked
+    (PandaEnv.park: no collisions, IK holding) while the others run on; its metrics are final by then, and the
+    others' move at the same round-off only."""
     from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict
 
     cfg = config or ExperimentConfig()
@@ -147,7 +150,7 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
     trial_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(trials)]
     groups = [g.tolist() for g in np.array_split(np.arange(trials), min(workers, trials))]
     jobs = [(scene, policy_path, [trial_seeds[k] for k in g], cfg, tuple(controllers), tuple(fixed), sim_threads,
-             progress and i == 0, i == 0) for i, g in enumerate(groups)]
+             progress and i == 0, i == 0, park) for i, g in enumerate(groups)]
     t_wall = time.perf_counter()
     if len(jobs) == 1:
         parts = [_run(*jobs[0])]
@@ -175,9 +178,10 @@ def _run_job(job: tuple) -> dict:
 
 
 def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tuple[str, ...],  # noqa: ANN001
-         fixed: tuple, sim_threads: int, progress: bool, record: bool) -> dict:
+         fixed: tuple, sim_threads: int, progress: bool, record: bool, park: bool) -> dict:
     """One batched simulation of every controller on the trials of `trial_seeds`: the per-controller metrics
-    (arrays [trials, ...]), the recorded episodes of its first trial (`record`) and the simulated arm-seconds."""
+    (arrays [trials, ...]), the recorded episodes of its first trial (`record`) and the simulated arm-seconds.
+    `park`: arms whose episode is over are parked (PandaEnv.park) until the last one ends."""
     from envs.panda import PandaEnv
     from envs.panda_fixed import FixedArms
 
@@ -221,7 +225,10 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
             if not finished[arm]:
                 for k in episodes[c]:
                     episodes[c][k].append(env.q[arm].copy() if k == "q" else td[k][arm].numpy().copy())
-        finished |= td["done"].reshape(n).numpy()
+        done = td["done"].reshape(n).numpy()
+        if park:
+            env.park(np.flatnonzero(done & ~finished))
+        finished |= done
         if steps % 100 == 0:
             bar.update(min(1.0, max(0.0, limit - bar.n)))
     bar.close()
@@ -378,6 +385,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=1, help="processes the trials are split among, each simulating "
                    "its share of the trials for every controller (default 1; the same numbers up to the solver's "
                    "round-off in contact; pays where a core is free)")
+    p.add_argument("--no-park", action="store_true", help="keep simulating finished arms' contacts until the last "
+                   "episode ends (by default they are parked: the same metrics up to round-off, less time)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -411,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
             print("no --policy given: evaluating the baselines only", file=sys.stderr)
         res = evaluate(args.scene, policy, args.trials, args.seed, cfg, controllers, args.cycles,
                        progress=not args.quiet, fixed=fixed, sim_threads=args.threads,
-                       workers=args.workers)
+                       workers=args.workers, park=not args.no_park)
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

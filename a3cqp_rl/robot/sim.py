@@ -216,6 +216,7 @@ class PandaSim:
             assert body_arm[m.body(p + "link0").id] == i, "attached copies are not contiguous"
         jnt_arm = body_arm[m.jnt_bodyid]
         self._geom_arm = body_arm[m.geom_bodyid]
+        self._contype, self._conaffinity = m.geom_contype.copy(), m.geom_conaffinity.copy()  # park() / reset()
         qsize = {int(mujoco.mjtJoint.mjJNT_FREE): (7, 6), int(mujoco.mjtJoint.mjJNT_BALL): (4, 3)}
         self._arm_qpos, self._arm_dof, self._arm_bodies, self._arm_act, self._arm_mocap = [], [], [], [], []
         for i in range(n):
@@ -318,6 +319,8 @@ class PandaSim:
         arms = np.arange(self.n) if idx is None else np.asarray(list(idx), dtype=np.intp).reshape(-1)
         q = np.asarray(q, dtype=np.float64).reshape(len(arms), 7)
         qd = np.zeros_like(q) if qd is None else np.asarray(qd, dtype=np.float64).reshape(len(arms), 7)
+        g = np.flatnonzero(np.isin(self._geom_arm, arms))  # a parked arm collides again
+        m.geom_contype[g], m.geom_conaffinity[g] = self._contype[g], self._conaffinity[g]
         partial = len(np.unique(arms)) < self.n
         if not partial:
             mujoco.mj_resetData(m, d)
@@ -344,6 +347,17 @@ class PandaSim:
             d.sensordata[keep_s], d.cacc[self._ft_body[others]] = saved
         self._tau_ext[arms] = 0.0
         self._ft[arms] = d.sensordata[self._ft_adr[arms]]
+
+    def park(self, idx: list[int] | np.ndarray) -> None:
+        """Switch off the collisions of arms `idx` (their geoms' contype and conaffinity, until their next reset).
+
+        For an arm whose episode is over while the batch runs on: one that rests in contact (a peg left in its
+        bore) would cost MuJoCo's collision and constraint solver at every step, for nothing. Its own motion is
+        no longer meaningful; the other arms compute the same up to the solver's round-off (MuJoCo chooses its
+        warm start once per model, by the cost of all its constraints)."""
+        g = np.flatnonzero(np.isin(self._geom_arm, np.asarray(idx, dtype=np.intp)))
+        self.model.geom_contype[g] = 0
+        self.model.geom_conaffinity[g] = 0
 
     def observe(self) -> SimState:
         """Run mj_step1 (all arms) and return state, B(q), h + g, last-step sensors and the control site's
@@ -582,6 +596,14 @@ class ShardedPandaSim:
             mine = (arms >= a) & (arms < b)
             if mine.any():
                 p.reset(q[mine], qd[mine], idx=(arms[mine] - a).tolist())
+
+    def park(self, idx: list[int] | np.ndarray) -> None:
+        """PandaSim.park: switch off the collisions of arms `idx` until their next reset."""
+        arms = np.asarray(idx, dtype=np.intp).reshape(-1)
+        for p, (a, b) in zip(self.parts, self._ranges):
+            mine = arms[(arms >= a) & (arms < b)]
+            if len(mine):
+                p.park(mine - a)
 
     def site_pose(self, site: str = "tcp") -> tuple[np.ndarray, np.ndarray]:
         """World position [N, 3] (m) and rotation [N, 3, 3] of a site after the last step (kinematics of step1)."""

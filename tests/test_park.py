@@ -1,0 +1,58 @@
+"""Parking finished arms (PandaSim.park, PandaEnv.park, `evaluate(park=True)`): their contacts stop, the arms still
+running compute the same up to the contact solver's round-off, and an evaluation's results do not change."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from a3cqp_rl.robot.sim import PandaSim
+
+# a box whose top face sits 0.5 mm above the peg's tip at the home pose: every arm starts in contact
+_TIP = (0.306890567, 0.0, 0.464582052)
+_BOX = (f'<body name="stop" pos="{_TIP[0]} {_TIP[1]} {_TIP[2] - 0.0095}"><geom name="stop" type="box" '
+        'size="0.03 0.03 0.01" contype="1" conaffinity="2" priority="1"/></body>')
+
+
+def _run(park: list[int], steps: int = 150) -> tuple[np.ndarray, np.ndarray, PandaSim]:
+    sim = PandaSim(3, tool="peg_mesh", scene=_BOX)
+    sim.park(park)
+    qs, pens = [], []
+    for _ in range(steps):
+        s = sim.observe()
+        pens.append(sim.max_penetration())
+        sim.step(0.97 * s.bias)  # 97 % of gravity compensation: the arm sags onto the box
+        qs.append(s.q.numpy().copy())
+    return np.array(qs), np.array(pens), sim
+
+
+def test_a_parked_arm_stops_colliding_and_the_others_run_on_to_round_off() -> None:
+    q_ref, pen_ref, _ = _run([])
+    q, pen, sim = _run([1])
+    assert (pen_ref[:, 1] > 0).all() and (pen_ref[:, 0] > 0).all()  # all touch the box without parking
+    assert (pen[:, 1] == 0).all() and (pen[:, [0, 2]] > 0).all()  # the parked one no longer does, the others do
+    assert np.abs(q_ref[:, 1] - q[:, 1]).max() > 1e-6  # ... and it moves otherwise (it sinks into the box)
+    np.testing.assert_allclose(q[:, [0, 2]], q_ref[:, [0, 2]], rtol=0, atol=1e-9)
+    sim.reset(np.tile(sim._q[1], (1, 1)), idx=[1])  # a reset arm collides again
+    sim.observe()
+    assert sim.max_penetration()[1] > 0
+
+
+@pytest.mark.slow
+def test_an_evaluation_gives_the_same_results_with_and_without_parking() -> None:
+    from a3cqp_rl.config import config_from_dict, config_to_dict, load_config
+    from envs.panda_eval import evaluate
+
+    torch.set_num_threads(1)
+    d = config_to_dict(load_config("configs/panda_peg_in_hole.yaml"))
+    d["panda"]["max_episode_time"] = 18.0
+    cfg = config_from_dict(d, "<test>")
+    runs = [evaluate("peg_in_hole", None, 2, 0, cfg, controllers=("ik_fc", "ik"), progress=False, park=p)
+            for p in (False, True)]
+    for c in ("ik_fc", "ik"):
+        a, b = (r.per_trial[c] for r in runs)
+        assert a["success"] == b["success"]
+        np.testing.assert_allclose(np.array(b["insertion_time"], float), np.array(a["insertion_time"], float),
+                                   atol=1e-6)
+    assert runs[0].summary["ik_fc"]["successes"] >= 1  # something finished early and was parked
