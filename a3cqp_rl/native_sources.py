@@ -11,7 +11,6 @@ NATIVE_SOURCES = {
     "a3cqp_rl/control/native/a3cqp_step.c": (),
     "algorithms/native/a2c_iteration.c": ("-fopenmp-simd", "-fno-math-errno", "-ffp-contract=off"),
     "envs/native/point_mass.c": ("-fno-math-errno",),
-    "a3cqp_rl/robot/native/contact_filter.c": (),  # MuJoCo callback: needs MuJoCo's headers (NATIVE_MUJOCO_HEADERS)
 }
 """Every C source (path from the project root) and its extra flags; each builds into `dir/_stem<ext suffix>`."""
 
@@ -20,8 +19,3 @@ NATIVE_HEADERS = {
     "envs/native/point_mass.c": ("envs/native/point_mass.h",),
 }
 """Project headers a source includes (their folders go to the compiler as -I; editing one rebuilds the library)."""
-
-NATIVE_MUJOCO_HEADERS = ("a3cqp_rl/robot/native/contact_filter.c",)
-"""Sources that include <mujoco/mujoco.h>: setup.py takes the headers of the mujoco package installed in the build
-environment (and skips the source without it); the library checks at load time that the MuJoCo it runs with is the
-version it was compiled against."""

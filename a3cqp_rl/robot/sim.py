@@ -10,7 +10,6 @@ import mujoco
 import numpy as np
 import torch
 
-from a3cqp_rl.robot import contact_filter
 from a3cqp_rl.robot.kinematics import Kinematics
 from a3cqp_rl.robot.mjcf import DEFAULT_TOOL, compose_mjcf
 from a3cqp_rl.robot.specs import PANDA_HOME
@@ -204,8 +203,6 @@ class PandaSim:
             self.model.opt.timestep = timestep
         if not _can_collide(m1):  # e.g. no scene: skip the collision pass (~1/3 of mj_step1 at N = 64), same physics
             self.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
-        elif (m1.geom_type == int(mujoco.mjtGeom.mjGEOM_MESH)).any():
-            contact_filter.install()  # exact: the same contacts, without GJK on mesh-box pairs proven apart
         self.n = n
         self.data = mujoco.MjData(self.model)
         m = self.model
