@@ -13,8 +13,7 @@ controller + MuJoCo + sensing + operator/scene at 100 Hz). Reported per N (media
              + A3CQPController, free motion, no env): `env cost` = bare RTF / RTF
 Target: RTF >= 10x at N = 32 on this machine (2 cores).  `--eval POLICY` also times `a3cqp evaluate --scene
 peg_in_hole` on 26 trials (learned policy alone, and all five controllers with `--eval-all`) in 1 process and in 2
-worker processes (`--workers 2`) (target: under a minute). MuJoCo's contact filter of a3cqp_rl.robot.contact_filter is
-on unless A3CQP_NATIVE_CONTACT_FILTER=0.
+worker processes (`--workers 2`), finished arms parked in both (target: under a minute).
 
     python bench/panda_env.py [--quick] [--sizes 1 8 32] [--repeats R] [--eval POLICY [--eval-all]]
 """
