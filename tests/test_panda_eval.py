@@ -54,6 +54,8 @@ def test_main_reports_bad_input_in_one_line(tmp_path, capsys) -> None:  # noqa: 
     assert main(["--scene", "peg_in_hole", "--trials", "0"]) == 2
     assert main(["--scene", "peg_in_hole", "--trials", "1", "--threads", "0"]) == 2
     assert "--threads must be >= 1" in capsys.readouterr().err
+    assert main(["--scene", "peg_in_hole", "--trials", "1", "--workers", "0"]) == 2
+    assert "--workers must be >= 1" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--scene", "kitchen"])
 

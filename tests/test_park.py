@@ -40,19 +40,20 @@ def test_a_parked_arm_stops_colliding_and_the_others_run_on_to_round_off() -> No
 
 
 @pytest.mark.slow
-def test_an_evaluation_gives_the_same_results_with_and_without_parking() -> None:
-    from a3cqp_rl.config import config_from_dict, config_to_dict, load_config
+def test_an_evaluation_gives_the_same_results_parked_or_not_and_in_two_worker_processes() -> None:
+    from a3cqp_rl.config import config_from_dict
     from envs.panda_eval import evaluate
 
     torch.set_num_threads(1)
-    d = config_to_dict(load_config("configs/panda_peg_in_hole.yaml"))
-    d["panda"]["max_episode_time"] = 18.0
-    cfg = config_from_dict(d, "<test>")
-    runs = [evaluate("peg_in_hole", None, 2, 0, cfg, controllers=("ik_fc", "ik"), progress=False, park=p)
-            for p in (False, True)]
-    for c in ("ik_fc", "ik"):
-        a, b = (r.per_trial[c] for r in runs)
-        assert a["success"] == b["success"]
-        np.testing.assert_allclose(np.array(b["insertion_time"], float), np.array(a["insertion_time"], float),
-                                   atol=1e-6)
-    assert runs[0].summary["ik_fc"]["successes"] >= 1  # something finished early and was parked
+    cfg = config_from_dict({"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "align_time": 2.0,
+                                                      "time_limit": 2.0, "return_time": 0.5}}})
+    kw = dict(trials=2, seed=0, config=cfg, controllers=("ik_fc", "ik"), progress=False)
+    base = evaluate("peg_in_hole", None, park=False, **kw)
+    for res in (evaluate("peg_in_hole", None, park=True, **kw), evaluate("peg_in_hole", None, workers=2, **kw)):
+        for c in ("ik_fc", "ik"):
+            a, b = base.per_trial[c], res.per_trial[c]
+            assert a["success"] == b["success"] and a["extracted"] == b["extracted"]
+            # round-off of the contact solver only (an insertion time is a multiple of the 10 ms agent period)
+            np.testing.assert_allclose(np.array(b["insertion_time"], float), np.array(a["insertion_time"], float),
+                                       atol=0.0101)
+    assert base.summary["ik_fc"]["successes"] >= 1
