@@ -2,10 +2,13 @@
 
     a3cqp evaluate --scene peg_in_hole [--policy runs/pm_default/policy.pt] --trials 26 [--seed 0] [--json F]
                    [--config configs/panda_peg_in_hole.yaml] [--controllers learned,ik,ik_fc,equal,vic]
-                   [--cycles 1] [--out RUN] [--controller-config PICK.yaml [PICK.yaml ...]]
+                   [--cycles 1] [--out RUN] [--controller-config PICK.yaml [PICK.yaml ...]] [--workers 2]
+                   [--threads 1] [--no-park]
 
 Every controller runs the same K trials (trial k has the same seed, hence the same misalignment, operator tremor and
-sensor noise, for all of them), all in one batched simulation. Controllers (the adaptation law in the loop):
+sensor noise, for all of them), in batched simulations: the trials split between `--workers` processes (default 2),
+each simulating its share for every controller in one batch; an arm whose episode is over is parked (no contacts)
+while its batch runs on (`--no-park` keeps it colliding). Controllers (the adaptation law in the loop):
 
 - learned: the policy (obs [..., 3] -> action [..., 4], e.g. a point-mass policy) on all six axes, eq. 29.
 - ik:      fixed weights, IK only on every axis, f_d = 0.
@@ -382,9 +385,9 @@ def main(argv: list[str] | None = None) -> int:
                         "controllers")
     p.add_argument("--threads", type=int, default=1, help="threads (MuJoCo models) the arms' physics is split into "
                    "(default 1; the same numbers up to the solver's round-off in contact; slower on a loaded machine)")
-    p.add_argument("--workers", type=int, default=1, help="processes the trials are split among, each simulating "
-                   "its share of the trials for every controller (default 1; the same numbers up to the solver's "
-                   "round-off in contact; pays where a core is free)")
+    p.add_argument("--workers", type=int, default=2, help="processes the trials are split among, each simulating "
+                   "its share of the trials for every controller (default 2; 1: one batched simulation; the same "
+                   "numbers up to the contact solver's round-off)")
     p.add_argument("--no-park", action="store_true", help="keep simulating finished arms' contacts until the last "
                    "episode ends (by default they are parked: the same metrics up to round-off, less time)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
