@@ -39,7 +39,7 @@ from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.control import A3CQPController, ControllerOptions, wrench_from_joint_torques
 from a3cqp_rl.control.frames import pose_error
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaModel, PandaSim
-from a3cqp_rl.robot.sim import ShardedPandaSim, cross3
+from a3cqp_rl.robot.sim import ShardedPandaSim, cross3, grid_origins
 from envs.scenarios import Operator, Scene, SceneInput, make_scene, rotvec_to_matrix
 
 __all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS", "TASK_BLENDS"]
@@ -79,6 +79,9 @@ class PandaEnv(EnvBase):
             evaluation gives every controller the same trials this way).
         controller_factory: builds the arms' controller instead of A3CQPController, called with the same arguments
             (n, model=, config=, options=); e.g. a PopulationController with per-arm gains and priority levels.
+        grid: (total, places): put arm i where arm places[i] of a batch of `total` arms would sit in MuJoCo's world
+            (a3cqp_rl.robot.sim.grid_origins), so that a share of a batch run on its own computes with the same
+            coordinates as in the whole batch (default: the grid of these num_envs arms).
         sim_threads: MuJoCo models the arms are split into, stepped in as many threads (ShardedPandaSim). Default 1
             (one PandaSim). Without contact the numbers are the same bit for bit; with contact they differ at the
             solver's round-off (MuJoCo chooses its warm start for a whole model at once), as between batches of
@@ -91,7 +94,7 @@ class PandaEnv(EnvBase):
                  scene: str | None = None, controller_options: ControllerOptions | None = None,
                  trial_seeds: list[int] | None = None, device: str | torch.device = "cpu",
                  controller_factory: Callable[..., A3CQPController] | None = None,
-                 sim_threads: int = 1) -> None:
+                 sim_threads: int = 1, grid: tuple[int, list[int]] | None = None) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
@@ -128,6 +131,11 @@ class PandaEnv(EnvBase):
         if threads < 1:
             raise ValueError(f"sim_threads must be >= 1, got {sim_threads}")
         sim_args = dict(tool=tool, scene=self.scene.mjcf(), q0=PANDA_HOME, timestep=self.dt, control_site="tcp")
+        if grid is not None:
+            total, places = grid
+            if len(places) != n or min(places) < 0 or max(places) >= total:
+                raise ValueError(f"grid places must be {n} arm indices below {total}, got {list(places)}")
+            sim_args["origins"] = grid_origins(tool, sim_args["scene"], int(total))[np.asarray(places)]
         self.sim: PandaSim | ShardedPandaSim = (PandaSim(n, **sim_args) if threads == 1 else
                                                 ShardedPandaSim(n, parts=threads, **sim_args))
         for m in self.sim.models:  # one diverging arm must not make MuJoCo reset the whole batch (its default on bad

@@ -152,8 +152,11 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
     trial_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(trials)]
     groups = [g.tolist() for g in np.array_split(np.arange(trials), min(workers, trials))]
+    # each worker's arms sit where they sit in the batch of all trials: the same coordinates, the same round-off
     jobs = [(scene, policy_path, [trial_seeds[k] for k in g], cfg, tuple(controllers), tuple(fixed), sim_threads,
-             progress and i == 0, i == 0, park) for i, g in enumerate(groups)]
+             progress and i == 0, i == 0, park,
+             None if len(groups) == 1 else (len(names) * trials, [j * trials + k for j in range(len(names)) for k in g]))
+            for i, g in enumerate(groups)]
     t_wall = time.perf_counter()
     if len(jobs) == 1:
         parts = [_run(*jobs[0])]
@@ -181,10 +184,11 @@ def _run_job(job: tuple) -> dict:
 
 
 def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tuple[str, ...],  # noqa: ANN001
-         fixed: tuple, sim_threads: int, progress: bool, record: bool, park: bool) -> dict:
+         fixed: tuple, sim_threads: int, progress: bool, record: bool, park: bool,
+         grid: tuple[int, list[int]] | None = None) -> dict:
     """One batched simulation of every controller on the trials of `trial_seeds`: the per-controller metrics
     (arrays [trials, ...]), the recorded episodes of its first trial (`record`) and the simulated arm-seconds.
-    `park`: arms whose episode is over are parked (PandaEnv.park) until the last one ends."""
+    `park`: arms whose episode is over are parked (PandaEnv.park) until the last one ends. `grid`: PandaEnv's."""
     from envs.panda import PandaEnv
     from envs.panda_fixed import FixedArms
 
@@ -200,7 +204,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     n = len(controllers) * trials
     env = PandaEnv(n, cfg, scene=scene, trial_seeds=list(trial_seeds) * len(controllers),
                    controller_factory=arms.controller_factory if arms else None,
-                   sim_threads=sim_threads)
+                   sim_threads=sim_threads, grid=grid)
     contact_force = getattr(getattr(env.scene, "cfg", None), "contact_force", 1.0)
     n = env.num_envs
     latched, since = np.zeros(n, dtype=bool), np.zeros(n)

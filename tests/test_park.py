@@ -57,3 +57,13 @@ def test_an_evaluation_gives_the_same_results_parked_or_not_and_in_two_worker_pr
             np.testing.assert_allclose(np.array(b["insertion_time"], float), np.array(a["insertion_time"], float),
                                        atol=0.0101)
     assert base.summary["ik_fc"]["successes"] >= 1
+
+
+def test_a_share_of_a_batch_sits_where_it_sits_in_the_whole_batch() -> None:
+    from a3cqp_rl.robot.sim import grid_origins
+    from envs.panda import PandaEnv
+
+    env = PandaEnv(2, scene="peg_in_hole", grid=(5, [1, 4]))
+    np.testing.assert_array_equal(env.sim._origin, grid_origins("peg_mesh", env.scene.mjcf(), 5)[[1, 4]])
+    with pytest.raises(ValueError, match="grid places"):
+        PandaEnv(2, scene="peg_in_hole", grid=(2, [1, 4]))

@@ -14,7 +14,7 @@ from a3cqp_rl.robot.kinematics import Kinematics
 from a3cqp_rl.robot.mjcf import DEFAULT_TOOL, compose_mjcf
 from a3cqp_rl.robot.specs import PANDA_HOME
 
-__all__ = ["SimState", "PandaSim", "ShardedPandaSim", "cross3", "full_mass_matrix", "mujoco_dynamics"]
+__all__ = ["SimState", "PandaSim", "ShardedPandaSim", "cross3", "full_mass_matrix", "mujoco_dynamics", "grid_origins"]
 
 
 def full_mass_matrix(m: mujoco.MjModel, d: mujoco.MjData, dst: np.ndarray) -> None:
@@ -85,6 +85,12 @@ def _grid(text: str, n: int) -> np.ndarray:
     side = int(np.ceil(np.sqrt(n)))
     return np.array([[spacing * (i % side - (side - 1) / 2), spacing * (i // side - (side - 1) / 2), 0.0]
                      for i in range(n)])
+
+
+def grid_origins(tool: str, scene: str, n: int) -> np.ndarray:
+    """Where PandaSim(n, tool, scene) places its arms' copies [n, 3] (m): pick rows of it as a smaller batch's
+    `origins` to compute with the same coordinates, hence the same round-off, as in the batch of n."""
+    return _grid(compose_mjcf(tool, scene), n)
 
 
 def _replicate(text: str, n: int, origins: np.ndarray | None = None) -> tuple[mujoco.MjModel, list[str], np.ndarray]:
@@ -518,14 +524,17 @@ class ShardedPandaSim:
     Args:
         n: number of arms (>= parts).
         parts: number of MuJoCo models and threads (1 works too: one part, no thread).
+        origins: where the arms sit [n, 3] (m); default the grid of all n (PandaSim's `origins`).
         **kwargs: PandaSim's (tool, scene, q0, timestep, control_site).
     """
 
-    def __init__(self, n: int, parts: int = 2, **kwargs) -> None:
+    def __init__(self, n: int, parts: int = 2, origins: np.ndarray | None = None, **kwargs) -> None:
         if not 1 <= parts <= n:
             raise ValueError(f"ShardedPandaSim needs 1 <= parts <= n, got parts={parts}, n={n}")
         self.n = n
-        origins = _grid(compose_mjcf(kwargs.get("tool", DEFAULT_TOOL), kwargs.get("scene", "")), n)
+        if origins is None:
+            origins = _grid(compose_mjcf(kwargs.get("tool", DEFAULT_TOOL), kwargs.get("scene", "")), n)
+        origins = np.asarray(origins, dtype=np.float64).reshape(n, 3)
         bufs = _output_buffers(n)
         for name, buf in bufs.items():
             setattr(self, name, buf)
