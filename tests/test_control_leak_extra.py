@@ -17,7 +17,7 @@ LEAK = 10.0
 
 
 def _extra(n: int, seed: int) -> torch.Tensor:
-    """A random extra rate [n, 6] (1/s): zero on some axes, up to a rate that saturates the per-period clip on others."""
+    """A random extra rate [n, 6] (1/s): zero on some axes, and on arm 0 a rate that saturates the per-period clip."""
     gen = torch.Generator().manual_seed(seed)
     e = 40.0 * torch.rand(n, 6, generator=gen, dtype=torch.float64)
     e[torch.rand(n, 6, generator=gen) < 0.3] = 0.0

@@ -210,8 +210,8 @@ def _relax_min_w1(xp, q_des, qd_des, q, qd, weights, leak: float):  # noqa: ANN0
     return q_des - rate * (q_des - q), qd_des - rate * (qd_des - qd)
 
 
-def _relax_per_axis(q_des, qd_des, q, qd, weights, f_d_local, J, jpinv, D, leak: float, dt: float = 0.0,  # noqa: ANN001, ANN202
-                    extra=None):  # noqa: ANN001
+def _relax_per_axis(q_des, qd_des, q, qd, weights, f_d_local, J, jpinv, D, leak: float,  # noqa: ANN001, ANN202
+                    dt: float = 0.0, extra=None):  # noqa: ANN001
     """q*, q̇* toward (q, q̇) per local axis (ControllerOptions.leak_axes "per_axis"): the task-space part of q* − q
     at rate leak × (w2 + w3 · min(1, f_d / 1 N)) + Δt × extra along each axis of L (clipped to [0, 1] per control
     period; leak = Δt × desired_state_leak, extra [N, 6] in 1/s or None), the null-space part at rate leak."""
