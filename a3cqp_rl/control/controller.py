@@ -72,7 +72,8 @@ class ControllerOptions:
     an axis IK leads (or where force control does not push) keeps its integral action. On the simulated
     peg-in-hole the scripted IK + FC trigger succeeds in 26/26 trials with "per_axis" and 3/26 with "min_w1"
     (friction holds the peg on the rim); on a flat table "per_axis" presses 10.8 N for f_d = 10 N (the IK axes'
-    integral terms push through Λ's coupling) where "min_w1" presses 10.0 N."""
+    integral terms push through Λ's coupling) where "min_w1" presses 10.0 N. With "per_axis" a caller can add its
+    own rate per axis of L (`A3CQPController.step(leak_extra=...)`, 1/s), relaxed together with this one."""
     wrench_blend: Literal["normalized", "weighted_sum"] = "normalized"
     """How the wrench sub-problem (eq. 24b) shares f* out on each axis of L. "normalized" (default, eq. 24b):
     f* = (w2 f_adm + w3 f_ctc) / (w2 + w3), so an axis IK leads still commands the AC/FC mix at full size (on the
@@ -211,7 +212,7 @@ def _relax_min_w1(xp, q_des, qd_des, q, qd, weights, leak: float):  # noqa: ANN0
 
 
 def _relax_per_axis(q_des, qd_des, q, qd, weights, f_d_local, J, jpinv, D, leak: float,  # noqa: ANN001, ANN202
-                    dt: float = 0.0, extra=None):  # noqa: ANN001
+                    dt: float, extra):  # noqa: ANN001
     """q*, q̇* toward (q, q̇) per local axis (ControllerOptions.leak_axes "per_axis"): the task-space part of q* − q
     at rate leak × (w2 + w3 · min(1, f_d / 1 N)) + Δt × extra along each axis of L (clipped to [0, 1] per control
     period; leak = Δt × desired_state_leak, extra [N, 6] in 1/s or None), the null-space part at rate leak."""
