@@ -832,7 +832,8 @@ class PolishingConfig:
         if not self.relocations:
             err.add("relocations", "needs at least one (dx, dy)")
         if len(self.friction_solref) != 2 or not all(v > 0 for v in self.friction_solref):
-            err.add("friction_solref", f"needs (time constant [s], damping ratio), both > 0, got {self.friction_solref}")
+            err.add("friction_solref", f"needs (time constant [s], damping ratio), both > 0, "
+                                       f"got {self.friction_solref}")
 
 
 @dataclass

@@ -120,7 +120,8 @@ def plate_xml(center: tuple[float, float] = (0.45, 0.0), top: float = 0.25, half
     parts.append("</body>")
     if tool_geom is not None:
         if not (len(friction_solref) == 2 and all(v > 0 for v in friction_solref)):
-            raise ValueError(f"friction_solref needs (time constant [s], damping ratio), both > 0, got {friction_solref}")
+            raise ValueError(f"friction_solref needs (time constant [s], damping ratio), both > 0, "
+                             f"got {friction_solref}")
         # the pair repeats the plate's contact (condim 3: μ on both tangent axes) and adds the friction rows' solref
         parts.append('<option cone="elliptic"/>')
         parts.append(f'<contact><pair geom1="{name}" geom2="{tool_geom}" condim="3" '
