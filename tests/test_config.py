@@ -103,6 +103,8 @@ def test_roundtrip_and_overrides(tmp_path):
         ("ga: {num_parents_mating: 9}", "ga.num_parents_mating"),
         ("unknown_section: 1", "unknown_section"),
         ("point_mass: {episode_steps: 3}", "point_mass.episode_steps"),
+        ("panda: {peg_in_hole: {insert_depth: 0.02}}", "panda.peg_in_hole.insert_depth"),
+        ("panda: {peg_in_hole: {insert_depth: 0.04}}", "panda.peg_in_hole.insert_depth"),
     ],
 )
 def test_bad_values_name_file_and_key(tmp_path, text, key):
