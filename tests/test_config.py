@@ -190,3 +190,11 @@ def test_non_utf8_config_names_the_file(tmp_path):
     p.write_bytes("seed: 0  # f\xfcr\n".encode("latin-1"))
     with pytest.raises(ConfigError, match=f"{p}: not UTF-8 text"):
         load_config(p)
+
+
+def test_peg_config_reference_pulls_past_the_success_depth():
+    """The shipped peg procedure's inserted pose lies well past the success depth and above the bore's floor, so an
+    IK-led z axis still pulls a peg stalled just short of success (docs/panda.md, "What sets the insertion time")."""
+    p = load_config(Path(__file__).resolve().parents[1] / "configs" / "panda_peg_in_hole.yaml").panda.peg_in_hole
+    assert p.insert_depth - p.success_depth >= 0.01 - 1e-12
+    assert p.hole_depth - p.insert_depth >= 0.005 - 1e-12
