@@ -283,7 +283,7 @@ class PandaEnv(EnvBase):
 
     def idle_share_leak(self, w_ctrl: np.ndarray) -> np.ndarray | None:
         """The extra relaxation rate [N, 6] (1/s) of the controller's q*, q̇* along each axis of L that `idle_force:
-        damps` adds, or None where there is none.
+        damps` adds (the controller's `leak_extra`), or None where there is none.
 
         The controller's per-axis leak relaxes q* at rate leak × (w2 + w3 · min(1, f_d / 1 N)) of the weights it gets,
         and there the idle share counts as IK, whose integral (eq. 5-7) holds the pose. But the share is a damper: it
@@ -291,7 +291,9 @@ class PandaEnv(EnvBase):
         axis relaxes at leak × a / (w1 + a), a = w2 + w3 · min(1, f_d / 1 N) (the policy's weights). Where the
         operator leads an axis (w2 ≫ w1) the share then follows the operator (in a relocation, where q* would
         otherwise pull the hand back); where IK leads (w1 ≫ w2, as across the hole during an insertion) it keeps
-        IK's integral."""
+        IK's integral. The controller already relaxes at leak × a_ctrl (a_ctrl of w_ctrl, the weights it gets); this
+        returns the difference leak × (a / (w1 + a) − a_ctrl) (≥ 0, 1/s, leak = desired_state_leak), which the
+        controller adds to its own rate in the same relaxation."""
         if self.pcfg.idle_force != "damps" or self.pcfg.state_leak != "per_axis":
             return None
         w, m = self.weights, np.clip(self.f_d, 0.0, 1.0)
@@ -303,24 +305,6 @@ class PandaEnv(EnvBase):
         given = w_ctrl[..., 1] + w_ctrl[..., 2] * m  # what the controller's own leak does with w_ctrl
         extra = np.where(idle > 0.0, np.clip(target - given, 0.0, 1.0), 0.0)
         return self.ctrl.options.desired_state_leak * extra if np.any(extra > 0.0) else None
-
-    def _relax_idle_share(self) -> None:
-        """q*, q̇* toward (q, q̇) along the axes of L at `self._idle_leak` for one control period (the task-space
-        part only, as the controller's per-axis leak)."""
-        rate = np.clip(self._idle_leak * self.dt, 0.0, 1.0)  # [N, 6]
-        # only the arms with a share to relax and a finite state (a diverged arm is parked by its own path)
-        idx = np.flatnonzero((rate > 0.0).any(1) & ~self.diverged & np.isfinite(self._jac).all((1, 2)))
-        if len(idx) == 0:
-            return
-        J, rot, rate = self._jac[idx], self.rot[idx], rate[idx]
-        Jt = np.swapaxes(J, 1, 2)
-        jpinv = Jt @ np.linalg.inv(J @ Jt + self.ctrl.options.nullspace_damping * np.eye(6))
-        for name, meas in (("q_des", self.q), ("qd_des", self.qd)):
-            des = getattr(self.ctrl, name).numpy()  # shares memory with the controller's tensor
-            d = des[idx] - meas[idx]
-            loc = to_local(rot, (J @ d[..., None])[..., 0]) * rate
-            back = np.concatenate([(rot @ loc[:, :3, None])[..., 0], (rot @ loc[:, 3:, None])[..., 0]], axis=1)
-            des[idx] -= (jpinv @ back[..., None])[..., 0]
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
@@ -373,10 +357,9 @@ class PandaEnv(EnvBase):
         s = self._measure(k)
         bad = self._check_divergence()
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
-                             f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin)
+                             f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin,
+                             leak_extra=None if self._idle_leak is None else torch.from_numpy(self._idle_leak))
         self.fallbacks += out.fallback.numpy()
-        if self._idle_leak is not None:
-            self._relax_idle_share()
         tau = out.tau.numpy()
         self.tau[:] = tau
         # the operator's hand at the handle (above the F/T sensor: read by the joint torques only)

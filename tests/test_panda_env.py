@@ -335,6 +335,19 @@ def test_idle_share_relaxes_the_integral_only_where_a_non_ik_task_leads() -> Non
     assert free.idle_share_leak(free.controller_weights()[0]) is None
 
 
+def test_the_idle_share_rate_goes_to_the_controllers_per_axis_leak() -> None:
+    env = PandaEnv(1, _cfg({"panda": {"scene": "guidance", "idle_force": "damps"}}), seed=0)
+    env.reset()
+    seen, step = [], env.ctrl.step
+    env.ctrl.step = lambda *a, **k: seen.append(k.get("leak_extra")) or step(*a, **k)
+    for _ in _steps_held(env, 2):
+        pass
+    assert len(seen) == 2 * env.substeps
+    # w = (0, 0.5, 0.5), f_d = 0: the controller relaxes at 0.5 × leak, the share at the other half (1/s)
+    leak = env.ctrl.options.desired_state_leak
+    assert all(e is not None and np.allclose(e.numpy(), 0.5 * leak) for e in seen)
+
+
 def _yield_to_push(relax: bool) -> float:
     """Tool travel [m] along world y under a 10 N push at the handle for 1 s, with w = (0, 0.5, 0.5), f_d = 0."""
     env = PandaEnv(1, _cfg({"panda": {"scene": "guidance", "idle_force": "damps"}}), seed=0)

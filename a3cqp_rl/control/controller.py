@@ -72,7 +72,8 @@ class ControllerOptions:
     an axis IK leads (or where force control does not push) keeps its integral action. On the simulated
     peg-in-hole the scripted IK + FC trigger succeeds in 26/26 trials with "per_axis" and 3/26 with "min_w1"
     (friction holds the peg on the rim); on a flat table "per_axis" presses 10.8 N for f_d = 10 N (the IK axes'
-    integral terms push through Λ's coupling) where "min_w1" presses 10.0 N."""
+    integral terms push through Λ's coupling) where "min_w1" presses 10.0 N. With "per_axis" a caller can add its
+    own rate per axis of L (`A3CQPController.step(leak_extra=...)`, 1/s), relaxed together with this one."""
     wrench_blend: Literal["normalized", "weighted_sum"] = "normalized"
     """How the wrench sub-problem (eq. 24b) shares f* out on each axis of L. "normalized" (default, eq. 24b):
     f* = (w2 f_adm + w3 f_ctc) / (w2 + w3), so an axis IK leads still commands the AC/FC mix at full size (on the
@@ -171,6 +172,8 @@ class _StepInputs:
     all_valid: bool
     xp: Any
     """numpy or torch: the kind of the arrays above."""
+    leak_extra: Array | None = None
+    """Extra per-axis relaxation rate of q*, q̇* [N, 6] (1/s), or None (`A3CQPController.step`)."""
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -208,10 +211,15 @@ def _relax_min_w1(xp, q_des, qd_des, q, qd, weights, leak: float):  # noqa: ANN0
     return q_des - rate * (q_des - q), qd_des - rate * (qd_des - qd)
 
 
-def _relax_per_axis(q_des, qd_des, q, qd, weights, f_d_local, J, jpinv, D, leak: float):  # noqa: ANN001, ANN202
+def _relax_per_axis(q_des, qd_des, q, qd, weights, f_d_local, J, jpinv, D, leak: float,  # noqa: ANN001, ANN202
+                    dt: float, extra):  # noqa: ANN001
     """q*, q̇* toward (q, q̇) per local axis (ControllerOptions.leak_axes "per_axis"): the task-space part of q* − q
-    at rate leak × (w2 + w3 · min(1, f_d / 1 N)) along each axis of L, the null-space part at rate leak."""
-    r = (leak * (weights[..., 1] + weights[..., 2] * f_d_local.clip(0.0, 1.0))).clip(0.0, 1.0)  # [N, 6]
+    at rate leak × (w2 + w3 · min(1, f_d / 1 N)) + Δt × extra along each axis of L (clipped to [0, 1] per control
+    period; leak = Δt × desired_state_leak, extra [N, 6] in 1/s or None), the null-space part at rate leak."""
+    r = leak * (weights[..., 1] + weights[..., 2] * f_d_local.clip(0.0, 1.0))  # [N, 6]
+    if extra is not None:  # one relaxation at the summed rate (the caller's extra rate, e.g. an idle share's)
+        r = r + dt * extra
+    r = r.clip(0.0, 1.0)
     full = min(leak, 1.0)
     out = []
     for des, meas in ((q_des, q), (qd_des, qd)):
@@ -578,7 +586,7 @@ class A3CQPController:
     def step(self, q: torch.Tensor, qd: torch.Tensor, mass: torch.Tensor, bias: torch.Tensor, weights: torch.Tensor,
              f_d: torch.Tensor, pos_d: torch.Tensor, rot_d: torch.Tensor, f_ext: torch.Tensor | None = None,
              in_contact: torch.Tensor | None = None, f_env: torch.Tensor | None = None,
-             kin: Kinematics | None = None) -> ControlOutput:
+             kin: Kinematics | None = None, leak_extra: torch.Tensor | None = None) -> ControlOutput:
         """One 1 kHz control step for N robots: QP (eq. 24) then computed torque (eq. 4-7).
 
         Args:
@@ -592,11 +600,16 @@ class A3CQPController:
             f_env: measured environment (F/T) wrench [N, 6], world frame, only used to infer `in_contact`.
             kin: kinematics of the control site at (q, q̇) if the caller has them (PandaSim's `SimState.kin`, from
                 MuJoCo's step: same values as `self.model.kinematics` to ~1e-8); default computed by `self.model`.
+            leak_extra: an extra relaxation rate of q*, q̇* [N, 6] (1/s, ≥ 0) along each axis of the local frame L,
+                added to the per-axis leak's own desired_state_leak × (w2 + w3 · min(1, f_d / 1 N)) in one relaxation
+                (`leak_axes` "per_axis" only); default None, none.
 
         A robot whose inputs are not finite (or whose QP fails) gets the safe fallback: a viable brake with gravity
         compensation, `fallback` True and status INVALID_INPUT (or the QP's status).
         """
         inp = self._prepare(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, f_env, kin)
+        if leak_extra is not None:
+            inp.leak_extra = self._check_leak_extra(leak_extra, inp.q)
         if inp.all_valid and inp.xp is np and self._native is not None and self._native_fits() and (
                 self._native_for == (tuple(map(id, self.tasks)), tuple(map(id, self.limits)))):
             return self._step_native(inp)
@@ -639,6 +652,21 @@ class A3CQPController:
                                valid=valid, all_valid=bool(valid.all()), xp=np)
         return _StepInputs(**t, in_contact=in_contact, kin=kin, valid=torch.as_tensor(valid),
                            all_valid=bool(valid.all()), xp=torch)
+
+    def _check_leak_extra(self, leak_extra: torch.Tensor, like: Array) -> Array:
+        """`step`'s leak_extra as float64 [N, 6] of the kind of `like` (numpy, or a tensor on its device), or a
+        one-line error."""
+        if self.options.leak_axes != "per_axis":
+            raise InvalidGainError(f"leak_extra needs ControllerOptions.leak_axes 'per_axis', got "
+                                   f"{self.options.leak_axes!r}")
+        t = self._check("leak_extra", torch.as_tensor(leak_extra), (self.n, 6))
+        a = _np(t) if t.device.type == "cpu" else t  # (numpy on CPU: the checks cost ~1 µs each instead of ~5)
+        xp = np if isinstance(a, np.ndarray) else torch
+        if not bool(xp.isfinite(a).all()):
+            raise InvalidGainError("leak_extra must be finite (1/s), got a non-finite value")
+        if not bool((a >= 0.0).all()):
+            raise InvalidGainError(f"leak_extra must be ≥ 0 (1/s) on every axis, got {float(a.min()):.6g}")
+        return _np(t.cpu()) if isinstance(like, np.ndarray) else t.to(like.device)
 
     def _contact_from(self, f_env: torch.Tensor | None) -> torch.Tensor:
         """in_contact [N] from the measured F/T force: |f| > ControllerOptions.contact_force_threshold."""
@@ -691,7 +719,7 @@ class A3CQPController:
         leak = dt * self.options.desired_state_leak
         if self.options.leak_axes == "per_axis":
             q_des, qd_des = _relax_per_axis(q_des, qd_des, inp.q, inp.qd, inp.weights, ctx.f_d_local, ctx.kin.jac,
-                                            ctx.jpinv, ctx.D, leak)
+                                            ctx.jpinv, ctx.D, leak, dt, inp.leak_extra)
         else:
             q_des, qd_des = _relax_min_w1(xp, q_des, qd_des, inp.q, inp.qd, inp.weights, leak)
         out = _finish(xp, tau, qdd, f, qdd_pd, q_des, qd_des, self._constants(inp.q)["tau_max"])
@@ -732,7 +760,7 @@ class A3CQPController:
         asm, x, qp_status, iterations = self._native_qp(inp)
         xn = _np(x)
         ok = (_np(qp_status) == 0) & np.isfinite(xn).all(axis=1)
-        tau, qdd, f, qdd_pd, q_des, qd_des, saturated = self._native.torque(xn, ok, asm)
+        tau, qdd, f, qdd_pd, q_des, qd_des, saturated = self._native.torque(xn, ok, asm, inp.leak_extra)
         if not ok.all():
             self._report_fallback(ok, qp_status, np.ones(self.n, dtype=bool))
         self.q_des, self.qd_des = torch.from_numpy(q_des), torch.from_numpy(qd_des)

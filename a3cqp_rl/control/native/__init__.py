@@ -116,7 +116,7 @@ def _bind(path: Path) -> ctypes.CDLL:
     lib.a3cqp_assemble_robots.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 4]
     lib.a3cqp_assemble_robots.restype = None
     lib.a3cqp_assemble.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 3]
-    lib.a3cqp_torque.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 6]
+    lib.a3cqp_torque.argtypes = [ctypes.c_int64, *[ctypes.c_void_p] * 7]
     lib.a3cqp_assemble.restype = lib.a3cqp_torque.restype = None
     return lib
 
@@ -227,14 +227,24 @@ class NativeStep:
         return np.concatenate([np.asarray(fields[name], dtype=np.float64).reshape(n, count)
                                for name, count in self.lib.robot_fields], axis=1)
 
-    def torque(self, x: np.ndarray, ok: np.ndarray, asm: Assembled) -> tuple[np.ndarray, ...]:
-        """Eq. 4-7 (or the brake where not ok), the q*/q̇* relaxation and the clip: (τ, q̈*, f, q̈_pd, q*, q̇*, sat)."""
+    def torque(self, x: np.ndarray, ok: np.ndarray, asm: Assembled,
+               leak_extra: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+        """Eq. 4-7 (or the brake where not ok), the q*/q̇* relaxation and the clip: (τ, q̈*, f, q̈_pd, q*, q̇*, sat).
+
+        `leak_extra` [N, 6] (1/s): an extra rate of the per-axis relaxation along each axis of L (None: none)."""
         n = x.shape[0]
         x = np.ascontiguousarray(x, dtype=np.float64)
         okc = np.ascontiguousarray(ok, dtype=np.uint8)
         out = np.empty(n * 42)  # τ | q̈* | f | q̈_pd | q* | q̇* | saturated (7 + 7 + 6 + 7 + 7 + 7 + 1)
         packed, asm_out = asm.packed
-        self.lib.a3cqp_torque(n, self._p, address(packed), address(asm_out), address(x), address(okc), address(out))
+        extra = None
+        if leak_extra is not None:
+            leak_extra = np.ascontiguousarray(leak_extra, dtype=np.float64)
+            if leak_extra.shape != (n, 6):
+                raise ValueError(f"leak_extra must have shape ({n}, 6), got {leak_extra.shape}")
+            extra = address(leak_extra)
+        self.lib.a3cqp_torque(n, self._p, address(packed), address(asm_out), address(x), address(okc), extra,
+                              address(out))
         tau, qdd, f, qdd_pd, qs, qds = (out[n * a:n * b].reshape(n, b - a)
                                         for a, b in ((0, 7), (7, 14), (14, 20), (20, 27), (27, 34), (34, 41)))
         return tau, qdd, f, qdd_pd, qs, qds, out[41 * n:] != 0.0

@@ -515,7 +515,8 @@ void a3cqp_assemble_robots(int64_t n, const a3cqp_params *p, const double *in, c
 
 /* Eq. 4-7 from x = (q̈*, f) [n 13] where ok[k], else the fallback brake (q̈ = q̈_safe, f = 0, τ = B q̈_safe + h + g,
  * q* = q, q̇* = q̇); then q*, q̇* relax toward (q, q̇) where IK is off, and τ is clipped to ±τ_max (NaN → 0).
- * in, asm: a3cqp_assemble's input and output.  out, one array after the other: τ, q̈*, f, q̈_pd, q*, q̇* [n 7 / 6]
+ * in, asm: a3cqp_assemble's input and output; leak_extra [n 6]: the extra per-axis relaxation rate of leak_per_axis
+ * (1/s; NULL: none).  out, one array after the other: τ, q̈*, f, q̈_pd, q*, q̇* [n 7 / 6]
  * and saturated [n] (1.0 where some |τ_i| exceeded τ_max). */
 /* controller._relax_min_w1: q*, q̇* toward (q, q̇) at rate leak (1 − min_i w1_i), every joint. */
 static void relax_min_w1(const a3cqp_params *p, const double *w, const double *q, const double *qd, double *qs,
@@ -529,10 +530,12 @@ static void relax_min_w1(const a3cqp_params *p, const double *w, const double *q
     }
 }
 
-/* controller._relax_per_axis: the task-space part of q* − q relaxed at rate leak (w2 + w3 min(1, f_d / 1 N)) along
- * each axis of L, the null-space part at rate leak (same for q̇*). */
+/* controller._relax_per_axis: the task-space part of q* − q relaxed at rate leak (w2 + w3 min(1, f_d / 1 N))
+ * + Δt extra_i along each axis of L (extra [6] in 1/s, or NULL for none), the null-space part at rate leak (same for
+ * q̇*). */
 static void relax_per_axis(const a3cqp_params *p, const double *J, const double *rot, const double *w,
-                           const double *f_d, const double *q, const double *qd, double *qs, double *qds) {
+                           const double *f_d, const double *extra, const double *q, const double *qd, double *qs,
+                           double *qds) {
     double jjt[36], jjt_inv[36], jpinv[7 * 6], r[6];
     mm_nt(6, 7, 6, J, J, jjt);
     for (int i = 0; i < 6; i++) jjt[i * 6 + i] += p->nullspace_damping;
@@ -540,7 +543,9 @@ static void relax_per_axis(const a3cqp_params *p, const double *J, const double 
     mm_tn(7, 6, 6, J, jjt_inv, jpinv);
     for (int i = 0; i < 6; i++) {
         double fd = clampd(clampd(f_d[i], 0.0, p->f_d_max), 0.0, 1.0);
-        r[i] = clampd(p->leak * (w[i * 3 + 1] + w[i * 3 + 2] * fd), 0.0, 1.0);
+        double ri = p->leak * (w[i * 3 + 1] + w[i * 3 + 2] * fd);
+        if (extra) ri += p->dt * extra[i];
+        r[i] = clampd(ri, 0.0, 1.0);
     }
     double full = fmin(p->leak, 1.0);
     double *des[2] = {qs, qds};
@@ -567,7 +572,7 @@ static void relax_per_axis(const a3cqp_params *p, const double *J, const double 
 }
 
 void a3cqp_torque(int64_t n, const a3cqp_params *p, const double *in, const double *asm_out, const double *x,
-                  const uint8_t *ok, double *out) {
+                  const uint8_t *ok, const double *leak_extra, double *out) {
     const double dt = p->dt;
     int64_t m = a3cqp_rows(p);
     const double *pd = asm_out + (NV * NV + NV + m * NV + m) * n, *safe = pd + (49 + 6 + 6 + 6) * n;
@@ -605,7 +610,8 @@ void a3cqp_torque(int64_t n, const a3cqp_params *p, const double *in, const doub
             }
             memset(fk, 0, sizeof(double) * 6);
         }
-        if (p->leak_per_axis != 0.0) relax_per_axis(p, Jk, a + IN_ROT, wk, a + IN_FD, qk, qdk, qn, qdn);
+        if (p->leak_per_axis != 0.0)
+            relax_per_axis(p, Jk, a + IN_ROT, wk, a + IN_FD, leak_extra ? leak_extra + 6 * k : NULL, qk, qdk, qn, qdn);
         else relax_min_w1(p, wk, qk, qdk, qn, qdn);
         for (int i = 0; i < 7; i++) {
             q_des[7 * k + i] = qn[i];
