@@ -467,7 +467,7 @@ class Polishing(Scene):
     def mjcf(self) -> str:
         c = self.cfg
         return plate_xml(center=tuple(c.plate_center), top=c.plate_top, half_size=tuple(c.plate_half_size),
-                         friction=c.friction)
+                         friction=c.friction, tool_geom="disc", friction_solref=tuple(c.friction_solref))
 
     def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
         super().reset(idx, rngs)

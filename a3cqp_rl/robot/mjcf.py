@@ -47,17 +47,31 @@ def _split_assets(text: str) -> tuple[str, str]:
     return "\n".join(assets), re.sub(r"<asset>.*?</asset>", "", text, flags=re.S)
 
 
+_TOP_LEVEL = re.compile(r"<option\b[^>]*/>|<contact>.*?</contact>", flags=re.S)
+
+
+def _split_top_level(text: str) -> tuple[str, str]:
+    """(the `<option .../>` and `<contact>` elements of a scene, the text without them): both are only valid at the
+    model's top level (MuJoCo merges a second `<option>` into the first)."""
+    return "\n".join(_TOP_LEVEL.findall(text)), _TOP_LEVEL.sub("", text)
+
+
 def compose_mjcf(tool: str = DEFAULT_TOOL, scene: str = "") -> str:
     """The Panda MJCF text with `tool` mounted below the F/T sensor and `scene` (MJCF bodies) in the worldbody.
 
-    <asset> blocks in the tool file or the scene text are moved to the model's top level."""
+    <asset> blocks in the tool file or the scene text, and the scene's <option .../> and <contact> elements, are moved
+    to the model's top level."""
     if tool not in TOOLS:
         raise UnknownToolError(f"unknown tool {tool!r}; known tools: {TOOLS}")
     text = PANDA_XML.read_text()
     tool_assets, tool_body = _split_assets((ASSETS_DIR / f"tool_{tool}.xml").read_text())
     scene_assets, scene = _split_assets(scene)
+    scene_top, scene = _split_top_level(scene)
     text = _replace_between(text, _TOOL_MARKERS, tool_body)
     text = _replace_between(text, _SCENE_MARKERS, scene)
+    if scene_top:
+        end = text.rindex("</mujoco>")
+        text = text[:end] + scene_top + "\n" + text[end:]
     assets = "\n".join(a for a in (tool_assets, scene_assets) if a.strip())
     return text.replace("<worldbody>", f"<asset>{assets}</asset>\n  <worldbody>", 1) if assets else text
 

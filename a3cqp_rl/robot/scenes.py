@@ -99,14 +99,32 @@ def hole_block_xml(g: HoleGeometry = HoleGeometry(), name: str = "hole_block") -
 
 
 def plate_xml(center: tuple[float, float] = (0.45, 0.0), top: float = 0.25, half_size: tuple[float, float] = (0.2, 0.25),
-              thickness: float = 0.02, friction: float = 0.3, name: str = "plate") -> str:
-    """MJCF body of a wooden plate (polishing) whose top face is at `top` [m], on a visual stand."""
+              thickness: float = 0.02, friction: float = 0.3, name: str = "plate", tool_geom: str | None = None,
+              friction_solref: tuple[float, float] = (0.3, 1.0)) -> str:
+    """MJCF body of a wooden plate (polishing) whose top face is at `top` [m], on a visual stand.
+
+    With `tool_geom` (the polishing disc's geom, e.g. "disc") the plate-tool contact is an explicit pair under
+    MuJoCo's elliptic friction cone whose frictional rows get their own `friction_solref` (time constant [s],
+    damping ratio); the `<option>` and `<contact>` elements come after the body (compose_mjcf moves them to the
+    model's top level). Why: with one solref for normal and friction (pyramidal cone), a contact sliding under
+    Coulomb friction is pushed apart at about μ |v_t| (MuJoCo's convex contact model), and the disc hopped on the
+    plate at the polishing circle's speed (docs/panda.md, "Why the plate's friction has its own solref")."""
+    contact = f'friction="{friction} 0.005 0.0001" solref="0.004 1"'
     parts = [f'<body name="{name}" pos="{center[0]} {center[1]} {top - 0.5 * thickness}">',
              f'<geom name="{name}" type="box" size="{half_size[0]} {half_size[1]} {0.5 * thickness}" {_SCENE_GEOM} '
-             f'friction="{friction} 0.005 0.0001" solref="0.004 1" rgba="0.76 0.6 0.42 1"/>']
+             f'{contact} rgba="0.76 0.6 0.42 1"/>']
     stand = top - thickness
     if stand > 0:
         parts.append(f'<geom name="{name}_stand" type="box" size="{0.6 * half_size[0]} {0.6 * half_size[1]} '
                      f'{0.5 * stand}" pos="0 0 {-0.5 * thickness - 0.5 * stand}" {_VISUAL} rgba="0.3 0.3 0.35 1"/>')
     parts.append("</body>")
+    if tool_geom is not None:
+        if not (len(friction_solref) == 2 and all(v > 0 for v in friction_solref)):
+            raise ValueError(f"friction_solref needs (time constant [s], damping ratio), both > 0, "
+                             f"got {friction_solref}")
+        # the pair repeats the plate's contact (condim 3: μ on both tangent axes) and adds the friction rows' solref
+        parts.append('<option cone="elliptic"/>')
+        parts.append(f'<contact><pair geom1="{name}" geom2="{tool_geom}" condim="3" '
+                     f'friction="{friction} {friction} 0.005 0.0001 0.0001" solref="0.004 1" '
+                     f'solreffriction="{friction_solref[0]} {friction_solref[1]}"/></contact>')
     return "\n".join(parts)
