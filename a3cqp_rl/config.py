@@ -756,6 +756,8 @@ class PegInHoleConfig:
             err.positive(self, name)
         if self.insert_depth >= self.hole_depth:
             err.add("insert_depth", f"must be < hole_depth ({self.hole_depth}), got {self.insert_depth}")
+        if self.insert_depth <= self.success_depth:  # a reference that stops short leaves IK nothing to push with
+            err.add("insert_depth", f"must be > success_depth ({self.success_depth}), got {self.insert_depth}")
         for name in ("friction", "settle_time"):
             if getattr(self, name) < 0:
                 err.add(name, f"must be >= 0, got {getattr(self, name)}")

@@ -103,6 +103,8 @@ def test_roundtrip_and_overrides(tmp_path):
         ("ga: {num_parents_mating: 9}", "ga.num_parents_mating"),
         ("unknown_section: 1", "unknown_section"),
         ("point_mass: {episode_steps: 3}", "point_mass.episode_steps"),
+        ("panda: {peg_in_hole: {insert_depth: 0.02}}", "panda.peg_in_hole.insert_depth"),
+        ("panda: {peg_in_hole: {insert_depth: 0.04}}", "panda.peg_in_hole.insert_depth"),
     ],
 )
 def test_bad_values_name_file_and_key(tmp_path, text, key):
@@ -188,3 +190,11 @@ def test_non_utf8_config_names_the_file(tmp_path):
     p.write_bytes("seed: 0  # f\xfcr\n".encode("latin-1"))
     with pytest.raises(ConfigError, match=f"{p}: not UTF-8 text"):
         load_config(p)
+
+
+def test_peg_config_reference_pulls_past_the_success_depth():
+    """The shipped peg procedure's inserted pose lies well past the success depth and above the bore's floor, so an
+    IK-led z axis still pulls a peg stalled just short of success (docs/panda.md, "What sets the insertion time")."""
+    p = load_config(Path(__file__).resolve().parents[1] / "configs" / "panda_peg_in_hole.yaml").panda.peg_in_hole
+    assert p.insert_depth - p.success_depth >= 0.01 - 1e-12
+    assert p.hole_depth - p.insert_depth >= 0.005 - 1e-12
