@@ -212,8 +212,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     episodes = {c: {k: [] for k in RECORD_KEYS + env.signal_keys + ("q",)} for c in controllers} if record else {}
     td = env.reset()
     finished = np.zeros(n, dtype=bool)
-    limit = cfg.panda.max_episode_time
-    bar = _progress(limit, progress)
+    bar = _progress(n, progress)
     steps = 0
     while not finished.all():
         W, f_d, scale, scripted = _scripted(env, controllers, trials, latched, since, contact_force)
@@ -235,9 +234,12 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
         done = td["done"].reshape(n).numpy()
         if park:
             env.park(np.flatnonzero(done & ~finished))
+        newly = int((done & ~finished).sum())
         finished |= done
+        if newly:
+            bar.update(newly)
         if steps % 100 == 0:
-            bar.update(min(1.0, max(0.0, limit - bar.n)))
+            bar.set_postfix_str(f"{float(env.t.max()):.0f} s simulated", refresh=False)
     bar.close()
     metrics = env.scene.metrics()
     metrics["diverged"] = env.diverged.copy()
@@ -261,11 +263,14 @@ def load_fixed_controller(path: str | Path):  # noqa: ANN201
     return fixed
 
 
-def _progress(total: float, enabled: bool):  # noqa: ANN202
+def _progress(arms: int, enabled: bool):  # noqa: ANN202
+    """Progress over the batch's arms whose episode is over (an episode's length is known only when it ends)."""
     from tqdm import tqdm
 
-    return tqdm(total=total, disable=not enabled, mininterval=2.0, file=sys.stderr,
-                bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} s of the longest episode [{elapsed}]")
+    bar = tqdm(total=arms, disable=not enabled, mininterval=2.0, file=sys.stderr,
+               bar_format="{l_bar}{bar}| {n}/{total} episodes over [{elapsed}{postfix}]")
+    bar.set_postfix_str("0 s simulated", refresh=False)
+    return bar
 
 
 def _json_list(v: np.ndarray) -> list:
