@@ -969,6 +969,12 @@ static int parse_args(PyObject *const *args, Py_ssize_t nargs, Py_ssize_t want, 
     return 0;
 }
 
+/* The GIL is released for batches of 8 or more only: a small batch solves in a few µs, of which releasing and
+ * re-taking the lock would be a visible share. Returns the saved state to restore, or NULL. */
+static PyThreadState *release_gil(int64_t batch) {
+    return batch >= 8 ? PyEval_SaveThread() : NULL;
+}
+
 /* solve(B, n, p, m, P, q, A, b, G, h, lb, ub, z0, strides, tol, max_steps, out) -> worst status (addresses as ints
  * or buffers) */
 static PyObject *py_solve(PyObject *self, PyObject *const *args, Py_ssize_t nargs) {
@@ -985,16 +991,10 @@ static PyObject *py_solve(PyObject *self, PyObject *const *args, Py_ssize_t narg
         return NULL;
     }
     const double **d = (const double **)pv;
-    int worst;
-    if (iv[0] >= 8) {
-        Py_BEGIN_ALLOW_THREADS
-        worst = gi_qp_solve(iv[0], iv[1], iv[2], iv[3], d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7], d[8],
-                            (const int64_t *)pv[9], tol, max_steps, out);
-        Py_END_ALLOW_THREADS
-    } else {
-        worst = gi_qp_solve(iv[0], iv[1], iv[2], iv[3], d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7], d[8],
-                            (const int64_t *)pv[9], tol, max_steps, out);
-    }
+    PyThreadState *ts = release_gil(iv[0]);
+    const int worst = gi_qp_solve(iv[0], iv[1], iv[2], iv[3], d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7], d[8],
+                                  (const int64_t *)pv[9], tol, max_steps, out);
+    if (ts) PyEval_RestoreThread(ts);
     release_all(&lent);
     return PyLong_FromLong(worst);
 }
@@ -1007,16 +1007,10 @@ static PyObject *py_vjp(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     lent_t lent;
     if (parse_args(args, nargs, 14, iv, pv, 10, &lent, "vjp")) return NULL;
     const double **d = (const double **)pv;
-    int worst;
-    if (iv[0] >= 8) {
-        Py_BEGIN_ALLOW_THREADS
-        worst = gi_qp_vjp(iv[0], iv[1], iv[2], iv[3], d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7],
-                          (const int64_t *)pv[8], (double *)pv[9]);
-        Py_END_ALLOW_THREADS
-    } else {
-        worst = gi_qp_vjp(iv[0], iv[1], iv[2], iv[3], d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7],
-                          (const int64_t *)pv[8], (double *)pv[9]);
-    }
+    PyThreadState *ts = release_gil(iv[0]);
+    const int worst = gi_qp_vjp(iv[0], iv[1], iv[2], iv[3], d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7],
+                                (const int64_t *)pv[8], (double *)pv[9]);
+    if (ts) PyEval_RestoreThread(ts);
     release_all(&lent);
     return PyLong_FromLong(worst);
 }
