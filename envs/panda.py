@@ -271,12 +271,12 @@ class PandaEnv(EnvBase):
             self.weights[mask] = w_o[mask]
             self.f_d[mask] = f_o[mask]
             self.w_logits[mask] = np.log(np.clip(w_o[mask], 1e-12, 1.0))
+            self._override = None
         if self.parked.any():  # IK holds a parked arm's pose
             p = self.parked
             self.w_logits[p] = self._ik_logits
             self.weights[p] = _softmax(self.w_logits[p])
             self.f_d[p] = 0.0
-            self._override = None
 
     def controller_weights(self) -> tuple[np.ndarray, np.ndarray]:
         """The local weights [N, 6, 3] the controller gets and the IK stiffness scale [N, 6] that goes with them.

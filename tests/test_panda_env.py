@@ -368,3 +368,17 @@ def test_the_idle_share_damps_without_holding_a_position_against_the_operator() 
     held, relaxed = _yield_to_push(False), _yield_to_push(True)
     assert held > 0.05
     assert relaxed > 1.1 * held
+
+
+def test_held_weights_last_one_step():
+    """hold_weights applies to the next step only: the step after it integrates the action again (eq. 29)."""
+    env = PandaEnv(1, _cfg({"panda": {"scene": "guidance"}}), seed=0)
+    td = env.reset()
+    held = np.tile([0.2, 0.3, 0.5], (1, 6, 1))
+    env.hold_weights(np.ones(1, dtype=bool), held, np.zeros((1, 6)))
+    td["action"] = torch.zeros(1, 6, 4)
+    td = env.step(td)["next"]
+    np.testing.assert_allclose(env.weights, held)
+    td["action"] = torch.tensor([[[1.0, 0.0, 0.0, 0.0]] * 6])  # raise the IK rate on every axis (eq. 29: +σw·Δt)
+    env.step(td)
+    assert (env.weights[..., 0] > held[..., 0] + 5e-3).all()
