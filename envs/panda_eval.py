@@ -117,7 +117,7 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
              controllers: tuple[str, ...] = CONTROLLERS, cycles: int | None = None,
              progress: bool = True, fixed: Sequence = (), sim_threads: int = 1, workers: int = 1,
              park: bool = True) -> EvalResult:
-    """Run every controller on the same `trials` trials of `scene` (one batched simulation); return the metrics.
+    """Run every controller on the same `trials` trials of `scene` (batched simulations); return the metrics.
 
     `policy_path` None: the config's panda.policy (for the learned controller). `fixed`: FixedControllerConfig
     objects run after `controllers` under their own names. `sim_threads`: PandaEnv's (MuJoCo models and threads).
@@ -231,13 +231,12 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
             if not finished[arm]:
                 for k in episodes[c]:
                     episodes[c][k].append(env.q[arm].copy() if k == "q" else td[k][arm].numpy().copy())
-        done = td["done"].reshape(n).numpy()
+        newly = td["done"].reshape(n).numpy() & ~finished
         if park:
-            env.park(np.flatnonzero(done & ~finished))
-        newly = int((done & ~finished).sum())
-        finished |= done
-        if newly:
-            bar.update(newly)
+            env.park(np.flatnonzero(newly))
+        finished |= newly
+        if newly.any():
+            bar.update(int(newly.sum()))
         if steps % 100 == 0:
             bar.set_postfix_str(f"{float(env.t.max()):.0f} s simulated", refresh=False)
     bar.close()
