@@ -109,7 +109,8 @@ def plate_xml(center: tuple[float, float] = (0.45, 0.0), top: float = 0.25, half
     model's top level). Why: with one solref for normal and friction (pyramidal cone), a contact sliding under
     Coulomb friction is pushed apart at about μ |v_t| (MuJoCo's convex contact model), and the disc hopped on the
     plate at the polishing circle's speed (docs/panda.md, "Why the plate's friction has its own solref")."""
-    contact = f'friction="{friction} 0.005 0.0001" solref="0.004 1"'
+    solref = "0.004 1"  # the plate's normal: stiff (4 ms)
+    contact = f'friction="{friction} 0.005 0.0001" solref="{solref}"'
     parts = [f'<body name="{name}" pos="{center[0]} {center[1]} {top - 0.5 * thickness}">',
              f'<geom name="{name}" type="box" size="{half_size[0]} {half_size[1]} {0.5 * thickness}" {_SCENE_GEOM} '
              f'{contact} rgba="0.76 0.6 0.42 1"/>']
@@ -125,6 +126,6 @@ def plate_xml(center: tuple[float, float] = (0.45, 0.0), top: float = 0.25, half
         # the pair repeats the plate's contact (condim 3: μ on both tangent axes) and adds the friction rows' solref
         parts.append('<option cone="elliptic"/>')
         parts.append(f'<contact><pair geom1="{name}" geom2="{tool_geom}" condim="3" '
-                     f'friction="{friction} {friction} 0.005 0.0001 0.0001" solref="0.004 1" '
+                     f'friction="{friction} {friction} 0.005 0.0001 0.0001" solref="{solref}" '
                      f'solreffriction="{friction_solref[0]} {friction_solref[1]}"/></contact>')
     return "\n".join(parts)
