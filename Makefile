@@ -45,11 +45,13 @@ bench: $(STAMP)
 # the point-mass policy of configs/point_mass_a2c_fig5_fd_1e6.yaml (seed 0, ~25 s, the same parameters on every
 # run), trained first when the file is missing. To retrain, delete its run folder.
 #   make peg PEG_SEED=3                                  other trials
+#   make peg PEG_SEEDS=0,3-10 PEG_ARGS="--controllers learned,ik_fc"   several seeds' trials pooled (paired times)
 #   make peg PEG_ARGS="--controllers learned,ik_fc"      a subset of the controllers
 #   make fig7      Fig. 7: three insertions with the operator, learned and IK + FC, plotted into runs/peg_fig7
 #                  (add the snapshots with: a3cqp plot episode runs/peg_fig7 --strip, needs EGL or OSMesa)
 PANDA_POLICY := runs/pm_default/policy.pt
 PEG_SEED ?= 0
+PEG_SEEDS ?=
 PEG_ARGS ?=
 A3CQP := $(BIN)/a3cqp
 
@@ -60,7 +62,7 @@ $(PANDA_POLICY): | $(STAMP) configs/point_mass_a2c_fig5_fd_1e6.yaml
 policy: $(PANDA_POLICY)
 
 peg: $(PANDA_POLICY)
-	$(A3CQP) evaluate --scene peg_in_hole --trials 26 --seed $(PEG_SEED) --out runs/peg26_seed$(PEG_SEED) $(PEG_ARGS)
+	$(A3CQP) evaluate --scene peg_in_hole --trials 26 $(if $(PEG_SEEDS),--seeds $(PEG_SEEDS) --out runs/peg26_seeds$(PEG_SEEDS),--seed $(PEG_SEED) --out runs/peg26_seed$(PEG_SEED)) $(PEG_ARGS)
 
 fig7: $(PANDA_POLICY)
 	$(A3CQP) evaluate --scene peg_in_hole --trials 1 --cycles 3 --controllers learned,ik_fc --out runs/peg_fig7

@@ -1,6 +1,7 @@
 """`a3cqp evaluate --scene peg_in_hole|polishing|guidance`: the learned policy and scripted baselines on the same trials.
 
-    a3cqp evaluate --scene peg_in_hole [--policy runs/pm_default/policy.pt] --trials 26 [--seed 0] [--json F]
+    a3cqp evaluate --scene peg_in_hole [--policy runs/pm_default/policy.pt] --trials 26 [--seed 0 | --seeds 0,3-10]
+                   [--json F]
                    [--config configs/panda_peg_in_hole.yaml] [--controllers learned,ik,ik_fc,equal,vic]
                    [--cycles 1] [--out RUN] [--controller-config PICK.yaml [PICK.yaml ...]] [--workers 2]
                    [--threads 1] [--no-park]
@@ -27,7 +28,10 @@ while its batch runs on (`--no-park` keeps it colliding). Controllers (the adapt
 
 The scripted baselines know the scene's phase (which phases expect contact or the operator); the learned policy only
 sees eq. 26. Peg-in-hole prints Table VI (success rate, insertion time, misalignment at the first contact) next to
-the paper's; polishing and guidance print the metrics their scenes define (envs/scenarios.py).
+the paper's, then the learned policy against each baseline on the same trials (`paired`: the insertion-time
+difference over the insertions both made, with its standard error, and the insertions only one of them made);
+polishing and guidance print the metrics their scenes define (envs/scenarios.py). `--seeds` runs the trials of each
+seed as `--seed` does and pools them (a difference of a few tenths of a second needs several seeds to show).
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +51,8 @@ import torch
 
 from a3cqp_rl.exceptions import A3CQPError
 
-__all__ = ["main", "evaluate", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult", "load_fixed_controller"]
+__all__ = ["main", "evaluate", "evaluate_seeds", "paired", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult",
+           "load_fixed_controller"]
 
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
 PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
@@ -80,6 +85,18 @@ class EvalResult:
     """Controller -> recorded arrays of trial 0 (RECORD_KEYS plus the scene's signals), [T, ...]."""
     seconds: float
     sim_seconds: float
+    metrics: dict = field(default_factory=dict)
+    """Controller -> metric name -> array over trials (and cycles), as the scene reports them."""
+    seeds: tuple[int, ...] = ()
+    """The trial seeds' parent seeds (one per pooled `evaluate` run)."""
+
+    @classmethod
+    def from_metrics(cls, scene: str, metrics: dict, episodes: dict, seconds: float, sim_seconds: float,
+                     seeds: tuple[int, ...]) -> "EvalResult":
+        """A result from per-controller metric arrays (its summaries and JSON lists made here)."""
+        return cls(scene=scene, summary={c: _summarise(scene, m) for c, m in metrics.items()},
+                   per_trial={c: {k: _json_list(v) for k, v in m.items()} for c, m in metrics.items()},
+                   episodes=episodes, seconds=seconds, sim_seconds=sim_seconds, metrics=metrics, seeds=seeds)
 
 
 def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, since: np.ndarray,  # noqa: ANN001
@@ -170,13 +187,70 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
             parts = list(pool.map(_run_job, jobs))
     seconds = time.perf_counter() - t_wall
     scene_name = parts[0]["scene"]
-    summary, per_trial = {}, {}
-    for c in names:
-        m = {k: np.concatenate([p["metrics"][c][k] for p in parts]) for k in parts[0]["metrics"][c]}
-        summary[c] = _summarise(scene_name, m)
-        per_trial[c] = {k: _json_list(v) for k, v in m.items()}
-    return EvalResult(scene=scene_name, summary=summary, per_trial=per_trial, episodes=parts[0]["episodes"],
-                      seconds=seconds, sim_seconds=float(sum(p["sim_seconds"] for p in parts)))
+    metrics = {c: {k: np.concatenate([p["metrics"][c][k] for p in parts]) for k in parts[0]["metrics"][c]}
+               for c in names}
+    return EvalResult.from_metrics(scene_name, metrics, parts[0]["episodes"], seconds,
+                                   float(sum(p["sim_seconds"] for p in parts)), (seed,))
+
+
+def evaluate_seeds(scene: str, policy_path: str | Path | None, trials: int, seeds: Sequence[int],
+                   **kwargs) -> EvalResult:
+    """`evaluate` on the `trials` trials of each seed in `seeds` (each run as `evaluate` runs it alone, so a seed's
+    trials give the same numbers as `--seed S`), pooled: every metric over all len(seeds) × trials trials; the
+    recorded episodes are the first seed's."""
+    if not seeds:
+        raise ValueError("seeds must name at least one seed")
+    runs = [evaluate(scene, policy_path, trials, int(s), **kwargs) for s in seeds]
+    metrics = {c: {k: np.concatenate([r.metrics[c][k] for r in runs]) for k in runs[0].metrics[c]}
+               for c in runs[0].metrics}
+    return EvalResult.from_metrics(runs[0].scene, metrics, runs[0].episodes, sum(r.seconds for r in runs),
+                   sum(r.sim_seconds for r in runs), tuple(int(s) for s in seeds))
+
+
+def paired(res: EvalResult, primary: str = "learned") -> dict:
+    """Peg-in-hole: `primary` against each other controller on the same trials (and cycles): the insertion-time
+    difference primary − other [s] over the insertions both made (mean, standard error, median) and the insertions
+    only one of them made. Empty for other scenes or without `primary`."""
+    if res.scene != "peg_in_hole" or primary not in res.metrics:
+        return {}
+
+    def inserted(m: dict) -> np.ndarray:
+        return m["success"] & ~m["diverged"][:, None]
+
+    a = res.metrics[primary]
+    out = {}
+    for c, b in res.metrics.items():
+        if c == primary:
+            continue
+        ok_a, ok_b = inserted(a), inserted(b)
+        d = (a["insertion_time"] - b["insertion_time"])[ok_a & ok_b]
+        n = int(d.size)
+        out[c] = {"insertions_both": n, "insertions_only_" + primary: int((ok_a & ~ok_b).sum()),
+                  "insertions_only_baseline": int((ok_b & ~ok_a).sum()),
+                  "time_difference_mean_s": float(d.mean()) if n else None,
+                  "time_difference_se_s": float(d.std(ddof=1) / math.sqrt(n)) if n > 1 else None,
+                  "time_difference_median_s": float(np.median(d)) if n else None}
+    return out
+
+
+def format_paired(res: EvalResult, primary: str = "learned") -> str:
+    """Text lines of `paired` (empty where it has nothing to say)."""
+    pairs = paired(res, primary)
+    if not pairs:
+        return ""
+    lines = [f"{primary} against each controller on the same trials: insertion time {primary} − other over the "
+             "insertions both made (mean ± standard error, median), and the insertions only one made"]
+    w = max(len(c) for c in pairs)
+    for c, p in pairs.items():
+        if p["insertions_both"]:
+            se = p["time_difference_se_s"]
+            t = (f"{p['time_difference_mean_s']:+.2f}" + (f" ± {se:.2f}" if se is not None else "")
+                 + f" s (median {p['time_difference_median_s']:+.2f} s) over {p['insertions_both']}")
+        else:
+            t = "no insertion made by both"
+        lines.append(f"  {c.ljust(w)}: {t}; only {primary}: {p['insertions_only_' + primary]}, only {c}: "
+                     f"{p['insertions_only_baseline']}")
+    return "\n".join(lines)
 
 
 def _run_job(job: tuple) -> dict:
@@ -272,6 +346,12 @@ def _progress(arms: int, enabled: bool):  # noqa: ANN202
     return bar
 
 
+def _seed_list(text: str) -> list[int]:
+    from algorithms.train import parse_seeds  # '0,3-10' -> [0, 3, ..., 10]
+
+    return parse_seeds(text)
+
+
 def _json_list(v: np.ndarray) -> list:
     a = np.asarray(v)
     if a.dtype == bool:
@@ -360,9 +440,11 @@ def to_json(res: EvalResult, primary: str = "learned") -> dict:
     main_name = primary if primary in res.summary else next(iter(res.summary))
     doc = {"scene": res.scene, "controller": main_name, **res.summary[main_name],
            "baselines": {c: v for c, v in res.summary.items() if c != main_name},
-           "per_trial": res.per_trial, "wall_seconds": res.seconds, "simulated_seconds": res.sim_seconds}
+           "per_trial": res.per_trial, "wall_seconds": res.seconds, "simulated_seconds": res.sim_seconds,
+           "seeds": list(res.seeds)}
     if res.scene == "peg_in_hole":
         doc["paper"] = PAPER_TABLE_VI
+        doc["paired"] = paired(res, main_name)
     return doc
 
 
@@ -380,7 +462,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--policy", default=None, help="policy.pt of the learned controller (a run folder also works; "
                    "default: the config's panda.policy)")
     p.add_argument("--trials", type=int, default=26, help="trials per controller (default: 26, Table VI's)")
-    p.add_argument("--seed", type=int, default=0)
+    seeds = p.add_mutually_exclusive_group()
+    seeds.add_argument("--seed", type=int, default=0, help="seed of the trials (default: 0)")
+    seeds.add_argument("--seeds", type=_seed_list, default=None, metavar="LIST",
+                       help="several seeds, e.g. 0,3-10: each seed's trials as --seed runs them, pooled")
     p.add_argument("--config", default=None, help="YAML config (default: configs/panda_<scene>.yaml if present)")
     p.add_argument("--controllers", default=",".join(CONTROLLERS), help="comma-separated subset of "
                    + ",".join(CONTROLLERS))
@@ -429,15 +514,22 @@ def main(argv: list[str] | None = None) -> int:
         if policy is None and "learned" in controllers:
             controllers = tuple(c for c in controllers if c != "learned")
             print("no --policy given: evaluating the baselines only", file=sys.stderr)
-        res = evaluate(args.scene, policy, args.trials, args.seed, cfg, controllers, args.cycles,
-                       progress=not args.quiet, fixed=fixed, sim_threads=args.threads,
-                       workers=args.workers, park=not args.no_park)
+        kw = dict(config=cfg, controllers=controllers, cycles=args.cycles, progress=not args.quiet, fixed=fixed,
+                  sim_threads=args.threads, workers=args.workers, park=not args.no_park)
+        if args.seeds is not None:
+            res = evaluate_seeds(args.scene, policy, args.trials, args.seeds, **kw)
+        else:
+            res = evaluate(args.scene, policy, args.trials, args.seed, **kw)
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"{res.scene}: {args.trials} trials per controller, seed {args.seed}, config {cfg_path or 'defaults'}; "
+    which = f"seed {args.seed}" if args.seeds is None else f"seeds {','.join(map(str, args.seeds))} pooled"
+    print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller, {which}, config {cfg_path or 'defaults'}; "
           f"{res.sim_seconds:.0f} s simulated in {res.seconds:.1f} s ({res.sim_seconds / res.seconds:.1f}x real time)")
     print(format_table(res))
+    lines = format_paired(res, "learned" if "learned" in res.summary else next(iter(res.summary)))
+    if lines:
+        print(lines)
     doc = to_json(res)
     if args.json:
         _write_json(Path(args.json), doc)

@@ -36,10 +36,10 @@ def test_make_peg_dry_run_trains_only_when_the_policy_is_missing(tmp_path: Path)
     (tmp_path / ".venv").mkdir()
     (tmp_path / ".venv/.installed").touch()  # newer than its prerequisites: no install in the dry run
 
-    def dry(target: str) -> list[str]:
+    def dry(target: str, *assign: str) -> list[str]:
         # under `make test` the parent make's variables would turn on "Entering directory" lines
         env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MAKELEVEL", "MFLAGS", "MAKEOVERRIDES")}
-        out = subprocess.run(["make", "--no-print-directory", "-n", target], cwd=tmp_path, capture_output=True,
+        out = subprocess.run(["make", "--no-print-directory", "-n", target, *assign], cwd=tmp_path, capture_output=True,
                              text=True, check=True, env=env)
         return [ln for ln in out.stdout.splitlines() if ln.strip()]
 
@@ -51,6 +51,8 @@ def test_make_peg_dry_run_trains_only_when_the_policy_is_missing(tmp_path: Path)
     (tmp_path / "runs/pm_default/policy.pt").touch()
     lines = dry("peg")
     assert len(lines) == 1 and "evaluate --scene peg_in_hole" in lines[0]
+    pooled = dry("peg", "PEG_SEEDS=0,3-10")
+    assert len(pooled) == 1 and "--seeds 0,3-10 --out runs/peg26_seeds0,3-10" in pooled[0] and "--seed " not in pooled[0]
     fig7 = dry("fig7")
     assert len(fig7) == 3 and "--cycles 3" in fig7[0]
     assert all("a3cqp plot episode runs/peg_fig7" in ln for ln in fig7[1:])

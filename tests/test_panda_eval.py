@@ -12,7 +12,8 @@ import yaml
 from a3cqp_rl.checkpoint import save_atomic
 from a3cqp_rl.config import config_from_dict
 from algorithms.networks import ParamLayout
-from envs.panda_eval import PAPER_TABLE_VI, evaluate, format_table, main, to_json
+from envs.panda_eval import (PAPER_TABLE_VI, EvalResult, evaluate, evaluate_seeds, format_paired, format_table, main,
+                             paired, to_json)
 
 FAST = {"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "align_time": 2.0, "time_limit": 2.0,
                                   "operator_disengage": False, "return_time": 0.5}}}
@@ -78,3 +79,48 @@ def test_main_takes_the_learned_policy_from_the_config(tmp_path, capsys) -> None
     assert main(["--scene", "peg_in_hole", "--config", str(cfg), "--controllers", "learned", "--trials", "1"]) == 2
     err = capsys.readouterr().err
     assert "panda.policy" in err and "no.pt" in err and "Traceback" not in err
+
+
+def _peg_metrics(success: list[bool], times: list[float], diverged: list[bool] | None = None) -> dict:
+    n = len(success)
+    cyc = np.full((n, 1), 0.01)
+    return {"success": np.array(success)[:, None], "insertion_time": np.array(times, dtype=float)[:, None],
+            "diverged": np.zeros(n, dtype=bool) if diverged is None else np.array(diverged),
+            "misalign_translation": cyc, "misalign_rotation": cyc, "disengage_force": cyc,
+            "extracted": np.zeros((n, 1), dtype=bool)}
+
+
+def test_paired_compares_the_insertions_both_controllers_made() -> None:
+    nan = float("nan")
+    metrics = {"learned": _peg_metrics([True, True, True, False, True], [6.0, 7.0, 5.0, nan, 6.5],
+                                       [False, False, False, False, True]),
+               "ik_fc": _peg_metrics([True, False, True, True, True], [6.5, nan, 6.0, 8.0, 6.0])}
+    res = EvalResult.from_metrics("peg_in_hole", metrics, {}, 1.0, 10.0, (0,))
+    p = paired(res)["ik_fc"]
+    # trials 0 and 2 both inserted (trial 4's learned arm diverged: not an insertion): differences −0.5 and −1.0
+    assert p["insertions_both"] == 2
+    assert p["time_difference_mean_s"] == pytest.approx(-0.75)
+    assert p["time_difference_se_s"] == pytest.approx(np.std([-0.5, -1.0], ddof=1) / np.sqrt(2))
+    assert p["insertions_only_learned"] == 1 and p["insertions_only_baseline"] == 2
+    text = format_paired(res)
+    assert "ik_fc: -0.75 ± 0.25 s" in text and "only learned: 1, only ik_fc: 2" in text
+    assert to_json(res)["paired"]["ik_fc"] == p
+    # nothing to pair: other scenes, or no learned controller
+    assert paired(EvalResult.from_metrics("guidance", {"learned": {"diverged": np.zeros(1, dtype=bool)}}, {}, 1.0, 1.0, (0,))) == {}
+    assert paired(res, primary="vic") == {} and format_paired(res, primary="vic") == ""
+
+
+def test_seeds_pool_the_trials_of_each_seed_as_run_alone() -> None:
+    cfg = config_from_dict(FAST)
+    kw = dict(config=cfg, controllers=("ik_fc",), progress=False)
+    pooled = evaluate_seeds("peg_in_hole", None, 1, [0, 1], **kw)
+    alone = [evaluate("peg_in_hole", None, 1, s, **kw) for s in (0, 1)]
+    assert pooled.seeds == (0, 1) and pooled.summary["ik_fc"]["trials"] == 2
+    for k in ("misalign_translation", "contact_time"):
+        assert pooled.per_trial["ik_fc"][k] == alone[0].per_trial["ik_fc"][k] + alone[1].per_trial["ik_fc"][k]
+    assert pooled.per_trial["ik_fc"]["misalign_translation"][0] != pooled.per_trial["ik_fc"]["misalign_translation"][1]
+    assert to_json(pooled)["seeds"] == [0, 1]
+    with pytest.raises(ValueError, match="at least one seed"):
+        evaluate_seeds("peg_in_hole", None, 1, [], **kw)
+    with pytest.raises(SystemExit):  # --seed and --seeds are exclusive
+        main(["--scene", "peg_in_hole", "--seed", "1", "--seeds", "0-2"])
