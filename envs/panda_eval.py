@@ -51,8 +51,8 @@ import torch
 
 from a3cqp_rl.exceptions import A3CQPError
 
-__all__ = ["main", "evaluate", "evaluate_seeds", "paired", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult",
-           "load_fixed_controller"]
+__all__ = ["main", "evaluate", "evaluate_seeds", "paired", "free_motion_rates", "free_motion_warning", "CONTROLLERS",
+           "PAPER_TABLE_VI", "EvalResult", "load_fixed_controller"]
 
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
 PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
@@ -70,6 +70,8 @@ axis, 50 along it."""
 VIC_OPERATOR = (0.2, 0.2, 0.2, 0.5, 0.5, 0.5)
 """vic's stiffness scales while the operator holds the handle (compliant)."""
 RECORD_KEYS = ("time", "phase", "e_local", "f_env_local", "f_ope_local", "weights", "f_d")
+FREE_MOTION_E = (0.001, 0.003, 0.01, 0.02)
+"""|e|/ē on the Panda in free motion (the approach of peg-in-hole: 0.001-0.018 with ē = 1 m, no force sensed)."""
 
 
 @dataclass
@@ -324,6 +326,27 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     return {"scene": env.scene.name, "metrics": per, "episodes": eps, "sim_seconds": steps * env.adapt.dt * n}
 
 
+def free_motion_rates(policy) -> np.ndarray:  # noqa: ANN001
+    """A policy's mean action (ẇ1, ẇ2, ẇ3, ḟd) [4] over the eq. 26 observations of the Panda's free motion
+    (|e|/ē in FREE_MOTION_E, no force). A point-mass policy sees such small errors with no force only once it has
+    reached a fixed target, where its weights cost nothing, so training leaves them to chance."""
+    obs = torch.tensor([[e, 0.0, 0.0] for e in FREE_MOTION_E], dtype=torch.float32)
+    with torch.no_grad():
+        return policy(obs).mean(0).double().numpy()
+
+
+def free_motion_warning(policy) -> str | None:  # noqa: ANN001
+    """A warning when a policy does not raise IK's weight in free motion (mean ẇ1 <= 0 at FREE_MOTION_E): on the
+    Panda it then lets the reference go (docs/panda.md, "Which point-mass policies transfer"); None otherwise."""
+    r = free_motion_rates(policy)
+    if r[0] > 0.0:
+        return None
+    return (f"warning: in free motion (|e|/ē {FREE_MOTION_E[0]}-{FREE_MOTION_E[-1]}, no force) this policy does not "
+            f"raise IK's weight (mean ẇ1 {r[0]:+.2f}, ẇ2 {r[1]:+.2f}, ẇ3 {r[2]:+.2f}): on the Panda it will probably "
+            "not follow the reference (every such point-mass policy measured inserted at most 2 of 26 pegs; "
+            "docs/panda.md)")
+
+
 def load_fixed_controller(path: str | Path):  # noqa: ANN201
     """The FixedControllerConfig of a YAML file's `fixed_controller` section (what `a3cqp pareto --pick K` writes)."""
     from a3cqp_rl.config import load_config
@@ -514,6 +537,12 @@ def main(argv: list[str] | None = None) -> int:
         if policy is None and "learned" in controllers:
             controllers = tuple(c for c in controllers if c != "learned")
             print("no --policy given: evaluating the baselines only", file=sys.stderr)
+        if policy is not None:
+            from algorithms.a2c import load_policy
+
+            warning = free_motion_warning(load_policy(policy))
+            if warning:
+                print(warning, file=sys.stderr)
         kw = dict(config=cfg, controllers=controllers, cycles=args.cycles, progress=not args.quiet, fixed=fixed,
                   sim_threads=args.threads, workers=args.workers, park=not args.no_park)
         if args.seeds is not None:

@@ -12,8 +12,8 @@ import yaml
 from a3cqp_rl.checkpoint import save_atomic
 from a3cqp_rl.config import config_from_dict
 from algorithms.networks import ParamLayout
-from envs.panda_eval import (PAPER_TABLE_VI, EvalResult, evaluate, evaluate_seeds, format_paired, format_table, main,
-                             paired, to_json)
+from envs.panda_eval import (FREE_MOTION_E, PAPER_TABLE_VI, EvalResult, evaluate, evaluate_seeds, format_paired,
+                             format_table, free_motion_rates, free_motion_warning, main, paired, to_json)
 
 FAST = {"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "align_time": 2.0, "time_limit": 2.0,
                                   "operator_disengage": False, "return_time": 0.5}}}
@@ -124,3 +124,22 @@ def test_seeds_pool_the_trials_of_each_seed_as_run_alone() -> None:
         evaluate_seeds("peg_in_hole", None, 1, [], **kw)
     with pytest.raises(SystemExit):  # --seed and --seeds are exclusive
         main(["--scene", "peg_in_hole", "--seed", "1", "--seeds", "0-2"])
+
+
+def test_free_motion_warning_names_a_policy_that_leaves_ik_at_small_errors() -> None:
+    seen = []
+
+    def policy(rates: tuple[float, ...]):  # noqa: ANN202
+        def act(obs: torch.Tensor) -> torch.Tensor:
+            seen.append(obs.clone())
+            return torch.tensor(rates).expand(obs.shape[0], 4)
+        return act
+
+    keeps = policy((0.6, -0.5, -0.3, -0.7))  # the default policy's kind: IK up where nothing is sensed
+    assert free_motion_rates(keeps) == pytest.approx([0.6, -0.5, -0.3, -0.7])
+    assert free_motion_warning(keeps) is None
+    # the observations asked: eq. 26 with the Panda's free-motion errors and no force
+    assert seen[0][:, 0].tolist() == pytest.approx(list(FREE_MOTION_E)) and not seen[0][:, 1:].any()
+    leaves = policy((-0.8, -0.3, 0.95, -0.2))  # to force control with f_d falling: the arm creeps
+    text = free_motion_warning(leaves)
+    assert text is not None and "ẇ1 -0.80" in text and "ẇ3 +0.95" in text
