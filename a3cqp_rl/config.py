@@ -519,6 +519,14 @@ class PointMassConfig:
     """free: smallest target distance [m]."""
     target_max: float = 0.5
     """free: largest target distance [m]."""
+    target_speed_max: float = 0.0
+    """free: the target moves at a constant speed drawn per episode in ±target_speed_max [m/s] (a reference to
+    follow, as the Panda's IK phases follow moving ones), and IK's damping acts on ė = ẋ_d − ẋ. 0 (the default, the
+    paper's surrogate): a fixed target. Torch env only (the C point mass refuses it)."""
+    idle_force: Literal["free", "damps"] = "free"
+    """What the share of force control that does not push, w3 (1 − min(1, f_d / 1 N)), does. 'free' (the default):
+    eq. 35, nothing. 'damps': what the Panda env's `panda.idle_force: damps` makes of it, IK's damping with weight
+    w1 + share and force control's weight w3 − share, IK's stiffness unchanged. Torch env only."""
     operator_target_range: float = 0.02
     """operator: target within ± this of the start [m]."""
     operator_force_min: float = 3.0
@@ -583,6 +591,10 @@ class PointMassConfig:
             err.positive(self, name)
         if self.kv is not None and self.kv < 0:
             err.add("kv", f"must be >= 0 or null, got {self.kv}")
+        if not (self.target_speed_max >= 0.0 and math.isfinite(self.target_speed_max)):
+            err.add("target_speed_max", f"must be a finite speed >= 0 [m/s], got {self.target_speed_max}")
+        if self.idle_force not in ("free", "damps"):
+            err.add("idle_force", f"must be 'free' or 'damps', got {self.idle_force!r}")
         for lo, hi in (("target_min", "target_max"), ("operator_on_min", "operator_on_max"),
                        ("operator_off_min", "operator_off_max"), ("wall_min", "wall_max"),
                        ("depth_min", "depth_max"), ("operator_goal_min", "operator_goal_max")):

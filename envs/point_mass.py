@@ -10,7 +10,10 @@ turns it into task weights w and desired force f_d, then eq. 35 is integrated at
 with e = x_target − x and ẍ_pd = 0 (fixed target). Scenarios (free motion, operator pushes, a stiff
 wall in front of the target, both) are sampled per reset; see `a3cqp_rl.config.PointMassConfig`, whose
 `operator_model` also offers an operator guiding the mass by hand through a spring-damper grip (used by
-`envs.point_mass_eval`).
+`envs.point_mass_eval`). Two options bring the surrogate closer to the Panda env (torch only): `target_speed_max`
+makes the free scenario's target move at a constant speed (IK's damping then acts on ė = ẋ_d − ẋ), and
+`idle_force: damps` gives the share of force control that does not push, w3 (1 − min(1, f_d / 1 N)), to IK's
+damping, as the Panda env's `panda.idle_force: damps` does.
 All randomness is drawn at reset (targets, walls and the whole operator force schedule), so the
 step is a pure function of (state, action): deterministic, and compilable by `torch.compile`.
 Each env also holds a *pending* next episode, drawn in advance, so fused trainers can step through
@@ -118,7 +121,9 @@ class PointMassEnv(EnvBase):
         }
         if self.cfg.operator_model == "hand":  # where and when the hand grasped (set by agent_step)
             self._state.update(hand_x0=z.clone(), hand_t0=torch.zeros(N, dtype=torch.int64, device=dev))
-        self._pending = {k: self._state[k].clone() for k in EPISODE_KEYS}
+        if self.cfg.target_speed_max > 0.0:
+            self._state["target_speed"] = z.clone()
+        self._pending = {k: self._state[k].clone() for k in _episode_keys(self._state)}
 
     def _uniform(self, n: int, lo: float, hi: float, *shape: int) -> Tensor:
         u = torch.rand((n, *shape), generator=self._rng, dtype=self.dtype, device=self.device)
@@ -157,6 +162,9 @@ class PointMassEnv(EnvBase):
         dest = self._pending if pending else self._state
         for k, v in zip(EPISODE_KEYS, (target, wall_pos, has_wall, scen, w_logits, f_d)):
             dest[k][idx] = v
+        if c.target_speed_max > 0.0:
+            speed = self._uniform(n, -c.target_speed_max, c.target_speed_max)
+            dest["target_speed"][idx] = torch.where(scen == 0, speed, torch.zeros_like(speed))
         slot = self._state["slot"][idx]
         self._schedule[(1 - slot) if pending else slot, idx] = self._operator_schedule(n) * has_op.unsqueeze(-1)
         if not pending:
@@ -285,10 +293,14 @@ EPISODE_KEYS = ("target", "wall_pos", "has_wall", "scenario", "w_logits", "f_d")
 """State entries drawn per episode (w_logits and f_d are their initial values)."""
 
 
+def _episode_keys(state: dict[str, Tensor]) -> tuple[str, ...]:
+    return EPISODE_KEYS + (("target_speed",) if "target_speed" in state else ())
+
+
 def auto_reset(state: dict[str, Tensor], pending: dict[str, Tensor], done: Tensor) -> dict[str, Tensor]:
     """Switch envs where `done` [N] to their pending episode (dynamics zeroed, schedule slot flipped)."""
     out = dict(state)
-    for k in EPISODE_KEYS:
+    for k in _episode_keys(state):
         d = done.view(-1, *([1] * (state[k].dim() - 1)))
         out[k] = torch.where(d, pending[k], state[k])
     for k in ("x", "x_dot", "t", "f_env", "f_ope"):
@@ -389,6 +401,11 @@ def agent_step(
     adm_gain = m / cfg.lambda_d - 1.0
     w1, w2, w3 = w.unbind(-1)
     x, v, target, wall_pos, has_wall = state["x"], state["x_dot"], state["target"], state["wall_pos"], state["has_wall"]
+    moving = "target_speed" in state
+    speed = state.get("target_speed")
+    damps = cfg.idle_force == "damps"
+    # the share of force control that does not push (the Panda env's panda.idle_force)
+    idle = w3 * (1.0 - f_d.clamp(0.0, 1.0)) if damps else torch.zeros_like(w3)
     sgn = torch.sign(f_cmd)
     hand = cfg.operator_model == "hand"
     grip_min = -1.0 if cfg.operator_grip else 0.0  # a gripping hand brakes a mass that runs ahead of it
@@ -422,12 +439,21 @@ def agent_step(
             f_ope = f_cmd * (1.0 - v * sgn / cfg.operator_v_hand).clamp(grip_min, 1.0)
         f_ext = f_env + f_ope
         e = target - x
-        # eq. 35 (ẍ_pd = 0 for a fixed target)
-        acc = (f_ext + w1 * m * (kp * e - kv * v) + w2 * (adm_gain * f_ext - cfg.c_d * v) + w3 * f_d) / m
+        if moving or damps:  # IK's damping on ė = ẋ_d − ẋ, with the idle share's weight where it damps
+            de = (speed - v) if moving else -v
+            acc = (f_ext + m * (w1 * kp * e + (w1 + idle) * kv * de) + w2 * (adm_gain * f_ext - cfg.c_d * v)
+                   + (w3 - idle) * f_d) / m
+        else:
+            # eq. 35 (ẍ_pd = 0 for a fixed target)
+            acc = (f_ext + w1 * m * (kp * e - kv * v) + w2 * (adm_gain * f_ext - cfg.c_d * v) + w3 * f_d) / m
         v = v + acc * dt
         x = x + v * dt
+        if moving:
+            target = target + speed * dt
     new_state = dict(state)
     new_state.update(x=x, x_dot=v, w_logits=w_logits, f_d=f_d, f_env=f_env, f_ope=f_ope, t=t + 1)
+    if moving:
+        new_state.update(target=target)
     if hand:
         new_state.update(hand_x0=hand_x0, hand_t0=hand_t0)
     r = reward(target - x, f_env, f_ope, f_d, rew.alpha, adapt.e_max, adapt.f_env_max, adapt.f_ope_max,

@@ -166,3 +166,48 @@ def test_privileged_critic_observation_extends_the_eq26_observation():
     assert obs_fn(state).shape == (6, 3 + PRIVILEGED_DIM)
     out = step_fn(state, pending, sched, torch.zeros(6, 4))
     assert out[1].shape == out[2].shape == (6, 3 + PRIVILEGED_DIM)
+
+
+def test_a_moving_target_is_tracked_and_keeps_its_speed_through_resets():
+    env = scenario_env(8, "free", target_speed_max=0.1, target_min=0.0, target_max=1e-3, episode_steps=200)
+    td = run_const(env, [1.0, -1.0, -1.0, -1.0], 150)  # IK: 1.5 s of tracking, one episode
+    speed = env._state["target_speed"]
+    assert speed.abs().max() <= 0.1 and speed.abs().min() > 0 and len(set(speed.tolist())) == 8
+    moved = td["target"][:, -1] - td["target"][:, 0]
+    assert torch.allclose(moved, speed * 1.49, atol=1e-9)
+    assert td["e"][:, -1].abs().max() < 1e-4  # with ė = ẋ_d − ẋ there is no lag
+    # the pending episode carries its own speed; only free episodes move
+    env2 = config_from_dict({"point_mass": {"scenario_probs": {"free": 0.5, "wall": 0.5}, "target_speed_max": 0.1}})
+    e2 = PointMassEnv(64, env2, seed=1)
+    e2.reset()
+    s = e2._state
+    assert torch.all(s["target_speed"][s["scenario"] != 0] == 0) and torch.any(s["target_speed"] != 0)
+    assert "target_speed" in e2._pending and not torch.equal(e2._pending["target_speed"], s["target_speed"])
+
+
+def test_idle_force_damps_the_share_of_force_control_that_does_not_push():
+    def coast(idle_force: str) -> float:
+        env = scenario_env(1, "free", idle_force=idle_force, target_min=0.3, target_max=0.3)
+        env.reset()
+        env._state["x_dot"][:] = 0.1
+        env._state["w_logits"][:] = torch.tensor([-3.0, -3.0, 3.0], dtype=torch.float64)  # w3 ≈ 1, f_d = 0
+        td = env.reset(TensorDict({"_reset": torch.zeros(1, 1, dtype=torch.bool)}, batch_size=[1]))
+        td = env.step(td.set("action", torch.tensor([[0.0, 0.0, 0.0, -1.0]])))
+        return float(env._state["x_dot"][0])
+
+    free, damps = coast("free"), coast("damps")
+    assert free > 0.099  # eq. 35: an idle force-control share commands nothing, the mass coasts
+    # damps: the share damps as IK does, Kv ≈ 24.5 1/s for 10 ms
+    assert damps < 0.085, damps
+    with pytest.raises(Exception, match="idle_force"):
+        config_from_dict({"point_mass": {"idle_force": "holds"}})
+    with pytest.raises(Exception, match="target_speed_max"):
+        config_from_dict({"point_mass": {"target_speed_max": -0.1}})
+
+
+def test_the_c_point_mass_refuses_what_it_does_not_simulate():
+    from envs.native import unsupported
+
+    assert unsupported(ExperimentConfig()) is None
+    assert "fixed targets" in unsupported(config_from_dict({"point_mass": {"target_speed_max": 0.05}}))
+    assert "idle_force" in unsupported(config_from_dict({"point_mass": {"idle_force": "damps"}}))

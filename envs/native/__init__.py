@@ -45,6 +45,11 @@ def unsupported(cfg: ExperimentConfig) -> str | None:
     """Why the C point mass cannot simulate `cfg` (None when it can)."""
     if cfg.point_mass.operator_model not in ("push", "drag"):
         return f"the C point mass has the 'push' and 'drag' operators only, not {cfg.point_mass.operator_model!r}"
+    if cfg.point_mass.target_speed_max > 0.0:
+        return "the C point mass has fixed targets only (point_mass.target_speed_max > 0)"
+    if cfg.point_mass.idle_force != "free":
+        return (f"the C point mass has eq. 35's idle force-control share only (point_mass.idle_force 'free'), not "
+                f"{cfg.point_mass.idle_force!r}")
     return None
 
 
