@@ -240,8 +240,8 @@ def format_paired(res: EvalResult, primary: str = "learned") -> str:
     pairs = paired(res, primary)
     if not pairs:
         return ""
-    lines = [f"{primary} against each controller on the same trials: insertion time {primary} − other over the "
-             "insertions both made (mean ± standard error, median), and the insertions only one made"]
+    lines = [f"paired, same trials: insertion time {primary} − other over the insertions both made "
+             "(mean ± standard error, median); insertions only one made"]
     w = max(len(c) for c in pairs)
     for c, p in pairs.items():
         if p["insertions_both"]:
