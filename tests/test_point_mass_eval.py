@@ -117,6 +117,11 @@ def test_evaluate_cli(tmp_path, capsys):
     assert "| a |" in printed and "| b |" in printed and "| admittance_only |" in printed and "best_return" in printed
     data = json.loads(out.read_text())
     assert set(data["checks"]) == {"a", "b"} and "guided_contact" in data["policies"]["a"]
+    # the Panda's free-motion check, per policy (its sign decides the words)
+    rates = data["free_motion_w1_rate"]
+    assert set(rates) == {"a", "b"}
+    for n, r in rates.items():
+        assert f"{n} ẇ1 {r:+.2f} ({'raises IK' if r > 0 else 'does not raise IK'})" in printed
     assert main(["evaluate", "--episodes", "2"]) == 0  # baselines only
     assert main(["evaluate", "--policy", str(tmp_path / "missing.pt")]) == 2
     assert "not found" in capsys.readouterr().err
