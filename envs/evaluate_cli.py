@@ -86,7 +86,7 @@ def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed
     from a3cqp_rl.config import config_from_dict
     from a3cqp_rl.regions import check_fig5_regions, format_regions
     from algorithms.a2c import load_policy
-    from envs.panda_eval import FREE_MOTION_E, free_motion_rates
+    from envs.panda_eval import FREE_MOTION_E, free_motion_rates, guided_rates
     from envs.point_mass_eval import CHECKS, baseline_policies, behaviour_checks, evaluate
 
     out = sys.stdout if out is None else out  # looked up per call: a default bound at import outlives a redirect
@@ -125,15 +125,21 @@ def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed
         if len(learned) > 1:
             print(f"all checks on {sum(all(c.values()) for c in checks.values())} of {len(learned)} policies; per check: "
                   + ", ".join(f"{k} {sum(c[k] for c in checks.values())}" for k in CHECKS), file=out)
-    # on the Panda a policy that does not raise w1 at small force-free errors lets the reference go (docs/panda.md)
+    # on the Panda a policy that does not raise w1 at small force-free errors lets the reference go, and one that
+    # does not raise w2 and lower f_d under the operator's force pushes back against the hand (docs/panda.md)
     free_motion = {n: float(free_motion_rates(pol)[0]) for n, pol in learned.items()}
+    guided = {n: guided_rates(pol)[[1, 3]].tolist() for n, pol in learned.items()}
     if learned:
         print(f"\nPanda free motion (|e|/ē {FREE_MOTION_E[0]}-{FREE_MOTION_E[-1]}, no force; a policy must raise "
               "IK's weight there to follow the Panda's references, docs/panda.md): "
               + ", ".join(f"{n} ẇ1 {r:+.2f} ({'raises IK' if r > 0 else 'does not raise IK'})"
                           for n, r in free_motion.items()), file=out)
+        print("Panda guidance (|f_ope|/f̄_ope 0.1-0.5; a policy must raise w2 and lower f_d there to let the operator "
+              "guide it): " + ", ".join(f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({'yields' if a > 0 and d < 0 else 'resists'})"
+                                        for n, (a, d) in guided.items()), file=out)
     if json_path:
         result.write_json(json_path, {"checks": checks, "literal_regions": regions, "free_motion_w1_rate": free_motion,
+                                      "guided_w2_fd_rates": guided,
                                       "policy_files": {n: str(p) for n, p in zip(names, paths)}})
         print(f"wrote {json_path}", file=out)
     return checks

@@ -51,7 +51,8 @@ import torch
 
 from a3cqp_rl.exceptions import A3CQPError
 
-__all__ = ["main", "evaluate", "evaluate_seeds", "paired", "free_motion_rates", "free_motion_warning", "CONTROLLERS",
+__all__ = ["main", "evaluate", "evaluate_seeds", "paired", "free_motion_rates", "free_motion_warning", "guided_rates",
+           "guided_warning", "CONTROLLERS",
            "PAPER_TABLE_VI", "EvalResult", "load_fixed_controller"]
 
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
@@ -72,6 +73,8 @@ VIC_OPERATOR = (0.2, 0.2, 0.2, 0.5, 0.5, 0.5)
 RECORD_KEYS = ("time", "phase", "e_local", "f_env_local", "f_ope_local", "weights", "f_d")
 FREE_MOTION_E = (0.001, 0.003, 0.01, 0.02)
 """|e|/ē on the Panda in free motion (the approach of peg-in-hole: 0.001-0.018 with ē = 1 m, no force sensed)."""
+GUIDED_OBS = tuple((e, 0.0, f) for e in (0.01, 0.05) for f in (0.1, 0.2, 0.3, 0.5))
+"""Eq. 26 observations of an arm the operator guides: small error, |f_ope|/f̄_ope 0.1-0.5, no contact."""
 
 
 @dataclass
@@ -335,6 +338,25 @@ def free_motion_rates(policy) -> np.ndarray:  # noqa: ANN001
         return policy(obs).mean(0).double().numpy()
 
 
+def guided_rates(policy) -> np.ndarray:  # noqa: ANN001
+    """A policy's mean action (ẇ1, ẇ2, ẇ3, ḟd) [4] over GUIDED_OBS: what it does while the operator pushes."""
+    obs = torch.tensor(GUIDED_OBS, dtype=torch.float32)
+    with torch.no_grad():
+        return policy(obs).mean(0).double().numpy()
+
+
+def guided_warning(policy) -> str | None:  # noqa: ANN001
+    """A warning when a policy does not yield to the operator's push (mean ẇ2 <= 0 or ḟd >= 0 at GUIDED_OBS): on
+    the Panda it then pushes back with force control and the operator cannot guide the arm (docs/panda.md,
+    "Yielding to the operator is a second draw"); None otherwise."""
+    r = guided_rates(policy)
+    if r[1] > 0.0 and r[3] < 0.0:
+        return None
+    return (f"warning: under the operator's force (|f_ope|/f̄_ope 0.1-0.5) this policy does not both raise admittance "
+            f"and lower f_d (mean ẇ2 {r[1]:+.2f}, ḟd {r[3]:+.2f}): on the Panda the operator will probably not be able "
+            "to guide it (polishing relocations, guidance; docs/panda.md)")
+
+
 def free_motion_warning(policy) -> str | None:  # noqa: ANN001
     """A warning when a policy does not raise IK's weight in free motion (mean ẇ1 <= 0 at FREE_MOTION_E): on the
     Panda it then lets the reference go (docs/panda.md, "Which point-mass policies transfer"); None otherwise."""
@@ -540,9 +562,10 @@ def main(argv: list[str] | None = None) -> int:
         if policy is not None:
             from algorithms.a2c import load_policy
 
-            warning = free_motion_warning(load_policy(policy))
-            if warning:
-                print(warning, file=sys.stderr)
+            loaded = load_policy(policy)
+            for warning in (free_motion_warning(loaded), guided_warning(loaded)):
+                if warning:
+                    print(warning, file=sys.stderr)
         kw = dict(config=cfg, controllers=controllers, cycles=args.cycles, progress=not args.quiet, fixed=fixed,
                   sim_threads=args.threads, workers=args.workers, park=not args.no_park)
         if args.seeds is not None:

@@ -12,8 +12,9 @@ import yaml
 from a3cqp_rl.checkpoint import save_atomic
 from a3cqp_rl.config import config_from_dict
 from algorithms.networks import ParamLayout
-from envs.panda_eval import (FREE_MOTION_E, PAPER_TABLE_VI, EvalResult, evaluate, evaluate_seeds, format_paired,
-                             format_table, free_motion_rates, free_motion_warning, main, paired, to_json)
+from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, PAPER_TABLE_VI, EvalResult, evaluate, evaluate_seeds,
+                             format_paired, format_table, free_motion_rates, free_motion_warning, guided_rates,
+                             guided_warning, main, paired, to_json)
 
 FAST = {"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "align_time": 2.0, "time_limit": 2.0,
                                   "operator_disengage": False, "return_time": 0.5}}}
@@ -143,3 +144,17 @@ def test_free_motion_warning_names_a_policy_that_leaves_ik_at_small_errors() -> 
     leaves = policy((-0.8, -0.3, 0.95, -0.2))  # to force control with f_d falling: the arm creeps
     text = free_motion_warning(leaves)
     assert text is not None and "ẇ1 -0.80" in text and "ẇ3 +0.95" in text
+
+
+def test_guided_warning_names_a_policy_that_pushes_back_against_the_operator() -> None:
+    def policy(rates: tuple[float, ...]):  # noqa: ANN202
+        return lambda obs: torch.tensor(rates).expand(obs.shape[0], 4)
+
+    yields = policy((-0.6, 0.6, 0.5, -0.7))  # admittance up, f_d down: the hand moves the arm
+    assert guided_rates(yields) == pytest.approx([-0.6, 0.6, 0.5, -0.7]) and guided_warning(yields) is None
+    pushes = policy((-0.7, -0.1, 0.7, 0.6))  # force control with f_d rising: it pushes against the hand
+    text = guided_warning(pushes)
+    assert text is not None and "ẇ2 -0.10" in text and "ḟd +0.60" in text
+    assert guided_warning(policy((-0.7, 0.3, 0.7, 0.2))) is not None  # admittance up but f_d rising: still resists
+    obs = torch.tensor(GUIDED_OBS)
+    assert (obs[:, 1] == 0).all() and (obs[:, 2] >= 0.1).all() and (obs[:, 0] <= 0.05).all()

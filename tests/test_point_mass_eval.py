@@ -122,6 +122,8 @@ def test_evaluate_cli(tmp_path, capsys):
     assert set(rates) == {"a", "b"}
     for n, r in rates.items():
         assert f"{n} ẇ1 {r:+.2f} ({'raises IK' if r > 0 else 'does not raise IK'})" in printed
+    for n, (a, d) in data["guided_w2_fd_rates"].items():
+        assert f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({'yields' if a > 0 and d < 0 else 'resists'})" in printed
     assert main(["evaluate", "--episodes", "2"]) == 0  # baselines only
     assert main(["evaluate", "--policy", str(tmp_path / "missing.pt")]) == 2
     assert "not found" in capsys.readouterr().err
