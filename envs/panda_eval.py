@@ -52,8 +52,7 @@ import torch
 from a3cqp_rl.exceptions import A3CQPError
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "paired", "free_motion_rates", "free_motion_warning", "guided_rates",
-           "guided_warning", "CONTROLLERS",
-           "PAPER_TABLE_VI", "EvalResult", "load_fixed_controller"]
+           "guided_warning", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult", "load_fixed_controller"]
 
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
 PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
@@ -209,7 +208,7 @@ def evaluate_seeds(scene: str, policy_path: str | Path | None, trials: int, seed
     metrics = {c: {k: np.concatenate([r.metrics[c][k] for r in runs]) for k in runs[0].metrics[c]}
                for c in runs[0].metrics}
     return EvalResult.from_metrics(runs[0].scene, metrics, runs[0].episodes, sum(r.seconds for r in runs),
-                   sum(r.sim_seconds for r in runs), tuple(int(s) for s in seeds))
+                                   sum(r.sim_seconds for r in runs), tuple(int(s) for s in seeds))
 
 
 def paired(res: EvalResult, primary: str = "learned") -> dict:
@@ -329,20 +328,21 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     return {"scene": env.scene.name, "metrics": per, "episodes": eps, "sim_seconds": steps * env.adapt.dt * n}
 
 
+def _mean_action(policy, obs) -> np.ndarray:  # noqa: ANN001
+    with torch.no_grad():
+        return policy(torch.tensor(obs, dtype=torch.float32)).mean(0).double().numpy()
+
+
 def free_motion_rates(policy) -> np.ndarray:  # noqa: ANN001
     """A policy's mean action (ẇ1, ẇ2, ẇ3, ḟd) [4] over the eq. 26 observations of the Panda's free motion
     (|e|/ē in FREE_MOTION_E, no force). A point-mass policy sees such small errors with no force only once it has
     reached a fixed target, where its weights cost nothing, so training leaves them to chance."""
-    obs = torch.tensor([[e, 0.0, 0.0] for e in FREE_MOTION_E], dtype=torch.float32)
-    with torch.no_grad():
-        return policy(obs).mean(0).double().numpy()
+    return _mean_action(policy, [[e, 0.0, 0.0] for e in FREE_MOTION_E])
 
 
 def guided_rates(policy) -> np.ndarray:  # noqa: ANN001
     """A policy's mean action (ẇ1, ẇ2, ẇ3, ḟd) [4] over GUIDED_OBS: what it does while the operator pushes."""
-    obs = torch.tensor(GUIDED_OBS, dtype=torch.float32)
-    with torch.no_grad():
-        return policy(obs).mean(0).double().numpy()
+    return _mean_action(policy, GUIDED_OBS)
 
 
 def guided_warning(policy) -> str | None:  # noqa: ANN001

@@ -404,8 +404,10 @@ def agent_step(
     moving = "target_speed" in state
     speed = state.get("target_speed")
     damps = cfg.idle_force == "damps"
-    # the share of force control that does not push (the Panda env's panda.idle_force)
-    idle = w3 * (1.0 - f_d.clamp(0.0, 1.0)) if damps else torch.zeros_like(w3)
+    w_damp, w_fc = w1, w3  # IK's damping weight and force control's weight
+    if damps:  # the share of force control that does not push damps as IK does (the Panda env's panda.idle_force)
+        idle = w3 * (1.0 - f_d.clamp(0.0, 1.0))
+        w_damp, w_fc = w1 + idle, w3 - idle
     sgn = torch.sign(f_cmd)
     hand = cfg.operator_model == "hand"
     grip_min = -1.0 if cfg.operator_grip else 0.0  # a gripping hand brakes a mass that runs ahead of it
@@ -441,8 +443,8 @@ def agent_step(
         e = target - x
         if moving or damps:  # IK's damping on ė = ẋ_d − ẋ, with the idle share's weight where it damps
             de = (speed - v) if moving else -v
-            acc = (f_ext + m * (w1 * kp * e + (w1 + idle) * kv * de) + w2 * (adm_gain * f_ext - cfg.c_d * v)
-                   + (w3 - idle) * f_d) / m
+            acc = (f_ext + m * (w1 * kp * e + w_damp * kv * de) + w2 * (adm_gain * f_ext - cfg.c_d * v)
+                   + w_fc * f_d) / m
         else:
             # eq. 35 (ẍ_pd = 0 for a fixed target)
             acc = (f_ext + w1 * m * (kp * e - kv * v) + w2 * (adm_gain * f_ext - cfg.c_d * v) + w3 * f_d) / m

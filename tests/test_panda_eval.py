@@ -107,7 +107,9 @@ def test_paired_compares_the_insertions_both_controllers_made() -> None:
     assert "ik_fc: -0.75 ± 0.25 s" in text and "only learned: 1, only ik_fc: 2" in text
     assert to_json(res)["paired"]["ik_fc"] == p
     # nothing to pair: other scenes, or no learned controller
-    assert paired(EvalResult.from_metrics("guidance", {"learned": {"diverged": np.zeros(1, dtype=bool)}}, {}, 1.0, 1.0, (0,))) == {}
+    other_scene = EvalResult.from_metrics("guidance", {"learned": {"diverged": np.zeros(1, dtype=bool)}}, {}, 1.0, 1.0,
+                                          (0,))
+    assert paired(other_scene) == {}
     assert paired(res, primary="vic") == {} and format_paired(res, primary="vic") == ""
 
 
