@@ -167,6 +167,9 @@ class PandaEnv(EnvBase):
         # latest measurements (world frame, at the tool tip)
         self.pos, self.rot = np.tile(home_pos, (n, 1)), np.tile(home_rot, (n, 1, 1))
         self.f_env, self.f_ope, self.f_ext = np.zeros((n, 6)), np.zeros((n, 6)), np.zeros((n, 6))
+        self._f_sum: np.ndarray | None = None  # (f_env, f_ope) summed over an agent period [2, N, 6]
+        self.f_env_obs, self.f_ope_obs = np.zeros((n, 6)), np.zeros((n, 6))
+        """With `panda.observation_filter: mean`, the agent period's mean sensed wrenches (world, at the tool tip)."""
         self.tau, self.q, self.qd = np.zeros((n, 7)), np.zeros((n, 7)), np.zeros((n, 7))
         self.handle_pos, self.handle_force = np.zeros((n, 3)), np.zeros((n, 3))
         self.max_penetration = np.zeros(n)
@@ -248,6 +251,7 @@ class PandaEnv(EnvBase):
         self.operator.reset(idx)
         self.scene.reset(idx, rngs)
         self._measure()
+        self.f_env_obs[idx], self.f_ope_obs[idx] = self.f_env[idx], self.f_ope[idx]
         self._update_scene()
 
     # ------------------------------------------------------------------ control
@@ -334,8 +338,12 @@ class PandaEnv(EnvBase):
         weights, f_d = torch.from_numpy(w_ctrl), torch.from_numpy(self.f_d)
         pos_d, rot_d = self._controller_reference(scale)
         self._draw_noise()
+        mean = self.pcfg.observation_filter == "mean"
+        self._f_sum = np.zeros((2, self.num_envs, 6)) if mean else None
         for k in range(self.substeps):
             self._tick(k, weights, f_d, pos_d, rot_d)
+        if mean:
+            self.f_env_obs, self.f_ope_obs = self._f_sum / self.substeps
         self.t += self.adapt.dt
         self._update_scene()
         truncated = self.scene.done | (self.t >= self.pcfg.max_episode_time - 1e-9)
@@ -371,6 +379,9 @@ class PandaEnv(EnvBase):
               rot_d: torch.Tensor) -> np.ndarray:
         """One 1 kHz control period (the k-th of the agent period) for all arms; returns the arms that diverged."""
         s = self._measure(k)
+        if self._f_sum is not None:
+            self._f_sum[0] += self.f_env
+            self._f_sum[1] += self.f_ope
         bad = self._check_divergence()
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin,
@@ -462,9 +473,11 @@ class PandaEnv(EnvBase):
         self.scene.update(self._scene_input())
 
     def local_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(e^L, f_env^L, f_ope^L) [N, 6] each: the pose error to the current reference and the sensed wrenches in L."""
+        """(e^L, f_env^L, f_ope^L) [N, 6] each: the pose error to the current reference and the observed wrenches
+        (`observation_filter`) in L."""
         e = pose_error(self.scene.pos_d, self.scene.rot_d, self.pos, self.rot)
-        return to_local(self.rot, e), to_local(self.rot, self.f_env), to_local(self.rot, self.f_ope)
+        fe, fo = (self.f_env_obs, self.f_ope_obs) if self.pcfg.observation_filter == "mean" else (self.f_env, self.f_ope)
+        return to_local(self.rot, e), to_local(self.rot, fe), to_local(self.rot, fo)
 
     def _observation(self, e: torch.Tensor, fe: torch.Tensor, fo: torch.Tensor) -> torch.Tensor:
         a, p = self.adapt, self.pcfg

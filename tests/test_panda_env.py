@@ -382,3 +382,36 @@ def test_held_weights_last_one_step():
     td["action"] = torch.tensor([[[1.0, 0.0, 0.0, 0.0]] * 6])  # raise the IK rate on every axis (eq. 29: +σw·Δt)
     env.step(td)
     assert (env.weights[..., 0] > held[..., 0] + 5e-3).all()
+
+
+def _pressing(filter_: str) -> tuple[PandaEnv, list[np.ndarray], dict]:
+    """A 2-arm peg env after 3 s of IK along the scene's approach; (env, the f_env samples of its last agent period,
+    its output)."""
+    env = PandaEnv(2, _cfg({"panda": {"observation_filter": filter_, "operator": {"noise": 0.0}}}), seed=3)
+    td = env.reset()
+    samples: list[np.ndarray] = []
+    tick = env._tick
+
+    def recording(k, *a, **kw):  # noqa: ANN001, ANN202
+        out = tick(k, *a, **kw)
+        samples.append(env.f_env.copy())
+        return out
+
+    env._tick = recording
+    for _ in range(300):
+        samples.clear()
+        td["action"] = _ik_action(2)
+        td = env.step(td)["next"]
+    return env, samples, td
+
+
+def test_observation_filter_mean_observes_the_agent_periods_mean_wrench() -> None:
+    env, samples, td = _pressing("mean")
+    assert len(samples) == env.substeps
+    mean = np.mean(samples, axis=0)
+    assert np.abs(mean - samples[-1]).max() > 1e-6  # the two filters differ on this period
+    assert np.allclose(env.f_env_obs, mean, atol=1e-12)
+    assert np.allclose(td["f_env_local"].numpy(), to_local(env.rot, mean), atol=1e-12)
+    # "last" observes the period's last sample (the behaviour before the option)
+    env, samples, td = _pressing("last")
+    assert np.allclose(td["f_env_local"].numpy(), to_local(env.rot, samples[-1]), atol=1e-12)
