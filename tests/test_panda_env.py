@@ -252,10 +252,11 @@ def test_joint_and_torque_limits_hold_under_random_actions() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_joint_and_torque_limits_hold_over_many_random_episodes(seed: int) -> None:
-    """Torques never exceed their limits. Joint positions can: by up to ~30 mrad (joint 6) when the operator's
-    15 N push drives the arm into a limit under random weights, because the QP's viable joint bounds do not count
-    the external force (ControllerOptions.joint_limits_include_f_ext, off by default) and MuJoCo's limit is soft;
-    this test holds that bound (docs/panda.md)."""
+    """Torques never exceed their limits. Joint positions can: joint 6 by up to ~31 mrad on these seeds (41 mrad on
+    seed 5) when, under random weights, the tool is dragged along a surface and the contact's impulses drive the
+    joint into its end stop, which MuJoCo holds softly; a wider controller margin does not prevent it, and
+    ControllerOptions.joint_limits_include_f_ext does only by braking in ordinary contact too (docs/panda.md,
+    "Joint limits under random weights"). This test holds the 40 mrad bound on seeds 1-3."""
     worst_q, worst_tau, diverged = _random_episodes(8, 3000, seed=seed)
     assert worst_q < 0.04 and worst_tau <= 1.0 + 1e-12 and diverged == 0
 
