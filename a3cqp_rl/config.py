@@ -916,9 +916,9 @@ class PandaEnvConfig:
     """What the agents observe (eq. 26) and are rewarded on (eq. 30) of the sensed wrenches f_env, f_ope, sampled
     at 1 kHz, once per 10 ms agent period: "last", the last control period's sample; "mean", the mean of the
     period's ten samples (anti-aliasing before the 100 Hz adaptation, as a real sensor chain filters before it
-    decimates). In contact, MuJoCo's stiff contact (solref 5 ms against the arm's reflected inertia: a few µm of
-    penetration) loses the contact for single 1 ms steps in 3-9 % of the pressing periods, so one "last" sample in
-    twenty reads no contact (docs/panda.md, "Contact dropouts"). The scene's metrics use the samples as before."""
+    decimates). In contact, MuJoCo loses a pressed peg's contact for single 1 ms steps in 4-9 % of the pressing
+    periods (the peg separates from the rim by less than a µm), so about one "last" sample in twenty reads no
+    contact (docs/panda.md, "Contact dropouts"). The scene's metrics use the samples as before."""
     policy: str | None = None
     """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
     folder, relative to the working directory (None: --policy is needed for the learned controller)."""

@@ -52,7 +52,7 @@ import torch
 from a3cqp_rl.exceptions import A3CQPError
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "paired", "free_motion_rates", "free_motion_warning", "guided_rates",
-           "guided_warning", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult", "load_fixed_controller"]
+           "guided_warning", "limit_stress", "LimitStress", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult", "load_fixed_controller"]
 
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
 PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
@@ -367,6 +367,52 @@ def free_motion_warning(policy) -> str | None:  # noqa: ANN001
             f"raise IK's weight (mean ẇ1 {r[0]:+.2f}, ẇ2 {r[1]:+.2f}, ẇ3 {r[2]:+.2f}): on the Panda it will probably "
             "not follow the reference (every such point-mass policy measured inserted at most 2 of 26 pegs; "
             "docs/panda.md)")
+
+
+@dataclass(frozen=True)
+class LimitStress:
+    """Worst case of `limit_stress`: how far the arms went past their datasheet limits."""
+
+    worst_excess: float
+    """Largest excess of a joint position past its datasheet limit [rad] (negative: always inside)."""
+    joint: int
+    """Its joint (1-7)."""
+    arm: int
+    """Its arm."""
+    worst_torque_ratio: float
+    """Largest |τ|/τ_max over every joint, arm and control period."""
+    diverged: int
+    """Arms flagged as diverged at the end."""
+    fallbacks: int
+    """1 kHz periods of one arm in which the QP failed and the controller braked."""
+
+
+def limit_stress(num_envs: int, steps: int, seed: int, config=None, controller_options=None,  # noqa: ANN001
+                 hold: int = 20) -> LimitStress:
+    """Random actions, each held for `hold` agent steps, on `num_envs` Pandas for `steps` agent steps (done arms
+    reset): the worst joint-position excess, torque ratio, divergences and QP fallbacks (the reliability check of
+    docs/panda.md)."""
+    from a3cqp_rl.robot import PANDA_LIMITS
+    from envs.panda import PandaEnv
+
+    env = PandaEnv(num_envs, config, seed=seed, controller_options=controller_options)
+    gen = torch.Generator().manual_seed(seed)
+    q_min, q_max, tau_max = (np.array(v) for v in (PANDA_LIMITS.q_min, PANDA_LIMITS.q_max, PANDA_LIMITS.tau_max))
+    worst, where, tau = -np.inf, (0, 0), 0.0
+    td, action = env.reset(), torch.zeros(num_envs, 6, 4)
+    for k in range(steps):
+        if k % hold == 0:
+            action = torch.rand(num_envs, 6, 4, generator=gen) * 2 - 1
+        td["action"] = action
+        td = env.step(td)["next"]
+        over = np.maximum(q_min - env.q, env.q - q_max)
+        if over.max() > worst:
+            worst, where = float(over.max()), np.unravel_index(int(over.argmax()), over.shape)
+        tau = max(tau, float(np.max(np.abs(env.tau) / tau_max)))
+        done = td["done"].reshape(num_envs)
+        if done.any():
+            td = env.reset(td.empty().set("_reset", done.reshape(num_envs, 1)))
+    return LimitStress(worst, int(where[1]) + 1, int(where[0]), tau, int(env.diverged.sum()), env.ctrl.fallback_count)
 
 
 def load_fixed_controller(path: str | Path):  # noqa: ANN201

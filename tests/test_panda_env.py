@@ -12,10 +12,11 @@ from torchrl.envs.utils import check_env_specs
 
 from a3cqp_rl.checkpoint import save_atomic
 from a3cqp_rl.config import OperatorConfig, config_from_dict
-from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS
+from a3cqp_rl.robot import PANDA_HOME
 from algorithms.a2c import load_policy
 from algorithms.networks import ParamLayout
 from envs.panda import PandaEnv, to_local
+from envs.panda_eval import limit_stress
 from envs.scenarios import Operator
 
 # short procedures so that the tests reach contact quickly
@@ -224,24 +225,8 @@ def test_a_diverging_robot_ends_its_own_episode_only(caplog, mujoco_warnings) ->
 def _random_episodes(n: int, steps: int, seed: int) -> tuple[float, float, int]:
     """Random actions (held 0.2 s) on peg-in-hole with operator episodes; (max joint-limit violation [rad], max
     |τ|/τ_max, diverged robots)."""
-    env = PandaEnv(n, _cfg({"panda": {"peg_in_hole": {"time_limit": 3.0}}}), seed=seed)
-    gen = torch.Generator().manual_seed(seed)
-    td = env.reset()
-    lim = PANDA_LIMITS
-    q_min, q_max, tau_max = np.array(lim.q_min), np.array(lim.q_max), np.array(lim.tau_max)
-    worst_q, worst_tau = -np.inf, 0.0
-    action = torch.zeros(n, 6, 4)
-    for k in range(steps):
-        if k % 20 == 0:
-            action = torch.rand(n, 6, 4, generator=gen) * 2 - 1
-        td["action"] = action
-        td = env.step(td)["next"]
-        worst_q = max(worst_q, float(np.max(np.maximum(q_min - env.q, env.q - q_max))))
-        worst_tau = max(worst_tau, float(np.max(np.abs(env.tau) / tau_max)))
-        done = td["done"].reshape(n)
-        if done.any():
-            td = env.reset(td.empty().set("_reset", done.reshape(n, 1)))
-    return worst_q, worst_tau, int(env.diverged.sum())
+    r = limit_stress(n, steps, seed, _cfg({"panda": {"peg_in_hole": {"time_limit": 3.0}}}))
+    return r.worst_excess, r.worst_torque_ratio, r.diverged
 
 
 def test_joint_and_torque_limits_hold_under_random_actions() -> None:
