@@ -12,9 +12,9 @@ import yaml
 from a3cqp_rl.checkpoint import save_atomic
 from a3cqp_rl.config import config_from_dict
 from algorithms.networks import ParamLayout
-from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, PAPER_TABLE_VI, EvalResult, evaluate, evaluate_seeds,
-                             format_paired, format_table, free_motion_rates, free_motion_warning, guided_rates,
-                             guided_warning, main, paired, to_json)
+from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, PAPER_TABLE_VI, EvalResult, capped_time, evaluate,
+                             evaluate_seeds, format_paired, format_table, free_motion_rates, free_motion_warning,
+                             guided_rates, guided_warning, main, paired, to_json)
 
 FAST = {"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "align_time": 2.0, "time_limit": 2.0,
                                   "operator_disengage": False, "return_time": 0.5}}}
@@ -82,10 +82,12 @@ def test_main_takes_the_learned_policy_from_the_config(tmp_path, capsys) -> None
     assert "panda.policy" in err and "no.pt" in err and "Traceback" not in err
 
 
-def _peg_metrics(success: list[bool], times: list[float], diverged: list[bool] | None = None) -> dict:
+def _peg_metrics(success: list[bool], times: list[float], diverged: list[bool] | None = None,
+                 time_limit: float | None = None) -> dict:
     n = len(success)
     cyc = np.full((n, 1), 0.01)
-    return {"success": np.array(success)[:, None], "insertion_time": np.array(times, dtype=float)[:, None],
+    limit = {} if time_limit is None else {"time_limit": np.full((n, 1), time_limit)}
+    return {**limit, "success": np.array(success)[:, None], "insertion_time": np.array(times, dtype=float)[:, None],
             "diverged": np.zeros(n, dtype=bool) if diverged is None else np.array(diverged),
             "misalign_translation": cyc, "misalign_rotation": cyc, "disengage_force": cyc,
             "extracted": np.zeros((n, 1), dtype=bool)}
@@ -111,6 +113,32 @@ def test_paired_compares_the_insertions_both_controllers_made() -> None:
                                           (0,))
     assert paired(other_scene) == {}
     assert paired(res, primary="vic") == {} and format_paired(res, primary="vic") == ""
+
+
+def test_capped_time_counts_the_insertions_not_made_at_the_time_limit() -> None:
+    nan = float("nan")
+    # learned: trial 3 failed, trial 4 inserted but diverged; ik_fc: trial 1 failed
+    metrics = {"learned": _peg_metrics([True, True, True, False, True], [6.0, 7.0, 5.0, nan, 6.5],
+                                       [False, False, False, False, True], time_limit=15.0),
+               "ik_fc": _peg_metrics([True, False, True, True, True], [6.5, nan, 6.0, 8.0, 6.0], time_limit=15.0)}
+    res = EvalResult.from_metrics("peg_in_hole", metrics, {}, 1.0, 10.0, (0,))
+    learned, ik_fc = [6.0, 7.0, 5.0, 15.0, 15.0], [6.5, 15.0, 6.0, 8.0, 6.0]
+    np.testing.assert_allclose(capped_time(metrics["learned"])[:, 0], learned)
+    s = res.summary["learned"]
+    assert s["capped_time_mean_s"] == pytest.approx(np.mean(learned))
+    assert s["capped_time_std_s"] == pytest.approx(np.std(learned, ddof=1))
+    assert s["insertion_time_mean_s"] == pytest.approx(6.0)  # over the successes, as Table VI
+    d = np.subtract(learned, ik_fc)
+    p = paired(res)["ik_fc"]
+    assert p["capped_difference_mean_s"] == pytest.approx(d.mean())
+    assert p["capped_difference_se_s"] == pytest.approx(d.std(ddof=1) / np.sqrt(5))
+    assert f"every trial: {d.mean():+.2f} ± {d.std(ddof=1) / np.sqrt(5):.2f} s" in format_paired(res)
+    assert "time, not inserted = limit [s]" in format_table(res)
+    # results without the scene's time limit (written before it was reported) still summarise and pair
+    old = EvalResult.from_metrics("peg_in_hole", {c: {k: v for k, v in m.items() if k != "time_limit"}
+                                                  for c, m in metrics.items()}, {}, 1.0, 10.0, (0,))
+    assert "capped_time_mean_s" not in old.summary["learned"] and "capped_difference_mean_s" not in paired(old)["ik_fc"]
+    assert "time, not inserted" not in format_table(old) and "every trial" not in format_paired(old)
 
 
 def test_seeds_pool_the_trials_of_each_seed_as_run_alone() -> None:
