@@ -142,6 +142,8 @@ class PandaEnv(EnvBase):
             m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)  # qpos/qvel/qacc)
         opts = dataclasses.replace(controller_options or ControllerOptions(), leak_axes=self.pcfg.state_leak,
                                    **TASK_BLENDS[self.pcfg.task_blend])
+        if self.pcfg.joint_limits_f_ext:
+            opts = dataclasses.replace(opts, joint_limits_include_f_ext=True)
         self.ctrl = (controller_factory or A3CQPController)(n, model=self.model, config=cfg.controller, options=opts)
         lim = PANDA_LIMITS
         self._dq_max = np.array(lim.dq_max)
