@@ -147,6 +147,7 @@ class PandaEnv(EnvBase):
         self.ctrl = (controller_factory or A3CQPController)(n, model=self.model, config=cfg.controller, options=opts)
         lim = PANDA_LIMITS
         self._dq_max = np.array(lim.dq_max)
+        self._q_lo, self._q_hi = np.array(lim.q_min), np.array(lim.q_max)
         # per-axis bounds (translations: Table II; rotations: PandaEnvConfig)
         p = self.pcfg
         self._fd_mask = np.array([a in p.fd_axes for a in ("x", "y", "z")] + [False] * 3)
@@ -180,6 +181,9 @@ class PandaEnv(EnvBase):
         """Arms set aside by `park` (until their reset): no collisions, IK holding, no divergence checks."""
         self.fallbacks = np.zeros(n, dtype=np.int64)
         """Control periods in which the controller's QP fell back to braking, per arm, this episode."""
+        self.joint_limit_excess = np.full(n, -np.inf)
+        """Per arm, this episode: the largest excess of a joint past its datasheet position limit [rad] over the 1 kHz
+        control periods (negative: the closest approach, inside the limits), until the arm is parked or diverges."""
         self.signal_keys = tuple(self.scene.signals(self._scene_input()).keys())
         """Names of the scene's per-step signals in the output (e.g. the peg's misalignment and depth)."""
         self._make_specs()
@@ -244,6 +248,7 @@ class PandaEnv(EnvBase):
         self.diverged[idx] = False
         self.parked[idx] = False
         self.fallbacks[idx] = 0
+        self.joint_limit_excess[idx] = -np.inf
         self.stiffness_scale[idx] = 1.0
         s = self.pcfg.sensors
         if s.ft_force_bias > 0 or s.ft_torque_bias > 0:
@@ -385,6 +390,7 @@ class PandaEnv(EnvBase):
             self._f_sum[0] += self.f_env
             self._f_sum[1] += self.f_ope
         bad = self._check_divergence()
+        self._track_joint_limits()
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin,
                              leak_extra=None if self._idle_leak is None else torch.from_numpy(self._idle_leak))
@@ -445,6 +451,13 @@ class PandaEnv(EnvBase):
                                                            f"contact penetration {1e3 * self.max_penetration[i]:.1f} mm")
             logger.warning("panda env: robot %d diverged at t = %.3f s (%s); its episode ends", i, self.t[i], why)
         return bad
+
+    def _track_joint_limits(self) -> None:
+        """`joint_limit_excess` with this control period's joint positions (arms in their episode only)."""
+        with np.errstate(invalid="ignore"):  # a diverging arm's NaN: fmax keeps the value before
+            over = np.maximum(self._q_lo - self.q, self.q - self._q_hi).max(1)
+        live = ~self.parked & ~self.diverged
+        np.fmax(self.joint_limit_excess, np.where(live, over, -np.inf), out=self.joint_limit_excess)
 
     def park(self, idx: np.ndarray) -> None:
         """Set aside arms `idx` whose episode is over while the batch runs on (until their reset): their collisions

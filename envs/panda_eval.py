@@ -338,6 +338,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     bar.close()
     metrics = env.scene.metrics()
     metrics["diverged"] = env.diverged.copy()
+    metrics["joint_limit_excess"] = env.joint_limit_excess.copy()
     per = {c: {k: np.asarray(v)[j * trials:(j + 1) * trials] for k, v in metrics.items()}
            for j, c in enumerate(controllers)}
     meta = {"scene": env.scene.name, "tool": env.scene.tool, "scene_xml": env.scene.mjcf(),
@@ -496,8 +497,11 @@ def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
         out["extracted_rate"] = float(np.mean(m["extracted"]))
     else:
         for k, v in m.items():
-            if k != "diverged":
+            if k not in ("diverged", "joint_limit_excess"):
                 out[f"{k}_mean"], out[f"{k}_std"] = _mean_std(v)
+    if "joint_limit_excess" in m:  # the worst trial [mrad]: > 0 a joint passed a datasheet limit
+        worst = float(np.max(m["joint_limit_excess"])) if len(m["joint_limit_excess"]) else -math.inf
+        out["joint_limit_excess_max_mrad"] = 1e3 * worst if math.isfinite(worst) else None
     return out
 
 
@@ -539,6 +543,9 @@ def format_table(res: EvalResult) -> str:
         keys = [k[:-5] for k in s[names[0]] if k.endswith("_mean")]
         for k in keys:
             rows.append((k, [f"{_fmt(s[c][k + '_mean'], prec=3)} ± {_fmt(s[c][k + '_std'], prec=3)}" for c in names]))
+    if all("joint_limit_excess_max_mrad" in s[c] for c in names):
+        rows.append(("joint-limit excess, worst [mrad]", (["-"] if res.scene == "peg_in_hole" else [])
+                     + [_fmt(s[c]["joint_limit_excess_max_mrad"], prec=1) for c in names]))
     rows.append(("diverged", (["-"] if res.scene == "peg_in_hole" else []) + [str(s[c]["diverged"]) for c in names]))
     w0 = max(len(r[0]) for r in rows)
     widths = [max(len(cols[i]), *(len(r[1][i]) for r in rows)) for i in range(len(cols))]

@@ -12,7 +12,7 @@ from torchrl.envs.utils import check_env_specs
 
 from a3cqp_rl.checkpoint import save_atomic
 from a3cqp_rl.config import OperatorConfig, config_from_dict
-from a3cqp_rl.robot import PANDA_HOME
+from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS
 from algorithms.a2c import load_policy
 from algorithms.networks import ParamLayout
 from envs.panda import PandaEnv, to_local
@@ -270,6 +270,30 @@ def test_counting_the_measured_wrench_holds_the_joint_limits_against_the_operato
     cfg = _cfg({"panda": {"scene": "guidance", "joint_limits_f_ext": True}})
     r = limit_stress(8, 3000, seed, cfg)
     assert r.worst_excess < 0.0 and r.worst_torque_ratio <= 1.0 + 1e-12 and r.diverged == 0 and r.fallbacks == 0
+
+
+def test_joint_limit_excess_is_tracked_per_arm_over_the_episode() -> None:
+    env = PandaEnv(2, _cfg(), seed=0)
+    td = env.reset()
+    assert np.all(env.joint_limit_excess == -np.inf)
+    td["action"] = _ik_action(2)
+    td = env.step(td)["next"]
+    home = env.joint_limit_excess.copy()
+    assert np.all((-1.0 < home) & (home < 0.0))  # inside the limits at home: the closest approach, negative
+    m, q_hi = env.sim.model, np.array(PANDA_LIMITS.q_max)
+    adr = m.jnt_qposadr[m.joint("arm1/joint4").id]
+    env.sim.data.qpos[adr] = q_hi[3] + 0.02  # arm 1's joint 4 pushed 20 mrad past its datasheet limit
+    td["action"] = _ik_action(2)
+    td = env.step(td)["next"]
+    assert 0.019 < env.joint_limit_excess[1] <= 0.02 + 1e-9  # seen at the first control period
+    assert env.joint_limit_excess[0] == home[0]
+    env.park(np.array([1]))  # a parked arm's motion no longer counts
+    env.sim.data.qpos[adr] = q_hi[3] + 0.05
+    td["action"] = _ik_action(2)
+    env.step(td)
+    assert env.joint_limit_excess[1] <= 0.02 + 1e-9
+    env.reset(td.empty().set("_reset", torch.tensor([[False], [True]])))
+    assert env.joint_limit_excess[1] == -np.inf and env.joint_limit_excess[0] == home[0]
 
 
 def test_joint_limits_f_ext_turns_on_the_controllers_option() -> None:

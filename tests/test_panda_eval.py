@@ -38,6 +38,11 @@ def test_every_controller_runs_the_same_trials_and_the_json_has_table_vi_keys() 
     json.dumps(doc)  # JSON-ready (NaN written as null)
     table = format_table(res)
     assert "8.21 ± 0.24" in table and "ik_fc" in table
+    # the scripted controllers in ordinary operation keep every joint inside its datasheet limits (checked at 1 kHz)
+    for c in ("ik_fc", "equal"):
+        assert -1.0e3 < s[c]["joint_limit_excess_max_mrad"] < 0.0
+        assert len(res.per_trial[c]["joint_limit_excess"]) == 1
+    assert "joint-limit excess, worst [mrad]" in table
     ep = res.episodes["ik_fc"]
     assert ep["weights"].shape[1:] == (6, 3) and len(ep["time"]) == len(ep["depth"]) > 100
 
