@@ -13,6 +13,7 @@ import torch
 from a3cqp_rl.config import ControllerConfig
 from a3cqp_rl.control import A3CQPController, ControllerOptions, Inequality, Limit, wrench_from_joint_torques
 from a3cqp_rl.control.context import ControlContext
+from a3cqp_rl.control.controller import FALLBACK_LOG_EVERY, FALLBACK_LOG_FIRST
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaSim, table_xml
 
 F64 = torch.float64
@@ -276,8 +277,14 @@ def test_infeasible_qp_falls_back_safely_and_is_reported(caplog: pytest.LogCaptu
     # the fallback brakes (q̈ opposes q̇) with zero wrench and gravity compensation
     assert torch.all(out.qdd[1] * s.qd[1] < 0) and out.wrench[1].abs().max() == 0.0
     # keep running infeasible: robot 1 comes to rest without NaN, the others keep tracking
-    log = run(sim, ctrl, 400, task_weights(n, [IK] * 6), torch.zeros(n, 6, dtype=F64), pos0 + 0.05, rot0)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="a3cqp_rl.control.controller"):
+        log = run(sim, ctrl, 400, task_weights(n, [IK] * 6), torch.zeros(n, 6, dtype=F64), pos0 + 0.05, rot0)
     assert np.isfinite(log.tau).all() and log.fallback[:, 1].all() and not log.fallback[:, [0, 2]].any()
+    # 401 steps with a fallback: the log has the first FALLBACK_LOG_FIRST, then one per FALLBACK_LOG_EVERY
+    lines = [r.getMessage() for r in caplog.records if "A3CQP fallback" in r.getMessage()]
+    assert len(lines) == FALLBACK_LOG_FIRST - 1 and ctrl.fallback_count == 401
+    assert f"now logged every {FALLBACK_LOG_EVERY}th" in lines[-1] and "step 10 with a fallback" in lines[-1]
     assert np.abs(log.qd[-1, 1]).max() < 1e-2
     assert np.linalg.norm(log.err[-1, 0, :3]) < 5e-3
 

@@ -32,6 +32,9 @@ __all__ = ["ControllerOptions", "ControlOutput", "A3CQPController", "wrench_from
            "SOLVER_ERROR"]
 
 logger = logging.getLogger(__name__)
+FALLBACK_LOG_FIRST = 10
+"""Steps with a fallback that are logged one by one; after them, every FALLBACK_LOG_EVERY-th."""
+FALLBACK_LOG_EVERY = 1000
 
 INVALID_INPUT = -1
 """`ControlOutput.status` code of a robot whose inputs (state, B(q), references) were not finite."""
@@ -318,6 +321,7 @@ class A3CQPController:
         when the step ran on the CPU path (see arrays.py); empty after a native step (ControlOutput has f_adm, f_ctc)."""
         self.fallback_count = 0
         """Number of (robot, step) pairs that used the fallback since construction."""
+        self._fallback_steps = 0  # steps with a fallback: the log shows the first ones, then every FALLBACK_LOG_EVERY
         self._native: native.NativeStep | None = None
         if opt.leak_axes not in ("per_axis", "min_w1"):
             raise InvalidGainError(f"leak_axes must be 'per_axis' or 'min_w1', got {opt.leak_axes!r}")
@@ -577,8 +581,13 @@ class A3CQPController:
         """Count and log the robots that fell back this step (and drop the warm start)."""
         bad = [i for i in range(self.n) if not bool(ok[i])]
         self.fallback_count += len(bad)
-        logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s, valid input %s",
-                       bad, qp_status[bad].tolist(), [bool(valid[i]) for i in bad])
+        self._fallback_steps += 1
+        k = self._fallback_steps
+        if k <= FALLBACK_LOG_FIRST or k % FALLBACK_LOG_EVERY == 0:  # a scene that falls back often fills no log
+            logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s, valid input %s"
+                           " (step %d with a fallback, %d robot-steps in all%s)", bad, qp_status[bad].tolist(),
+                           [bool(valid[i]) for i in bad], k, self.fallback_count,
+                           f"; now logged every {FALLBACK_LOG_EVERY}th" if k == FALLBACK_LOG_FIRST else "")
         self._warm, self._warm_levels = None, ()
 
     # ------------------------------------------------------------------ step
