@@ -919,12 +919,13 @@ class PandaEnvConfig:
     decimates). In contact, MuJoCo loses a pressed peg's contact for single 1 ms steps in 4-9 % of the pressing
     periods (the peg separates from the rim by less than a µm), so about one "last" sample in twenty reads no
     contact (docs/panda.md, "Contact dropouts"). The scene's metrics use the samples as before."""
-    joint_limits_f_ext: bool = False
-    """Count the measured external wrench f_ext in the controller's joint-limit rows
-    (ControllerOptions.joint_limits_include_f_ext), so that the operator's force cannot carry a joint past its limit:
-    under random weights in the guidance scene no joint passed its limit on four seeds, against 10-17 mrad without.
-    Off by default: in stiff contact (the peg on the rim) the contact's impulses make the QP infeasible and the
-    controller brakes (docs/panda.md, "External forces carry the joints past their limits")."""
+    joint_limits_f_ext: Literal["off", "operator", "always"] = "off"
+    """Where the controller's joint-limit rows count the measured external wrench f_ext, so that an external force
+    cannot carry a joint past its limit: "always" (ControllerOptions.joint_limits_include_f_ext: under random weights
+    in the guidance scene no joint passed its limit on four seeds, against 10-17 mrad without), "operator" (an arm
+    while the operator holds its handle: the peg pulled out of its bore) or "off" (default: in stiff contact, the
+    peg on the rim, the contact's impulses make the QP infeasible and the controller brakes; docs/panda.md,
+    "External forces carry the joints past their limits")."""
     policy: str | None = None
     """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
     folder, relative to the working directory (None: --policy is needed for the learned controller)."""

@@ -142,7 +142,7 @@ class PandaEnv(EnvBase):
             m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)  # qpos/qvel/qacc)
         opts = dataclasses.replace(controller_options or ControllerOptions(), leak_axes=self.pcfg.state_leak,
                                    **TASK_BLENDS[self.pcfg.task_blend])
-        if self.pcfg.joint_limits_f_ext:
+        if self.pcfg.joint_limits_f_ext == "always":
             opts = dataclasses.replace(opts, joint_limits_include_f_ext=True)
         self.ctrl = (controller_factory or A3CQPController)(n, model=self.model, config=cfg.controller, options=opts)
         lim = PANDA_LIMITS
@@ -391,9 +391,11 @@ class PandaEnv(EnvBase):
             self._f_sum[1] += self.f_ope
         bad = self._check_divergence()
         self._track_joint_limits()
+        held = torch.from_numpy(self.operator.active) if self.pcfg.joint_limits_f_ext == "operator" else None
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin,
-                             leak_extra=None if self._idle_leak is None else torch.from_numpy(self._idle_leak))
+                             leak_extra=None if self._idle_leak is None else torch.from_numpy(self._idle_leak),
+                             f_ext_limits=held)
         self.fallbacks += out.fallback.numpy()
         tau = out.tau.numpy()
         self.tau[:] = tau

@@ -10,7 +10,7 @@ import torch
 
 import a3cqp_rl.control.controller as controller_module
 from a3cqp_rl.control import A3CQPController, ControllerOptions, native
-from a3cqp_rl.control.exceptions import InvalidGainError
+from a3cqp_rl.control.exceptions import ControlShapeError, InvalidGainError
 from a3cqp_rl.control.limits import WrenchBox
 from a3cqp_rl.control.tasks import CartesianIK, ForceControl
 from a3cqp_rl.robot import PANDA_LIMITS, PandaModel, PandaSim, mujoco_dynamics
@@ -103,6 +103,30 @@ def test_native_qp_equals_the_python_objects(options: dict, near_limits: bool) -
         ddq = py.joint_limits.ddq_max
         lb, ub = py.joint_limits.bounds_for(ctx)
         assert ((ub - ddq).abs() < 1e-12).any() or ((lb + ddq).abs() < 1e-12).any()
+
+
+def test_per_robot_f_ext_limits_equal_in_c_and_python_and_equal_the_option_for_the_named_robots() -> None:
+    inputs, model = random_inputs(N, seed=11, near_limits=True)
+    mask = torch.arange(N) % 2 == 0
+    q_des = (inputs["q"], inputs["qd"])
+    py, nat = pair(N, {}, model, q_des)
+    _, every = pair(N, {"joint_limits_include_f_ext": True}, model, q_des)
+    args = {k: v for k, v in inputs.items() if k not in ("kin", "bias")}
+    G_py, h_py = py.build_qp(py.build_context(**args, bias=inputs["bias"], kin=inputs["kin"], f_ext_limits=mask))[2:]
+    a = {k: (v.numpy() if isinstance(v, torch.Tensor) else v) for k, v in inputs.items() if k != "kin"}
+    kin = controller_module._kin_numpy(inputs["kin"])
+    order = ("q", "qd", "mass", "bias", "weights", "f_d", "pos_d", "rot_d", "f_ext", "in_contact")
+    masked = nat.assemble_native(*(a[k] for k in order), kin, f_ext_limits=mask.numpy())
+    plain, all_arms = (c.assemble_native(*(a[k] for k in order), kin) for c in (nat, every))
+    assert_close(masked.G, G_py, "G")
+    assert_close(masked.h, h_py, "h")
+    m = mask.numpy()
+    np.testing.assert_array_equal(masked.h[m], all_arms.h[m])  # the named robots: as the option for every robot
+    np.testing.assert_array_equal(masked.h[~m], plain.h[~m])  # the others: as without it
+    assert not np.allclose(masked.h[m], plain.h[m])  # and it does something there
+    with pytest.raises(ControlShapeError, match="f_ext_limits"):
+        nat.step(inputs["q"], inputs["qd"], inputs["mass"], inputs["bias"], inputs["weights"], inputs["f_d"],
+                 inputs["pos_d"], inputs["rot_d"], f_ext_limits=torch.ones(N))
 
 
 def closed_loop(backend: str, steps: int, n: int = 3, seed: int = 0, scene: str = "",

@@ -267,7 +267,7 @@ def test_counting_the_measured_wrench_holds_the_joint_limits_against_the_operato
     """In the guidance scene (the operator guides, no contact) `panda.joint_limits_f_ext` (its config's default)
     keeps every joint inside its limits under random weights, without a QP fallback; without it the operator's pull
     carries a joint 10-17 mrad past its limit on these seeds (docs/panda.md)."""
-    cfg = _cfg({"panda": {"scene": "guidance", "joint_limits_f_ext": True}})
+    cfg = _cfg({"panda": {"scene": "guidance", "joint_limits_f_ext": "always"}})
     r = limit_stress(8, 3000, seed, cfg)
     assert r.worst_excess < 0.0 and r.worst_torque_ratio <= 1.0 + 1e-12 and r.diverged == 0 and r.fallbacks == 0
 
@@ -296,13 +296,27 @@ def test_joint_limit_excess_is_tracked_per_arm_over_the_episode() -> None:
     assert env.joint_limit_excess[1] == -np.inf and env.joint_limit_excess[0] == home[0]
 
 
-def test_joint_limits_f_ext_turns_on_the_controllers_option() -> None:
+def test_joint_limits_f_ext_turns_on_the_controllers_option(monkeypatch) -> None:  # noqa: ANN001
     assert not PandaEnv(1, _cfg(), seed=0).ctrl.options.joint_limits_include_f_ext
-    env = PandaEnv(1, _cfg({"panda": {"joint_limits_f_ext": True}}), seed=0)
+    env = PandaEnv(1, _cfg({"panda": {"joint_limits_f_ext": "always"}}), seed=0)
     assert env.ctrl.options.joint_limits_include_f_ext
     from a3cqp_rl.config import load_config
-    assert load_config("configs/panda_guidance.yaml").panda.joint_limits_f_ext
-    assert not load_config("configs/panda_peg_in_hole.yaml").panda.joint_limits_f_ext
+    from a3cqp_rl.exceptions import ConfigError
+    assert load_config("configs/panda_guidance.yaml").panda.joint_limits_f_ext == "always"
+    assert load_config("configs/panda_peg_in_hole.yaml").panda.joint_limits_f_ext == "off"
+    with pytest.raises(ConfigError, match="joint_limits_f_ext"):
+        _cfg({"panda": {"joint_limits_f_ext": True}})
+    # "operator": the arms the operator holds, step by step (the controller's option stays off)
+    env = PandaEnv(2, _cfg({"panda": {"joint_limits_f_ext": "operator"}}), seed=0)
+    assert not env.ctrl.options.joint_limits_include_f_ext
+    seen = []
+    step = env.ctrl.step
+    monkeypatch.setattr(env.ctrl, "step", lambda *a, **k: seen.append(k["f_ext_limits"].clone()) or step(*a, **k))
+    td = env.reset()
+    env.operator.grasp(np.array([1]), env.handle_pos[[1]], env.t)
+    td["action"] = _ik_action(2)
+    env.step(td)
+    assert len(seen) == env.substeps and all(m.tolist() == [False, True] for m in seen)
 
 
 def test_axis_agents_view_trains_one_shared_policy_with_a2c(tmp_path) -> None:  # noqa: ANN001

@@ -80,6 +80,8 @@ class ControlContext:
     wrench_feedforward: torch.Tensor | None = None
     """Wrench the AC/FC tasks are expected to command [B, 6] (N, N m) (set by the controller; None = 0): the IK task
     can subtract its acceleration Λ⁻¹ f so that AC/FC on some axes do not drag the IK axes (Λ⁻¹ couples them)."""
+    f_ext_limits: torch.Tensor | None = None
+    """Bool [B]: the robots whose joint-limit rows count f_ext (A3CQPController.step), or None: none."""
     cache: dict = field(default_factory=dict, compare=False, repr=False)
     """Per-step values shared between limits (e.g. the viable joint acceleration bounds, used by JointLimitsViability,
     TorqueLimits and the fallback); shared by `dataclasses.replace` copies of this context."""

@@ -177,6 +177,13 @@ class _StepInputs:
     """numpy or torch: the kind of the arrays above."""
     leak_extra: Array | None = None
     """Extra per-axis relaxation rate of q*, q̇* [N, 6] (1/s), or None (`A3CQPController.step`)."""
+    f_ext_limits: Array | None = None
+    """Bool [N]: the robots whose joint-limit rows count the measured f_ext, or None (`A3CQPController.step`)."""
+
+
+def _f_ext_limits(mask: Array | None, n: int) -> np.ndarray:
+    """The C input `f_ext_limits` [N] (1.0 where the robot's joint-limit rows count f_ext) from step's mask."""
+    return np.zeros(n) if mask is None else np.asarray(mask, dtype=np.float64)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -391,7 +398,7 @@ class A3CQPController:
 
     def build_context(self, q: Array, qd: Array, mass: Array, weights: Array, f_d: Array, pos_d: Array,
                       rot_d: Array, f_ext: Array, in_contact: Array, bias: Array | None = None,
-                      kin: Kinematics | None = None) -> ControlContext:
+                      kin: Kinematics | None = None, f_ext_limits: Array | None = None) -> ControlContext:
         """All per-step matrices the tasks and limits need (one kinematics pass, one factorisation of B).
 
         Takes torch tensors, or numpy arrays (the CPU path of `step`); the context holds the same kind.
@@ -425,7 +432,8 @@ class A3CQPController:
             pose_error=pose_error(pos_d, rot_d, kin.pos, kin.rot), f_ext=f_ext,
             f_d_local=f_d.clip(0.0, self.f_d_max), in_contact=in_contact,
             qdd_pd0=mv(pd, err), pd_qdd_gain=pd_qdd_gain, nullspace=c["eye7"] - mm(jpinv, J),
-            pd_matrix=pd, dt=dt, bias=bias, qdd_map=c["eye7"] + pd_qdd_gain, jt_w1_j=mm(Jt, W1J), jpinv=jpinv)
+            pd_matrix=pd, dt=dt, bias=bias, qdd_map=c["eye7"] + pd_qdd_gain, jt_w1_j=mm(Jt, W1J), jpinv=jpinv,
+            f_ext_limits=f_ext_limits)
 
     def _constants(self, like: Array) -> dict[str, Array]:
         """Per-step constants (identities, damping terms, zero blocks), made once per array kind: read-only."""
@@ -595,7 +603,8 @@ class A3CQPController:
     def step(self, q: torch.Tensor, qd: torch.Tensor, mass: torch.Tensor, bias: torch.Tensor, weights: torch.Tensor,
              f_d: torch.Tensor, pos_d: torch.Tensor, rot_d: torch.Tensor, f_ext: torch.Tensor | None = None,
              in_contact: torch.Tensor | None = None, f_env: torch.Tensor | None = None,
-             kin: Kinematics | None = None, leak_extra: torch.Tensor | None = None) -> ControlOutput:
+             kin: Kinematics | None = None, leak_extra: torch.Tensor | None = None,
+             f_ext_limits: torch.Tensor | None = None) -> ControlOutput:
         """One 1 kHz control step for N robots: QP (eq. 24) then computed torque (eq. 4-7).
 
         Args:
@@ -612,6 +621,8 @@ class A3CQPController:
             leak_extra: an extra relaxation rate of q*, q̇* [N, 6] (1/s, ≥ 0) along each axis of the local frame L,
                 added to the per-axis leak's own desired_state_leak × (w2 + w3 · min(1, f_d / 1 N)) in one relaxation
                 (`leak_axes` "per_axis" only); default None, none.
+            f_ext_limits: bool [N], the robots whose joint-limit rows count the measured f_ext, as
+                `ControllerOptions.joint_limits_include_f_ext` does for every robot; default None, none.
 
         A robot whose inputs are not finite (or whose QP fails) gets the safe fallback: a viable brake with gravity
         compensation, `fallback` True and status INVALID_INPUT (or the QP's status).
@@ -619,13 +630,19 @@ class A3CQPController:
         inp = self._prepare(q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, f_env, kin)
         if leak_extra is not None:
             inp.leak_extra = self._check_leak_extra(leak_extra, inp.q)
+        if f_ext_limits is not None:
+            m = torch.as_tensor(f_ext_limits)
+            if tuple(m.shape) != (self.n,) or m.dtype != torch.bool:
+                raise ControlShapeError(f"f_ext_limits must be a bool tensor of shape ({self.n},), got "
+                                        f"{m.dtype} {tuple(m.shape)}")
+            inp.f_ext_limits = _np(m) if inp.xp is np else m.to(inp.q.device)
         if inp.all_valid and inp.xp is np and self._native is not None and self._native_fits() and (
                 self._native_for == (tuple(map(id, self.tasks)), tuple(map(id, self.limits)))):
             return self._step_native(inp)
         if not inp.all_valid:
             inp = self._stand_ins(inp)
         ctx = self.build_context(inp.q, inp.qd, inp.mass, inp.weights, inp.f_d, inp.pos_d, inp.rot_d, inp.f_ext,
-                                 inp.in_contact, inp.bias, kin=inp.kin)
+                                 inp.in_contact, inp.bias, kin=inp.kin, f_ext_limits=inp.f_ext_limits)
         if self.hierarchy.strict:  # paper 002 eq. 2: one QP per level
             costs, G, h = self.build_levels(ctx)
             t = torch.as_tensor
@@ -744,7 +761,8 @@ class A3CQPController:
 
     def assemble_native(self, q: np.ndarray, qd: np.ndarray, mass: np.ndarray, bias: np.ndarray,
                         weights: np.ndarray, f_d: np.ndarray, pos_d: np.ndarray, rot_d: np.ndarray,
-                        f_ext: np.ndarray, in_contact: np.ndarray, kin: Kinematics | None = None) -> native.Assembled:
+                        f_ext: np.ndarray, in_contact: np.ndarray, kin: Kinematics | None = None,
+                        f_ext_limits: np.ndarray | None = None) -> native.Assembled:
         """`build_context` + `build_qp` by the C step (numpy arrays, shapes as `step`; the default composition only)."""
         if self._native is None:
             raise RuntimeError("this controller has no native step (backend='python' or not the default composition)")
@@ -752,7 +770,7 @@ class A3CQPController:
         return self._native.assemble(
             q=q, qd=qd, mass=mass, bias=bias, jac=kin.jac, jdot_qdot=kin.jdot_qdot, twist=kin.twist, pos=kin.pos,
             rot=kin.rot, weights=weights, f_d=f_d, pos_d=pos_d, rot_d=rot_d, f_ext=f_ext, in_contact=in_contact,
-            q_des=_np(self.q_des), qd_des=_np(self.qd_des))
+            q_des=_np(self.q_des), qd_des=_np(self.qd_des), f_ext_limits=_f_ext_limits(f_ext_limits, self.n))
 
     def _native_fits(self) -> bool:
         """Whether the C step translates this controller's stack (one level with every task active)."""
@@ -761,7 +779,7 @@ class A3CQPController:
     def _native_qp(self, inp: _StepInputs) -> tuple[native.Assembled, torch.Tensor, torch.Tensor, torch.Tensor]:
         """The C assembly and the QP's (x, status, iterations) of a native step."""
         asm = self.assemble_native(inp.q, inp.qd, inp.mass, inp.bias, inp.weights, inp.f_d, inp.pos_d, inp.rot_d,
-                                   inp.f_ext, inp.in_contact, inp.kin)
+                                   inp.f_ext, inp.in_contact, inp.kin, inp.f_ext_limits)
         return asm, *self._solve(*(torch.from_numpy(a) for a in (asm.P, asm.c, asm.G, asm.h)))
 
     def _step_native(self, inp: _StepInputs) -> ControlOutput:

@@ -289,6 +289,9 @@ class JointLimitsViability(Limit):
         offset = ctx.qdd_pd0
         if self.include_f_ext:
             offset = offset + mv(ctx.mass_inv_jt, ctx.f_ext)
+        elif ctx.f_ext_limits is not None:  # the robots the step names (A3CQPController.step's f_ext_limits)
+            ext = mv(ctx.mass_inv_jt, ctx.f_ext)
+            offset = offset + ctx.xp.where(ctx.f_ext_limits[:, None], ext, 0.0 * ext)
         return Inequality(G=cat([motion, -motion, total, -total], 1),
                           h=cat([ub - ctx.qdd_pd0, ctx.qdd_pd0 - lb, ub - offset, offset - lb], 1))
 

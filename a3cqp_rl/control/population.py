@@ -36,8 +36,8 @@ from a3cqp_rl.config import ControllerConfig
 from a3cqp_rl.control.arrays import Array, const, mv, zeros
 from a3cqp_rl.control.context import ControlContext
 from a3cqp_rl.control import native
-from a3cqp_rl.control.controller import (A3CQPController, ControllerOptions, ControlOutput, _model_kinematics, _np,
-                                         _StepInputs)
+from a3cqp_rl.control.controller import (A3CQPController, ControllerOptions, ControlOutput, _f_ext_limits,
+                                         _model_kinematics, _np, _StepInputs)
 from a3cqp_rl.control.exceptions import InvalidGainError, InvalidLevelError
 from a3cqp_rl.control.hierarchy import MAX_LEVEL, Hierarchy, solve_cascade
 from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer, CartesianIK, ForceControl,
@@ -281,7 +281,8 @@ class PopulationController(A3CQPController):
         packed = self._native.pack(
             q=inp.q, qd=inp.qd, mass=inp.mass, bias=inp.bias, jac=kin.jac, jdot_qdot=kin.jdot_qdot, twist=kin.twist,
             pos=kin.pos, rot=kin.rot, weights=inp.weights, f_d=inp.f_d, pos_d=inp.pos_d, rot_d=inp.rot_d,
-            f_ext=inp.f_ext, in_contact=inp.in_contact, q_des=_np(self.q_des), qd_des=_np(self.qd_des))
+            f_ext=inp.f_ext, in_contact=inp.in_contact, q_des=_np(self.q_des), qd_des=_np(self.qd_des),
+            f_ext_limits=_f_ext_limits(inp.f_ext_limits, self.n))
         levels = [self._native.assemble(robots=rows, packed=packed) for rows in self._robot_rows]
         t, asm = torch.from_numpy, levels[0]
         if len(levels) == 1:

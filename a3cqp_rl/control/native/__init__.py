@@ -200,7 +200,8 @@ class NativeStep:
         """build_context + build_qp of the default composition for N arms.
 
         `inputs`: the entries of the C input table (`lib.inputs`: q, qd, mass, bias, jac, jdot_qdot, twist, pos, rot,
-        weights, f_d, pos_d, rot_d, f_ext, in_contact, q_des, qd_des), batch first, shapes as A3CQPController.step
+        weights, f_d, pos_d, rot_d, f_ext, in_contact, q_des, qd_des, f_ext_limits), batch first, shapes as
+        A3CQPController.step (f_ext_limits [N]: 1.0 where the joint-limit rows count f_ext)
         (or `packed`, `pack`'s rows, to assemble several costs of the same inputs).  `robots` [N, R]: a population's
         per-robot rows (`robot_rows`: gains, and each task's share of this cost), else every arm runs the parameters."""
         # one packed copy of the inputs in the C table's order: also makes strided views contiguous

@@ -317,7 +317,7 @@ static void viable_bounds(const a3cqp_params *p, const double *q, const double *
 static void assemble_one(const a3cqp_params *p, const double *q, const double *qd, const double *M, const double *bias,
                          const double *J, const double *jdqd, const double *twist, const double *pos, const double *rot,
                          const double *w, const double *f_d, const double *pos_d, const double *rot_d,
-                         const double *f_ext, int contact, const double *q_des, const double *qd_des,
+                         const double *f_ext, int contact, int count_ext, const double *q_des, const double *qd_des,
                          const double *cost, double *P, double *c, double *G, double *h, double *pd_out, double *pose_out,
                          double *f_adm, double *f_ctc, double *safe) {
     context cx;
@@ -390,7 +390,7 @@ static void assemble_one(const a3cqp_params *p, const double *q, const double *q
     double *g = G, *hh = h;
     double off[7];
     memcpy(off, cx.qdd_pd0, sizeof off);
-    if (p->include_f_ext != 0.0) {
+    if (p->include_f_ext != 0.0 || count_ext) { /* for every arm, or for this one (the step's f_ext_limits) */
         double t[7];
         mv(7, 6, cx.binv_jt, f_ext, t);
         for (int i = 0; i < 7; i++) off[i] += t[i];
@@ -447,14 +447,15 @@ static void assemble_one(const a3cqp_params *p, const double *q, const double *q
 /* The packed per-arm input row of a3cqp_assemble: (name, width) in order; the bindings pack by this table. */
 #define A3CQP_INPUTS(A)                                                                                            \
     A(q, 7) A(qd, 7) A(mass, 49) A(bias, 7) A(jac, 42) A(jdot_qdot, 6) A(twist, 6) A(pos, 3) A(rot, 9)             \
-    A(weights, 18) A(f_d, 6) A(pos_d, 3) A(rot_d, 9) A(f_ext, 6) A(in_contact, 1) A(q_des, 7) A(qd_des, 7)
+    A(weights, 18) A(f_d, 6) A(pos_d, 3) A(rot_d, 9) A(f_ext, 6) A(in_contact, 1) A(q_des, 7) A(qd_des, 7)        \
+    A(f_ext_limits, 1)
 typedef struct { A3CQP_INPUTS(DECLARE_A) } a3cqp_input;
 #define IN(f) (int)(offsetof(a3cqp_input, f) / sizeof(double))
 enum {
     IN_Q = IN(q), IN_QD = IN(qd), IN_M = IN(mass), IN_BIAS = IN(bias), IN_J = IN(jac), IN_JDQD = IN(jdot_qdot),
     IN_TWIST = IN(twist), IN_POS = IN(pos), IN_ROT = IN(rot), IN_W = IN(weights), IN_FD = IN(f_d),
     IN_POSD = IN(pos_d), IN_ROTD = IN(rot_d), IN_FEXT = IN(f_ext), IN_CONTACT = IN(in_contact), IN_QDES = IN(q_des),
-    IN_QDDES = IN(qd_des), IN_SIZE = (int)(sizeof(a3cqp_input) / sizeof(double))
+    IN_QDDES = IN(qd_des), IN_FEXTLIM = IN(f_ext_limits), IN_SIZE = (int)(sizeof(a3cqp_input) / sizeof(double))
 };
 #define INPUT_FIELD(f, n) {#f, IN(f), n},
 static const a3cqp_field INPUT_FIELDS[] = { A3CQP_INPUTS(INPUT_FIELD) };
@@ -478,7 +479,7 @@ void a3cqp_assemble(int64_t n, const a3cqp_params *p, const double *in, double *
     for (int64_t k = 0; k < n; k++) {
         const double *a = in + IN_SIZE * k;
         assemble_one(p, a + IN_Q, a + IN_QD, a + IN_M, a + IN_BIAS, a + IN_J, a + IN_JDQD, a + IN_TWIST, a + IN_POS,
-                     a + IN_ROT, a + IN_W, a + IN_FD, a + IN_POSD, a + IN_ROTD, a + IN_FEXT, a[IN_CONTACT] != 0.0,
+                     a + IN_ROT, a + IN_W, a + IN_FD, a + IN_POSD, a + IN_ROTD, a + IN_FEXT, a[IN_CONTACT] != 0.0, a[IN_FEXTLIM] != 0.0,
                      a + IN_QDES, a + IN_QDDES, ALL_COSTS, P + NV * NV * k, c + NV * k, G + m * NV * k, h + m * k, pd + 49 * k,
                      pose + 6 * k, f_adm + 6 * k, f_ctc + 6 * k, safe + 7 * k);
     }
@@ -505,7 +506,7 @@ void a3cqp_assemble_robots(int64_t n, const a3cqp_params *p, const double *in, c
         pk.creg_gamma = r->creg_gamma;
         const double cost[3] = {r->cost_ik, r->cost_ac, r->cost_fc};
         assemble_one(&pk, a + IN_Q, a + IN_QD, a + IN_M, a + IN_BIAS, a + IN_J, a + IN_JDQD, a + IN_TWIST, a + IN_POS,
-                     a + IN_ROT, a + IN_W, a + IN_FD, a + IN_POSD, a + IN_ROTD, a + IN_FEXT, a[IN_CONTACT] != 0.0,
+                     a + IN_ROT, a + IN_W, a + IN_FD, a + IN_POSD, a + IN_ROTD, a + IN_FEXT, a[IN_CONTACT] != 0.0, a[IN_FEXTLIM] != 0.0,
                      a + IN_QDES, a + IN_QDDES, cost, P + NV * NV * k, c + NV * k, G + m * NV * k, h + m * k,
                      pd + 49 * k, pose + 6 * k, f_adm + 6 * k, f_ctc + 6 * k, safe + 7 * k);
     }
