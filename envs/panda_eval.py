@@ -52,7 +52,8 @@ import torch
 from a3cqp_rl.exceptions import A3CQPError
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "paired", "free_motion_rates", "free_motion_warning", "guided_rates",
-           "guided_warning", "limit_stress", "LimitStress", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult", "load_fixed_controller"]
+           "guided_warning", "limit_stress", "LimitStress", "capped_time", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult",
+           "load_fixed_controller"]
 
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
 PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
@@ -269,7 +270,8 @@ def format_paired(res: EvalResult, primary: str = "learned") -> str:
         every = ""
         if p.get("capped_difference_mean_s") is not None:
             se = p["capped_difference_se_s"]
-            every = f"; every trial: {p['capped_difference_mean_s']:+.2f}" + (f" ± {se:.2f} s" if se is not None else " s")
+            every = (f"; every trial: {p['capped_difference_mean_s']:+.2f}"
+                     + (f" ± {se:.2f} s" if se is not None else " s"))
         lines.append(f"  {c.ljust(w)}: {t}; only {primary}: {p['insertions_only_' + primary]}, only {c}: "
                      f"{p['insertions_only_baseline']}{every}")
     return "\n".join(lines)

@@ -424,7 +424,8 @@ class PegInHole(Scene):
     def metrics(self) -> dict[str, np.ndarray]:
         succ = ~np.isnan(self.success_time)
         return {"success": succ, "insertion_time": self.success_time - self.contact_time,
-                "time_limit": np.full(succ.shape, self.cfg.time_limit), "contact_time": self.contact_time.copy(), "misalign_translation": self.misalign_translation.copy(),
+                "time_limit": np.full(succ.shape, self.cfg.time_limit), "contact_time": self.contact_time.copy(),
+                "misalign_translation": self.misalign_translation.copy(),
                 "misalign_rotation": self.misalign_rotation.copy(), "max_depth": self.max_depth.copy(),
                 "extracted": self.extracted.copy(), "disengage_force": self.disengage_force.copy()}
 

@@ -479,8 +479,8 @@ void a3cqp_assemble(int64_t n, const a3cqp_params *p, const double *in, double *
     for (int64_t k = 0; k < n; k++) {
         const double *a = in + IN_SIZE * k;
         assemble_one(p, a + IN_Q, a + IN_QD, a + IN_M, a + IN_BIAS, a + IN_J, a + IN_JDQD, a + IN_TWIST, a + IN_POS,
-                     a + IN_ROT, a + IN_W, a + IN_FD, a + IN_POSD, a + IN_ROTD, a + IN_FEXT, a[IN_CONTACT] != 0.0, a[IN_FEXTLIM] != 0.0,
-                     a + IN_QDES, a + IN_QDDES, ALL_COSTS, P + NV * NV * k, c + NV * k, G + m * NV * k, h + m * k, pd + 49 * k,
+                     a + IN_ROT, a + IN_W, a + IN_FD, a + IN_POSD, a + IN_ROTD, a + IN_FEXT, a[IN_CONTACT] != 0.0,
+                     a[IN_FEXTLIM] != 0.0, a + IN_QDES, a + IN_QDDES, ALL_COSTS, P + NV * NV * k, c + NV * k, G + m * NV * k, h + m * k, pd + 49 * k,
                      pose + 6 * k, f_adm + 6 * k, f_ctc + 6 * k, safe + 7 * k);
     }
 }
@@ -506,8 +506,8 @@ void a3cqp_assemble_robots(int64_t n, const a3cqp_params *p, const double *in, c
         pk.creg_gamma = r->creg_gamma;
         const double cost[3] = {r->cost_ik, r->cost_ac, r->cost_fc};
         assemble_one(&pk, a + IN_Q, a + IN_QD, a + IN_M, a + IN_BIAS, a + IN_J, a + IN_JDQD, a + IN_TWIST, a + IN_POS,
-                     a + IN_ROT, a + IN_W, a + IN_FD, a + IN_POSD, a + IN_ROTD, a + IN_FEXT, a[IN_CONTACT] != 0.0, a[IN_FEXTLIM] != 0.0,
-                     a + IN_QDES, a + IN_QDDES, cost, P + NV * NV * k, c + NV * k, G + m * NV * k, h + m * k,
+                     a + IN_ROT, a + IN_W, a + IN_FD, a + IN_POSD, a + IN_ROTD, a + IN_FEXT, a[IN_CONTACT] != 0.0,
+                     a[IN_FEXTLIM] != 0.0, a + IN_QDES, a + IN_QDDES, cost, P + NV * NV * k, c + NV * k, G + m * NV * k, h + m * k,
                      pd + 49 * k, pose + 6 * k, f_adm + 6 * k, f_ctc + 6 * k, safe + 7 * k);
     }
 }
