@@ -13,6 +13,7 @@ from a3cqp_rl.control import A3CQPController, ControllerOptions, native
 from a3cqp_rl.control.exceptions import ControlShapeError, InvalidGainError
 from a3cqp_rl.control.limits import WrenchBox
 from a3cqp_rl.control.tasks import CartesianIK, ForceControl
+from a3cqp_rl.qp import QPStatus
 from a3cqp_rl.robot import PANDA_LIMITS, PandaModel, PandaSim, mujoco_dynamics
 
 pytestmark = pytest.mark.skipif(native.load() is None, reason="no C compiler: the native step is not built")
@@ -285,3 +286,25 @@ def test_non_finite_state_on_the_first_call_brakes_with_gravity_compensation(bac
     out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, torch.zeros(2, 6, dtype=torch.float64), kin.pos, kin.rot)
     assert out.status.tolist() == [0, 0] and not out.fallback.any() and torch.isfinite(out.tau).all()
     assert out.tau[1].abs().max() < 100.0
+
+
+@pytest.mark.parametrize("backend", ["python", "native"])
+def test_a_fallback_starts_only_the_failed_robots_qp_cold(monkeypatch, backend) -> None:
+    inputs, model = random_inputs(6, seed=7, near_limits=True)
+    ctrl = A3CQPController(6, model=model, options=ControllerOptions(backend=backend))
+    real = controller_module.solve_qp
+    kept = {}
+
+    def robot_2_fails(*a, **k):
+        sol = real(*a, **k)
+        sol.status[2] = QPStatus.MAX_ITER
+        kept["duals"] = torch.cat([sol.z, sol.z_lb, sol.z_ub], 1).clone()
+        return sol
+
+    monkeypatch.setattr(controller_module, "solve_qp", robot_2_fails)
+    out = ctrl.step(**inputs)
+    assert out.fallback.tolist() == [False, False, True, False, False, False]
+    duals = torch.cat([ctrl._warm.z, ctrl._warm.z_lb, ctrl._warm.z_ub], 1)
+    assert (kept["duals"][2] > 0).any() and (duals[2] == 0).all()  # robot 2's working set is gone
+    others = [0, 1, 3, 4, 5]
+    assert (kept["duals"][others] > 0).any() and torch.equal(duals[others], kept["duals"][others])

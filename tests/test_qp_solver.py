@@ -80,6 +80,23 @@ def test_warm_start_reduces_iterations_and_keeps_answer() -> None:
     assert warm2.iterations.float().mean() <= 1.5
 
 
+def test_forget_starts_only_the_named_instances_cold() -> None:
+    qp = random_qp_batch(8, m=30, p=2, bounds=True, spread=0.35, seed=7)
+    sol = solve_qp(*qp.args())
+    before = [t.clone() for t in (sol.y, sol.z, sol.z_lb, sol.z_ub)]
+    assert (before[1][[2, 5]] > 0).any()
+    sol.forget([2, 5])
+    keep = [0, 1, 3, 4, 6, 7]
+    for t, t0 in zip((sol.y, sol.z, sol.z_lb, sol.z_ub), before):
+        assert (t[[2, 5]] == 0).all() and torch.equal(t[keep], t0[keep])
+    # a warm start from it: instances 2 and 5 take the cold solve's steps, the others the warm one's
+    cold = solve_qp(*qp.args())
+    warm = solve_qp(*qp.args(), warm_start=sol)
+    assert torch.equal(warm.iterations[[2, 5]], cold.iterations[[2, 5]])
+    assert (warm.iterations[keep] < cold.iterations[keep]).all()
+    assert (warm.x - cold.x).abs().max() < 1e-8
+
+
 def test_infeasible_instances_are_flagged_and_do_not_poison_the_batch() -> None:
     qp = random_qp_batch(6, n=5, m=8, p=1, seed=4)
     G, h, A, b = qp.G.clone(), qp.h.clone(), qp.A.clone(), qp.b.clone()
@@ -95,6 +112,25 @@ def test_infeasible_instances_are_flagged_and_do_not_poison_the_batch() -> None:
     ref = solve_qp(qp.P[good], qp.q[good], A[good], b[good], G[good], h[good])
     assert (sol.status[good] == QPStatus.SOLVED).all()
     assert (sol.x[good] - ref.x).abs().max() < 1e-10
+
+
+def test_without_hand_on_the_c_routes_verdict_stands() -> None:
+    qp = random_qp_batch(6, n=5, m=8, seed=4)
+    G, h = qp.G.clone(), qp.h.clone()
+    G[1, 0], h[1, 0] = torch.eye(5, dtype=DT)[0], -1.0  # x0 <= -1 and x0 >= 1
+    G[1, 1], h[1, 1] = -torch.eye(5, dtype=DT)[0], -1.0
+    full = solve_qp(qp.P, qp.q, G=G, h=h)
+    quick = solve_qp(qp.P, qp.q, G=G, h=h, hand_on=False)
+    assert full.status[1] == QPStatus.PRIMAL_INFEASIBLE and quick.status[1] == QPStatus.PRIMAL_INFEASIBLE
+    assert (quick.x[1] == 0).all() and (quick.z[1] == 0).all()
+    good = torch.tensor([0, 2, 3, 4, 5])
+    assert (quick.status[good] == QPStatus.SOLVED).all() and torch.equal(quick.x[good], full.x[good])
+    # the same through the general path (an unbatched P) and with gradients
+    P1 = qp.P[0]
+    for kwargs in ({}, {"q": qp.q.clone().requires_grad_()}):
+        sol = solve_qp(P1, kwargs.get("q", qp.q), G=G, h=h, hand_on=False)
+        assert sol.status[1] == QPStatus.PRIMAL_INFEASIBLE and (sol.x[1] == 0).all()
+        assert (sol.status[good] == QPStatus.SOLVED).all()
 
 
 def test_infeasible_equalities_and_bounds() -> None:

@@ -103,6 +103,10 @@ class ControllerOptions:
     """[1/s] fallback joint deceleration q̈ = −k q̇ (within the viable bounds) when a QP fails."""
     qp_max_iter: int = 50
     """Interior-point iteration budget of the QP solver."""
+    qp_hand_on: bool = False
+    """Whether a QP the solver's C route cannot certify (in practice: infeasible ones, when external wrenches enter the
+    joint-limit rows) goes on to its torch route (solve_qp's hand_on). Off: the C route's verdict stands and the robot
+    falls back at once; its torch route takes ~20 ms an instance to certify what the fallback does anyway."""
     q_center: tuple[float, ...] = field(default=PANDA_HOME)
     """q_d of the JC task (eq. 23) [rad]; default the Franka "ready" pose."""
     backend: Literal["auto", "python", "native"] = "auto"
@@ -558,7 +562,8 @@ class A3CQPController:
         n = self.n
         warm = self._warm if self._warm is not None and self._warm.z.shape == (n, G.shape[1]) else None
         try:
-            sol = solve_qp(P, c, G=G, h=h, warm_start=warm, max_iter=self.options.qp_max_iter)
+            sol = solve_qp(P, c, G=G, h=h, warm_start=warm, max_iter=self.options.qp_max_iter,
+                           hand_on=self.options.qp_hand_on)
             self._warm = sol
             return sol.x, sol.status, sol.iterations
         except Exception:  # a solver bug must not take the arms down: brake every robot and say so loudly
@@ -586,7 +591,7 @@ class A3CQPController:
                 torch.zeros(n, dtype=torch.long))
 
     def _report_fallback(self, ok: Array, qp_status: torch.Tensor, valid: Array) -> None:
-        """Count and log the robots that fell back this step (and drop the warm start)."""
+        """Count and log the robots that fell back this step (and start their next QP cold)."""
         bad = [i for i in range(self.n) if not bool(ok[i])]
         self.fallback_count += len(bad)
         self._fallback_steps += 1
@@ -596,7 +601,10 @@ class A3CQPController:
                            " (step %d with a fallback, %d robot-steps in all%s)", bad, qp_status[bad].tolist(),
                            [bool(valid[i]) for i in bad], k, self.fallback_count,
                            f"; now logged every {FALLBACK_LOG_EVERY}th" if k == FALLBACK_LOG_FIRST else "")
-        self._warm, self._warm_levels = None, ()
+        # a failed instance's multipliers are no working set to start from; the others' still are
+        for sol in (self._warm, *self._warm_levels):
+            if sol is not None:
+                sol.forget(bad)
 
     # ------------------------------------------------------------------ step
     @torch.no_grad()

@@ -143,6 +143,17 @@ class QPSolution:
         """Boolean mask [B] of instances with status SOLVED."""
         return self.status == QPStatus.SOLVED
 
+    def forget(self, rows: np.ndarray | list[int]) -> None:
+        """Zero the multipliers of the instances `rows` in place, so a warm start from this solution starts them cold."""
+        if self._buf is not None:
+            B, n, p, m = self._dims
+            self._buf[B * n : B * (n + p + m + 2 * n)].reshape(B, p + m + 2 * n)[rows] = 0.0
+            return
+        idx = torch.as_tensor(rows, dtype=torch.long)
+        with torch.no_grad():
+            for t in (self._y, self._z, self._z_lb, self._z_ub):
+                t.index_fill_(0, idx, 0.0)
+
     def __repr__(self) -> str:
         return f"QPSolution(x={self.x!r}, status={self.status!r})"
 
@@ -317,7 +328,7 @@ _FAST_STRIDES: dict[tuple[int, ...], int] = {}
 
 def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Tensor | None, G: Tensor | None,
             h: Tensor | None, lb: Tensor | None, ub: Tensor | None, warm_start: QPSolution | None, tol: float,
-            max_iter: int, active_set_iter: int | None) -> QPSolution | None:
+            max_iter: int, active_set_iter: int | None, hand_on: bool = True) -> QPSolution | None:
     """The C route for the common call (every argument a batched, contiguous float64 CPU tensor of one batch
     size), straight from the tensors' data to gi_qp_solve and back; None when the call does not fit (the general
     path then checks, explains and converts).  q is a float64 CPU tensor (checked by the caller)."""
@@ -373,7 +384,9 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
                   -1 if G is None else G._version, -1 if h is None else h._version,
                   -1 if lb is None else lb._version, -1 if ub is None else ub._version), (pP, pA, pG, ph, pl, pu))
     if worst:
-        if worst >= native.HANDED_ON:  # some instances need the torch route (no graph: x's node is `qp_vjp`)
+        if worst >= native.HANDED_ON and not hand_on:
+            _keep_c_verdict(sol)
+        elif worst >= native.HANDED_ON:  # some instances need the torch route (no graph: x's node is `qp_vjp`)
             with torch.no_grad():
                 _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
         elif worst < 0:
@@ -388,7 +401,7 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
 
 def _solve_canonical(
     lib: native.NativeQP | None, P: Tensor, q: Tensor, A: Tensor, b: Tensor, G: Tensor, h: Tensor,
-    z_warm: Tensor | None, tol: float, max_iter: int, active_set_iter: int | None,
+    z_warm: Tensor | None, tol: float, max_iter: int, active_set_iter: int | None, hand_on: bool = True,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, tuple | None]:
     """Solve a canonical float64 batch (bounds stacked into G, h); returns x, y, z, status, iterations and
     the C route's output buffer and arguments when it certified every instance (its adjoint then applies), else None."""
@@ -406,6 +419,9 @@ def _solve_canonical(
     x, y, z, status, iters = c.x, c.y, c.z, c.status, c.iterations
     if st[st.argmax()] < native.HANDED_ON:
         return x, y, z, status, iters, None if st.any() else (buf, addr, keep)
+    if not hand_on:
+        _keep_c_verdict(c)
+        return x, y, z, status, iters, None
     left = np.flatnonzero(st >= native.HANDED_ON)
     idx = torch.from_numpy(left)
     sub = [t.index_select(0, idx) for t in (P, q, A, b, G, h)]
@@ -477,11 +493,12 @@ class _QPFunction(torch.autograd.Function):
     """x*(P, q, A, b, G, h) with a backward by implicit differentiation of the KKT conditions."""
 
     @staticmethod
-    def forward(ctx, lib, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter):  # type: ignore[override]
+    def forward(ctx, lib, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter, hand_on):  # type: ignore[override]
         # Gradients of y, z, status, iterations are never used: without materialisation autograd
         # passes None for them instead of allocating zeros.
         ctx.set_materialize_grads(False)
-        x, y, z, status, iters, c_run = _solve_canonical(lib, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter)
+        x, y, z, status, iters, c_run = _solve_canonical(lib, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter,
+                                                         hand_on)
         ctx.lib, ctx.c_run = (lib, c_run) if c_run is not None else (None, None)
         ctx.save_for_backward(P, A, G, h, x, y, z, status)
         ctx.mark_non_differentiable(y, z, status, iters)
@@ -502,7 +519,7 @@ class _QPFunction(torch.autograd.Function):
             if not bool(ok.all()):
                 gx = torch.where(ok.unsqueeze(-1), gx, torch.zeros((), dtype=gx.dtype))
             grads = _backward_torch(P, A, G, h, x, y, z, gx, need)
-        return (None, *grads, None, None, None, None)
+        return (None, *grads, None, None, None, None, None)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -525,6 +542,7 @@ def solve_qp(
     max_iter: int = 50,
     active_set_iter: int | None = None,
     backend: str = "auto",
+    hand_on: bool = True,
 ) -> QPSolution:
     """Solve a batch of QPs min ½xᵀPx + qᵀx s.t. Ax = b, Gx ≤ h, lb ≤ x ≤ ub (differentiable).
 
@@ -542,6 +560,10 @@ def solve_qp(
             point (default 15 for B ≤ 32, 10 above).
         backend: "auto", "c" or "torch" (module docstring); unknown or impossible ones raise
             QPBackendError.
+        hand_on: the C route hands the instances it cannot certify (infeasible or degenerate ones) on to the
+            torch route, which certifies infeasibility or solves them; False keeps the C route's verdict instead
+            (status.py), for a caller that treats every failure alike and cannot wait (~20 ms an instance on the
+            torch route; the controller's fallback brake).
 
     Any argument may be given unbatched (without the leading B) to share it across the batch, and as a
     numpy array (converted; its dtype must match the others').  Gradients flow to every tensor argument
@@ -556,7 +578,7 @@ def solve_qp(
         lib = native.load()
         if lib is not None and (A is None) == (b is None) and (G is None) == (h is None):
             sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, 1e-9 if tol is None else float(tol), max_iter,
-                          active_set_iter)
+                          active_set_iter, hand_on)
             if sol is not None:
                 if torch.is_grad_enabled() and _needs_grad(P, q, A, b, G, h, lb, ub):
                     return _with_grad(sol)  # x differentiable by `qp_vjp`: one autograd node
@@ -575,11 +597,11 @@ def solve_qp(
     if lib is not None and dtype == _F64:
         # The control loop's call (batched contiguous float64 tensors): straight to the C routine.
         if not grad:
-            sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
+            sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter, hand_on)
             if sol is not None:
                 return sol
         else:  # the same, with x differentiable by `qp_vjp` (one autograd node, none of the general path's work)
-            sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
+            sol = _fast_c(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter, hand_on)
             if sol is not None:
                 return _with_grad(sol)
     P, A, b, G, h, lb, ub = (t if t is None or isinstance(t, Tensor) else _as_tensor(t, nm)
@@ -603,10 +625,13 @@ def solve_qp(
             sol._data = (lib, args, tuple(-1 if t is None else t._version for t in args),
                          tuple(keep[k][1] for k in (0, 2, 4, 5, 6, 7)), tuple(keep[k][2] for k in (0, 2, 4, 5, 6, 7)),
                          keep)
-            if worst >= native.HANDED_ON:
+            if worst >= native.HANDED_ON and not hand_on:
+                _keep_c_verdict(sol)
+            elif worst >= native.HANDED_ON:
                 _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
             return sol
-    return _solve_general(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter, dtype, grad)
+    return _solve_general(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter, dtype, grad,
+                          hand_on)
 
 
 def _with_grad(sol: QPSolution) -> QPSolution:
@@ -691,8 +716,20 @@ def _finish_on_torch(sol: QPSolution, P, q, A, b, G, h, lb, ub, B: int, n: int, 
     sol._np("_iterations")[left] += its.numpy()
 
 
+def _keep_c_verdict(sol: QPSolution) -> None:
+    """`hand_on=False`: the instances the C route left get its verdict in sol's buffer (PRIMAL_INFEASIBLE where its
+    infeasibility test fired, MAX_ITER otherwise; x and the multipliers 0) instead of a torch-route solve."""
+    st = sol._np("_status")
+    left = st >= native.HANDED_ON
+    B, n, p, m = sol._dims
+    sol._np("_x")[left] = 0.0
+    sol._buf[B * n : B * (n + p + m + 2 * n)].reshape(B, p + m + 2 * n)[left] = 0.0
+    st[left] = np.where(st[left] == native.INFEASIBLE_ROW, int(QPStatus.PRIMAL_INFEASIBLE), int(QPStatus.MAX_ITER))
+
+
 def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_start: QPSolution | None,  # noqa: ANN001
-                   tol: float, max_iter: int, active_set_iter: int | None, dtype: torch.dtype, grad: bool) -> QPSolution:
+                   tol: float, max_iter: int, active_set_iter: int | None, dtype: torch.dtype, grad: bool,
+                   hand_on: bool = True) -> QPSolution:
     """Every other call: shape checks with messages, float64 working precision, autograd, the torch route."""
     device = q.device
     lead = [t.shape[0] for t, k in ((P, 3), (q, 2), (A, 3), (b, 2), (G, 3), (h, 2), (lb, 2), (ub, 2)) if t is not None and t.dim() == k]
@@ -726,7 +763,7 @@ def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_s
     z_warm = _warm_rows(warm_start, G is not None, lb is not None, ub is not None, h_all)
     if z_warm is not None and z_warm.shape != h_all.shape:
         raise QPShapeError(f"warm_start duals have shape {tuple(z_warm.shape)}, expected {tuple(h_all.shape)}")
-    args = (z_warm, tol, int(max_iter), None if active_set_iter is None else int(active_set_iter))
+    args = (z_warm, tol, int(max_iter), None if active_set_iter is None else int(active_set_iter), hand_on)
     if grad:
         x, y, z_all, status, iters = _QPFunction.apply(lib, P, q, A, b, G_all, h_all, *args)
     else:
