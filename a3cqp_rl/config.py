@@ -923,9 +923,9 @@ class PandaEnvConfig:
     """Where the controller's joint-limit rows count the measured external wrench f_ext, so that an external force
     cannot carry a joint past its limit: "always" (ControllerOptions.joint_limits_include_f_ext: under random weights
     in the guidance scene no joint passed its limit on four seeds, against 10-17 mrad without), "operator" (an arm
-    while the operator holds its handle: the peg pulled out of its bore) or "off" (default: in stiff contact, the
-    peg on the rim, the contact's impulses make the QP infeasible and the controller brakes; docs/panda.md,
-    "External forces carry the joints past their limits")."""
+    while the operator holds its handle: the peg pulled out of its bore; configs/panda_peg_in_hole.yaml) or "off"
+    (default: in stiff contact, the peg on the rim, the contact's impulses make the QP infeasible and the controller
+    brakes; docs/panda.md, "External forces carry the joints past their limits")."""
     policy: str | None = None
     """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
     folder, relative to the working directory (None: --policy is needed for the learned controller)."""

@@ -303,7 +303,8 @@ def test_joint_limits_f_ext_turns_on_the_controllers_option(monkeypatch) -> None
     from a3cqp_rl.config import load_config
     from a3cqp_rl.exceptions import ConfigError
     assert load_config("configs/panda_guidance.yaml").panda.joint_limits_f_ext == "always"
-    assert load_config("configs/panda_peg_in_hole.yaml").panda.joint_limits_f_ext == "off"
+    assert load_config("configs/panda_peg_in_hole.yaml").panda.joint_limits_f_ext == "operator"
+    assert load_config("configs/panda_polishing.yaml").panda.joint_limits_f_ext == "off"
     with pytest.raises(ConfigError, match="joint_limits_f_ext"):
         _cfg({"panda": {"joint_limits_f_ext": True}})
     # "operator": the arms the operator holds, step by step (the controller's option stays off)
