@@ -171,3 +171,37 @@ def test_native_robot_rows_are_checked(states) -> None:  # noqa: ANN001
     with pytest.raises(ValueError, match="per-robot rows must have shape"):
         pop.step(**inputs)  # fills q*, q̇*
         step.assemble(robots=rows[:-1], packed=np.zeros((N, step.lib.a3cqp_input_size())))
+
+
+def test_a_fallback_starts_only_the_failed_robots_levels_cold(states, monkeypatch) -> None:  # noqa: ANN001
+    """Robots in groups of different level counts: the one that fails has its multipliers dropped in its group's
+    warm starts (at its place within the group); every other robot keeps its own."""
+    import a3cqp_rl.control.population as population_module
+    from a3cqp_rl.control.hierarchy import solve_cascade
+    from a3cqp_rl.qp import QPStatus
+
+    inputs, model = random_inputs(N, seed=8, near_limits=True)
+    gains, levels = _random_population(0)
+    pop = PopulationController(N, model=model, gains=gains, levels=levels)
+    failing = 5
+    k_fail, idx_fail = next((k, idx) for k, idx in pop._groups if failing in idx.tolist())
+    kept = {}
+
+    def robot_fails(costs, G, h, *a, **kw):  # noqa: ANN001, ANN202
+        sol = solve_cascade(costs, G, h, *a, **kw)
+        k = len(costs)
+        kept[k] = [torch.cat([s.z, s.z_lb, s.z_ub], 1).clone() for s in sol.solutions]
+        if k == k_fail:
+            sol.status[idx_fail.tolist().index(failing)] = QPStatus.MAX_ITER
+        return sol
+
+    monkeypatch.setattr(population_module, "solve_cascade", robot_fails)
+    out = pop.step(**inputs)
+    assert out.fallback.tolist() == [b == failing for b in range(N)]
+    row_fail = idx_fail.tolist().index(failing)
+    assert len(pop._groups) > 1 and any(bool((d[row_fail] > 0).any()) for d in kept[k_fail])
+    for k, idx in pop._groups:
+        for sol, before in zip(pop._warm_groups[k], kept[k]):
+            now = torch.cat([sol.z, sol.z_lb, sol.z_ub], 1)
+            for row, b in enumerate(idx.tolist()):
+                assert torch.equal(now[row], torch.zeros_like(now[row]) if b == failing else before[row]), (k, b)

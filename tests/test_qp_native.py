@@ -205,7 +205,8 @@ def test_infeasible_unbounded_nan_and_singular_instances_get_the_same_statuses_o
     B, n = q.shape
     status = c_solve(P.numpy(), q.numpy(), np.zeros((B, 0, n)), np.zeros((B, 0)), G.numpy(), h.numpy())[3]
     assert status[2] == QPStatus.INVALID_INPUT  # decided in C
-    assert (status[[1, 3, 5]] >= native.HANDED_ON).all()  # infeasible, P singular, P indefinite: handed on
+    assert status[1] == QPStatus.PRIMAL_INFEASIBLE  # decided in C too: its Farkas vector checked
+    assert (status[[3, 5]] >= native.HANDED_ON).all()  # P singular, P indefinite: handed on
     sol = solve_qp(P, q, G=G, h=h, backend="c")
     assert sol.status.tolist() == [QPStatus.SOLVED, QPStatus.PRIMAL_INFEASIBLE, QPStatus.INVALID_INPUT,
                                    QPStatus.SOLVED, QPStatus.SOLVED, QPStatus.NON_CONVEX]
@@ -283,8 +284,9 @@ def test_more_equalities_than_variables_are_handed_on() -> None:
 
 @needs_lib
 def test_large_batches_send_only_what_c_leaves_to_the_torch_route(monkeypatch) -> None:
-    """B = 64: certified in one C call (no torch solve), answers as Clarabel; with some infeasible
-    instances those alone go to the torch route, with the statuses of backend='torch'."""
+    """B = 64: certified in one C call (no torch solve), answers as Clarabel; with some infeasible instances
+    (decided in C) and some with a singular P, the singular ones alone go to the torch route, and every status is
+    backend='torch''s."""
     qp = random_qp_batch(64, spread=0.35, seed=11)
     x_ref, _ = clarabel_reference(qp)
     seen = []
@@ -297,16 +299,18 @@ def test_large_batches_send_only_what_c_leaves_to_the_torch_route(monkeypatch) -
     sol.x.sum().backward()  # the native adjoint over the whole batch
     assert torch.isfinite(P.grad).all()
 
-    G, h = qp.G.clone(), qp.h.clone()
+    G, h, P = qp.G.clone(), qp.h.clone(), qp.P.clone()
     for i in (3, 40):  # g x <= -1 and -g x <= -1: infeasible
         G[i, 1], h[i, :2] = -G[i, 0], -1.0
+    for i in (7, 50):  # P semi-definite (one direction held by the bounds only)
+        P[i, :, 0] = P[i, 0, :] = 0.0
     for fast in (True, False):  # no-grad (straight to C) and autograd (canonical rows) calls
         seen.clear()
-        sol = solve_qp(qp.P.requires_grad_(not fast), qp.q, G=G, h=h, lb=qp.lb, ub=qp.ub)
+        sol = solve_qp(P.requires_grad_(not fast), qp.q, G=G, h=h, lb=qp.lb, ub=qp.ub)
         assert sum(seen) == 2  # only the two uncertified instances left C
-        qp.P.requires_grad_(False)
-    ref = solve_qp(qp.P, qp.q, G=G, h=h, lb=qp.lb, ub=qp.ub, backend="torch")
-    assert torch.equal(sol.status, ref.status) and int((sol.status != QPStatus.SOLVED).sum()) == 2
+        P.requires_grad_(False)
+    ref = solve_qp(P, qp.q, G=G, h=h, lb=qp.lb, ub=qp.ub, backend="torch")
+    assert torch.equal(sol.status, ref.status) and (sol.status != QPStatus.SOLVED).nonzero().flatten().tolist() == [3, 40]
     ok = sol.status == QPStatus.SOLVED
     assert (sol.x[ok] - ref.x[ok]).abs().max().item() <= 1e-8
 

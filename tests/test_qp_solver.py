@@ -114,23 +114,40 @@ def test_infeasible_instances_are_flagged_and_do_not_poison_the_batch() -> None:
     assert (sol.x[good] - ref.x).abs().max() < 1e-10
 
 
-def test_without_hand_on_the_c_routes_verdict_stands() -> None:
+def test_the_c_route_certifies_infeasibility_itself(solver_route, monkeypatch) -> None:
+    """Goldfarb-Idnani's infeasibility test gives a Farkas vector; checked like the torch route's, the C route
+    answers PRIMAL_INFEASIBLE without handing the instance on."""
+    import a3cqp_rl.qp.solver as solver_module
+
     qp = random_qp_batch(6, n=5, m=8, seed=4)
     G, h = qp.G.clone(), qp.h.clone()
     G[1, 0], h[1, 0] = torch.eye(5, dtype=DT)[0], -1.0  # x0 <= -1 and x0 >= 1
     G[1, 1], h[1, 1] = -torch.eye(5, dtype=DT)[0], -1.0
-    full = solve_qp(qp.P, qp.q, G=G, h=h)
-    quick = solve_qp(qp.P, qp.q, G=G, h=h, hand_on=False)
-    assert full.status[1] == QPStatus.PRIMAL_INFEASIBLE and quick.status[1] == QPStatus.PRIMAL_INFEASIBLE
-    assert (quick.x[1] == 0).all() and (quick.z[1] == 0).all()
+    if solver_route == "c":
+        monkeypatch.setattr(solver_module, "_finish_on_torch", lambda *a, **k: pytest.fail("handed on"))
+    sol = solve_qp(qp.P, qp.q, G=G, h=h)
+    assert sol.status[1] == QPStatus.PRIMAL_INFEASIBLE and (sol.x[1] == 0).all()
     good = torch.tensor([0, 2, 3, 4, 5])
-    assert (quick.status[good] == QPStatus.SOLVED).all() and torch.equal(quick.x[good], full.x[good])
-    # the same through the general path (an unbatched P) and with gradients
-    P1 = qp.P[0]
-    for kwargs in ({}, {"q": qp.q.clone().requires_grad_()}):
-        sol = solve_qp(P1, kwargs.get("q", qp.q), G=G, h=h, hand_on=False)
-        assert sol.status[1] == QPStatus.PRIMAL_INFEASIBLE and (sol.x[1] == 0).all()
-        assert (sol.status[good] == QPStatus.SOLVED).all()
+    ref = solve_qp(qp.P[good], qp.q[good], G=G[good], h=h[good])
+    assert (sol.status[good] == QPStatus.SOLVED).all() and torch.equal(sol.x[good], ref.x)
+
+
+def test_without_hand_on_the_instances_the_c_route_leaves_are_max_iter(solver_route) -> None:
+    qp = random_qp_batch(4, n=5, m=8, seed=4)
+    P = qp.P.clone()
+    P[2] = torch.diag(torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0], dtype=DT))  # semi-definite: the C route hands it on
+    lb, ub = -torch.ones(4, 5, dtype=DT), torch.ones(4, 5, dtype=DT)
+    full = solve_qp(P, qp.q, lb=lb, ub=ub)
+    assert (full.status == QPStatus.SOLVED).all()
+    for grad in (False, True):  # the fast path, and the autograd path
+        q = qp.q.clone().requires_grad_(grad)
+        quick = solve_qp(P, q, lb=lb, ub=ub, hand_on=False)
+        good = torch.tensor([0, 1, 3])
+        assert (quick.status[good] == QPStatus.SOLVED).all() and torch.equal(quick.x[good].detach(), full.x[good])
+        if solver_route == "c":
+            assert quick.status[2] == QPStatus.MAX_ITER and (quick.x[2] == 0).all() and (quick.z_ub[2] == 0).all()
+        else:  # the torch route decides every instance itself: nothing is left
+            assert torch.equal(quick.status, full.status)
 
 
 def test_infeasible_equalities_and_bounds() -> None:

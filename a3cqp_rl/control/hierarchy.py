@@ -171,7 +171,7 @@ def _solve_feasible(P: torch.Tensor, c: torch.Tensor, G: torch.Tensor, h: torch.
 
 def solve_cascade(costs: Sequence[tuple[torch.Tensor, torch.Tensor]], G: torch.Tensor, h: torch.Tensor,
                   regularization: float, *, warm: Sequence[QPSolution | None] | None = None, max_iter: int = 50,
-                  rank_tol: float = RANK_TOL) -> CascadeSolution:
+                  rank_tol: float = RANK_TOL, hand_on: bool = True) -> CascadeSolution:
     """Strict priorities (eq. 2): level k minimises its cost over the optima of levels 1..k−1 within G x ≤ h.
 
     Args:
@@ -182,6 +182,7 @@ def solve_cascade(costs: Sequence[tuple[torch.Tensor, torch.Tensor]], G: torch.T
         warm: each level's QPSolution of the previous step (or None).
         max_iter: solve_qp's interior-point budget per level.
         rank_tol: see RANK_TOL.
+        hand_on: solve_qp's, for level 1 (the only level that can be infeasible; the lower ones keep it on).
 
     Level 1 is solve_qp(P_1, c_1, G, h). For k > 1 the optima of the levels above are the x with
     A_j x = A_j x_{k−1} (j < k: a strictly convex cost of the residual has one optimal residual), i.e.
@@ -210,7 +211,7 @@ def solve_cascade(costs: Sequence[tuple[torch.Tensor, torch.Tensor]], G: torch.T
     for k, (P, c) in enumerate(costs):
         w = warm[k] if warm[k] is not None and warm[k].z.shape == h.shape else None
         if k == 0:
-            sol = solve_qp(P, c, G=G, h=h, warm_start=w, max_iter=max_iter)
+            sol = solve_qp(P, c, G=G, h=h, warm_start=w, max_iter=max_iter, hand_on=hand_on)
             x, status, iterations = arr(sol.x), sol.status, sol.iterations
         else:
             P_, c_ = arr(P), arr(c)

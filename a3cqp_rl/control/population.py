@@ -333,7 +333,7 @@ class PopulationController(A3CQPController):
             if len(self._groups) == 1:
                 k, _ = self._groups[0]
                 sol = solve_cascade(costs[:k], G, h, self.options.regularization, warm=self._warm_groups.get(k),
-                                    max_iter=self.options.qp_max_iter)
+                                    max_iter=self.options.qp_max_iter, hand_on=self.options.qp_hand_on)
                 self._warm_groups[k] = sol.solutions
                 return sol.x, sol.status, sol.iterations
             x = G.new_zeros(n, costs[0][0].shape[-1])
@@ -342,7 +342,7 @@ class PopulationController(A3CQPController):
             for k, idx in self._groups:
                 sol = solve_cascade([(P[idx], c[idx]) for P, c in costs[:k]], G[idx], h[idx],
                                     self.options.regularization, warm=self._warm_groups.get(k),
-                                    max_iter=self.options.qp_max_iter)
+                                    max_iter=self.options.qp_max_iter, hand_on=self.options.qp_hand_on)
                 self._warm_groups[k] = sol.solutions
                 x[idx], status[idx], iterations[idx] = sol.x, sol.status, sol.iterations
             return x, status, iterations
@@ -358,4 +358,8 @@ class PopulationController(A3CQPController):
 
     def _report_fallback(self, ok, qp_status, valid) -> None:  # noqa: ANN001
         super()._report_fallback(ok, qp_status, valid)
-        self._warm_groups = {}
+        failed = ~np.asarray(ok, dtype=bool)
+        for k, idx in self._groups:  # each group's solutions are indexed within the group
+            rows = np.flatnonzero(failed[idx.numpy()])
+            for sol in self._warm_groups.get(k, ()) if rows.size else ():
+                sol.forget(rows)

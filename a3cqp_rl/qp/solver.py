@@ -560,10 +560,10 @@ def solve_qp(
             point (default 15 for B ≤ 32, 10 above).
         backend: "auto", "c" or "torch" (module docstring); unknown or impossible ones raise
             QPBackendError.
-        hand_on: the C route hands the instances it cannot certify (infeasible or degenerate ones) on to the
-            torch route, which certifies infeasibility or solves them; False keeps the C route's verdict instead
-            (status.py), for a caller that treats every failure alike and cannot wait (~20 ms an instance on the
-            torch route; the controller's fallback brake).
+        hand_on: the C route hands the instances it cannot decide (degenerate ones, and infeasible ones whose
+            Farkas vector it cannot check) on to the torch route, which solves them or certifies that no answer
+            exists (~20 ms an instance); False returns them as MAX_ITER instead, for a caller that treats every
+            failure alike and cannot wait.
 
     Any argument may be given unbatched (without the leading B) to share it across the batch, and as a
     numpy array (converted; its dtype must match the others').  Gradients flow to every tensor argument
@@ -717,14 +717,14 @@ def _finish_on_torch(sol: QPSolution, P, q, A, b, G, h, lb, ub, B: int, n: int, 
 
 
 def _keep_c_verdict(sol: QPSolution) -> None:
-    """`hand_on=False`: the instances the C route left get its verdict in sol's buffer (PRIMAL_INFEASIBLE where its
-    infeasibility test fired, MAX_ITER otherwise; x and the multipliers 0) instead of a torch-route solve."""
+    """`hand_on=False`: the instances the C route left undecided get MAX_ITER in sol's buffer (x and the multipliers
+    0) instead of a torch-route solve."""
     st = sol._np("_status")
     left = st >= native.HANDED_ON
     B, n, p, m = sol._dims
     sol._np("_x")[left] = 0.0
     sol._buf[B * n : B * (n + p + m + 2 * n)].reshape(B, p + m + 2 * n)[left] = 0.0
-    st[left] = np.where(st[left] == native.INFEASIBLE_ROW, int(QPStatus.PRIMAL_INFEASIBLE), int(QPStatus.MAX_ITER))
+    st[left] = int(QPStatus.MAX_ITER)
 
 
 def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_start: QPSolution | None,  # noqa: ANN001

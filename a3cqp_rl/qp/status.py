@@ -6,8 +6,8 @@ depends on the rest of its batch):
 | status | value | when | x |
 |---|---:|---|---|
 | SOLVED | 0 | KKT conditions certified a posteriori within `tol`, each row relative to its own data | the solution |
-| MAX_ITER | 1 | the interior point used its `max_iter` iterations without a certificate either way; with `hand_on=False`, an instance the C route could not certify | last iterate (finite); 0 |
-| PRIMAL_INFEASIBLE | 2 | a Farkas certificate (z ≥ 0, Gᵀz + Aᵀy ≈ 0, hᵀz + bᵀy < 0) was found; or a row h_i ≤ −1e20, a bound lb_j ≥ 1e20 or ub_j ≤ −1e20 (−inf/+inf of the wrong sign), or lb_j > ub_j; with `hand_on=False`, also the C route's Goldfarb-Idnani test (a violated row that is a combination of the working rows, no dual step left; no certificate is checked) | 0 |
+| MAX_ITER | 1 | the interior point used its `max_iter` iterations without a certificate either way; with `hand_on=False`, an instance the C route could not decide | last iterate (finite); 0 |
+| PRIMAL_INFEASIBLE | 2 | a Farkas certificate (z ≥ 0, Gᵀz + Aᵀy ≈ 0, hᵀz + bᵀy < 0) was found; or a row h_i ≤ −1e20, a bound lb_j ≥ 1e20 or ub_j ≤ −1e20 (−inf/+inf of the wrong sign), or lb_j > ub_j; the C route finds it where Goldfarb-Idnani's test fires (a violated row that is a combination of the working rows, no dual step left), with the same test on that vector | 0 |
 | DUAL_INFEASIBLE | 3 | the objective is unbounded below: a direction d with P d ≈ 0, A d ≈ 0, G d ≤ 0, qᵀd < 0 was found | 0 |
 | NON_CONVEX | 4 | P (symmetrised) is not positive semi-definite: its smallest eigenvalue is below −1e-9·max|λ| | 0 |
 | INVALID_INPUT | 5 | NaN anywhere, or ±inf in P, q, A, b or G (h, lb, ub may be ±inf) | 0 |

@@ -24,15 +24,12 @@ from typing import Callable, NamedTuple
 
 from a3cqp_rl.native_build import LazyLibrary
 
-__all__ = ["load", "NativeQP", "SOURCE", "HANDED_ON", "INFEASIBLE_ROW", "N_STRIDES"]
+__all__ = ["load", "NativeQP", "SOURCE", "HANDED_ON", "N_STRIDES"]
 
 SOURCE = Path(__file__).with_name("gi_qp.c")
 HANDED_ON = 16
 """Status codes ≥ this are instances the C route hands on to the torch route (P not definite, dependent
 rows, infeasible or unbounded candidates, no certificate); below it they are `QPStatus` values."""
-INFEASIBLE_ROW = 18
-"""The handed-on code of Goldfarb-Idnani's infeasibility test: a violated row that is a combination of the working
-rows, with no dual step left (gi_qp.c, GI_INFEASIBLE)."""
 N_STRIDES = 9
 """Batch strides passed per call: P, q, A, b, G, h, lb, ub, z0 (0: one array shared by the batch)."""
 

@@ -32,10 +32,11 @@
  *   stationarity  |(P x + q + Cᵀλ)_c| ≤ tol (1 + |q_c| + Σ_k |P_ck x_k| + Σ_a |C_ac λ_a|),
  *   every row     C_i x − d_i ≤ tol (1 + |d_i| + Σ_c |C_ic x_c|)   (|·| on the working rows),
  *   multipliers   λ_i ≥ −tol (1 + max |λ|) on the inequality rows,
- * so one large right-hand side loosens only its own row.  Any other outcome (P not numerically positive
- * definite, dependent working rows, an infeasible row, the step budget, a failed certificate) is an
- * internal code ≥ 16 and the caller solves that instance on its torch route, which has the singular-P,
- * infeasibility and unboundedness machinery.
+ * so one large right-hand side loosens only its own row.  Nothing is returned as infeasible unless the Farkas
+ * vector of G-I's infeasibility test passes the torch route's check (`farkas_certified`).  Any other outcome
+ * (P not numerically positive definite, dependent working rows, an infeasible row without that certificate, the
+ * step budget, a failed certificate) is an internal code ≥ 16 and the caller solves that instance on its torch
+ * route, which has the singular-P, infeasibility and unboundedness machinery.
  *
  * Plain C99 + libm; row-major float64 arrays; one workspace per thread, kept between calls.  The same file is a
  * CPython extension module (`_gi_qp`: `solve` and `vjp`, the two entry points at the end, taking sizes, addresses as
@@ -418,6 +419,25 @@ static double row_terms_at(gi_ws *w, int k, const double *lw, int j) {
     return mag;
 }
 
+/* The Farkas vector of G-I's infeasibility test, checked on the original rows: row j violated and a combination
+ * Σ dl_a C_a of the working rows with dl_a ≤ 0 on the inequalities gives u (u_j = 1, u_a = −dl_a, ≥ 0 on the
+ * inequalities) with ray = Cᵀu ≈ 0 and gap = dᵀu < 0.  Accepted with the torch route's test (interior_point.py):
+ * max |ray| ≤ −1e-7 gap, so any feasible point would have |x|₁ ≥ 1e7; where rounding in dl (a nearly dependent
+ * working set) leaves a larger ray, the instance is handed on instead. */
+static int farkas_certified(const gi_ws *w, int j, int k) {
+    const int n = w->n;
+    const double *Cj = crow(w, j), *dl = w->dl;
+    double gap = w->d[j], ray_max = 0.0;
+    for (int a = 0; a < k; ++a) gap -= dl[a] * w->d[w->buf[a]];
+    if (!(gap < 0.0)) return 0;
+    for (int c = 0; c < n; ++c) {
+        double r = Cj[c];
+        for (int a = 0; a < k; ++a) r -= dl[a] * crow(w, w->buf[a])[c];
+        if (fabs(r) > ray_max) ray_max = fabs(r);
+    }
+    return ray_max <= -1e-7 * gap;
+}
+
 /* One instance.  z0: warm-start multipliers (z | z_lb | z_ub; working set {z0 > 0}) or NULL. */
 static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, double *x_out, double *out, int nout,
                      int64_t *solves_out) {
@@ -624,7 +644,7 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
                     w->skip[j] = 1;
                     break;
                 }
-                return GI_INFEASIBLE;
+                return farkas_certified(w, j, k) ? QP_PRIMAL_INFEASIBLE : GI_INFEASIBLE;
             }
             double t = t1 < t2 ? t1 : t2;
             for (int a = 0; a < k; ++a) lw[a] -= t * w->dl[a];
