@@ -184,6 +184,8 @@ class PandaEnv(EnvBase):
         self.joint_limit_excess = np.full(n, -np.inf)
         """Per arm, this episode: the largest excess of a joint past its datasheet position limit [rad] over the 1 kHz
         control periods (negative: the closest approach, inside the limits), until the arm is parked or diverges."""
+        self.joint_limit_joint = np.full(n, -1, dtype=np.int64)
+        """Per arm, this episode: the joint (0-6) of `joint_limit_excess` (-1 before the first control period)."""
         self.signal_keys = tuple(self.scene.signals(self._scene_input()).keys())
         """Names of the scene's per-step signals in the output (e.g. the peg's misalignment and depth)."""
         self._make_specs()
@@ -249,6 +251,7 @@ class PandaEnv(EnvBase):
         self.parked[idx] = False
         self.fallbacks[idx] = 0
         self.joint_limit_excess[idx] = -np.inf
+        self.joint_limit_joint[idx] = -1
         self.stiffness_scale[idx] = 1.0
         s = self.pcfg.sensors
         if s.ft_force_bias > 0 or s.ft_torque_bias > 0:
@@ -456,10 +459,13 @@ class PandaEnv(EnvBase):
 
     def _track_joint_limits(self) -> None:
         """`joint_limit_excess` with this control period's joint positions (arms in their episode only)."""
-        with np.errstate(invalid="ignore"):  # a diverging arm's NaN: fmax keeps the value before
-            over = np.maximum(self._q_lo - self.q, self.q - self._q_hi).max(1)
-        live = ~self.parked & ~self.diverged
-        np.fmax(self.joint_limit_excess, np.where(live, over, -np.inf), out=self.joint_limit_excess)
+        per_joint = np.maximum(self._q_lo - self.q, self.q - self._q_hi)
+        with np.errstate(invalid="ignore"):  # a diverging arm's NaN: the comparison is False, the values before stay
+            over = per_joint.max(1)
+            new = (over > self.joint_limit_excess) & ~self.parked & ~self.diverged
+        if new.any():
+            self.joint_limit_excess[new] = over[new]
+            self.joint_limit_joint[new] = per_joint[new].argmax(1)
 
     def park(self, idx: np.ndarray) -> None:
         """Set aside arms `idx` whose episode is over while the batch runs on (until their reset): their collisions

@@ -411,29 +411,35 @@ class LimitStress:
 def limit_stress(num_envs: int, steps: int, seed: int, config=None, controller_options=None,  # noqa: ANN001
                  hold: int = 20) -> LimitStress:
     """Random actions, each held for `hold` agent steps, on `num_envs` Pandas for `steps` agent steps (done arms
-    reset): the worst joint-position excess, torque ratio, divergences and QP fallbacks (the reliability check of
-    docs/panda.md)."""
+    reset): the worst joint-position excess (the env's `joint_limit_excess`, every 1 kHz control period), torque
+    ratio, divergences and QP fallbacks (the reliability check of docs/panda.md)."""
     from a3cqp_rl.robot import PANDA_LIMITS
     from envs.panda import PandaEnv
 
     env = PandaEnv(num_envs, config, seed=seed, controller_options=controller_options)
     gen = torch.Generator().manual_seed(seed)
-    q_min, q_max, tau_max = (np.array(v) for v in (PANDA_LIMITS.q_min, PANDA_LIMITS.q_max, PANDA_LIMITS.tau_max))
-    worst, where, tau = -np.inf, (0, 0), 0.0
+    tau_max = np.array(PANDA_LIMITS.tau_max)
+    worst, joint, arm, tau = -np.inf, -1, -1, 0.0
+
+    def record(idx: np.ndarray) -> None:  # the episodes of arms `idx` end: their worst excess counts
+        nonlocal worst, joint, arm
+        if len(idx) and env.joint_limit_excess[idx].max() > worst:
+            a = int(idx[env.joint_limit_excess[idx].argmax()])
+            worst, joint, arm = float(env.joint_limit_excess[a]), int(env.joint_limit_joint[a]), a
+
     td, action = env.reset(), torch.zeros(num_envs, 6, 4)
     for k in range(steps):
         if k % hold == 0:
             action = torch.rand(num_envs, 6, 4, generator=gen) * 2 - 1
         td["action"] = action
         td = env.step(td)["next"]
-        over = np.maximum(q_min - env.q, env.q - q_max)
-        if over.max() > worst:
-            worst, where = float(over.max()), np.unravel_index(int(over.argmax()), over.shape)
         tau = max(tau, float(np.max(np.abs(env.tau) / tau_max)))
         done = td["done"].reshape(num_envs)
         if done.any():
+            record(np.flatnonzero(done.numpy()))
             td = env.reset(td.empty().set("_reset", done.reshape(num_envs, 1)))
-    return LimitStress(worst, int(where[1]) + 1, int(where[0]), tau, int(env.diverged.sum()), env.ctrl.fallback_count)
+    record(np.arange(num_envs))
+    return LimitStress(worst, joint + 1, arm, tau, int(env.diverged.sum()), env.ctrl.fallback_count)
 
 
 def load_fixed_controller(path: str | Path):  # noqa: ANN201

@@ -286,6 +286,7 @@ def test_joint_limit_excess_is_tracked_per_arm_over_the_episode() -> None:
     td["action"] = _ik_action(2)
     td = env.step(td)["next"]
     assert 0.019 < env.joint_limit_excess[1] <= 0.02 + 1e-9  # seen at the first control period
+    assert env.joint_limit_joint[1] == 3
     assert env.joint_limit_excess[0] == home[0]
     env.park(np.array([1]))  # a parked arm's motion no longer counts
     env.sim.data.qpos[adr] = q_hi[3] + 0.05
@@ -294,6 +295,7 @@ def test_joint_limit_excess_is_tracked_per_arm_over_the_episode() -> None:
     assert env.joint_limit_excess[1] <= 0.02 + 1e-9
     env.reset(td.empty().set("_reset", torch.tensor([[False], [True]])))
     assert env.joint_limit_excess[1] == -np.inf and env.joint_limit_excess[0] == home[0]
+    assert env.joint_limit_joint[1] == -1 and env.joint_limit_joint[0] >= 0
 
 
 def test_joint_limits_f_ext_turns_on_the_controllers_option(monkeypatch) -> None:  # noqa: ANN001
