@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import math
 import os
 import sys
@@ -181,7 +182,7 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
             for i, g in enumerate(groups)]
     t_wall = time.perf_counter()
     if len(jobs) == 1:
-        parts = [_run(*jobs[0])]
+        parts = [_run_job(jobs[0])]
     else:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
@@ -278,7 +279,14 @@ def format_paired(res: EvalResult, primary: str = "learned") -> str:
 
 
 def _run_job(job: tuple) -> dict:
-    return _run(*job)
+    """`_run(*job)`, the controller's log line per fallback step giving way to the table's count per trial."""
+    log = logging.getLogger("a3cqp_rl.control.controller")
+    level = log.level
+    log.setLevel(max(level, logging.ERROR))
+    try:
+        return _run(*job)
+    finally:
+        log.setLevel(level)
 
 
 def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tuple[str, ...],  # noqa: ANN001
@@ -310,6 +318,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     episodes = {c: {k: [] for k in RECORD_KEYS + env.signal_keys + ("q",)} for c in controllers} if record else {}
     td = env.reset()
     finished = np.zeros(n, dtype=bool)
+    fallbacks = np.zeros(n, dtype=np.int64)  # each trial's QP fallback periods, taken when its episode ends
     bar = _progress(n, progress)
     steps = 0
     while not finished.all():
@@ -330,6 +339,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
                 for k in episodes[c]:
                     episodes[c][k].append(env.q[arm].copy() if k == "q" else td[k][arm].numpy().copy())
         newly = td["done"].reshape(n).numpy() & ~finished
+        fallbacks[newly] = env.fallbacks[newly]
         if park:
             env.park(np.flatnonzero(newly))
         finished |= newly
@@ -341,6 +351,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     metrics = env.scene.metrics()
     metrics["diverged"] = env.diverged.copy()
     metrics["joint_limit_excess"] = env.joint_limit_excess.copy()
+    metrics["qp_fallbacks"] = fallbacks
     per = {c: {k: np.asarray(v)[j * trials:(j + 1) * trials] for k, v in metrics.items()}
            for j, c in enumerate(controllers)}
     meta = {"scene": env.scene.name, "tool": env.scene.tool, "scene_xml": env.scene.mjcf(),
@@ -505,11 +516,15 @@ def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
         out["extracted_rate"] = float(np.mean(m["extracted"]))
     else:
         for k, v in m.items():
-            if k not in ("diverged", "joint_limit_excess"):
+            if k not in ("diverged", "joint_limit_excess", "qp_fallbacks"):
                 out[f"{k}_mean"], out[f"{k}_std"] = _mean_std(v)
     if "joint_limit_excess" in m:  # the worst trial [mrad]: > 0 a joint passed a datasheet limit
         worst = float(np.max(m["joint_limit_excess"])) if len(m["joint_limit_excess"]) else -math.inf
         out["joint_limit_excess_max_mrad"] = 1e3 * worst if math.isfinite(worst) else None
+    if "qp_fallbacks" in m:  # 1 kHz periods in which the QP failed and the controller braked
+        fb = np.asarray(m["qp_fallbacks"])
+        out["qp_fallback_trials"] = int((fb > 0).sum())
+        out["qp_fallback_ms_max"] = int(fb.max()) if fb.size else 0
     return out
 
 
@@ -554,6 +569,9 @@ def format_table(res: EvalResult) -> str:
     if all("joint_limit_excess_max_mrad" in s[c] for c in names):
         rows.append(("joint-limit excess, worst [mrad]", (["-"] if res.scene == "peg_in_hole" else [])
                      + [_fmt(s[c]["joint_limit_excess_max_mrad"], prec=1) for c in names]))
+    if all("qp_fallback_trials" in s[c] for c in names):
+        rows.append(("QP fallbacks: trials, worst [ms]", (["-"] if res.scene == "peg_in_hole" else [])
+                     + [f"{s[c]['qp_fallback_trials']}, {s[c]['qp_fallback_ms_max']}" for c in names]))
     rows.append(("diverged", (["-"] if res.scene == "peg_in_hole" else []) + [str(s[c]["diverged"]) for c in names]))
     w0 = max(len(r[0]) for r in rows)
     widths = [max(len(cols[i]), *(len(r[1][i]) for r in rows)) for i in range(len(cols))]

@@ -47,6 +47,34 @@ def test_every_controller_runs_the_same_trials_and_the_json_has_table_vi_keys() 
     assert ep["weights"].shape[1:] == (6, 3) and len(ep["time"]) == len(ep["depth"]) > 100
 
 
+def test_qp_fallbacks_are_counted_per_trial_instead_of_logged(monkeypatch, caplog) -> None:  # noqa: ANN001
+    import logging
+
+    import a3cqp_rl.control.controller as controller_module
+    from a3cqp_rl.qp import QPStatus
+
+    real, calls = controller_module.solve_qp, [0]
+
+    def arm_1_fails_every_tenth(*a, **k):  # noqa: ANN002, ANN003, ANN202
+        sol = real(*a, **k)
+        calls[0] += 1
+        if calls[0] % 10 == 0:
+            sol.status[1] = QPStatus.MAX_ITER
+        return sol
+
+    monkeypatch.setattr(controller_module, "solve_qp", arm_1_fails_every_tenth)
+    log = logging.getLogger("a3cqp_rl.control.controller")
+    level = log.level
+    with caplog.at_level(logging.WARNING):
+        res = evaluate("peg_in_hole", None, trials=2, seed=0, config=config_from_dict(FAST), controllers=("ik_fc",),
+                       progress=False)
+    fb = res.per_trial["ik_fc"]["qp_fallbacks"]
+    assert fb[0] == 0 and fb[1] > 100  # arm 1: a tenth of its ~2,000 control periods
+    assert res.summary["ik_fc"]["qp_fallback_trials"] == 1 and res.summary["ik_fc"]["qp_fallback_ms_max"] == fb[1]
+    assert f"1, {int(fb[1])}" in format_table(res)
+    assert not [r for r in caplog.records if "A3CQP fallback" in r.getMessage()] and log.level == level
+
+
 @pytest.mark.slow
 def test_scripted_force_control_inserts_the_peg() -> None:
     res = evaluate("peg_in_hole", None, trials=4, seed=1, controllers=("ik_fc",), progress=False)
