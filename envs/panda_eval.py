@@ -485,6 +485,8 @@ def _json_list(v: np.ndarray) -> list:
     a = np.asarray(v)
     if a.dtype == bool:
         return a.tolist()
+    if a.dtype.kind in "iu":  # counts stay integers
+        return a.ravel().tolist()
     return [None if (isinstance(x, float) and not math.isfinite(x)) else x for x in a.astype(float).ravel().tolist()]
 
 
