@@ -710,7 +710,8 @@ class PegInHoleConfig:
     below the rim (the inserted pose); success when the peg tip is `success_depth` below the rim, inside the bore,
     within `time_limit` of the first contact. Insertion time = first contact to success. Then the operator
     disengages the peg (pulls the handle `disengage_lift` up; the reference stays, as in Fig. 7) and, if cycles
-    remain, the reference returns home over `return_time` and the next cycle starts.
+    remain, the reference returns home over `return_time` and the next cycle starts (with
+    `restart_needs_extraction`, only if the peg has left the bore by then).
     """
 
     hole_center: tuple[float, ...] = (0.45, 0.0)
@@ -760,6 +761,11 @@ class PegInHoleConfig:
     """How far up the operator pulls the handle [m]."""
     return_time: float = 2.0
     """Minimum-jerk time of the reference back home between cycles [s]."""
+    restart_needs_extraction: bool = True
+    """Cycles > 1: the next cycle starts only if the peg left the bore (tip above the rim) during the disengagement or
+    the return; a peg still jammed ends the episode, its remaining insertions not made. (Without it the next approach
+    drags a jammed peg across the block: 70-155 N on the F/T sensor, a joint 13-14 mrad past its limit; docs/panda.md,
+    "Three insertions per episode".)"""
 
     def _check(self, err: _Errors) -> None:
         for name in ("hole_top", "hole_diameter", "hole_depth", "approach_height", "approach_time",

@@ -394,7 +394,7 @@ class PegInHole(Scene):
             if released.any():
                 r = a[released]
                 self.disengage_force[r, self.cycle[r]] = self._f_sum[r] / np.maximum(self._f_cnt[r], 1.0)
-                self._start_return(np.isin(arms, r), t)
+                self._start_return(np.isin(arms, r), t, inp.pos, inp.rot)
         # --- back home; then the next cycle or done
         m = ph == self.RETURN
         if m.any():
@@ -407,14 +407,21 @@ class PegInHole(Scene):
             if len(end):
                 em = np.isin(arms, end)
                 more = em & (self.cycle + 1 < c.cycles)
+                if c.restart_needs_extraction:  # a peg still in the bore ends the episode (no dragging it away)
+                    more &= self.extracted[np.arange(len(self.cycle)), self.cycle]
                 self.cycle[more] += 1
                 self.from_pos[more], self.from_rot[more] = self.pos_d[more], self.rot_d[more]
                 self._enter(more, self.APPROACH, t)
                 self._enter(em & ~more, self.DONE, t)
                 self.done[em & ~more] = True
 
-    def _start_return(self, mask: np.ndarray, t: np.ndarray) -> None:
-        self.from_pos[mask], self.from_rot[mask] = self.pos_d[mask], self.rot_d[mask]
+    def _start_return(self, mask: np.ndarray, t: np.ndarray, pos: np.ndarray | None = None,
+                      rot: np.ndarray | None = None) -> None:
+        """Arms `mask` go home from their reference, or from the measured pose `pos`, `rot` [N, ...] where the
+        operator let go (the reference stayed at the inserted pose while they pulled: starting from it would drive
+        the peg back into the bore)."""
+        src_p, src_r = (self.pos_d, self.rot_d) if pos is None else (pos, rot)
+        self.from_pos[mask], self.from_rot[mask] = src_p[mask], src_r[mask]
         if self.cfg.cycles == 1 and self.cfg.operator_disengage:  # a single trial ends when the operator lets go
             self._enter(mask, self.DONE, t)
             self.done[mask] = True

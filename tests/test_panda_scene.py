@@ -128,3 +128,27 @@ def test_hole_geometry_validation() -> None:
         HoleGeometry(segments=4)
     with pytest.raises(ValueError, match="ring_radius"):
         HoleGeometry(bore_diameter=0.2)
+
+
+@pytest.mark.parametrize("needs_extraction", [True, False])
+def test_next_cycle_starts_only_once_the_peg_left_the_bore(needs_extraction: bool) -> None:
+    """At the end of the return home, arm 0's peg came out, arm 1's is still 10 mm deep in the bore: with
+    `restart_needs_extraction` (the default) arm 1's episode ends there instead of its next approach dragging the peg."""
+    from a3cqp_rl.config import OperatorConfig, PegInHoleConfig
+    from envs.scenarios import Operator, PegInHole, SceneInput
+
+    cfg = PegInHoleConfig(cycles=2, restart_needs_extraction=needs_extraction)
+    scene = PegInHole(2, Operator(2, OperatorConfig(), 0.01), np.array([0.3, 0.0, 0.5]), np.eye(3), cfg)
+    scene.reset(np.arange(2), [np.random.default_rng(k) for k in range(2)])
+    scene.phase[:] = PegInHole.RETURN
+    scene.extracted[:, 0] = [True, False]
+    hole = np.array([*cfg.hole_center, cfg.hole_top])
+    pos = np.stack([hole + [0.0, 0.0, 0.2], hole - [0.0, 0.0, 0.01]])
+    z6 = np.zeros((2, 6))
+    scene.update(SceneInput(t=np.full(2, cfg.return_time + 0.01), pos=pos, rot=np.tile(np.eye(3), (2, 1, 1)),
+                            f_env=z6, f_ope=z6, f_d=z6, handle_pos=pos))
+    assert scene.phase[0] == PegInHole.APPROACH and scene.cycle[0] == 1 and not scene.done[0]
+    if needs_extraction:
+        assert scene.phase[1] == PegInHole.DONE and scene.done[1] and scene.cycle[1] == 0
+    else:
+        assert scene.phase[1] == PegInHole.APPROACH and scene.cycle[1] == 1
