@@ -515,7 +515,10 @@ def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
         out["misalignment_translation_mean_mm"], out["misalignment_translation_std_mm"] = _mean_std(
             m["misalign_translation"], 1e3)
         out["disengage_force_mean_n"], _ = _mean_std(m["disengage_force"])
-        out["extracted_rate"] = float(np.mean(m["extracted"]))
+        # over the cycles the operator disengaged (not the ones an episode never reached), else over every cycle
+        grasped = np.isfinite(np.asarray(m["disengage_force"], dtype=float))
+        pulled = np.asarray(m["extracted"])[grasped] if grasped.any() else np.asarray(m["extracted"])
+        out["extracted_rate"] = float(np.mean(pulled)) if pulled.size else None
     else:
         for k, v in m.items():
             if k not in ("diverged", "joint_limit_excess", "qp_fallbacks"):
@@ -562,7 +565,8 @@ def format_table(res: EvalResult) -> str:
                         f"{_fmt(s[c]['misalignment_translation_std_mm'])}" for c in names]))
         rows.append(("mean |f_ope| disengaging [N]", ["-"] + [_fmt(s[c]["disengage_force_mean_n"], prec=1)
                                                                for c in names]))
-        rows.append(("peg pulled out by operator", ["-"] + [f"{100 * s[c]['extracted_rate']:.0f} %" for c in names]))
+        rows.append(("peg pulled out by operator", ["-"] + [_fmt(s[c]["extracted_rate"], " %", 100.0, 0)
+                                                             for c in names]))
     else:
         cols = names
         keys = [k[:-5] for k in s[names[0]] if k.endswith("_mean")]

@@ -222,3 +222,19 @@ def test_guided_warning_names_a_policy_that_pushes_back_against_the_operator() -
     assert guided_warning(policy((-0.7, 0.3, 0.7, 0.2))) is not None  # admittance up but f_d rising: still resists
     obs = torch.tensor(GUIDED_OBS)
     assert (obs[:, 1] == 0).all() and (obs[:, 2] >= 0.1).all() and (obs[:, 0] <= 0.05).all()
+
+
+def test_pulled_out_rate_counts_the_cycles_the_operator_disengaged() -> None:
+    """Two trials of three cycles: trial 1 ended after its first cycle (its peg stayed in the bore), so its two
+    cycles never reached are not "not pulled out"; without any disengagement the rate is unknown."""
+    nan = float("nan")
+    m = _peg_metrics([True, True], [6.0, 6.5])
+    m = {k: (np.repeat(v, 3, axis=1) if isinstance(v, np.ndarray) and v.ndim == 2 else v) for k, v in m.items()}
+    m["disengage_force"] = np.array([[12.0, 11.0, 13.0], [14.0, nan, nan]])
+    m["extracted"] = np.array([[True, True, True], [False, False, False]])
+    res = EvalResult.from_metrics("peg_in_hole", {"ik_fc": m}, {}, 1.0, 10.0, (0,))
+    assert res.summary["ik_fc"]["extracted_rate"] == pytest.approx(3 / 4)
+    assert "75 %" in format_table(res)
+    m["disengage_force"] = np.full((2, 3), nan)
+    res = EvalResult.from_metrics("peg_in_hole", {"ik_fc": m}, {}, 1.0, 10.0, (0,))
+    assert res.summary["ik_fc"]["extracted_rate"] == 0.5  # no disengagement (operator_disengage off): every cycle
