@@ -113,7 +113,7 @@ class QPSolution:
             k = B * (n + nout) + (B if name == "_iterations" else 0)
             return buf[k : k + B].view(np.int64)
         lo, hi = {"_y": (0, p), "_z": (p, p + m), "_z_lb": (p + m, p + m + n), "_z_ub": (p + m + n, nout)}[name]
-        return buf[B * n : B * (n + nout)].reshape(B, nout)[:, lo:hi]
+        return self._duals()[:, lo:hi]
 
     def _get(self, name: str) -> Tensor:
         v = getattr(self, name)
@@ -143,11 +143,15 @@ class QPSolution:
         """Boolean mask [B] of instances with status SOLVED."""
         return self.status == QPStatus.SOLVED
 
+    def _duals(self) -> np.ndarray:
+        """numpy view [B, p + m + 2n] of the output buffer's multipliers (y | z | z_lb | z_ub)."""
+        B, n, p, m = self._dims
+        return self._buf[B * n : B * (n + p + m + 2 * n)].reshape(B, p + m + 2 * n)
+
     def forget(self, rows: np.ndarray | list[int]) -> None:
         """Zero the multipliers of the instances `rows` in place, so a warm start from this solution starts them cold."""
         if self._buf is not None:
-            B, n, p, m = self._dims
-            self._buf[B * n : B * (n + p + m + 2 * n)].reshape(B, p + m + 2 * n)[rows] = 0.0
+            self._duals()[rows] = 0.0
             return
         idx = torch.as_tensor(rows, dtype=torch.long)
         with torch.no_grad():
@@ -384,11 +388,8 @@ def _fast_c(lib: native.NativeQP, P: Tensor, q: Tensor, A: Tensor | None, b: Ten
                   -1 if G is None else G._version, -1 if h is None else h._version,
                   -1 if lb is None else lb._version, -1 if ub is None else ub._version), (pP, pA, pG, ph, pl, pu))
     if worst:
-        if worst >= native.HANDED_ON and not hand_on:
-            _keep_c_verdict(sol)
-        elif worst >= native.HANDED_ON:  # some instances need the torch route (no graph: x's node is `qp_vjp`)
-            with torch.no_grad():
-                _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
+        if worst >= native.HANDED_ON:  # some instances need the torch route (no graph: x's node is `qp_vjp`)
+            _settle_handed_on(sol, hand_on, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
         elif worst < 0:
             raise MemoryError("a3cqp_rl.qp: the C route could not allocate its workspace")
     return sol
@@ -625,10 +626,8 @@ def solve_qp(
             sol._data = (lib, args, tuple(-1 if t is None else t._version for t in args),
                          tuple(keep[k][1] for k in (0, 2, 4, 5, 6, 7)), tuple(keep[k][2] for k in (0, 2, 4, 5, 6, 7)),
                          keep)
-            if worst >= native.HANDED_ON and not hand_on:
-                _keep_c_verdict(sol)
-            elif worst >= native.HANDED_ON:
-                _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
+            if worst >= native.HANDED_ON:
+                _settle_handed_on(sol, hand_on, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter)
             return sol
     return _solve_general(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter, dtype, grad,
                           hand_on)
@@ -699,7 +698,7 @@ def _finish_on_torch(sol: QPSolution, P, q, A, b, G, h, lb, ub, B: int, n: int, 
     zw = zw.index_select(0, idx) if zw is not None else None
     xs, ys, zs, ss, its = solve_torch(Ps, qs, As, bs, G_all, h_all, zw, tol, max_iter, active_set_iter)
     xn = sol._np("_x")
-    dn = sol._buf[B * n : B * (n + p + m + 2 * n)].reshape(B, p + m + 2 * n)
+    dn = sol._duals()
     xn[left] = xs.numpy()
     dn[left, :p] = ys.numpy()
     zsn = zs.numpy()
@@ -716,14 +715,24 @@ def _finish_on_torch(sol: QPSolution, P, q, A, b, G, h, lb, ub, B: int, n: int, 
     sol._np("_iterations")[left] += its.numpy()
 
 
+def _settle_handed_on(sol: QPSolution, hand_on: bool, P, q, A, b, G, h, lb, ub,  # noqa: ANN001
+                      warm_start: QPSolution | None, tol: float, max_iter: int, active_set_iter: int | None) -> None:
+    """The instances a C-route solution left: solved on the torch route (`hand_on`), else MAX_ITER."""
+    if not hand_on:
+        _keep_c_verdict(sol)
+        return
+    B, n, p, m = sol._dims
+    with torch.no_grad():
+        _finish_on_torch(sol, P, q, A, b, G, h, lb, ub, B, n, p, m, warm_start, tol, max_iter, active_set_iter)
+
+
 def _keep_c_verdict(sol: QPSolution) -> None:
     """`hand_on=False`: the instances the C route left undecided get MAX_ITER in sol's buffer (x and the multipliers
     0) instead of a torch-route solve."""
     st = sol._np("_status")
     left = st >= native.HANDED_ON
-    B, n, p, m = sol._dims
     sol._np("_x")[left] = 0.0
-    sol._buf[B * n : B * (n + p + m + 2 * n)].reshape(B, p + m + 2 * n)[left] = 0.0
+    sol.forget(left)
     st[left] = int(QPStatus.MAX_ITER)
 
 
