@@ -515,10 +515,10 @@ def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
         out["misalignment_translation_mean_mm"], out["misalignment_translation_std_mm"] = _mean_std(
             m["misalign_translation"], 1e3)
         out["disengage_force_mean_n"], _ = _mean_std(m["disengage_force"])
-        # over the cycles the operator disengaged (not the ones an episode never reached), else over every cycle
+        # over the cycles the operator disengaged (not the ones an episode never reached); none disengaged
+        # (operator_disengage off): unknown, not the share of pegs the return home happened to drag out
         grasped = np.isfinite(np.asarray(m["disengage_force"], dtype=float))
-        pulled = np.asarray(m["extracted"])[grasped] if grasped.any() else np.asarray(m["extracted"])
-        out["extracted_rate"] = float(np.mean(pulled)) if pulled.size else None
+        out["extracted_rate"] = float(np.mean(np.asarray(m["extracted"])[grasped])) if grasped.any() else None
     else:
         for k, v in m.items():
             if k not in ("diverged", "joint_limit_excess", "qp_fallbacks"):

@@ -287,11 +287,9 @@ class JointLimitsViability(Limit):
         # total alone, an unweighted f could cancel an over-limit q̈* inside the sum and fake IK success.
         total = cat([gain, ctx.mass_inv_jt], 2)
         offset = ctx.qdd_pd0
-        if self.include_f_ext:
-            offset = offset + mv(ctx.mass_inv_jt, ctx.f_ext)
-        elif ctx.f_ext_limits is not None:  # the robots the step names (A3CQPController.step's f_ext_limits)
+        if self.include_f_ext or ctx.f_ext_limits is not None:  # every robot, or those named by step(f_ext_limits=)
             ext = mv(ctx.mass_inv_jt, ctx.f_ext)
-            offset = offset + ctx.xp.where(ctx.f_ext_limits[:, None], ext, 0.0 * ext)
+            offset = offset + (ext if self.include_f_ext else ctx.xp.where(ctx.f_ext_limits[:, None], ext, 0.0 * ext))
         return Inequality(G=cat([motion, -motion, total, -total], 1),
                           h=cat([ub - ctx.qdd_pd0, ctx.qdd_pd0 - lb, ub - offset, offset - lb], 1))
 
