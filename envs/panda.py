@@ -191,6 +191,14 @@ class PandaEnv(EnvBase):
         self._make_specs()
         self._reset_arms(np.arange(n))
 
+    def __setattr__(self, name: str, value) -> None:  # noqa: ANN001
+        # the 1 kHz loop rebinds its numpy state ~10 times a period; nn.Module's bookkeeping (~6 µs a call) is for
+        # parameters, buffers and submodules, which numpy arrays are not
+        if isinstance(value, np.ndarray):
+            object.__setattr__(self, name, value)
+        else:
+            super().__setattr__(name, value)
+
     # ------------------------------------------------------------------ specs
     def _make_specs(self) -> None:
         N, f32, f64, dev = self.batch_size, torch.float32, torch.float64, self.device

@@ -110,10 +110,15 @@ class Operator:
 
     def attractor(self, t: np.ndarray) -> np.ndarray:
         """Where each hand pulls the handle to [N, 3]: from the grasp point toward the goal at `speed`."""
-        path = self.goal - self.start
+        return self._attractor(t, slice(None))
+
+    def _attractor(self, t: np.ndarray, arms: np.ndarray | slice) -> np.ndarray:
+        """`attractor` of `arms` (`t`: their times)."""
+        start = self.start[arms]
+        path = self.goal[arms] - start
         length = np.linalg.norm(path, axis=1)
-        s = np.clip((t - self.t_grasp) * self.cfg.speed / np.maximum(length, 1e-9), 0.0, 1.0)
-        return self.start + s[:, None] * path
+        s = np.clip((t - self.t_grasp[arms]) * self.cfg.speed / np.maximum(length, 1e-9), 0.0, 1.0)
+        return start + s[:, None] * path
 
     def update(self, t: np.ndarray, handle_pos: np.ndarray, handle_rot: np.ndarray) -> None:
         """Agent-rate bookkeeping: goal reached -> hold -> release; timeouts; release fade-out ends."""
@@ -145,18 +150,20 @@ class Operator:
         self._hist[k] = now
         self._k = (k + 1) % self._lag
         force, torque = np.zeros((self.n, 3)), np.zeros((self.n, 3))
-        on = self.state != self.IDLE
-        if not on.any():
+        on = np.flatnonzero(self.state != self.IDLE)  # only the hands on a handle (a few arms of a batch at a time)
+        if not len(on):
             return force, torque
+        old, t = old[on], t[on]
         p, v, R, w = old[:, :3], old[:, 3:6], old[:, 6:15].reshape(-1, 3, 3), old[:, 15:]
-        grip = np.where(self.state == self.HOLD, np.clip((t - self.t_grasp) / c.grip_time, 0.0, 1.0),
-                        np.clip(1.0 - (t - self.t_release) / c.grip_time, 0.0, 1.0))[:, None] * on[:, None]
-        s = self.force_scale[:, None]
-        force = s * (c.stiffness * (self.attractor(t) - p) - c.damping * v)
+        grip = np.where(self.state[on] == self.HOLD, np.clip((t - self.t_grasp[on]) / c.grip_time, 0.0, 1.0),
+                        np.clip(1.0 - (t - self.t_release[on]) / c.grip_time, 0.0, 1.0))[:, None]
+        s = self.force_scale[on, None]
+        f = s * (c.stiffness * (self._attractor(t, on) - p) - c.damping * v)
         if c.noise > 0 and noise is not None:
-            force = force + c.noise * noise
-        torque = s * (c.rot_stiffness * rotation_log(self.rot_grasp @ np.swapaxes(R, -1, -2)) - c.rot_damping * w)
-        return _clip_norm(grip * force, c.max_force * s), _clip_norm(grip * torque, c.max_torque * s)
+            f = f + c.noise * noise[on]
+        tq = s * (c.rot_stiffness * rotation_log(self.rot_grasp[on] @ np.swapaxes(R, -1, -2)) - c.rot_damping * w)
+        force[on], torque[on] = _clip_norm(grip * f, c.max_force * s), _clip_norm(grip * tq, c.max_torque * s)
+        return force, torque
 
 
 # ---------------------------------------------------------------------------------------------------- scenes

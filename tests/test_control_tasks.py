@@ -256,3 +256,9 @@ def test_wrench_from_joint_torques_numpy_path_equals_torch_and_inverts_jt() -> N
     ref = wrench_from_joint_torques(tau, J, M.clone().requires_grad_()).detach()  # the torch path
     assert torch.allclose(fast, ref, atol=1e-10)
     assert torch.allclose(wrench_from_joint_torques(tau, J, M, damping=0.0), f, atol=1e-9)
+    # robots with τ_ext = 0 skip the solves: the others' wrenches are the same bit for bit, theirs exactly 0
+    tau[[1, 4]] = 0.0
+    tau[2, 3] = float("nan")  # a NaN sensor reading still comes out as NaN, not as a quiet zero
+    part = wrench_from_joint_torques(tau, J, M)
+    assert torch.equal(part[[0, 3, 5]], fast[[0, 3, 5]]) and torch.equal(part[[1, 4]], torch.zeros(2, 6))
+    assert torch.isnan(part[2]).all()
