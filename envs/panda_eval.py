@@ -510,6 +510,10 @@ def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
         out["insertion_time_mean_s"], out["insertion_time_std_s"] = t_mean, t_std
         if "time_limit" in m:
             out["capped_time_mean_s"], out["capped_time_std_s"] = _mean_std(capped_time(m))
+        if "to_bore_time" in m:  # the insertion time's two parts, over the successes
+            out["to_bore_time_mean_s"], out["to_bore_time_std_s"] = _mean_std(np.where(succ, m["to_bore_time"], np.nan))
+            out["bore_descent_time_mean_s"], out["bore_descent_time_std_s"] = _mean_std(
+                np.where(succ, m["bore_descent_time"], np.nan))
         out["misalignment_rotation_mean_deg"], out["misalignment_rotation_std_deg"] = _mean_std(
             m["misalign_rotation"], 180.0 / math.pi)
         out["misalignment_translation_mean_mm"], out["misalignment_translation_std_mm"] = _mean_std(
@@ -552,6 +556,11 @@ def format_table(res: EvalResult) -> str:
         rows.append(("insertion time [s]", [f"{p['insertion_time_mean_s']:.2f} ± {p['insertion_time_std_s']:.2f}"]
                      + [f"{_fmt(s[c]['insertion_time_mean_s'])} ± {_fmt(s[c]['insertion_time_std_s'])}"
                         for c in names]))
+        if all("to_bore_time_mean_s" in s[c] for c in names):  # the insertion time's two parts
+            for key, label in (("to_bore_time", "  contact to 1 mm in bore [s]"),
+                               ("bore_descent_time", "  1 mm in bore to success [s]")):
+                rows.append((label, ["-"] + [f"{_fmt(s[c][key + '_mean_s'])} ± {_fmt(s[c][key + '_std_s'])}"
+                                             for c in names]))
         if all("capped_time_mean_s" in s[c] for c in names):
             rows.append(("time, not inserted = limit [s]", ["-"] + [
                 f"{_fmt(s[c]['capped_time_mean_s'])} ± {_fmt(s[c]['capped_time_std_s'])}" for c in names]))

@@ -257,6 +257,9 @@ class PegInHole(Scene):
     name, tool = "peg_in_hole", "peg_mesh"
     SETTLE, APPROACH, INSERT, DISENGAGE, RETURN, DONE = range(6)
     phase_names = ("settle", "approach", "insert", "disengage", "return", "done")
+    BORE_DEPTH = 0.001
+    """Depth below the rim [m] from which a tip within the bore's radius counts as in the bore (the insertion time's
+    split: first contact -> in the bore, set by the x-y alignment; in the bore -> success, by the push along z)."""
     phase_task = ("IK", "IK", "FC", "AC", "IK", "IK")
 
     def __init__(self, n: int, operator: Operator, home_pos: np.ndarray, home_rot: np.ndarray,
@@ -281,6 +284,8 @@ class PegInHole(Scene):
         """Angle between the peg axis and the hole axis at the first contact [rad]."""
         self.max_depth = np.full((n, C), np.nan)
         """Deepest tip position below the rim during the insertion [m]."""
+        self.bore_time = np.full((n, C), np.nan)
+        """Episode time at which the tip, after the first contact, was first `BORE_DEPTH` inside the bore [s]."""
         self.extracted = np.zeros((n, C), dtype=bool)
         """Whether the peg left the hole (tip above the rim) during the disengagement."""
         self.disengage_force = np.full((n, C), np.nan)
@@ -313,7 +318,7 @@ class PegInHole(Scene):
         self.tilt[idx] = np.stack([tilt * np.cos(axis), tilt * np.sin(axis), np.zeros_like(tilt)], axis=-1)
         self.from_pos[idx], self.from_rot[idx] = self.home_pos, self.home_rot
         for a in (self.contact_time, self.success_time, self.misalign_translation, self.misalign_rotation,
-                  self.max_depth, self.disengage_force):
+                  self.max_depth, self.bore_time, self.disengage_force):
             a[idx] = np.nan
         self.extracted[idx] = False
         self._f_sum[idx], self._f_cnt[idx] = 0.0, 0.0
@@ -374,6 +379,8 @@ class PegInHole(Scene):
             contacted = ~np.isnan(self.contact_time[a, cyc])
             # inserted: deep enough with the tip inside the bore (not slid down beside the block)
             inside = np.linalg.norm(inp.pos[a, :2] - self.hole[:2], axis=1) < 0.5 * c.hole_diameter
+            entered = contacted & inside & (depth[a] >= self.BORE_DEPTH) & np.isnan(self.bore_time[a, cyc])
+            self.bore_time[a[entered], cyc[entered]] = t[a[entered]]
             ok = contacted & (depth[a] >= c.success_depth) & inside
             self.success_time[a[ok], cyc[ok]] = t[a[ok]]
             since = np.where(contacted, t[a] - self.contact_time[a, cyc], tau - c.descent_time)
@@ -441,6 +448,7 @@ class PegInHole(Scene):
                 "time_limit": np.full(succ.shape, self.cfg.time_limit), "contact_time": self.contact_time.copy(),
                 "misalign_translation": self.misalign_translation.copy(),
                 "misalign_rotation": self.misalign_rotation.copy(), "max_depth": self.max_depth.copy(),
+                "to_bore_time": self.bore_time - self.contact_time, "bore_descent_time": self.success_time - self.bore_time,
                 "extracted": self.extracted.copy(), "disengage_force": self.disengage_force.copy()}
 
     def signals(self, inp: SceneInput) -> dict[str, np.ndarray]:

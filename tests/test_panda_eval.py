@@ -169,6 +169,16 @@ def test_capped_time_counts_the_insertions_not_made_at_the_time_limit() -> None:
     assert p["capped_difference_se_s"] == pytest.approx(d.std(ddof=1) / np.sqrt(5))
     assert f"every trial: {d.mean():+.2f} ± {d.std(ddof=1) / np.sqrt(5):.2f} s" in format_paired(res)
     assert "time, not inserted = limit [s]" in format_table(res)
+    # the insertion time's two parts, over the successes as the time itself
+    for m, to_bore in zip(metrics.values(), ([2.0, 3.0, 1.0, nan, 9.0], [4.0, nan, 2.0, 5.0, 1.0])):
+        m["to_bore_time"] = np.array(to_bore)[:, None]
+        m["bore_descent_time"] = m["insertion_time"] - m["to_bore_time"]
+    s = EvalResult.from_metrics("peg_in_hole", metrics, {}, 1.0, 10.0, (0,)).summary
+    assert s["learned"]["to_bore_time_mean_s"] == pytest.approx(2.0)  # trial 4 diverged, trial 3 failed
+    assert s["learned"]["bore_descent_time_mean_s"] == pytest.approx(4.0)
+    assert s["ik_fc"]["to_bore_time_mean_s"] == pytest.approx(3.0) and s["ik_fc"]["bore_descent_time_std_s"] > 0
+    table = format_table(EvalResult.from_metrics("peg_in_hole", metrics, {}, 1.0, 10.0, (0,)))
+    assert "  contact to 1 mm in bore [s]" in table and "  1 mm in bore to success [s]" in table
     # results without the scene's time limit (written before it was reported) still summarise and pair
     old = EvalResult.from_metrics("peg_in_hole", {c: {k: v for k, v in m.items() if k != "time_limit"}
                                                   for c, m in metrics.items()}, {}, 1.0, 10.0, (0,))

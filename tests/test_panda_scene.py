@@ -152,3 +152,27 @@ def test_next_cycle_starts_only_once_the_peg_left_the_bore(needs_extraction: boo
         assert scene.phase[1] == PegInHole.DONE and scene.done[1] and scene.cycle[1] == 0
     else:
         assert scene.phase[1] == PegInHole.APPROACH and scene.cycle[1] == 1
+
+
+def test_insertion_time_splits_at_the_tip_one_millimetre_inside_the_bore() -> None:
+    """Arm 0 touches the rim at 1.0 s, its tip is 1 mm inside the bore at 3.0 s and at the success depth at 3.5 s;
+    arm 1 dips 1 mm below the rim beside the bore (outside its radius), which is not in the bore."""
+    from a3cqp_rl.config import OperatorConfig, PegInHoleConfig
+    from envs.scenarios import Operator, PegInHole, SceneInput
+
+    cfg = PegInHoleConfig(operator_disengage=False)
+    scene = PegInHole(2, Operator(2, OperatorConfig(), 0.01), np.array([0.3, 0.0, 0.5]), np.eye(3), cfg)
+    scene.reset(np.arange(2), [np.random.default_rng(k) for k in range(2)])
+    scene.phase[:] = PegInHole.INSERT
+    hole = np.array([*cfg.hole_center, cfg.hole_top])
+    off = np.array([0.5 * cfg.hole_diameter + 1e-3, 0.0, 0.0])
+    z6, press = np.zeros((2, 6)), np.zeros((2, 6))
+    press[:, 2] = 5.0  # above the contact threshold
+    for t, depth in ((1.0, 0.0), (2.0, 0.0005), (3.0, 0.001), (3.2, 0.01), (3.5, cfg.success_depth)):
+        pos = np.stack([hole - [0.0, 0.0, depth], hole + off - [0.0, 0.0, min(depth, 0.001)]])
+        scene.update(SceneInput(t=np.full(2, t), pos=pos, rot=np.tile(np.eye(3), (2, 1, 1)), f_env=press,
+                                f_ope=z6, f_d=z6, handle_pos=pos))
+    m = scene.metrics()
+    assert m["to_bore_time"][0, 0] == pytest.approx(2.0) and m["bore_descent_time"][0, 0] == pytest.approx(0.5)
+    assert m["to_bore_time"][0, 0] + m["bore_descent_time"][0, 0] == pytest.approx(m["insertion_time"][0, 0])
+    assert np.isnan(m["to_bore_time"][1, 0]) and not m["success"][1, 0]
