@@ -186,6 +186,9 @@ class PandaEnv(EnvBase):
         control periods (negative: the closest approach, inside the limits), until the arm is parked or diverges."""
         self.joint_limit_joint = np.full(n, -1, dtype=np.int64)
         """Per arm, this episode: the joint (0-6) of `joint_limit_excess` (-1 before the first control period)."""
+        self.joint_speed_ratio = np.zeros(n)
+        """Per arm, this episode: the largest |q̇_j| / q̇_max,j (datasheet) over the joints and the 1 kHz control periods
+        (> 1: a joint ran faster than its limit), until the arm is parked or diverges."""
         self.signal_keys = tuple(self.scene.signals(self._scene_input()).keys())
         """Names of the scene's per-step signals in the output (e.g. the peg's misalignment and depth)."""
         self._make_specs()
@@ -260,6 +263,7 @@ class PandaEnv(EnvBase):
         self.fallbacks[idx] = 0
         self.joint_limit_excess[idx] = -np.inf
         self.joint_limit_joint[idx] = -1
+        self.joint_speed_ratio[idx] = 0.0
         self.stiffness_scale[idx] = 1.0
         s = self.pcfg.sensors
         if s.ft_force_bias > 0 or s.ft_torque_bias > 0:
@@ -466,14 +470,20 @@ class PandaEnv(EnvBase):
         return bad
 
     def _track_joint_limits(self) -> None:
-        """`joint_limit_excess` with this control period's joint positions (arms in their episode only)."""
+        """`joint_limit_excess` and `joint_speed_ratio` with this control period's joint positions and speeds (arms in
+        their episode only)."""
         per_joint = np.maximum(self._q_lo - self.q, self.q - self._q_hi)
+        live = ~self.parked & ~self.diverged
         with np.errstate(invalid="ignore"):  # a diverging arm's NaN: the comparison is False, the values before stay
             over = per_joint.max(1)
-            new = (over > self.joint_limit_excess) & ~self.parked & ~self.diverged
+            new = (over > self.joint_limit_excess) & live
+            fast = (np.abs(self.qd) / self._dq_max).max(1)
+            faster = (fast > self.joint_speed_ratio) & live
         if new.any():
             self.joint_limit_excess[new] = over[new]
             self.joint_limit_joint[new] = per_joint[new].argmax(1)
+        if faster.any():
+            self.joint_speed_ratio[faster] = fast[faster]
 
     def park(self, idx: np.ndarray) -> None:
         """Set aside arms `idx` whose episode is over while the batch runs on (until their reset): their collisions

@@ -351,6 +351,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     metrics = env.scene.metrics()
     metrics["diverged"] = env.diverged.copy()
     metrics["joint_limit_excess"] = env.joint_limit_excess.copy()
+    metrics["joint_speed_ratio"] = env.joint_speed_ratio.copy()
     metrics["qp_fallbacks"] = fallbacks
     per = {c: {k: np.asarray(v)[j * trials:(j + 1) * trials] for k, v in metrics.items()}
            for j, c in enumerate(controllers)}
@@ -417,23 +418,26 @@ class LimitStress:
     """Arms flagged as diverged at the end."""
     fallbacks: int
     """1 kHz periods of one arm in which the QP failed and the controller braked."""
+    worst_speed_ratio: float = math.nan
+    """Largest |q̇|/q̇_max over every joint, arm and control period (the env's `joint_speed_ratio`)."""
 
 
 def limit_stress(num_envs: int, steps: int, seed: int, config=None, controller_options=None,  # noqa: ANN001
                  hold: int = 20) -> LimitStress:
     """Random actions, each held for `hold` agent steps, on `num_envs` Pandas for `steps` agent steps (done arms
-    reset): the worst joint-position excess (the env's `joint_limit_excess`, every 1 kHz control period), torque
-    ratio, divergences and QP fallbacks (the reliability check of docs/panda.md)."""
+    reset): the worst joint-position excess (the env's `joint_limit_excess`, every 1 kHz control period), joint-speed
+    and torque ratios, divergences and QP fallbacks (the reliability check of docs/panda.md)."""
     from a3cqp_rl.robot import PANDA_LIMITS
     from envs.panda import PandaEnv
 
     env = PandaEnv(num_envs, config, seed=seed, controller_options=controller_options)
     gen = torch.Generator().manual_seed(seed)
     tau_max = np.array(PANDA_LIMITS.tau_max)
-    worst, joint, arm, tau = -np.inf, -1, -1, 0.0
+    worst, joint, arm, tau, speed = -np.inf, -1, -1, 0.0, 0.0
 
-    def record(idx: np.ndarray) -> None:  # the episodes of arms `idx` end: their worst excess counts
-        nonlocal worst, joint, arm
+    def record(idx: np.ndarray) -> None:  # the episodes of arms `idx` end: their worst excess and speed count
+        nonlocal worst, joint, arm, speed
+        speed = max(speed, float(env.joint_speed_ratio[idx].max())) if len(idx) else speed
         if len(idx) and env.joint_limit_excess[idx].max() > worst:
             a = int(idx[env.joint_limit_excess[idx].argmax()])
             worst, joint, arm = float(env.joint_limit_excess[a]), int(env.joint_limit_joint[a]), a
@@ -450,7 +454,7 @@ def limit_stress(num_envs: int, steps: int, seed: int, config=None, controller_o
             record(np.flatnonzero(done.numpy()))
             td = env.reset(td.empty().set("_reset", done.reshape(num_envs, 1)))
     record(np.arange(num_envs))
-    return LimitStress(worst, joint + 1, arm, tau, int(env.diverged.sum()), env.ctrl.fallback_count)
+    return LimitStress(worst, joint + 1, arm, tau, int(env.diverged.sum()), env.ctrl.fallback_count, speed)
 
 
 def load_fixed_controller(path: str | Path):  # noqa: ANN201
@@ -525,11 +529,13 @@ def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
         out["extracted_rate"] = float(np.mean(np.asarray(m["extracted"])[grasped])) if grasped.any() else None
     else:
         for k, v in m.items():
-            if k not in ("diverged", "joint_limit_excess", "qp_fallbacks"):
+            if k not in ("diverged", "joint_limit_excess", "joint_speed_ratio", "qp_fallbacks"):
                 out[f"{k}_mean"], out[f"{k}_std"] = _mean_std(v)
     if "joint_limit_excess" in m:  # the worst trial [mrad]: > 0 a joint passed a datasheet limit
         worst = float(np.max(m["joint_limit_excess"])) if len(m["joint_limit_excess"]) else -math.inf
         out["joint_limit_excess_max_mrad"] = 1e3 * worst if math.isfinite(worst) else None
+    if "joint_speed_ratio" in m:  # the worst trial: > 1 a joint ran faster than its datasheet speed limit
+        out["joint_speed_ratio_max"] = float(np.max(m["joint_speed_ratio"])) if len(m["joint_speed_ratio"]) else None
     if "qp_fallbacks" in m:  # 1 kHz periods in which the QP failed and the controller braked
         fb = np.asarray(m["qp_fallbacks"])
         out["qp_fallback_trials"] = int((fb > 0).sum())
@@ -584,6 +590,9 @@ def format_table(res: EvalResult) -> str:
     if all("joint_limit_excess_max_mrad" in s[c] for c in names):
         rows.append(("joint-limit excess, worst [mrad]", (["-"] if res.scene == "peg_in_hole" else [])
                      + [_fmt(s[c]["joint_limit_excess_max_mrad"], prec=1) for c in names]))
+    if all("joint_speed_ratio_max" in s[c] for c in names):
+        rows.append(("joint speed, worst [x limit]", (["-"] if res.scene == "peg_in_hole" else [])
+                     + [_fmt(s[c]["joint_speed_ratio_max"]) for c in names]))
     if all("qp_fallback_trials" in s[c] for c in names):
         rows.append(("QP fallbacks: trials, worst [ms]", (["-"] if res.scene == "peg_in_hole" else [])
                      + [f"{s[c]['qp_fallback_trials']}, {s[c]['qp_fallback_ms_max']}" for c in names]))

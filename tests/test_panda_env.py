@@ -259,6 +259,7 @@ def test_without_external_force_random_actions_never_pass_a_joint_limit() -> Non
     r = limit_stress(4, 1500, 2, _cfg(NO_EXTERNAL_FORCE))
     assert -0.02 < r.worst_excess, "no joint came near its limit: the check would not be one"
     assert r.worst_excess < 0.0 and r.worst_torque_ratio <= 1.0 + 1e-12 and r.diverged == 0 and r.fallbacks == 0
+    assert 0.9 < r.worst_speed_ratio <= 1.0  # a joint reaches its speed bound (2 % inside the limit), none passes it
 
 
 @pytest.mark.slow
@@ -288,6 +289,12 @@ def test_joint_limit_excess_is_tracked_per_arm_over_the_episode() -> None:
     assert 0.019 < env.joint_limit_excess[1] <= 0.02 + 1e-9  # seen at the first control period
     assert env.joint_limit_joint[1] == 3
     assert env.joint_limit_excess[0] == home[0]
+    assert np.all((0.0 <= env.joint_speed_ratio) & (env.joint_speed_ratio < 1.0))
+    env.sim.data.qvel[m.jnt_dofadr[m.joint("arm1/joint6").id]] = 1.5 * PANDA_LIMITS.dq_max[5]  # arm 1's wrist too fast
+    speed0 = env.joint_speed_ratio[0]
+    td["action"] = _ik_action(2)
+    td = env.step(td)["next"]
+    assert env.joint_speed_ratio[1] > 1.2 and env.joint_speed_ratio[0] < 1.0
     env.park(np.array([1]))  # a parked arm's motion no longer counts
     env.sim.data.qpos[adr] = q_hi[3] + 0.05
     td["action"] = _ik_action(2)
@@ -295,6 +302,7 @@ def test_joint_limit_excess_is_tracked_per_arm_over_the_episode() -> None:
     assert env.joint_limit_excess[1] <= 0.02 + 1e-9
     env.reset(td.empty().set("_reset", torch.tensor([[False], [True]])))
     assert env.joint_limit_excess[1] == -np.inf and env.joint_limit_excess[0] == home[0]
+    assert env.joint_speed_ratio[1] == 0.0 and env.joint_speed_ratio[0] >= speed0
     assert env.joint_limit_joint[1] == -1 and env.joint_limit_joint[0] >= 0
 
 
