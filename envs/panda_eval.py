@@ -523,9 +523,11 @@ def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
         out["misalignment_translation_mean_mm"], out["misalignment_translation_std_mm"] = _mean_std(
             m["misalign_translation"], 1e3)
         out["disengage_force_mean_n"], _ = _mean_std(m["disengage_force"])
-        # over the cycles the operator disengaged (not the ones an episode never reached); none disengaged
-        # (operator_disengage off): unknown, not the share of pegs the return home happened to drag out
+        # over the cycles the operator disengaged (not the ones an episode never reached) with the peg in the bore (a
+        # peg that never entered is not pulled out); none (operator_disengage off): unknown
         grasped = np.isfinite(np.asarray(m["disengage_force"], dtype=float))
+        if "in_bore_at_grasp" in m:
+            grasped &= np.asarray(m["in_bore_at_grasp"], dtype=bool)
         out["extracted_rate"] = float(np.mean(np.asarray(m["extracted"])[grasped])) if grasped.any() else None
     else:
         for k, v in m.items():

@@ -288,6 +288,9 @@ class PegInHole(Scene):
         """Episode time at which the tip, after the first contact, was first `BORE_DEPTH` inside the bore [s]."""
         self.extracted = np.zeros((n, C), dtype=bool)
         """Whether the peg left the hole (tip above the rim) during the disengagement."""
+        self.in_bore_at_grasp = np.zeros((n, C), dtype=bool)
+        """Whether the tip was in the bore (below the rim, within its radius) when the operator grasped to disengage:
+        the disengagements that can pull a peg out (a peg that never entered is 'out' from the start)."""
         self.disengage_force = np.full((n, C), np.nan)
         """Mean |f_ope| while the operator disengages [N]."""
         self._f_sum, self._f_cnt = np.zeros(n), np.zeros(n)
@@ -321,6 +324,7 @@ class PegInHole(Scene):
                   self.max_depth, self.bore_time, self.disengage_force):
             a[idx] = np.nan
         self.extracted[idx] = False
+        self.in_bore_at_grasp[idx] = False
         self._f_sum[idx], self._f_cnt[idx] = 0.0, 0.0
 
     def _approach_pose(self, arms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -384,10 +388,12 @@ class PegInHole(Scene):
             ok = contacted & (depth[a] >= c.success_depth) & inside
             self.success_time[a[ok], cyc[ok]] = t[a[ok]]
             since = np.where(contacted, t[a] - self.contact_time[a, cyc], tau - c.descent_time)
-            finished = a[ok | (since > c.time_limit)]
+            over = ok | (since > c.time_limit)
+            finished = a[over]
             if len(finished):
                 fm = np.isin(arms, finished)
                 if c.operator_disengage:
+                    self.in_bore_at_grasp[finished, cyc[over]] = (depth[finished] > 0.0) & inside[over]
                     self._grasp_releases[fm] = self.operator.releases[fm]
                     goal = inp.handle_pos[fm] + np.array([0.0, 0.0, c.disengage_lift])
                     self.operator.grasp(arms[fm], goal, t)
@@ -449,7 +455,8 @@ class PegInHole(Scene):
                 "misalign_translation": self.misalign_translation.copy(),
                 "misalign_rotation": self.misalign_rotation.copy(), "max_depth": self.max_depth.copy(),
                 "to_bore_time": self.bore_time - self.contact_time, "bore_descent_time": self.success_time - self.bore_time,
-                "extracted": self.extracted.copy(), "disengage_force": self.disengage_force.copy()}
+                "extracted": self.extracted.copy(), "in_bore_at_grasp": self.in_bore_at_grasp.copy(),
+                "disengage_force": self.disengage_force.copy()}
 
     def signals(self, inp: SceneInput) -> dict[str, np.ndarray]:
         return {"misalign_translation": np.linalg.norm(inp.pos[:, :2] - self.hole[:2], axis=1),

@@ -249,6 +249,10 @@ def test_pulled_out_rate_counts_the_cycles_the_operator_disengaged() -> None:
     res = EvalResult.from_metrics("peg_in_hole", {"ik_fc": m}, {}, 1.0, 10.0, (0,))
     assert res.summary["ik_fc"]["extracted_rate"] == pytest.approx(3 / 4)
     assert "75 %" in format_table(res)
+    # a disengagement that began with the peg outside the bore (it never went in) pulls nothing out: not counted
+    m["in_bore_at_grasp"] = np.array([[True, False, True], [True, False, False]])
+    res = EvalResult.from_metrics("peg_in_hole", {"ik_fc": m}, {}, 1.0, 10.0, (0,))
+    assert res.summary["ik_fc"]["extracted_rate"] == pytest.approx(2 / 3)
     m["disengage_force"] = np.full((2, 3), nan)
     res = EvalResult.from_metrics("peg_in_hole", {"ik_fc": m}, {}, 1.0, 10.0, (0,))
     assert res.summary["ik_fc"]["extracted_rate"] is None  # no disengagement (operator_disengage off): unknown

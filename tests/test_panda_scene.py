@@ -176,3 +176,24 @@ def test_insertion_time_splits_at_the_tip_one_millimetre_inside_the_bore() -> No
     assert m["to_bore_time"][0, 0] == pytest.approx(2.0) and m["bore_descent_time"][0, 0] == pytest.approx(0.5)
     assert m["to_bore_time"][0, 0] + m["bore_descent_time"][0, 0] == pytest.approx(m["insertion_time"][0, 0])
     assert np.isnan(m["to_bore_time"][1, 0]) and not m["success"][1, 0]
+
+
+def test_a_disengagement_counts_as_one_that_can_pull_the_peg_out_only_with_the_peg_in_the_bore() -> None:
+    """Both arms reach the time limit: arm 0 with its tip 5 mm inside the bore, arm 1 resting 1 mm above the rim."""
+    from a3cqp_rl.config import OperatorConfig, PegInHoleConfig
+    from envs.scenarios import Operator, PegInHole, SceneInput
+
+    cfg = PegInHoleConfig(time_limit=1.0)
+    scene = PegInHole(2, Operator(2, OperatorConfig(), 0.01), np.array([0.3, 0.0, 0.5]), np.eye(3), cfg)
+    scene.reset(np.arange(2), [np.random.default_rng(k) for k in range(2)])
+    scene.phase[:] = PegInHole.INSERT
+    hole = np.array([*cfg.hole_center, cfg.hole_top])
+    pos = np.stack([hole - [0.0, 0.0, 0.005], hole + [0.0, 0.0, 0.001]])
+    z6, press = np.zeros((2, 6)), np.zeros((2, 6))
+    press[:, 2] = 5.0
+    for t in (1.0, 2.5):  # first contact, then past the time limit
+        scene.update(SceneInput(t=np.full(2, t), pos=pos, rot=np.tile(np.eye(3), (2, 1, 1)), f_env=press, f_ope=z6,
+                                f_d=z6, handle_pos=pos))
+    assert (scene.phase == PegInHole.DISENGAGE).all()
+    assert scene.metrics()["in_bore_at_grasp"][:, 0].tolist() == [True, False]
+    assert scene.extracted[1, 0]  # the tip above the rim reads as 'out' from the start: hence the flag
