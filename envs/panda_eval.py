@@ -52,8 +52,8 @@ import torch
 
 from a3cqp_rl.exceptions import A3CQPError
 
-__all__ = ["main", "evaluate", "evaluate_seeds", "paired", "free_motion_rates", "free_motion_warning", "guided_rates",
-           "guided_warning", "limit_stress", "LimitStress", "capped_time", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult",
+__all__ = ["main", "evaluate", "evaluate_seeds", "trial_seeds", "paired", "free_motion_rates", "free_motion_warning",
+           "guided_rates", "guided_warning", "limit_stress", "LimitStress", "capped_time", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult",
            "load_fixed_controller"]
 
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
@@ -136,6 +136,12 @@ def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, sin
     return W, f_d, scale, ctrl != "learned"
 
 
+def trial_seeds(seed: int, trials: int) -> list[int]:
+    """The env seed of each of the `trials` trials of `a3cqp evaluate --seed SEED` (one spawned stream per trial, so
+    trial k is the same whatever the number of trials)."""
+    return [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(trials)]
+
+
 def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int = 0, config=None,  # noqa: ANN001
              controllers: tuple[str, ...] = CONTROLLERS, cycles: int | None = None,
              progress: bool = True, fixed: Sequence = (), sim_threads: int = 1, workers: int = 1,
@@ -173,10 +179,10 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
         raise ValueError("no controller to evaluate")
     if not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
-    trial_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(trials)]
+    seeds = trial_seeds(seed, trials)
     groups = [g.tolist() for g in np.array_split(np.arange(trials), min(workers, trials))]
     # each worker's arms sit where they sit in the batch of all trials: the same coordinates, the same round-off
-    jobs = [(scene, policy_path, [trial_seeds[k] for k in g], cfg, tuple(controllers), tuple(fixed), sim_threads,
+    jobs = [(scene, policy_path, [seeds[k] for k in g], cfg, tuple(controllers), tuple(fixed), sim_threads,
              progress and i == 0, i == 0, park,
              None if len(groups) == 1 else (len(names) * trials, [j * trials + k for j in range(len(names)) for k in g]))
             for i, g in enumerate(groups)]
@@ -437,8 +443,10 @@ def limit_stress(num_envs: int, steps: int, seed: int, config=None, controller_o
 
     def record(idx: np.ndarray) -> None:  # the episodes of arms `idx` end: their worst excess and speed count
         nonlocal worst, joint, arm, speed
-        speed = max(speed, float(env.joint_speed_ratio[idx].max())) if len(idx) else speed
-        if len(idx) and env.joint_limit_excess[idx].max() > worst:
+        if not len(idx):
+            return
+        speed = max(speed, float(env.joint_speed_ratio[idx].max()))
+        if env.joint_limit_excess[idx].max() > worst:
             a = int(idx[env.joint_limit_excess[idx].argmax()])
             worst, joint, arm = float(env.joint_limit_excess[a]), int(env.joint_limit_joint[a]), a
 

@@ -257,10 +257,10 @@ class PegInHole(Scene):
     name, tool = "peg_in_hole", "peg_mesh"
     SETTLE, APPROACH, INSERT, DISENGAGE, RETURN, DONE = range(6)
     phase_names = ("settle", "approach", "insert", "disengage", "return", "done")
+    phase_task = ("IK", "IK", "FC", "AC", "IK", "IK")
     BORE_DEPTH = 0.001
     """Depth below the rim [m] from which a tip within the bore's radius counts as in the bore (the insertion time's
     split: first contact -> in the bore, set by the x-y alignment; in the bore -> success, by the push along z)."""
-    phase_task = ("IK", "IK", "FC", "AC", "IK", "IK")
 
     def __init__(self, n: int, operator: Operator, home_pos: np.ndarray, home_rot: np.ndarray,
                  cfg: PegInHoleConfig) -> None:
@@ -454,7 +454,8 @@ class PegInHole(Scene):
                 "time_limit": np.full(succ.shape, self.cfg.time_limit), "contact_time": self.contact_time.copy(),
                 "misalign_translation": self.misalign_translation.copy(),
                 "misalign_rotation": self.misalign_rotation.copy(), "max_depth": self.max_depth.copy(),
-                "to_bore_time": self.bore_time - self.contact_time, "bore_descent_time": self.success_time - self.bore_time,
+                "to_bore_time": self.bore_time - self.contact_time,
+                "bore_descent_time": self.success_time - self.bore_time,
                 "extracted": self.extracted.copy(), "in_bore_at_grasp": self.in_bore_at_grasp.copy(),
                 "disengage_force": self.disengage_force.copy()}
 

@@ -732,7 +732,7 @@ def _keep_c_verdict(sol: QPSolution) -> None:
     st = sol._np("_status")
     left = st >= native.HANDED_ON
     sol._np("_x")[left] = 0.0
-    sol.forget(left)
+    sol.forget(np.flatnonzero(left))
     st[left] = int(QPStatus.MAX_ITER)
 
 

@@ -95,8 +95,10 @@ def fixed_from_genome(genome: dict, name: str = "fixed") -> FixedControllerConfi
 
 def trial_draws(cfg: ExperimentConfig) -> tuple[list[int], np.ndarray]:
     """The tuning trials: one env seed per trial and the operator-strength factor of each (the same every call)."""
+    from envs.panda_eval import trial_seeds
+
     t = cfg.nsga2.panda
-    seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(t.trial_seed).spawn(t.trials)]
+    seeds = trial_seeds(t.trial_seed, t.trials)  # the trials `a3cqp evaluate --seed trial_seed` runs
     lo, hi = t.operator_force_scale
     scales = np.array([np.random.default_rng([s, 1]).uniform(lo, hi) for s in seeds])
     return seeds, scales

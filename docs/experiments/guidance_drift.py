@@ -21,6 +21,7 @@ import torch
 from a3cqp_rl.config import config_from_dict, config_to_dict, load_config
 from algorithms.a2c import load_policy
 from envs.panda import PandaEnv, to_local
+from envs.panda_eval import trial_seeds
 
 
 def main() -> None:
@@ -38,7 +39,7 @@ def main() -> None:
     d["panda"]["idle_force"] = a.idle_force or d["panda"]["idle_force"]
     cfg = config_from_dict(d, "<options>")
     policy = load_policy(a.policy)
-    seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(a.seed).spawn(a.trials)]
+    seeds = trial_seeds(a.seed, a.trials)
     env = PandaEnv(a.trials, cfg, scene="guidance", trial_seeds=seeds)
     last = {}
     step = env.ctrl.step

@@ -23,6 +23,7 @@ sys.path.insert(0, str(ROOT))  # this checkout's a3cqp_rl/envs/algorithms
 from a3cqp_rl.config import load_config
 from algorithms.a2c import load_policy
 from envs.panda import PandaEnv
+from envs.panda_eval import trial_seeds
 
 
 def main() -> None:
@@ -34,7 +35,7 @@ def main() -> None:
     logging.getLogger("a3cqp_rl.control.controller").setLevel(logging.ERROR)
     cfg = load_config(ROOT / "configs" / "panda_peg_in_hole.yaml")
     n = args.trials
-    seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(args.seed).spawn(26)][:n]
+    seeds = trial_seeds(args.seed, n)
     env, policy = PandaEnv(n, cfg, scene="peg_in_hole", trial_seeds=seeds), load_policy(args.policy)
     sc = env.scene
     td, done = env.reset(), np.zeros(n, dtype=bool)

@@ -24,7 +24,7 @@ import yaml
 from a3cqp_rl.config import config_from_dict, config_to_dict, load_config
 from algorithms.a2c import load_policy
 from envs.panda import PandaEnv
-from envs.panda_eval import _scripted
+from envs.panda_eval import _scripted, trial_seeds
 
 
 def _override(cfg, sets: list[str]):  # noqa: ANN001, ANN202
@@ -44,7 +44,7 @@ def run(seed: int, trials: int, config: str, sets: list[str], policy_path: str |
     """Per-step arrays [T, n] of the batch (controller-major, as `a3cqp evaluate`) and the scene's metrics."""
     cfg = _override(load_config(config), sets)
     policy = load_policy(policy_path or cfg.panda.policy) if "learned" in controllers else None
-    seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(trials)]
+    seeds = trial_seeds(seed, trials)
     env = PandaEnv(len(controllers) * trials, cfg, scene="peg_in_hole", trial_seeds=seeds * len(controllers))
     n = env.num_envs
     latched, since = np.zeros(n, dtype=bool), np.zeros(n)

@@ -27,7 +27,7 @@ from a3cqp_rl.config import load_config
 from a3cqp_rl.control import A3CQPController
 from a3cqp_rl.robot import PANDA_LIMITS
 from envs.panda import PandaEnv
-from envs.panda_eval import _scripted
+from envs.panda_eval import _scripted, trial_seeds
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -42,7 +42,7 @@ def main() -> None:
     args = ap.parse_args()
     logging.getLogger("a3cqp_rl.control.controller").setLevel(logging.ERROR)
     cfg = load_config(ROOT / "configs" / "panda_peg_in_hole.yaml")
-    seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(args.seed).spawn(26)]
+    seeds = trial_seeds(args.seed, 26)
     limits = dataclasses.replace(PANDA_LIMITS, ddq_max=tuple(args.ddq_scale * a for a in PANDA_LIMITS.ddq_max))
 
     def controller(n, model=None, config=None, options=None):  # noqa: ANN001, ANN202

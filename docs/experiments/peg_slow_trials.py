@@ -22,7 +22,7 @@ import torch
 from a3cqp_rl.config import load_config
 from algorithms.a2c import load_policy
 from envs.panda import PandaEnv
-from envs.panda_eval import RECORD_KEYS, _scripted
+from envs.panda_eval import RECORD_KEYS, _scripted, trial_seeds
 
 
 def main() -> None:
@@ -37,7 +37,7 @@ def main() -> None:
     cfg = load_config(a.config)
     policy = load_policy(a.policy or cfg.panda.policy)
     pick = [int(k) for k in a.pick.split(",")]
-    seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(a.seed).spawn(a.trials)]
+    seeds = trial_seeds(a.seed, a.trials)
     seeds = [seeds[k] for k in pick]
     controllers = ["learned", "ik_fc"]
     k = len(pick)

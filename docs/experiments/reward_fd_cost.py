@@ -33,9 +33,13 @@ from envs.panda_eval import free_motion_rates, guided_rates
 BASE = ROOT / "configs" / "point_mass_a2c_fig5_fd_1e6.yaml"
 
 
+PEG_ADAPTATION = load_config(ROOT / "configs" / "panda_peg_in_hole.yaml").adaptation
+"""Table II's rates with the peg's f̄_d = 10 N."""
+
+
 def held_contact(policy, e: float, f_env: float) -> tuple[np.ndarray, float]:  # noqa: ANN001
     """Weights [3] and f_d [N] after 3 s of eq. 29 on the fixed observation (e [m], f_env [N], no operator)."""
-    a = load_config(ROOT / "configs" / "panda_peg_in_hole.yaml").adaptation
+    a = PEG_ADAPTATION
     half = 0.5 * a.sigma_w
     logits, f_d = torch.tensor([[half, -half, -half]], dtype=torch.float64), torch.zeros(1, dtype=torch.float64)
     obs = torch.tensor([[e / a.e_max, f_env / a.f_env_max, 0.0]], dtype=torch.float32)
@@ -54,8 +58,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "fd_cost")
     args = ap.parse_args()
     base = yaml.safe_load(BASE.read_text())
-    seeds = f"{min(args.seeds)}-{max(args.seeds)}" if args.seeds == list(range(min(args.seeds), max(args.seeds) + 1)) \
-        else ",".join(map(str, args.seeds))
+    seeds = ",".join(map(str, args.seeds))
     for a4 in args.alpha4:
         cfg = dict(base, reward=dict(base["reward"], alpha=[*base["reward"]["alpha"][:3], a4]))
         out = args.out / f"alpha4_{a4:g}"
