@@ -12,6 +12,7 @@ Both evaluate the flat parameter vector with `networks.policy_mean`, the trainer
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import torch
@@ -21,7 +22,7 @@ from a3cqp_rl.checkpoint import load_checkpoint
 from a3cqp_rl.exceptions import CheckpointError
 from algorithms.networks import ParamLayout, policy_mean
 
-__all__ = ["A2CPolicy", "load_policy", "load_actor", "layout_key", "first_episode_returns"]
+__all__ = ["A2CPolicy", "load_policy", "load_actor", "layout_key", "first_episode_returns", "fingerprint"]
 
 
 def layout_key(key: list) -> list:
@@ -69,6 +70,17 @@ class A2CPolicy(nn.Module):
         mu = self._mean(obs)
         std = torch.exp(self.layout.views(self.flat)["log_std"])
         return self.action_mid + self.action_half * mu, (self.action_half * std).expand_as(mu)
+
+
+def fingerprint(policy: A2CPolicy) -> str:
+    """The first 16 hex digits of a SHA-256 over what the policy computes with: its layout, action bounds and float32
+    parameters (the file's other entries, e.g. the run folder in its config, do not count)."""
+    lay = policy.layout
+    h = hashlib.sha256(repr((lay.obs_dim, lay.act_dim, lay.hidden, lay.network, lay.critic_obs_dim,
+                             policy.bounded)).encode())
+    for t in (policy.action_mid, policy.action_half, policy.flat.detach()):
+        h.update(t.to(torch.float32).contiguous().numpy().astype("<f4").tobytes())
+    return h.hexdigest()[:16]
 
 
 class _LocScale(nn.Module):
@@ -150,3 +162,30 @@ def first_episode_returns(policy_path: str | Path, env, max_steps: int, sample: 
     first = done.int().argmax(-1, keepdim=True)  # index of each env's first done
     steps = torch.arange(max_steps).expand_as(reward)
     return (reward * (steps <= first)).sum(-1).reshape(-1)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m algorithms.policy A.pt [B.pt ...]`: each policy's fingerprint; exit 1 when they are not all equal."""
+    import sys
+
+    paths = list(sys.argv[1:] if argv is None else argv)
+    if not paths:
+        print("usage: python -m algorithms.policy POLICY.pt [POLICY.pt ...]", file=sys.stderr)
+        return 2
+    try:
+        prints = [fingerprint(load_policy(p)) for p in paths]
+    except (CheckpointError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for p, f in zip(paths, prints):
+        print(f"{f}  {p}")
+    if len(paths) > 1:
+        same = len(set(prints)) == 1
+        print("the same parameters" if same else "the parameters differ: the training's numbers on this machine or in "
+              "this version are not those of the other file")
+        return 0 if same else 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

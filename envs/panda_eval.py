@@ -1,6 +1,6 @@
 """`a3cqp evaluate --scene peg_in_hole|polishing|guidance`: the learned policy and scripted baselines on the same trials.
 
-    a3cqp evaluate --scene peg_in_hole [--policy runs/pm_default/policy.pt] --trials 26 [--seed 0 | --seeds 0,3-10]
+    a3cqp evaluate --scene peg_in_hole [--policy runs/mine/policy.pt] --trials 26 [--seed 0 | --seeds 0,3-10]
                    [--json F]
                    [--config configs/panda_peg_in_hole.yaml] [--controllers learned,ik,ik_fc,equal,vic]
                    [--cycles 1] [--out RUN] [--controller-config PICK.yaml [PICK.yaml ...]] [--workers 2]
@@ -689,16 +689,18 @@ def main(argv: list[str] | None = None) -> int:
         if policy is not None and Path(policy).is_dir():
             policy = Path(policy) / "policy.pt"
         if policy is not None and not Path(policy).is_file():
-            where = "" if args.policy is not None else (f" (panda.policy of {cfg_path}: train it with `make policy`, "
-                                                         "pass --policy PATH, or leave learned out of --controllers)")
+            where = "" if args.policy is not None else (f" (panda.policy of {cfg_path}: the repository ships it; pass "
+                                                         "--policy PATH, or leave learned out of --controllers)")
             raise FileNotFoundError(f"policy file not found: {policy}{where}")
         if policy is None and "learned" in controllers:
             controllers = tuple(c for c in controllers if c != "learned")
             print("no --policy given: evaluating the baselines only", file=sys.stderr)
+        prints = None
         if policy is not None:
-            from algorithms.a2c import load_policy
+            from algorithms.policy import fingerprint, load_policy
 
             loaded = load_policy(policy)
+            prints = fingerprint(loaded)
             for warning in (free_motion_warning(loaded), guided_warning(loaded)):
                 if warning:
                     print(warning, file=sys.stderr)
@@ -714,11 +716,15 @@ def main(argv: list[str] | None = None) -> int:
     which = f"seed {args.seed}" if args.seeds is None else f"seeds {','.join(map(str, args.seeds))} pooled"
     print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller, {which}, config {cfg_path or 'defaults'}; "
           f"{res.sim_seconds:.0f} s simulated in {res.seconds:.1f} s ({res.sim_seconds / res.seconds:.1f}x real time)")
+    if policy is not None:
+        print(f"learned: {policy} (parameters {prints})")
     print(format_table(res))
     lines = format_paired(res, "learned" if "learned" in res.summary else next(iter(res.summary)))
     if lines:
         print(lines)
     doc = to_json(res)
+    if policy is not None:
+        doc["policy"], doc["policy_fingerprint"] = str(policy), prints
     if args.json:
         _write_json(Path(args.json), doc)
         print(f"wrote {args.json}")

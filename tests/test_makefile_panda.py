@@ -1,5 +1,5 @@
-"""`make peg` / `make fig7`: the default Panda policy is the one the Panda configs name, and a dry run trains it only
-when its file is missing."""
+"""`make peg` / `make fig7` evaluate the shipped policy the Panda configs name (no training); `make policy` trains it
+here and compares."""
 from __future__ import annotations
 
 import os
@@ -15,20 +15,22 @@ ROOT = Path(__file__).resolve().parents[1]
 MAKEFILE = (ROOT / "Makefile").read_text()
 
 
-def test_the_makefile_trains_the_policy_the_panda_configs_name() -> None:
+def test_the_makefile_evaluates_the_policy_the_panda_configs_name() -> None:
     m = re.search(r"^PANDA_POLICY := (\S+)$", MAKEFILE, re.M)
     assert m, "PANDA_POLICY not set in the Makefile"
     for scene in ("peg_in_hole", "polishing", "guidance"):
         cfg = yaml.safe_load((ROOT / "configs" / f"panda_{scene}.yaml").read_text())
         assert cfg["panda"]["policy"] == m.group(1), scene
-    # the rule that makes it trains the config whose run folder that is
-    rule = re.search(r"^\$\(PANDA_POLICY\):.*\n\t(.*)$", MAKEFILE, re.M)
+    assert (ROOT / m.group(1)).is_file(), "the shipped policy is missing"
+    # `make policy` trains the config that policy comes from and compares the two
+    rule = re.search(r"^runs/pm_default/policy.pt:.*\n\t(.*)$", MAKEFILE, re.M)
     assert rule and "train --config configs/point_mass_a2c_fig5_fd_1e6.yaml --out $(@D)" in rule.group(1)
-    assert Path(m.group(1)).name == "policy.pt"
+    compare = re.search(r"^policy: runs/pm_default/policy.pt\n\t(.*)$", MAKEFILE, re.M)
+    assert compare and "-m algorithms.policy runs/pm_default/policy.pt $(PANDA_POLICY)" in compare.group(1)
 
 
 @pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
-def test_make_peg_dry_run_trains_only_when_the_policy_is_missing(tmp_path: Path) -> None:
+def test_make_peg_dry_run_evaluates_without_training(tmp_path: Path) -> None:
     for f in ("Makefile", "configs/point_mass_a2c_fig5_fd_1e6.yaml", "pyproject.toml", "constraints.txt", "setup.py",
               "a3cqp_rl/native_sources.py"):
         (tmp_path / f).parent.mkdir(parents=True, exist_ok=True)
@@ -44,18 +46,20 @@ def test_make_peg_dry_run_trains_only_when_the_policy_is_missing(tmp_path: Path)
         return [ln for ln in out.stdout.splitlines() if ln.strip()]
 
     lines = dry("peg")
-    assert len(lines) == 2, lines
-    assert "a3cqp train --config configs/point_mass_a2c_fig5_fd_1e6.yaml --out runs/pm_default --no-plots" in lines[0]
-    assert "a3cqp evaluate --scene peg_in_hole --trials 26 --seed 0" in lines[1]
-    (tmp_path / "runs/pm_default").mkdir(parents=True)
-    (tmp_path / "runs/pm_default/policy.pt").touch()
-    lines = dry("peg")
-    assert len(lines) == 1 and "evaluate --scene peg_in_hole" in lines[0]
+    assert len(lines) == 1 and "a3cqp evaluate --scene peg_in_hole --trials 26 --seed 0" in lines[0], lines
     pooled = dry("peg", "PEG_SEEDS=0,3-10")
     assert len(pooled) == 1 and "--seeds 0,3-10 --out runs/peg26_seeds0,3-10" in pooled[0] and "--seed " not in pooled[0]
     fig7 = dry("fig7")
     assert len(fig7) == 3 and "--cycles 3" in fig7[0]
     assert all("a3cqp plot episode runs/peg_fig7" in ln for ln in fig7[1:])
+    # `make policy` trains only when its run has no policy yet, then compares it with the shipped file
+    lines = dry("policy")
+    assert len(lines) == 2, lines
+    assert "a3cqp train --config configs/point_mass_a2c_fig5_fd_1e6.yaml --out runs/pm_default --no-plots" in lines[0]
+    assert "-m algorithms.policy runs/pm_default/policy.pt policies/point_mass_fig5_fd_1e6_seed0.pt" in lines[1]
+    (tmp_path / "runs/pm_default").mkdir(parents=True)
+    (tmp_path / "runs/pm_default/policy.pt").touch()
+    assert len(dry("policy")) == 1
     # an edited config does not retrain a finished run (order-only prerequisite)
     (tmp_path / "configs/point_mass_a2c_fig5_fd_1e6.yaml").touch()
-    assert len(dry("peg")) == 1
+    assert len(dry("policy")) == 1

@@ -13,6 +13,7 @@ import yaml
 from a3cqp_rl.checkpoint import save_atomic
 from a3cqp_rl.config import config_from_dict
 from algorithms.networks import ParamLayout
+from algorithms.policy import fingerprint, load_policy
 from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, PAPER_TABLE_VI, EvalResult, capped_time, evaluate,
                              evaluate_seeds, format_paired, format_table, free_motion_rates, free_motion_warning,
                              guided_rates, guided_warning, main, paired, to_json)
@@ -112,6 +113,9 @@ def test_main_takes_the_learned_policy_from_the_config(tmp_path, capsys) -> None
                  "--quiet", "--json", str(out)]) == 0
     doc = json.loads(out.read_text())
     assert doc["controller"] == "learned" and doc["trials"] == 1
+    # which parameters ran: the file and their fingerprint, in the JSON and the header
+    assert doc["policy"] == str(path) and doc["policy_fingerprint"] == fingerprint(load_policy(path))
+    assert f"learned: {path} (parameters {doc['policy_fingerprint']})" in capsys.readouterr().out
     # a configured policy that is missing: one line naming panda.policy
     cfg.write_text(yaml.safe_dump({"env": "panda", "panda": {**FAST["panda"], "policy": str(tmp_path / "no.pt")}}))
     capsys.readouterr()

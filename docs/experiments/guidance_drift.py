@@ -30,7 +30,7 @@ def main() -> None:
     ap.add_argument("--idle-force", default=None, help="panda.idle_force (default: the config's)")
     ap.add_argument("--trials", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--policy", default="runs/pm_default/policy.pt")
+    ap.add_argument("--policy", default="policies/point_mass_fig5_fd_1e6_seed0.pt")
     ap.add_argument("--config", default="configs/panda_guidance.yaml")
     a = ap.parse_args()
     cfg = load_config(a.config)
