@@ -158,6 +158,9 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
     from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict
 
     cfg = config or ExperimentConfig()
+    if cycles is not None and scene != "peg_in_hole":
+        raise ValueError(f"--cycles counts peg-in-hole insertions; the {scene} scene has its own procedure "
+                         "(its config section)")
     if cycles is not None:
         d = config_to_dict(cfg)
         d["panda"]["peg_in_hole"]["cycles"] = int(cycles)

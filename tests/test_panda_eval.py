@@ -97,6 +97,8 @@ def test_main_reports_bad_input_in_one_line(tmp_path, capsys) -> None:  # noqa: 
     assert "--threads must be >= 1" in capsys.readouterr().err
     assert main(["--scene", "peg_in_hole", "--trials", "1", "--workers", "0"]) == 2
     assert "--workers must be >= 1" in capsys.readouterr().err
+    assert main(["--scene", "polishing", "--trials", "1", "--cycles", "3", "--controllers", "ik"]) == 2
+    assert "--cycles counts peg-in-hole insertions" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--scene", "kitchen"])
 
