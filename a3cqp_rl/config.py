@@ -761,6 +761,10 @@ class PegInHoleConfig:
     """How far up the operator pulls the handle [m]."""
     return_time: float = 2.0
     """Minimum-jerk time of the reference back home between cycles [s]."""
+    time_cost: float = 0.0
+    """Reward added to every axis of L per agent period while an insertion is under way (from the first contact to
+    success or the time limit): −time_cost. Eq. 30 has no term for the insertion time, and its +α3|f_env| favours
+    pressing on the rim over sliding down the bore; a minimum-time term for training on the Panda (0: eq. 30 alone)."""
     restart_needs_extraction: bool = True
     """Cycles > 1: the next cycle starts only if the peg left the bore (tip above the rim) during the disengagement or
     the return; a peg still jammed ends the episode, its remaining insertions not made. (Without it the next approach
@@ -776,7 +780,7 @@ class PegInHoleConfig:
             err.add("insert_depth", f"must be < hole_depth ({self.hole_depth}), got {self.insert_depth}")
         if self.insert_depth <= self.success_depth:  # a reference that stops short leaves IK nothing to push with
             err.add("insert_depth", f"must be > success_depth ({self.success_depth}), got {self.insert_depth}")
-        for name in ("friction", "settle_time"):
+        for name in ("friction", "settle_time", "time_cost"):
             if getattr(self, name) < 0:
                 err.add(name, f"must be >= 0, got {getattr(self, name)}")
         if self.hole_segments < 8:

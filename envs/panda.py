@@ -550,7 +550,11 @@ class PandaEnv(EnvBase):
         for k, v in self.scene.signals(self._scene_input()).items():
             data[k] = torch.from_numpy(np.asarray(v, dtype=np.float64))
         if reward:
-            data["reward"] = self._reward(e, fe, fo, fd).to(torch.float32).unsqueeze(-1)
+            r = self._reward(e, fe, fo, fd)
+            task = self.scene.reward_term()
+            if task is not None:
+                r = r + torch.from_numpy(task)[:, None]
+            data["reward"] = r.to(torch.float32).unsqueeze(-1)
         return TensorDict(data, batch_size=self.batch_size, device=self.device)
 
 

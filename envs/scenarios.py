@@ -236,6 +236,10 @@ class Scene:
         """Scene-specific per-step signals for plots (e.g. the peg's misalignment), arrays [N]."""
         return {}
 
+    def reward_term(self) -> np.ndarray | None:
+        """A task reward [N] added to eq. 30 on every axis at this agent period (None: none)."""
+        return None
+
     def _enter(self, mask: np.ndarray, phase: int, t: np.ndarray) -> None:
         self.phase[mask] = phase
         self.t0[mask] = t[mask]
@@ -458,6 +462,12 @@ class PegInHole(Scene):
                 "bore_descent_time": self.success_time - self.bore_time,
                 "extracted": self.extracted.copy(), "in_bore_at_grasp": self.in_bore_at_grasp.copy(),
                 "disengage_force": self.disengage_force.copy()}
+
+    def reward_term(self) -> np.ndarray | None:
+        if self.cfg.time_cost == 0.0:
+            return None
+        started = ~np.isnan(self.contact_time[np.arange(self.n), self.cycle])
+        return -self.cfg.time_cost * ((self.phase == self.INSERT) & started)
 
     def signals(self, inp: SceneInput) -> dict[str, np.ndarray]:
         return {"misalign_translation": np.linalg.norm(inp.pos[:, :2] - self.hole[:2], axis=1),

@@ -84,6 +84,19 @@ def test_fd_axes_restricts_the_desired_force() -> None:
     assert env.f_d[0, 2] > 0 and (env.f_d[0, [0, 1, 3, 4, 5]] == 0).all()
 
 
+def test_the_scenes_task_reward_is_added_to_eq_30_on_every_axis() -> None:
+    rewards = []
+    for cost in (0.0, 2.5):
+        env = PandaEnv(2, _cfg({"panda": {"peg_in_hole": {"time_cost": cost}}}), seed=3)
+        td = env.reset()
+        td["action"] = _ik_action(2)
+        env.scene.phase[:] = env.scene.INSERT  # arm 0 inserting since its first contact, arm 1 before contact
+        env.scene.contact_time[0, 0] = 0.0
+        rewards.append(env.step(td)["next", "reward"])
+    assert rewards[0].shape == (2, 6, 1)
+    assert torch.equal(rewards[1][0], rewards[0][0] - 2.5) and torch.equal(rewards[1][1], rewards[0][1])
+
+
 def test_same_seed_same_numbers_and_trial_seeds_share_trials() -> None:
     runs = []
     for _ in range(2):

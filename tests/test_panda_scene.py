@@ -9,6 +9,8 @@ import mujoco
 import numpy as np
 import pytest
 
+from a3cqp_rl.config import load_config
+from a3cqp_rl.exceptions import ConfigError
 from a3cqp_rl.robot import PandaSim, compose_mjcf
 from a3cqp_rl.robot.scenes import HoleGeometry, hole_block_xml, plate_xml
 
@@ -197,3 +199,34 @@ def test_a_disengagement_counts_as_one_that_can_pull_the_peg_out_only_with_the_p
     assert (scene.phase == PegInHole.DISENGAGE).all()
     assert scene.metrics()["in_bore_at_grasp"][:, 0].tolist() == [True, False]
     assert scene.extracted[1, 0]  # the tip above the rim reads as 'out' from the start: hence the flag
+
+
+def test_the_time_cost_is_paid_from_the_first_contact_until_the_insertion_ends() -> None:
+    """Arm 0 touches the rim at 1.0 s and is inserted at 2.0 s; arm 1 never touches; without time_cost no term."""
+    from a3cqp_rl.config import OperatorConfig, PegInHoleConfig
+    from envs.scenarios import Operator, PegInHole, SceneInput
+
+    def scene_with(cost: float) -> PegInHole:
+        cfg = PegInHoleConfig(operator_disengage=False, time_cost=cost)
+        s = PegInHole(2, Operator(2, OperatorConfig(), 0.01), np.array([0.3, 0.0, 0.5]), np.eye(3), cfg)
+        s.reset(np.arange(2), [np.random.default_rng(k) for k in range(2)])
+        s.phase[:] = PegInHole.INSERT
+        return s
+
+    scene = scene_with(1.5)
+    cfg = scene.cfg
+    hole = np.array([*cfg.hole_center, cfg.hole_top])
+    z6 = np.zeros((2, 6))
+    press = z6.copy()
+    press[0, 2] = 5.0
+    costs = []
+    for t, depth in ((0.5, -0.01), (1.0, 0.0), (1.5, 0.01), (2.0, cfg.success_depth), (2.5, cfg.success_depth)):
+        pos = np.stack([hole - [0.0, 0.0, depth], hole + [0.0, 0.0, 0.02]])
+        scene.update(SceneInput(t=np.full(2, t), pos=pos, rot=np.tile(np.eye(3), (2, 1, 1)),
+                                f_env=press if t >= 1.0 else z6, f_ope=z6, f_d=z6, handle_pos=pos))
+        costs.append(scene.reward_term().copy())
+    assert [c[0] for c in costs] == [0.0, -1.5, -1.5, 0.0, 0.0]  # from the contact; the success ends it
+    assert all(c[1] == 0.0 for c in costs)
+    assert scene_with(0.0).reward_term() is None
+    with pytest.raises(ConfigError, match="time_cost"):
+        load_config(None, {"panda": {"peg_in_hole": {"time_cost": -1.0}}})
