@@ -1145,6 +1145,12 @@ def _convert(tp: Any, value: Any, key: str, source: str) -> Any:
         inner = [a for a in args if a is not type(None)]
         return _convert(inner[0], value, key, source)
     if origin is Literal:
+        if isinstance(value, bool):  # YAML 1.1 reads an unquoted off/no as false and on/yes as true
+            word = {False: "off", True: "on"}[value]
+            if word in args:
+                return word
+            raise ConfigError(f"{source}: {key}: must be one of {list(args)}, got {value!r} (YAML reads unquoted "
+                              "on/off/yes/no as true/false: quote the word)")
         if value not in args:
             raise ConfigError(f"{source}: {key}: must be one of {list(args)}, got {value!r}")
         return value

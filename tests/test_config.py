@@ -198,3 +198,12 @@ def test_peg_config_reference_pulls_past_the_success_depth():
     p = load_config(Path(__file__).resolve().parents[1] / "configs" / "panda_peg_in_hole.yaml").panda.peg_in_hole
     assert p.insert_depth - p.success_depth >= 0.01 - 1e-12
     assert p.hole_depth - p.insert_depth >= 0.005 - 1e-12
+
+
+def test_an_unquoted_off_in_yaml_means_off_and_other_booleans_say_why_they_fail(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("panda:\n  joint_limits_f_ext: off\n")  # YAML 1.1: false
+    assert load_config(path).panda.joint_limits_f_ext == "off"
+    path.write_text("panda:\n  idle_force: on\n")  # true, and idle_force has no "on"
+    with pytest.raises(ConfigError, match="panda.idle_force: must be one of .*got True .*quote the word"):
+        load_config(path)
