@@ -643,6 +643,12 @@ class SensorConfig:
     """Joint torque sensor noise standard deviation [N m] (enters f_ext = J^T† τ_s)."""
     joint_torque_bias: float = 0.0
     """Standard deviation of the per-episode joint torque bias [N m]."""
+    tare_time: float = 0.0
+    """Taring, as done before a task on a real robot [s]: over the first `tare_time` s of each episode, while the arm
+    rests at home, the F/T sensor's and the joint torque sensors' readings (bias and noise included) are averaged,
+    and the means are subtracted from then on; until then the sensed wrenches read zero (nothing is fed to the
+    controller or the agents before the sensors are zeroed). 0: no taring. Must not exceed the scene's rest at home
+    (peg-in-hole `settle_time`, polishing `rest_time`, guidance `pause`)."""
 
     def _check(self, err: _Errors) -> None:
         for f in dataclasses.fields(self):

@@ -127,6 +127,10 @@ class PandaEnv(EnvBase):
         # handle and F/T site in the tool tip's frame (rigidly attached: constant)
         self._o_handle, self._o_ft = t_rot.T @ (h_pos - t_pos), t_rot.T @ (f_pos - t_pos)
         self.scene: Scene = make_scene(scene_name, n, self.operator, home_pos, home_rot, self.pcfg, h_pos)
+        if self.pcfg.sensors.tare_time > self.scene.rest_time():
+            raise ValueError(f"panda.sensors.tare_time ({self.pcfg.sensors.tare_time} s) must not exceed the "
+                             f"{scene_name} scene's rest at home ({self.scene.rest_time()} s): the sensors are tared "
+                             "while the arm rests untouched")
         threads = min(int(sim_threads), n)
         if threads < 1:
             raise ValueError(f"sim_threads must be >= 1, got {sim_threads}")
@@ -167,6 +171,8 @@ class PandaEnv(EnvBase):
         self._noise: dict[str, np.ndarray] = {}
         self._ft_bias = np.zeros((n, 6))
         self._tau_bias = np.zeros((n, 7))
+        self._tared = np.zeros(n, dtype=bool)  # `sensors.tare_time`: zeroed this episode
+        self._tare_sum, self._tare_cnt = np.zeros((n, 13)), np.zeros(n)  # (τ_s, F/T in the sensor frame) summed
         # latest measurements (world frame, at the tool tip)
         self.pos, self.rot = np.tile(home_pos, (n, 1)), np.tile(home_rot, (n, 1, 1))
         self.f_env, self.f_ope, self.f_ext = np.zeros((n, 6)), np.zeros((n, 6)), np.zeros((n, 6))
@@ -270,6 +276,10 @@ class PandaEnv(EnvBase):
             self._ft_bias[idx] = self._draw(idx, (6,)) * np.repeat([s.ft_force_bias, s.ft_torque_bias], 3)
         if s.joint_torque_bias > 0:
             self._tau_bias[idx] = self._draw(idx, (7,)) * s.joint_torque_bias
+        if s.tare_time > 0:
+            self._ft_bias[idx] *= s.ft_force_bias > 0 or s.ft_torque_bias > 0  # drop a previous episode's offset
+            self._tau_bias[idx] *= s.joint_torque_bias > 0
+            self._tared[idx], self._tare_sum[idx], self._tare_cnt[idx] = False, 0.0, 0.0
         self.operator.reset(idx)
         self.scene.reset(idx, rngs)
         self._measure()
@@ -438,20 +448,48 @@ class PandaEnv(EnvBase):
         self.pos, self.rot = s.kin.pos.numpy().copy(), s.kin.rot.numpy().copy()
         self._jac = s.kin.jac.numpy()
         tau = s.tau_ext
-        if "tau" in noise or sen.joint_torque_bias > 0:
+        tare = sen.tare_time > 0
+        if "tau" in noise or sen.joint_torque_bias > 0 or tare:
             tau = torch.from_numpy(tau.numpy() + self._tau_bias + (noise["tau"][:, k] if "tau" in noise else 0.0))
-        self.f_ext = wrench_from_joint_torques(tau, s.kin.jac, s.mass).numpy()
         ft = s.f_env.numpy().copy()  # world frame, about the F/T site
-        if "ft" in noise or sen.ft_force_bias > 0 or sen.ft_torque_bias > 0:
+        if "ft" in noise or sen.ft_force_bias > 0 or sen.ft_torque_bias > 0 or tare:
             err = self._ft_bias + (noise["ft"][:, k] if "ft" in noise else 0.0)
             ft[:, :3] += (self.rot @ err[:, :3, None])[..., 0]  # sensor frame = tool frame
             ft[:, 3:] += (self.rot @ err[:, 3:, None])[..., 0]
+        if tare and not self._tared.all():
+            tau, ft = self._tare(k, tau, ft)
+        self.f_ext = wrench_from_joint_torques(tau, s.kin.jac, s.mass).numpy()
         # moment about the tool tip: τ_tip = τ_site + (p_site − p_tip) × F
         ft[:, 3:] += cross3(self.rot @ self._o_ft, ft[:, :3])
         self.f_env = ft
         self.f_ope = self.f_ext - self.f_env
         self.handle_pos = self.pos + self.rot @ self._o_handle
         return s
+
+    def _tare(self, k: int | None, tau: torch.Tensor, ft: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
+        """`sensors.tare_time`: sum the readings (τ_s [N, 7], F/T [N, 6] world, about its site) of arms still in their
+        tare window, subtract the means from the sensors' offsets when the window ends, and read zero until then."""
+        waiting = ~self._tared
+        tau, ft = tau.numpy().copy(), ft.copy()
+        if k is not None:  # a control period's sample (the reset's read-out carries no noise: not a sample)
+            take = waiting & (self.t + k * self.dt < self.pcfg.sensors.tare_time)
+            rt = np.swapaxes(self.rot, 1, 2)
+            if take.any():
+                f_s = np.concatenate([rt[take] @ ft[take, :3, None], rt[take] @ ft[take, 3:, None]], axis=1)[..., 0]
+                self._tare_sum[take] += np.concatenate([tau[take], f_s], axis=1)
+                self._tare_cnt[take] += 1
+            done = waiting & ~take & (self._tare_cnt > 0)
+            if done.any():
+                mean = self._tare_sum[done] / self._tare_cnt[done, None]
+                self._tau_bias[done] -= mean[:, :7]
+                self._ft_bias[done] -= mean[:, 7:]  # sensor frame, as the bias
+                tau[done] -= mean[:, :7]
+                ft[done, :3] -= (self.rot[done] @ mean[:, 7:10, None])[..., 0]
+                ft[done, 3:] -= (self.rot[done] @ mean[:, 10:, None])[..., 0]
+                self._tared[done] = True
+                waiting &= ~done
+        tau[waiting], ft[waiting] = 0.0, 0.0
+        return torch.from_numpy(tau), ft
 
     def _check_divergence(self) -> np.ndarray:
         """Arms newly diverged: non-finite state, joint speed > factor × limit, or a too deep contact."""

@@ -210,6 +210,10 @@ class Scene:
         """Scene bodies for PandaSim."""
         raise NotImplementedError
 
+    def rest_time(self) -> float:
+        """How long an episode starts with the arm resting at home, untouched [s] (where the sensors can be tared)."""
+        raise NotImplementedError
+
     def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
         """Start a new trial for arms `idx`, drawing its random parameters from the arms' own generators `rngs`
         (one per entry of idx: a trial depends on its arm's stream only, whatever the batch)."""
@@ -302,6 +306,9 @@ class PegInHole(Scene):
 
     def mjcf(self) -> str:
         return hole_block_xml(self.geometry)
+
+    def rest_time(self) -> float:
+        return self.cfg.settle_time
 
     def reference_depth(self, tau: np.ndarray) -> np.ndarray:
         """Depth below the rim [k] (m) of the insertion reference `tau` s after the insertion phase began: minimum-jerk
@@ -510,6 +517,9 @@ class Polishing(Scene):
         return plate_xml(center=tuple(c.plate_center), top=c.plate_top, half_size=tuple(c.plate_half_size),
                          friction=c.friction, tool_geom="disc", friction_solref=tuple(c.friction_solref))
 
+    def rest_time(self) -> float:
+        return self.cfg.rest_time
+
     def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
         super().reset(idx, rngs)
         self.zone[idx] = np.array(self.cfg.plate_center) + np.array(self.cfg.start_offset)
@@ -634,6 +644,9 @@ class Guidance(Scene):
 
     def mjcf(self) -> str:
         return ""
+
+    def rest_time(self) -> float:
+        return self.cfg.pause
 
     def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
         super().reset(idx, rngs)

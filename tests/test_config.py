@@ -207,3 +207,16 @@ def test_an_unquoted_off_in_yaml_means_off_and_other_booleans_say_why_they_fail(
     path.write_text("panda:\n  idle_force: on\n")  # true, and idle_force has no "on"
     with pytest.raises(ConfigError, match="panda.idle_force: must be one of .*got True .*quote the word"):
         load_config(path)
+
+
+def test_the_imperfect_sensing_peg_config_is_the_peg_config_plus_its_sensing():
+    from a3cqp_rl.config import config_to_dict
+
+    root = Path(__file__).resolve().parents[1] / "configs"
+    plain = config_to_dict(load_config(root / "panda_peg_in_hole.yaml"))
+    noisy = config_to_dict(load_config(root / "panda_peg_in_hole_sensors.yaml"))
+    assert noisy["panda"]["sensors"]["tare_time"] > 0 and noisy["panda"]["observation_filter"] == "mean"
+    assert noisy["panda"]["sensors"]["tare_time"] <= noisy["panda"]["peg_in_hole"]["settle_time"]
+    for d in (plain, noisy):
+        del d["panda"]["sensors"], d["panda"]["observation_filter"]
+    assert plain == noisy

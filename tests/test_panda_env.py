@@ -175,6 +175,34 @@ def test_sensor_noise_and_bias_are_configurable_and_off_by_default() -> None:
     assert np.allclose(noisy._ft_bias[0, 3:], 0.0)
 
 
+def test_taring_removes_the_sensor_bias_and_the_readings_are_zero_until_then() -> None:
+    """Biased F/T and joint torque sensors tared over the first 0.2 s at rest read what unbiased ones read (the rest
+    pose's tiny true reading is zeroed too); before that they read zero; a second episode is tared again."""
+    bias = {"ft_force_bias": 1.0, "ft_torque_bias": 0.1, "joint_torque_bias": 0.2}
+
+    def readings(sensors: dict, episodes: int = 1) -> list:
+        env = PandaEnv(2, _cfg({"panda": {"sensors": sensors, "peg_in_hole": {"settle_time": 0.3}}}), seed=4)
+        out = []
+        for _ in range(episodes):
+            td = env.reset()
+            for _ in range(30):
+                td["action"] = _ik_action(2)
+                td = env.step(td)["next"]
+                out.append((env.t[0], env.f_env.copy(), env.f_ext.copy(), env.f_ope.copy()))
+        return out
+
+    clean, biased = readings({}), readings(bias)
+    tared = readings({**bias, "tare_time": 0.2}, episodes=2)
+    assert max(np.abs(b[3]).max() for b in biased) > 1.0  # the bias alone reads as an operator's push
+    for (t, *c), (_, *r) in zip(clean * 2, tared):
+        if t < 0.2 - 1e-9:
+            assert all(np.array_equal(x, np.zeros_like(x)) for x in r), t
+        else:
+            assert all(np.abs(x - y).max() < 1e-4 for x, y in zip(c, r)), t
+    with pytest.raises(ValueError, match="tare_time"):
+        PandaEnv(1, _cfg({"panda": {"sensors": {"tare_time": 0.2}}}))  # the tests' settle_time: 0.1 s
+
+
 def test_operator_is_bounded_delayed_and_releases() -> None:
     cfg = OperatorConfig(stiffness=400.0, max_force=15.0, delay=0.05, noise=0.0, hold_time=0.1, grip_time=0.01)
     op = Operator(1, cfg, 0.001)
