@@ -176,6 +176,8 @@ class PandaEnv(EnvBase):
         # latest measurements (world frame, at the tool tip)
         self.pos, self.rot = np.tile(home_pos, (n, 1)), np.tile(home_rot, (n, 1, 1))
         self.f_env, self.f_ope, self.f_ext = np.zeros((n, 6)), np.zeros((n, 6)), np.zeros((n, 6))
+        self.f_env_true = self.f_env
+        """The contact wrench without sensor noise, bias or taring (world, at the tool tip): what the scene reads."""
         self._f_sum: np.ndarray | None = None  # (f_env, f_ope) summed over an agent period [2, N, 6]
         self.f_env_obs, self.f_ope_obs = np.zeros((n, 6)), np.zeros((n, 6))
         """With `panda.observation_filter: mean`, the agent period's mean sensed wrenches (world, at the tool tip)."""
@@ -452,7 +454,9 @@ class PandaEnv(EnvBase):
         if "tau" in noise or sen.joint_torque_bias > 0 or tare:
             tau = torch.from_numpy(tau.numpy() + self._tau_bias + (noise["tau"][:, k] if "tau" in noise else 0.0))
         ft = s.f_env.numpy().copy()  # world frame, about the F/T site
+        true = ft
         if "ft" in noise or sen.ft_force_bias > 0 or sen.ft_torque_bias > 0 or tare:
+            true = ft.copy()
             err = self._ft_bias + (noise["ft"][:, k] if "ft" in noise else 0.0)
             ft[:, :3] += (self.rot @ err[:, :3, None])[..., 0]  # sensor frame = tool frame
             ft[:, 3:] += (self.rot @ err[:, 3:, None])[..., 0]
@@ -460,8 +464,12 @@ class PandaEnv(EnvBase):
             tau, ft = self._tare(k, tau, ft)
         self.f_ext = wrench_from_joint_torques(tau, s.kin.jac, s.mass).numpy()
         # moment about the tool tip: τ_tip = τ_site + (p_site − p_tip) × F
-        ft[:, 3:] += cross3(self.rot @ self._o_ft, ft[:, :3])
+        lever = self.rot @ self._o_ft
+        ft[:, 3:] += cross3(lever, ft[:, :3])
+        if true is not ft:
+            true[:, 3:] += cross3(lever, true[:, :3])
         self.f_env = ft
+        self.f_env_true = true
         self.f_ope = self.f_ext - self.f_env
         self.handle_pos = self.pos + self.rot @ self._o_handle
         return s
@@ -544,7 +552,9 @@ class PandaEnv(EnvBase):
 
     # ------------------------------------------------------------------ scene and outputs
     def _scene_input(self) -> SceneInput:
-        return SceneInput(t=self.t, pos=self.pos, rot=self.rot, f_env=self.f_env, f_ope=self.f_ope, f_d=self.f_d,
+        # the scene's procedure and metrics read the true contact wrench: sensor noise and bias are the controller's
+        # and the agents' problem, not the experimenter's (the same array when the sensors are ideal)
+        return SceneInput(t=self.t, pos=self.pos, rot=self.rot, f_env=self.f_env_true, f_ope=self.f_ope, f_d=self.f_d,
                           handle_pos=self.handle_pos)
 
     def _update_scene(self) -> None:

@@ -178,7 +178,8 @@ class SceneInput:
     rot: np.ndarray
     """Tool tip rotation [N, 3, 3] (columns: local axes L)."""
     f_env: np.ndarray
-    """Sensed environment wrench at the tool tip [N, 6] (world; N, N m)."""
+    """Environment wrench at the tool tip [N, 6] (world; N, N m), as the simulation has it: without the sensors'
+    noise and bias (PandaEnv.f_env_true)."""
     f_ope: np.ndarray
     """Operator wrench estimate f_ext − f_env at the tool tip [N, 6] (world)."""
     f_d: np.ndarray

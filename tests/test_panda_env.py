@@ -203,6 +203,22 @@ def test_taring_removes_the_sensor_bias_and_the_readings_are_zero_until_then() -
         PandaEnv(1, _cfg({"panda": {"sensors": {"tare_time": 0.2}}}))  # the tests' settle_time: 0.1 s
 
 
+def test_the_scene_reads_the_true_contact_wrench_not_the_noisy_sensor() -> None:
+    """In the air, F/T noise of 2 N per sample passes the peg's 1 N first-contact threshold, but the insertion's
+    first contact (and so its time) is the simulation's: none yet."""
+    env = PandaEnv(2, _cfg({"panda": {"sensors": {"ft_force_noise": 2.0}}}), seed=1)
+    td = env.reset()
+    env.scene.phase[:] = env.scene.INSERT  # the insertion reference from the start: the peg is still in the air
+    sensed = 0.0
+    for _ in range(5):
+        td["action"] = _ik_action(2)
+        td = env.step(td)["next"]
+        sensed = max(sensed, np.linalg.norm(env.f_env[:, :3], axis=1).max())
+        assert np.abs(env.f_env_true).max() < 0.01  # the F/T compensation neglects the tool's rotational inertia
+    assert sensed > env.scene.cfg.contact_force
+    assert np.isnan(env.scene.contact_time).all()
+
+
 def test_operator_is_bounded_delayed_and_releases() -> None:
     cfg = OperatorConfig(stiffness=400.0, max_force=15.0, delay=0.05, noise=0.0, hold_time=0.1, grip_time=0.01)
     op = Operator(1, cfg, 0.001)
