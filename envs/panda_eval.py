@@ -53,7 +53,7 @@ import torch
 from a3cqp_rl.exceptions import A3CQPError
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "trial_seeds", "paired", "free_motion_rates", "free_motion_warning",
-           "guided_rates", "guided_warning", "limit_stress", "LimitStress", "capped_time", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult",
+           "guided_rates", "guided_warning", "sensing_warning", "limit_stress", "LimitStress", "capped_time", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult",
            "load_fixed_controller"]
 
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
@@ -411,6 +411,22 @@ def free_motion_warning(policy) -> str | None:  # noqa: ANN001
             "docs/panda.md)")
 
 
+def sensing_warning(panda) -> str | None:  # noqa: ANN001
+    """A warning when a PandaEnvConfig's sensors are biased but not tared, or noisy while the agents observe single
+    samples: a learned policy then yields to phantom operator forces (docs/panda.md, "Imperfect force sensing")."""
+    s = panda.sensors
+    biased = s.ft_force_bias > 0 or s.ft_torque_bias > 0 or s.joint_torque_bias > 0
+    noisy = s.ft_force_noise > 0 or s.ft_torque_noise > 0 or s.joint_torque_noise > 0
+    why = [w for w, on in (("biased but not tared (panda.sensors.tare_time: 0)", biased and s.tare_time == 0),
+                           ("noisy while the agents observe single samples (panda.observation_filter: last)",
+                            noisy and panda.observation_filter == "last")) if on]
+    if not why:
+        return None
+    return ("warning: the force sensors are " + " and ".join(why) + ": the learned policy reads that as an "
+            "operator's push and yields to it (with the peg config's sensing: 0-1 of 4 insertions); "
+            "configs/panda_peg_in_hole_sensors.yaml tares them and observes each period's mean")
+
+
 @dataclass(frozen=True)
 class LimitStress:
     """Worst case of `limit_stress`: how far the arms went past their datasheet limits."""
@@ -704,7 +720,7 @@ def main(argv: list[str] | None = None) -> int:
 
             loaded = load_policy(policy)
             prints = fingerprint(loaded)
-            for warning in (free_motion_warning(loaded), guided_warning(loaded)):
+            for warning in (free_motion_warning(loaded), guided_warning(loaded), sensing_warning(cfg.panda)):
                 if warning:
                     print(warning, file=sys.stderr)
         kw = dict(config=cfg, controllers=controllers, cycles=args.cycles, progress=not args.quiet, fixed=fixed,

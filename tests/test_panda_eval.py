@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import re
 
 import numpy as np
@@ -263,3 +264,20 @@ def test_pulled_out_rate_counts_the_cycles_the_operator_disengaged() -> None:
     res = EvalResult.from_metrics("peg_in_hole", {"ik_fc": m}, {}, 1.0, 10.0, (0,))
     assert res.summary["ik_fc"]["extracted_rate"] is None  # no disengagement (operator_disengage off): unknown
     assert re.search(r"peg pulled out by operator +\| +- +\| +- *$", format_table(res), re.M)
+
+
+def test_the_sensing_warning_names_untared_bias_and_unfiltered_noise() -> None:
+    from a3cqp_rl.config import load_config
+    from envs.panda_eval import sensing_warning
+
+    def panda(sensors: dict, filt: str = "last"):  # noqa: ANN202
+        return config_from_dict({"panda": {"sensors": sensors, "observation_filter": filt}}).panda
+
+    assert sensing_warning(panda({})) is None
+    root = Path(__file__).resolve().parents[1]
+    assert sensing_warning(load_config(root / "configs/panda_peg_in_hole_sensors.yaml").panda) is None
+    w = sensing_warning(panda({"ft_force_bias": 1.0}, "mean"))
+    assert "biased but not tared" in w and "single samples" not in w
+    w = sensing_warning(panda({"joint_torque_noise": 0.2, "joint_torque_bias": 0.2, "tare_time": 0.4}))
+    assert "noisy while the agents observe single samples" in w and "not tared" not in w
+    assert sensing_warning(panda({"joint_torque_noise": 0.2, "tare_time": 0.4}, "mean")) is None
