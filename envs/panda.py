@@ -274,14 +274,12 @@ class PandaEnv(EnvBase):
         self.joint_speed_ratio[idx] = 0.0
         self.stiffness_scale[idx] = 1.0
         s = self.pcfg.sensors
+        self._ft_bias[idx], self._tau_bias[idx] = 0.0, 0.0  # (a previous episode's tare offset goes too)
         if s.ft_force_bias > 0 or s.ft_torque_bias > 0:
             self._ft_bias[idx] = self._draw(idx, (6,)) * np.repeat([s.ft_force_bias, s.ft_torque_bias], 3)
         if s.joint_torque_bias > 0:
             self._tau_bias[idx] = self._draw(idx, (7,)) * s.joint_torque_bias
-        if s.tare_time > 0:
-            self._ft_bias[idx] *= s.ft_force_bias > 0 or s.ft_torque_bias > 0  # drop a previous episode's offset
-            self._tau_bias[idx] *= s.joint_torque_bias > 0
-            self._tared[idx], self._tare_sum[idx], self._tare_cnt[idx] = False, 0.0, 0.0
+        self._tared[idx], self._tare_sum[idx], self._tare_cnt[idx] = s.tare_time == 0, 0.0, 0.0
         self.operator.reset(idx)
         self.scene.reset(idx, rngs)
         self._measure()
@@ -481,9 +479,9 @@ class PandaEnv(EnvBase):
         tau, ft = tau.numpy().copy(), ft.copy()
         if k is not None:  # a control period's sample (the reset's read-out carries no noise: not a sample)
             take = waiting & (self.t + k * self.dt < self.pcfg.sensors.tare_time)
-            rt = np.swapaxes(self.rot, 1, 2)
             if take.any():
-                f_s = np.concatenate([rt[take] @ ft[take, :3, None], rt[take] @ ft[take, 3:, None]], axis=1)[..., 0]
+                rt = np.swapaxes(self.rot[take], 1, 2)  # world -> sensor frame
+                f_s = np.concatenate([rt @ ft[take, :3, None], rt @ ft[take, 3:, None]], axis=1)[..., 0]
                 self._tare_sum[take] += np.concatenate([tau[take], f_s], axis=1)
                 self._tare_cnt[take] += 1
             done = waiting & ~take & (self._tare_cnt > 0)

@@ -53,8 +53,8 @@ import torch
 from a3cqp_rl.exceptions import A3CQPError
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "trial_seeds", "paired", "free_motion_rates", "free_motion_warning",
-           "guided_rates", "guided_warning", "sensing_warning", "limit_stress", "LimitStress", "capped_time", "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult",
-           "load_fixed_controller"]
+           "guided_rates", "guided_warning", "sensing_warning", "limit_stress", "LimitStress", "capped_time",
+           "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult", "load_fixed_controller"]
 
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
 PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
