@@ -774,8 +774,8 @@ class PegInHoleConfig:
     restart_needs_extraction: bool = True
     """Cycles > 1: the next cycle starts only if the peg left the bore (tip above the rim) during the disengagement or
     the return; a peg still jammed ends the episode, its remaining insertions not made. (Without it the next approach
-    drags a jammed peg across the block: 70-155 N on the F/T sensor, a joint 13-14 mrad past its limit; docs/panda.md,
-    "Three insertions per episode".)"""
+    drags a jammed peg across the block: 70-155 N on the F/T sensor, a joint 13-14 mrad into MuJoCo's default soft
+    end stop; docs/panda.md, "Three insertions per episode".)"""
 
     def _check(self, err: _Errors) -> None:
         for name in ("hole_top", "hole_diameter", "hole_depth", "approach_height", "approach_time",
@@ -938,7 +938,8 @@ class PandaEnvConfig:
     joint_limits_f_ext: Literal["off", "operator", "always"] = "off"
     """Where the controller's joint-limit rows count the measured external wrench f_ext, so that an external force
     cannot carry a joint past its limit: "always" (ControllerOptions.joint_limits_include_f_ext: under random weights
-    in the guidance scene no joint passed its limit on four seeds, against 10-17 mrad without), "operator" (an arm
+    in the guidance scene no joint reached its limit on four seeds; without it joint 6 reached its end stop, 1.6-1.8
+    mrad deep on seeds 1-3, 10-17 mrad with MuJoCo's default soft stop), "operator" (an arm
     while the operator holds its handle: the peg pulled out of its bore; configs/panda_peg_in_hole.yaml) or "off"
     (default: in stiff contact, the peg on the rim, the contact's impulses make the QP infeasible and the controller
     brakes; docs/panda.md, "External forces carry the joints past their limits")."""

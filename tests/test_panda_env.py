@@ -294,14 +294,14 @@ def test_joint_and_torque_limits_hold_under_random_actions() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_joint_and_torque_limits_hold_over_many_random_episodes(seed: int) -> None:
-    """Torques never exceed their limits. Joint positions can: joint 6 by up to ~31 mrad on these seeds (41 mrad on
-    seed 5) when, under random weights, the tool is dragged along a surface and the contact's impulses drive the
-    joint into its end stop, which MuJoCo holds softly; a wider controller margin does not prevent it, and
-    ControllerOptions.joint_limits_include_f_ext does only by braking in ordinary contact too (docs/panda.md,
-    "Joint limits under random weights"). This test holds the 40 mrad bound on seeds 1-3. Without external force no
-    joint passes its limit (test_without_external_force_random_actions_never_pass_a_joint_limit)."""
+    """Torques never exceed their limits, and the joints stay within 5 mrad of theirs. A joint can reach its end stop:
+    under random weights the tool is dragged along a surface and the contact's impulses drive joint 6 into it, past
+    anything the wrist's 12 N m can brake (docs/panda.md, "Joint limits under random weights"). The joint ranges are
+    stiff end stops (panda.xml, solreflimit 2 ms), which hold it 0.4-2.2 mrad deep on seeds 1-6; MuJoCo's default
+    20-ms stop let it 9-41 mrad deep (docs/panda.md, "Stiff end stops"). Without external force no joint reaches its
+    limit (test_without_external_force_random_actions_never_pass_a_joint_limit)."""
     worst_q, worst_tau, diverged = _random_episodes(8, 3000, seed=seed)
-    assert worst_q < 0.04 and worst_tau <= 1.0 + 1e-12 and diverged == 0
+    assert worst_q < 0.005 and worst_tau <= 1.0 + 1e-12 and diverged == 0
 
 
 NO_EXTERNAL_FORCE = {"panda": {"scene": "guidance", "operator": {"max_force": 1e-6, "max_torque": 1e-6}}}
@@ -324,7 +324,8 @@ def test_without_external_force_random_actions_never_pass_a_joint_limit() -> Non
 def test_counting_the_measured_wrench_holds_the_joint_limits_against_the_operator(seed: int) -> None:
     """In the guidance scene (the operator guides, no contact) `panda.joint_limits_f_ext` (its config's default)
     keeps every joint inside its limits under random weights, without a QP fallback; without it the operator's pull
-    carries a joint 10-17 mrad past its limit on these seeds (docs/panda.md)."""
+    carries joint 6 into its end stop on these seeds, 1.6-1.8 mrad deep (10-17 mrad into MuJoCo's default soft stop;
+    docs/panda.md)."""
     cfg = _cfg({"panda": {"scene": "guidance", "joint_limits_f_ext": "always"}})
     r = limit_stress(8, 3000, seed, cfg)
     assert r.worst_excess < 0.0 and r.worst_torque_ratio <= 1.0 + 1e-12 and r.diverged == 0 and r.fallbacks == 0
@@ -346,20 +347,20 @@ def test_joint_limit_excess_is_tracked_per_arm_over_the_episode() -> None:
     assert 0.019 < env.joint_limit_excess[1] <= 0.02 + 1e-9  # seen at the first control period
     assert env.joint_limit_joint[1] == 3
     assert env.joint_limit_excess[0] == home[0]
-    assert np.all((0.0 <= env.joint_speed_ratio) & (env.joint_speed_ratio < 1.0))
-    env.sim.data.qvel[m.jnt_dofadr[m.joint("arm1/joint6").id]] = 1.5 * PANDA_LIMITS.dq_max[5]  # arm 1's wrist too fast
+    assert 0.0 <= env.joint_speed_ratio[0] < 1.0  # (arm 1's joint 4 is thrown back out by its stiff end stop)
     speed0 = env.joint_speed_ratio[0]
+    env.sim.data.qvel[m.jnt_dofadr[m.joint("arm0/joint6").id]] = 1.5 * PANDA_LIMITS.dq_max[5]  # arm 0's wrist too fast
     td["action"] = _ik_action(2)
     td = env.step(td)["next"]
-    assert env.joint_speed_ratio[1] > 1.2 and env.joint_speed_ratio[0] < 1.0
+    assert env.joint_speed_ratio[0] > 1.2
     env.park(np.array([1]))  # a parked arm's motion no longer counts
     env.sim.data.qpos[adr] = q_hi[3] + 0.05
     td["action"] = _ik_action(2)
     env.step(td)
     assert env.joint_limit_excess[1] <= 0.02 + 1e-9
     env.reset(td.empty().set("_reset", torch.tensor([[False], [True]])))
-    assert env.joint_limit_excess[1] == -np.inf and env.joint_limit_excess[0] == home[0]
-    assert env.joint_speed_ratio[1] == 0.0 and env.joint_speed_ratio[0] >= speed0
+    assert env.joint_limit_excess[1] == -np.inf and env.joint_limit_excess[0] >= home[0]
+    assert env.joint_speed_ratio[1] == 0.0 and env.joint_speed_ratio[0] > 1.2 > speed0
     assert env.joint_limit_joint[1] == -1 and env.joint_limit_joint[0] >= 0
 
 
