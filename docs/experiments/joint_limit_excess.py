@@ -1,7 +1,7 @@
 """How far a joint goes past its datasheet limit under random held actions (the slow test's loop), per seed.
 
     python docs/experiments/joint_limit_excess.py --seeds 1-6 [--steps 3000] [--q-margin 0.05] [--include-f-ext]
-                                                  [--end-stop 0.02]
+                                                  [--end-stop-tc 0.02]
 
 Runs `envs.panda_eval.limit_stress` as the slow test
 `tests/test_panda_env.py::test_joint_and_torque_limits_hold_over_many_random_episodes` does: 8 arms on peg-in-hole
@@ -9,7 +9,7 @@ Runs `envs.panda_eval.limit_stress` as the slow test
 excess past a datasheet position limit [mrad], its joint and arm, the largest |τ|/τ_max and the QP fallbacks
 (1 kHz periods of one arm that braked because the QP failed). `--q-margin` sets
 ControllerOptions.q_margin (default 0.01 rad), `--include-f-ext` ControllerOptions.joint_limits_include_f_ext,
-`--end-stop` the time constant [s] of the joints' end stops (panda.xml: 0.002; MuJoCo's default, before
+`--end-stop-tc` the time constant [s] of the joints' end stops (panda.xml: 0.002; MuJoCo's default, before
 2026-11-28: 0.02). docs/panda.md, sections "Joint limits under random weights, contact dropouts, and the runs that
 yield" and "Stiff end stops, ..." have the numbers.
 """
@@ -39,10 +39,10 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=3000, help="agent steps (10 ms each) per seed")
     ap.add_argument("--q-margin", type=float, default=ControllerOptions.q_margin)
     ap.add_argument("--include-f-ext", action="store_true")
-    ap.add_argument("--end-stop", type=float, default=None, help="end-stop time constant [s] (default: panda.xml's)")
+    ap.add_argument("--end-stop-tc", type=float, default=None, help="end-stop time constant [s] (default: panda.xml's)")
     args = ap.parse_args()
-    if args.end_stop is not None:
-        _set_end_stops(args.end_stop)
+    if args.end_stop_tc is not None:
+        _set_end_stops(args.end_stop_tc)
     logging.getLogger("a3cqp_rl.control.controller").setLevel(logging.ERROR)  # one warning per fallback otherwise
     options = ControllerOptions(q_margin=args.q_margin, joint_limits_include_f_ext=args.include_f_ext)
     print(f"{ARMS} arms x {args.steps} agent steps, q_margin {args.q_margin} rad, include_f_ext {args.include_f_ext}")
