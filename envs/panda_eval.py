@@ -54,7 +54,7 @@ from a3cqp_rl.exceptions import A3CQPError
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "trial_seeds", "paired", "free_motion_rates", "free_motion_warning",
            "guided_rates", "guided_warning", "sensing_warning", "limit_stress", "LimitStress", "capped_time",
-           "CONTROLLERS", "PAPER_TABLE_VI", "EvalResult", "load_fixed_controller"]
+           "CONTROLLERS", "PAPER_TABLE_VI", "TARGET_SUCCESS_RATE", "EvalResult", "load_fixed_controller", "targets"]
 
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
 PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
@@ -284,6 +284,56 @@ def format_paired(res: EvalResult, primary: str = "learned") -> str:
                      + (f" ± {se:.2f} s" if se is not None else " s"))
         lines.append(f"  {c.ljust(w)}: {t}; only {primary}: {p['insertions_only_' + primary]}, only {c}: "
                      f"{p['insertions_only_baseline']}{every}")
+    return "\n".join(lines)
+
+
+TARGET_SUCCESS_RATE = 0.89
+"""The learned policy's success-rate target in simulation (Table VI's 23/26, rounded up)."""
+
+
+def targets(res: EvalResult, primary: str = "learned") -> dict:
+    """Peg-in-hole: `primary` against Table VI's targets (success rate ≥ 89 %, mean insertion time ≤ 8.21 s) and
+    against each other controller (success rate and mean insertion time over the successes at least as good; a
+    controller that inserts nothing is beaten on time by any insertion). Each entry: value(s) and `met`. Empty for
+    other scenes or without `primary`."""
+    if res.scene != "peg_in_hole" or primary not in res.summary:
+        return {}
+    s = res.summary
+    a, t_a = s[primary]["success_rate"], s[primary]["insertion_time_mean_s"]
+    t_paper = PAPER_TABLE_VI["insertion_time_mean_s"]
+    out = {"success_rate": {"target": TARGET_SUCCESS_RATE, "value": a, "met": bool(a >= TARGET_SUCCESS_RATE)},
+           "insertion_time_mean_s": {"target": t_paper, "value": t_a, "met": t_a is not None and t_a <= t_paper},
+           "baselines": {}}
+    for c, b in s.items():
+        if c == primary:
+            continue
+        t_b = b["insertion_time_mean_s"]
+        time_met = t_b is None or (t_a is not None and t_a <= t_b)
+        out["baselines"][c] = {"success_rate": b["success_rate"], "success_met": bool(a >= b["success_rate"]),
+                               "insertion_time_mean_s": t_b, "time_met": bool(time_met)}
+    out["met"] = bool(out["success_rate"]["met"] and out["insertion_time_mean_s"]["met"]
+                      and all(v["success_met"] and v["time_met"] for v in out["baselines"].values()))
+    return out
+
+
+def format_targets(res: EvalResult, primary: str = "learned") -> str:
+    """Text lines of `targets` (empty where it has nothing to say)."""
+    t = targets(res, primary)
+    if not t:
+        return ""
+    yes = {True: "met", False: "NOT met"}
+    sr, it = t["success_rate"], t["insertion_time_mean_s"]
+    lines = [f"targets for {primary}: success rate >= {100 * sr['target']:.0f} %: {yes[sr['met']]} "
+             f"({100 * sr['value']:.0f} %); mean insertion time <= {it['target']:.2f} s: {yes[it['met']]} "
+             f"({_fmt(it['value'])} s)"]
+    b = t["baselines"]
+    if b:
+        lost = [f"{c} {100 * v['success_rate']:.0f} %" for c, v in b.items() if not v["success_met"]]
+        slower = [f"{c} {v['insertion_time_mean_s']:.2f} s" for c, v in b.items() if not v["time_met"]]
+        lines.append("  success rate at least every baseline's: " + yes[not lost]
+                     + (f" ({', '.join(lost)})" if lost else ""))
+        lines.append("  mean insertion time at most every baseline's: " + yes[not slower]
+                     + (f" ({', '.join(slower)}; the paired differences above say by how much)" if slower else ""))
     return "\n".join(lines)
 
 
@@ -645,6 +695,7 @@ def to_json(res: EvalResult, primary: str = "learned") -> dict:
     if res.scene == "peg_in_hole":
         doc["paper"] = PAPER_TABLE_VI
         doc["paired"] = paired(res, main_name)
+        doc["targets"] = targets(res, main_name)
     return doc
 
 
@@ -738,9 +789,10 @@ def main(argv: list[str] | None = None) -> int:
     if policy is not None:
         print(f"learned: {policy} (parameters {prints})")
     print(format_table(res))
-    lines = format_paired(res, "learned" if "learned" in res.summary else next(iter(res.summary)))
-    if lines:
-        print(lines)
+    primary = "learned" if "learned" in res.summary else next(iter(res.summary))
+    for lines in (format_paired(res, primary), format_targets(res, primary)):
+        if lines:
+            print(lines)
     doc = to_json(res)
     if policy is not None:
         doc["policy"], doc["policy_fingerprint"] = str(policy), prints

@@ -16,8 +16,8 @@ from a3cqp_rl.config import config_from_dict
 from algorithms.networks import ParamLayout
 from algorithms.policy import fingerprint, load_policy
 from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, PAPER_TABLE_VI, EvalResult, capped_time, evaluate,
-                             evaluate_seeds, format_paired, format_table, free_motion_rates, free_motion_warning,
-                             guided_rates, guided_warning, main, paired, to_json)
+                             evaluate_seeds, format_paired, format_table, format_targets, free_motion_rates,
+                             free_motion_warning, guided_rates, guided_warning, main, paired, targets, to_json)
 
 FAST = {"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "align_time": 2.0, "time_limit": 2.0,
                                   "operator_disengage": False, "return_time": 0.5}}}
@@ -158,6 +158,34 @@ def test_paired_compares_the_insertions_both_controllers_made() -> None:
                                           (0,))
     assert paired(other_scene) == {}
     assert paired(res, primary="vic") == {} and format_paired(res, primary="vic") == ""
+
+
+def test_targets_say_which_of_table_vi_and_the_baselines_the_learned_policy_meets() -> None:
+    nan = float("nan")
+    metrics = {"learned": _peg_metrics([True] * 9 + [False], [6.0] * 9 + [nan]),  # 90 %, 6.0 s
+               "ik_fc": _peg_metrics([True] * 10, [5.5] * 10),  # more insertions, faster
+               "ik": _peg_metrics([True] + [False] * 9, [9.0] + [nan] * 9),
+               "equal": _peg_metrics([False] * 10, [nan] * 10)}  # no insertion: beaten on time by any
+    res = EvalResult.from_metrics("peg_in_hole", metrics, {}, 1.0, 10.0, (0,))
+    t = targets(res)
+    assert t["success_rate"]["met"] and t["success_rate"]["value"] == pytest.approx(0.9)
+    assert t["insertion_time_mean_s"]["met"] and t["insertion_time_mean_s"]["value"] == pytest.approx(6.0)
+    assert not t["baselines"]["ik_fc"]["success_met"] and not t["baselines"]["ik_fc"]["time_met"]
+    assert t["baselines"]["ik"]["success_met"] and t["baselines"]["ik"]["time_met"]
+    assert t["baselines"]["equal"]["success_met"] and t["baselines"]["equal"]["time_met"] and not t["met"]
+    text = format_targets(res)
+    assert "success rate >= 89 %: met (90 %)" in text and "mean insertion time <= 8.21 s: met (6.00 s)" in text
+    assert "at least every baseline's: NOT met (ik_fc 100 %)" in text
+    assert "at most every baseline's: NOT met (ik_fc 5.50 s;" in text
+    assert to_json(res)["targets"] == t
+    # below Table VI: 8 of 10, slower than 8.21 s; alone, nothing to compare with
+    slow = EvalResult.from_metrics("peg_in_hole", {"learned": _peg_metrics([True] * 8 + [False] * 2,
+                                                                           [9.0] * 8 + [nan] * 2)}, {}, 1.0, 10.0, (0,))
+    t = targets(slow)
+    assert not t["success_rate"]["met"] and not t["insertion_time_mean_s"]["met"] and not t["met"]
+    assert t["baselines"] == {} and "NOT met (80 %)" in format_targets(slow)
+    only_baselines = EvalResult.from_metrics("peg_in_hole", {"ik": metrics["ik"]}, {}, 1.0, 10.0, (0,))
+    assert targets(only_baselines) == {} and format_targets(only_baselines) == ""
 
 
 def test_capped_time_counts_the_insertions_not_made_at_the_time_limit() -> None:
