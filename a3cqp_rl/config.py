@@ -662,8 +662,9 @@ class OperatorConfig:
     """Simulated operator: a bounded, delayed, noisy 6-D spring-damper hand holding the handle above the F/T sensor.
 
     On a grasp the hand's attractor moves from the handle's position to the intent's goal at `speed`, the force
-    f = K (x_hand − x) − D ẋ (x, ẋ of the handle as seen `delay` s ago) fades in over `grip_time`, is clipped to
-    `max_force`, and the hand keeps the grasp orientation with a rotational spring-damper (clipped to `max_torque`).
+    f = K (x_hand − x) − D ẋ (x, ẋ of the handle as seen `delay` s ago) − D_i ẋ(now) fades in over `grip_time`, is
+    clipped to `max_force`, and the hand keeps the grasp orientation with a rotational spring-damper (clipped to
+    `max_torque`).
     The hand releases (force fades out) `hold_time` after the handle reached the goal, or at `timeout`.
     """
 
@@ -682,6 +683,10 @@ class OperatorConfig:
     """Bound on the hand's torque [N m]."""
     delay: float = 0.1
     """Reaction delay of the hand [s] (it acts on the handle state this long ago)."""
+    intrinsic_damping: float = 0.0
+    """Hand translational damping D_i [N s/m] on the handle's present velocity, without the delay: the arm's
+    muscles resist motion before any reaction does. 0 (default): the whole hand is delayed, and near a goal or as a
+    peg comes free it can swing with the admittance at ~1-3 Hz (docs/panda.md, "The operator's swing")."""
     noise: float = 0.2
     """Standard deviation of the hand's force tremor [N] (white, 1 kHz; 0 = none)."""
     speed: float = 0.1
@@ -698,7 +703,8 @@ class OperatorConfig:
     def _check(self, err: _Errors) -> None:
         for name in ("stiffness", "max_force", "speed", "grip_time", "goal_tolerance", "timeout"):
             err.positive(self, name)
-        for name in ("damping", "rot_stiffness", "rot_damping", "max_torque", "delay", "noise", "hold_time"):
+        for name in ("damping", "intrinsic_damping", "rot_stiffness", "rot_damping", "max_torque", "delay", "noise",
+                     "hold_time"):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 err.add(name, f"must be a finite number >= 0, got {v}")

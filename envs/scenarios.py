@@ -138,8 +138,9 @@ class Operator:
 
     def wrench(self, t: np.ndarray, pos: np.ndarray, vel: np.ndarray, rot: np.ndarray, omega: np.ndarray,
                noise: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Hand force and torque [N, 3] (N, N m; world) from the handle's state (pos, vel, rot, ω) `delay` s ago;
-        `noise` [N, 3]: standard normal draws for the tremor (scaled by `noise` of the config)."""
+        """Hand force and torque [N, 3] (N, N m; world) from the handle's state (pos, vel, rot, ω) `delay` s ago and
+        its present velocity (the intrinsic damping); `noise` [N, 3]: standard normal draws for the tremor (scaled by
+        `noise` of the config)."""
         c, k = self.cfg, self._k
         now = np.concatenate([pos, vel, rot.reshape(-1, 9), omega], axis=1)
         fresh = ~self._primed  # no history yet: the hand sees the present
@@ -159,6 +160,8 @@ class Operator:
                         np.clip(1.0 - (t - self.t_release[on]) / c.grip_time, 0.0, 1.0))[:, None]
         s = self.force_scale[on, None]
         f = s * (c.stiffness * (self._attractor(t, on) - p) - c.damping * v)
+        if c.intrinsic_damping > 0:  # the muscles' damping acts on the present velocity
+            f = f - s * c.intrinsic_damping * vel[on]
         if c.noise > 0 and noise is not None:
             f = f + c.noise * noise[on]
         tq = s * (c.rot_stiffness * rotation_log(self.rot_grasp[on] @ np.swapaxes(R, -1, -2)) - c.rot_damping * w)

@@ -230,3 +230,30 @@ def test_the_time_cost_is_paid_from_the_first_contact_until_the_insertion_ends()
     assert scene_with(0.0).reward_term() is None
     with pytest.raises(ConfigError, match="time_cost"):
         load_config(None, {"panda": {"peg_in_hole": {"time_cost": -1.0}}})
+
+
+def test_the_hands_intrinsic_damping_acts_on_the_present_velocity_the_rest_on_the_delayed_state() -> None:
+    """A hand holding still at its attractor: the handle starts moving at 0.1 m/s along x. The delayed spring-damper
+    still sees the handle at rest (0.1 s ago); only `intrinsic_damping` answers at once, with −D_i v."""
+    from a3cqp_rl.config import OperatorConfig
+    from envs.scenarios import Operator
+
+    dt = 0.001
+    forces = {}
+    for d_i in (0.0, 30.0):
+        op = Operator(1, OperatorConfig(intrinsic_damping=d_i, noise=0.0, speed=1e-9, grip_time=1e-6), dt)
+        rest, rot, zero = np.zeros((1, 3)), np.eye(3)[None], np.zeros((1, 3))
+        op.update(np.zeros(1), rest, rot)
+        op.grasp(np.array([0]), rest.copy(), np.zeros(1))  # hold the handle where it is
+        t = np.zeros(1)
+        for _ in range(50):  # at rest: the delayed history fills with the resting state
+            t += dt
+            op.wrench(t, rest, zero, rot, zero)
+        t += dt
+        forces[d_i], _ = op.wrench(t, rest, np.array([[0.1, 0.0, 0.0]]), rot, zero)
+    np.testing.assert_allclose(forces[0.0], 0.0, atol=1e-12)
+    np.testing.assert_allclose(forces[30.0], [[-3.0, 0.0, 0.0]], atol=1e-9)
+    with pytest.raises(Exception, match="intrinsic_damping"):
+        from a3cqp_rl.config import config_from_dict
+
+        config_from_dict({"panda": {"operator": {"intrinsic_damping": -1.0}}})
