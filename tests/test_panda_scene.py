@@ -253,7 +253,8 @@ def test_the_hands_intrinsic_damping_acts_on_the_present_velocity_the_rest_on_th
         forces[d_i], _ = op.wrench(t, rest, np.array([[0.1, 0.0, 0.0]]), rot, zero)
     np.testing.assert_allclose(forces[0.0], 0.0, atol=1e-12)
     np.testing.assert_allclose(forces[30.0], [[-3.0, 0.0, 0.0]], atol=1e-9)
-    with pytest.raises(Exception, match="intrinsic_damping"):
-        from a3cqp_rl.config import config_from_dict
+    from a3cqp_rl.config import config_from_dict
+    from a3cqp_rl.exceptions import ConfigError
 
+    with pytest.raises(ConfigError, match="intrinsic_damping"):
         config_from_dict({"panda": {"operator": {"intrinsic_damping": -1.0}}})
