@@ -186,20 +186,14 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
     groups = [g.tolist() for g in np.array_split(np.arange(trials), min(workers, trials))]
     # each worker's arms sit where they sit in the batch of all trials: the same coordinates, the same round-off
     jobs = [(scene, policy_path, [seeds[k] for k in g], cfg, tuple(controllers), tuple(fixed), sim_threads,
-             progress and i == 0, i == 0, park,
+             progress, i == 0, park,
              None if len(groups) == 1 else (len(names) * trials, [j * trials + k for j in range(len(names)) for k in g]))
             for i, g in enumerate(groups)]
     t_wall = time.perf_counter()
     if len(jobs) == 1:
         parts = [_run_job(jobs[0])]
     else:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        # spawn: a fresh interpreter per worker (no forked torch or MuJoCo state)
-        with ProcessPoolExecutor(len(jobs), mp_context=multiprocessing.get_context("spawn"),
-                                 initializer=torch.set_num_threads, initargs=(1,)) as pool:
-            parts = list(pool.map(_run_job, jobs))
+        parts = _run_workers(jobs, len(names) * trials, progress)
     seconds = time.perf_counter() - t_wall
     scene_name = parts[0]["scene"]
     metrics = {c: {k: np.concatenate([p["metrics"][c][k] for p in parts]) for k in parts[0]["metrics"][c]}
@@ -337,6 +331,70 @@ def format_targets(res: EvalResult, primary: str = "learned") -> str:
     return "\n".join(lines)
 
 
+_PROGRESS_QUEUE = None
+"""In a worker process of `_run_workers`: the queue its progress goes to (the parent draws one bar for all)."""
+
+
+def _init_worker(queue) -> None:  # noqa: ANN001
+    """Worker process set-up: one torch thread (the workers share the cores), progress to the parent's `queue`."""
+    global _PROGRESS_QUEUE
+    torch.set_num_threads(1)
+    _PROGRESS_QUEUE = queue
+
+
+class _QueueBar:
+    """The part of tqdm's interface `_run` uses, sent to the parent process: arms whose episode ended, the worker's
+    simulated time [s]."""
+
+    def __init__(self, queue, worker: int) -> None:  # noqa: ANN001
+        self.queue, self.worker = queue, worker
+
+    def update(self, n: int) -> None:
+        self.queue.put((self.worker, n, None))
+
+    def set_simulated(self, seconds: float) -> None:
+        self.queue.put((self.worker, 0, seconds))
+
+    def close(self) -> None:
+        pass
+
+
+def _run_workers(jobs: list[tuple], arms: int, progress: bool) -> list[dict]:
+    """`_run_job` of each job in its own process (spawned: a fresh interpreter, no forked torch or MuJoCo state); one
+    progress bar over all `arms`, fed by the workers through a queue."""
+    import multiprocessing
+    import queue as queue_mod
+    from concurrent.futures import ProcessPoolExecutor, wait
+
+    ctx = multiprocessing.get_context("spawn")
+    q = ctx.Queue()
+    bar = _progress(arms, progress)
+    simulated = [0.0] * len(jobs)
+
+    def drain() -> None:
+        try:
+            while True:
+                worker, n, sim = q.get_nowait()
+                if sim is None:
+                    bar.update(n)
+                else:
+                    simulated[worker] = sim
+                    bar.set_simulated(max(simulated))
+        except queue_mod.Empty:
+            pass
+
+    jobs = [job + (i,) for i, job in enumerate(jobs)]
+    with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=_init_worker, initargs=(q,)) as pool:
+        futures = [pool.submit(_run_job, job) for job in jobs]
+        while not all(f.done() for f in futures):
+            wait(futures, timeout=0.5)
+            drain()
+        parts = [f.result() for f in futures]  # a worker's exception is raised here
+    drain()  # what the workers sent as they ended
+    bar.close()
+    return parts
+
+
 def _run_job(job: tuple) -> dict:
     """`_run(*job)`, the controller's log line per fallback step giving way to the table's count per trial."""
     log = logging.getLogger("a3cqp_rl.control.controller")
@@ -350,7 +408,7 @@ def _run_job(job: tuple) -> dict:
 
 def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tuple[str, ...],  # noqa: ANN001
          fixed: tuple, sim_threads: int, progress: bool, record: bool, park: bool,
-         grid: tuple[int, list[int]] | None = None) -> dict:
+         grid: tuple[int, list[int]] | None = None, worker: int = 0) -> dict:
     """One batched simulation of every controller on the trials of `trial_seeds`: the per-controller metrics
     (arrays [trials, ...]), the recorded episodes of its first trial (`record`) and the simulated arm-seconds.
     `park`: arms whose episode is over are parked (PandaEnv.park) until the last one ends. `grid`: PandaEnv's."""
@@ -378,7 +436,8 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     td = env.reset()
     finished = np.zeros(n, dtype=bool)
     fallbacks = np.zeros(n, dtype=np.int64)  # each trial's QP fallback periods, taken when its episode ends
-    bar = _progress(n, progress)
+    # in a worker process the parent draws the bar (`_run_workers`)
+    bar = _QueueBar(_PROGRESS_QUEUE, worker) if progress and _PROGRESS_QUEUE is not None else _progress(n, progress)
     steps = 0
     while not finished.all():
         W, f_d, scale, scripted = _scripted(env, controllers, trials, latched, since, contact_force)
@@ -405,7 +464,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
         if newly.any():
             bar.update(int(newly.sum()))
         if steps % 100 == 0:
-            bar.set_postfix_str(f"{float(env.t.max()):.0f} s simulated", refresh=False)
+            bar.set_simulated(float(env.t.max()))
     bar.close()
     metrics = env.scene.metrics()
     metrics["diverged"] = env.diverged.copy()
@@ -550,9 +609,13 @@ def _progress(arms: int, enabled: bool):  # noqa: ANN202
     """Progress over the batch's arms whose episode is over (an episode's length is known only when it ends)."""
     from tqdm import tqdm
 
-    bar = tqdm(total=arms, disable=not enabled, mininterval=2.0, file=sys.stderr,
-               bar_format="{l_bar}{bar}| {n}/{total} episodes over [{elapsed}{postfix}]")
-    bar.set_postfix_str("0 s simulated", refresh=False)
+    class Bar(tqdm):
+        def set_simulated(self, seconds: float) -> None:
+            self.set_postfix_str(f"{seconds:.0f} s simulated", refresh=False)
+
+    bar = Bar(total=arms, disable=not enabled, mininterval=2.0, file=sys.stderr,
+              bar_format="{l_bar}{bar}| {n}/{total} episodes over [{elapsed}{postfix}]")
+    bar.set_simulated(0.0)
     return bar
 
 

@@ -309,3 +309,13 @@ def test_the_sensing_warning_names_untared_bias_and_unfiltered_noise() -> None:
     w = sensing_warning(panda({"joint_torque_noise": 0.2, "joint_torque_bias": 0.2, "tare_time": 0.4}))
     assert "noisy while the agents observe single samples" in w and "not tared" not in w
     assert sensing_warning(panda({"joint_torque_noise": 0.2, "tare_time": 0.4}, "mean")) is None
+
+
+def test_worker_processes_report_to_one_progress_bar_over_every_arm(capfd) -> None:  # noqa: ANN001
+    cfg = config_from_dict({"panda": {**FAST["panda"], "max_episode_time": 3.0}})
+    res = evaluate("peg_in_hole", None, trials=3, seed=0, config=cfg, controllers=("ik",), workers=2, progress=True)
+    assert res.summary["ik"]["trials"] == 3
+    err = capfd.readouterr().err
+    # 3 arms in two processes (2 + 1): the parent's bar counts them all, and the simulated time comes back with them
+    assert re.search(r"3/3 episodes over \[[0-9:]+, 3 s simulated\]", err), err[-300:]
+    assert "/2 episodes" not in err and "/1 episodes" not in err
