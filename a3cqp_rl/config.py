@@ -531,6 +531,12 @@ class PointMassConfig:
     """operator: target within ± this of the start [m]."""
     operator_force_min: float = 3.0
     """operator: smallest push magnitude [N] (largest is f̄_ope)."""
+    operator_toward_wall: float = 0.5
+    """operator: probability that a push (hand operator: a move) points to +x, the side the wall and f_d are on. 0.5
+    (the default): either way alike. Lower: the operator more often pulls the tool off the surface than onto it, as
+    in the disengagements of Fig. 7, so force control under the operator's force costs more often than it helps
+    (measured at 0.25: more runs yield, fewer insert; docs/panda.md, "Two more surrogates"). Torch env only (the C
+    point mass refuses it)."""
     operator_v_hand: float = 0.3
     """operator: hand speed along the push at which the measured force vanishes [m/s]."""
     operator_grip: bool = False
@@ -593,6 +599,8 @@ class PointMassConfig:
             err.add("kv", f"must be >= 0 or null, got {self.kv}")
         if not (self.target_speed_max >= 0.0 and math.isfinite(self.target_speed_max)):
             err.add("target_speed_max", f"must be a finite speed >= 0 [m/s], got {self.target_speed_max}")
+        if not 0.0 <= self.operator_toward_wall <= 1.0:
+            err.add("operator_toward_wall", f"must be a probability in [0, 1], got {self.operator_toward_wall}")
         if self.idle_force not in ("free", "damps"):
             err.add("idle_force", f"must be 'free' or 'damps', got {self.idle_force!r}")
         for lo, hi in (("target_min", "target_max"), ("operator_on_min", "operator_on_max"),

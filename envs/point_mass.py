@@ -176,7 +176,7 @@ class PointMassEnv(EnvBase):
         c, K = self.cfg, self._n_phases
         off = self._uniform(n, c.operator_off_min, c.operator_off_max, K)
         on = self._uniform(n, c.operator_on_min, c.operator_on_max, K)
-        sign = torch.where(self._uniform(n, 0, 1, K) < 0.5, -1.0, 1.0).to(self.dtype)
+        sign = torch.where(self._uniform(n, 0, 1, K) < 1.0 - c.operator_toward_wall, -1.0, 1.0).to(self.dtype)
         if c.operator_model == "hand":  # the hand's displacement [m] from where it grasps
             force = sign * self._uniform(n, c.operator_goal_min, c.operator_goal_max, K)
         else:

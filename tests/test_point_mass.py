@@ -99,6 +99,22 @@ def test_operator_schedule_starts_and_stops():
     assert sched.abs().max() <= 15.0 and sched[on].abs().min() >= 5.0
 
 
+@pytest.mark.parametrize("toward", [0.5, 0.2, 1.0])
+def test_operator_toward_wall_sets_the_share_of_pushes_to_the_wall_side(toward):
+    env = scenario_env(256, "operator", operator_toward_wall=toward)
+    env.reset()
+    state, sched = env.functional()
+    sched = sched[state["slot"], torch.arange(256)]
+    pushes = sched[sched != 0]
+    share = (pushes > 0).double().mean().item()  # of the agent steps pushed (a phase's length does not depend on it)
+    assert abs(share - toward) < 0.05, share
+
+
+def test_operator_toward_wall_is_a_probability():
+    with pytest.raises(Exception, match="operator_toward_wall"):
+        config_from_dict({"point_mass": {"operator_toward_wall": 1.5}})
+
+
 def test_truncation_at_episode_end_and_partial_reset():
     env = PointMassEnv(3, config_from_dict({"point_mass": {"episode_steps": 5}}), seed=0)
     td = env.rollout(5, break_when_any_done=False)
@@ -211,3 +227,4 @@ def test_the_c_point_mass_refuses_what_it_does_not_simulate():
     assert unsupported(ExperimentConfig()) is None
     assert "fixed targets" in unsupported(config_from_dict({"point_mass": {"target_speed_max": 0.05}}))
     assert "idle_force" in unsupported(config_from_dict({"point_mass": {"idle_force": "damps"}}))
+    assert "operator_toward_wall" in unsupported(config_from_dict({"point_mass": {"operator_toward_wall": 0.25}}))
