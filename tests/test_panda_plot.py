@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from a3cqp_rl.plotting.cli import main as plot_main
-from a3cqp_rl.plotting.episode import load_episode, plot_episode, render_strip
+from a3cqp_rl.plotting.episode import load_episode, plot_episode, render_strip, snapshot_events
 from a3cqp_rl.robot import PANDA_HOME
 from a3cqp_rl.robot.scenes import HoleGeometry, hole_block_xml
 
@@ -47,3 +47,32 @@ def test_render_strip_draws_the_scene_or_says_why_not(tmp_path) -> None:  # noqa
         assert "MUJOCO_GL" in str(exc)
         pytest.skip(f"no OpenGL here: {exc}")
     assert out.is_file() and out.stat().st_size > 5_000
+
+
+def test_snapshots_are_taken_at_the_moments_of_the_insertion_as_in_fig_7() -> None:
+    ep = _episode()  # phases approach (t <= 1), insert, disengage (t > 2)
+    t = ep["time"]
+    ep["f_env_local"][t >= 1.2, 2] = -3.0  # first contact
+    ep["depth"][:] = np.where(t >= 1.5, 0.01, 0.0)  # in the bore from 1.5 s, back above the rim at 2.6 s
+    ep["depth"][t >= 2.6] = -0.01
+    ep["f_env_local"][t > 2.0, 2] = 0.0
+    ep["f_ope_local"][t >= 2.3, 2] = 8.0  # the operator pulls
+    got = snapshot_events(ep)
+    names = [n for _, n in got]
+    assert names == ["first contact", "tip below the rim", "insertion over", "operator pulls", "peg out", "end"]
+    np.testing.assert_allclose([x for x, _ in got], [1.2, 1.5, 2.01, 2.3, 2.6, 2.99], atol=1e-9)
+    assert len(snapshot_events(ep, frames=3)) == 3
+    # a peg that never touches: only the end of the insertion phase and the end; another scene: its phase starts
+    quiet = _episode()
+    assert [n for _, n in snapshot_events(quiet)] == ["insertion over", "end"]
+    del quiet["depth"]
+    assert [n for _, n in snapshot_events(quiet)] == ["insert", "disengage", "end"]
+
+
+def test_without_any_moment_the_snapshots_are_evenly_spaced() -> None:
+    ep = _episode()
+    ep["phase"][:] = 0
+    del ep["depth"]
+    got = snapshot_events(ep, frames=4)
+    assert [n for _, n in got] == [""] * 4
+    np.testing.assert_allclose([x for x, _ in got], np.linspace(0.0, 2.99, 6)[1:-1])

@@ -11,12 +11,13 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_episode", "load_episode", "render_strip", "AXES", "TASK_COLOURS"]
+__all__ = ["plot_episode", "load_episode", "render_strip", "snapshot_events", "AXES", "TASK_COLOURS"]
 
 AXES = ("x", "y", "z", "rx", "ry", "rz")
 TASK_COLOURS = {"IK": "#9ecae1", "AC": "#a1d99b", "FC": "#fc9272"}
 """Fig. 7/8's colours: blue IK, green AC, red FC."""
 _TASKS = ("IK", "AC", "FC")
+_LETTERS = "ABCDEFGHIJKL"
 
 
 def load_episode(path: str | Path) -> dict[str, np.ndarray]:
@@ -28,6 +29,62 @@ def load_episode(path: str | Path) -> dict[str, np.ndarray]:
         raise FileNotFoundError(f"episode file not found: {path} (write one with `a3cqp evaluate --scene ... --out`)")
     with np.load(path, allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
+
+
+CONTACT_FORCE = 1.0
+"""|f_env| [N] on the translational axes of L that counts as the first contact (the scene's default)."""
+BORE_DEPTH = 0.001
+"""Tip depth below the rim [m] from which the peg counts as in the bore (the scene's split of the insertion time)."""
+PULL_FORCE = 5.0
+"""|f_ope| [N] that marks the operator pulling (past the grasp's 0.2-s fade-in)."""
+
+
+def snapshot_events(ep: dict[str, np.ndarray], frames: int = 6) -> list[tuple[float, str]]:
+    """Up to `frames` (time [s], name) moments worth a snapshot, as Fig. 7's (A)-(F), from the episode's own signals.
+
+    Peg-in-hole (a `depth` signal; the first cycle): the first contact, the tip 1 mm below the rim (in the bore, or
+    beside the block), the end of the insertion phase, the operator pulling (|f_ope| > 5 N in the disengagement), the
+    tip back above the rim, the end. Other scenes: the start of each phase after the first, then the end. Moments the episode never reaches are left out, and so is one
+    within 0.05 s of the moment before; evenly spaced times stand in when only the end is left."""
+    t = np.asarray(ep["time"], dtype=float)
+    names = [str(x) for x in ep.get("phase_names", [])]
+    phase = np.asarray(ep["phase"]) if "phase" in ep else np.zeros(len(t), dtype=np.int64)
+    events: list[tuple[float, str]] = []
+
+    def first(mask: np.ndarray, name: str) -> int | None:
+        idx = np.flatnonzero(mask)
+        if len(idx):
+            events.append((float(t[idx[0]]), name))
+            return int(idx[0])
+        return None
+
+    after = np.arange(len(t))
+    if "depth" in ep and "insert" in names:
+        depth = np.asarray(ep["depth"], dtype=float)
+        insert = phase == names.index("insert")
+        force = np.linalg.norm(np.asarray(ep["f_env_local"])[:, :3], axis=1)
+        c = first(insert & (force > CONTACT_FORCE), "first contact")
+        if c is not None:
+            first((after > c) & insert & (depth > BORE_DEPTH), "tip below the rim")
+        ends = np.flatnonzero(insert[:-1] & ~insert[1:])
+        if len(ends):
+            events.append((float(t[ends[0] + 1]), "insertion over"))
+            if "disengage" in names:
+                pull = np.linalg.norm(np.asarray(ep["f_ope_local"])[:, :3], axis=1) > PULL_FORCE
+                d = first((after > ends[0]) & (phase == names.index("disengage")) & pull, "operator pulls")
+                if d is not None:
+                    first((after > d) & (depth < 0.0), "peg out")
+    else:
+        for s, _e, _lab in _spans(phase)[1:]:
+            events.append((float(t[s]), names[int(phase[s])] if names else f"phase {int(phase[s])}"))
+    events.append((float(t[-1]), "end"))
+    kept: list[tuple[float, str]] = []
+    for te, name in sorted(events, key=lambda e: e[0]):
+        if not kept or te > kept[-1][0] + 0.05:  # two snapshots closer than that look alike
+            kept.append((te, name))
+    if len(kept) < 2:  # nothing happened before the end: evenly spaced
+        return [(float(x), "") for x in np.linspace(t[0], t[-1], frames + 2)[1:-1]]
+    return kept[:frames]
 
 
 def _spans(labels: np.ndarray) -> list[tuple[int, int, int]]:
@@ -94,6 +151,13 @@ def plot_episode(ep: dict[str, np.ndarray], out: str | Path, axis: str = "z", ti
             for a in ax:
                 a.axvline(t[s], color="0.4", lw=0.6, ls=":")
             ax[0].text(t[s], 1.07, names[lab], fontsize=7, rotation=30, va="bottom")
+    # the image strip's moments (render_strip), lettered as Fig. 7's snapshots
+    for (te, name), letter in zip(snapshot_events(ep) if "phase" in ep else [], _LETTERS):
+        if name:
+            for a in ax:
+                a.axvline(te, color="0.15", lw=0.8, ls="--")
+            ax[-1].text(te, 0.97, f" {letter}", transform=ax[-1].get_xaxis_transform(), fontsize=8, va="top",
+                        fontweight="bold")
     ax[-1].set_xlabel("time [s]")
     handles = [matplotlib.patches.Patch(color=TASK_COLOURS[n], alpha=0.5, label=f"{n} leads") for n in _TASKS]
     fig.legend(handles=handles, loc="upper left", ncol=3, fontsize=8)
@@ -156,13 +220,12 @@ def _render_strip(ep: dict[str, np.ndarray], out: str | Path, frames: int, size:
         raise RuntimeError(f"no OpenGL backend for offscreen rendering ({type(exc).__name__}: {exc}); "
                            "install EGL or OSMesa and set MUJOCO_GL=egl or MUJOCO_GL=osmesa") from None
     t = np.asarray(ep["time"], dtype=float)
-    if times is None:
-        times = list(np.linspace(t[0], t[-1], frames + 2)[1:-1])
+    moments = snapshot_events(ep, frames) if times is None else [(float(x), "") for x in times]
     opt = mujoco.MjvOption()
     opt.geomgroup[:] = 1
     images = []
     tcp = model.site("tcp").id
-    for tt in times:
+    for tt, name in moments:
         i = int(np.argmin(np.abs(t - tt)))
         data.qpos[:7] = ep["q"][i]
         mujoco.mj_forward(model, data)
@@ -170,12 +233,12 @@ def _render_strip(ep: dict[str, np.ndarray], out: str | Path, frames: int, size:
         cam.lookat[:] = data.site_xpos[tcp] + np.array([0.0, 0.0, 0.05])
         cam.distance, cam.azimuth, cam.elevation = 0.55, 150.0, -20.0
         renderer.update_scene(data, camera=cam, scene_option=opt)
-        images.append((t[i], renderer.render().copy()))
+        images.append((t[i], name, renderer.render().copy()))
     renderer.close()
     fig, ax = plt.subplots(1, len(images), figsize=(3.2 * len(images), 2.8))
-    for a, (ti, im), label in zip(np.atleast_1d(ax), images, "ABCDEFGHIJKL"):
+    for a, (ti, name, im), label in zip(np.atleast_1d(ax), images, _LETTERS):
         a.imshow(im)
-        a.set_title(f"({label}) t = {ti:.1f} s", fontsize=9)
+        a.set_title(f"({label}) {name + ', ' if name else ''}t = {ti:.1f} s", fontsize=9)
         a.axis("off")
     fig.tight_layout()
     out = Path(out)
