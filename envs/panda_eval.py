@@ -384,14 +384,16 @@ def _run_workers(jobs: list[tuple], arms: int, progress: bool) -> list[dict]:
             pass
 
     jobs = [job + (i,) for i, job in enumerate(jobs)]
-    with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=_init_worker, initargs=(q,)) as pool:
-        futures = [pool.submit(_run_job, job) for job in jobs]
-        while not all(f.done() for f in futures):
-            wait(futures, timeout=0.5)
-            drain()
-        parts = [f.result() for f in futures]  # a worker's exception is raised here
-    drain()  # what the workers sent as they ended
-    bar.close()
+    try:
+        with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=_init_worker, initargs=(q,)) as pool:
+            futures = [pool.submit(_run_job, job) for job in jobs]
+            while not all(f.done() for f in futures):
+                wait(futures, timeout=0.5)
+                drain()
+            parts = [f.result() for f in futures]  # a worker's exception is raised here
+        drain()  # what the workers sent as they ended
+    finally:
+        bar.close()
     return parts
 
 

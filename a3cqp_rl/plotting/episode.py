@@ -152,12 +152,13 @@ def plot_episode(ep: dict[str, np.ndarray], out: str | Path, axis: str = "z", ti
                 a.axvline(t[s], color="0.4", lw=0.6, ls=":")
             ax[0].text(t[s], 1.07, names[lab], fontsize=7, rotation=30, va="bottom")
     # the image strip's moments (render_strip), lettered as Fig. 7's snapshots
-    for (te, name), letter in zip(snapshot_events(ep) if "phase" in ep else [], _LETTERS):
+    for j, ((te, name), letter) in enumerate(zip(snapshot_events(ep) if "phase" in ep else [], _LETTERS)):
         if name:
             for a in ax:
                 a.axvline(te, color="0.15", lw=0.8, ls="--")
-            ax[-1].text(te, 0.97, f" {letter}", transform=ax[-1].get_xaxis_transform(), fontsize=8, va="top",
-                        fontweight="bold")
+            # staggered: moments a fraction of a second apart would print their letters on top of each other
+            ax[-1].text(te, 0.97 - 0.14 * (j % 3), f" {letter}", transform=ax[-1].get_xaxis_transform(), fontsize=8,
+                        va="top", fontweight="bold")
     ax[-1].set_xlabel("time [s]")
     handles = [matplotlib.patches.Patch(color=TASK_COLOURS[n], alpha=0.5, label=f"{n} leads") for n in _TASKS]
     fig.legend(handles=handles, loc="upper left", ncol=3, fontsize=8)
