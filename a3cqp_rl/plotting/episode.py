@@ -44,8 +44,9 @@ def snapshot_events(ep: dict[str, np.ndarray], frames: int = 6) -> list[tuple[fl
 
     Peg-in-hole (a `depth` signal; the first cycle): the first contact, the tip 1 mm below the rim (in the bore, or
     beside the block), the end of the insertion phase, the operator pulling (|f_ope| > 5 N in the disengagement), the
-    tip back above the rim, the end. Other scenes: the start of each phase after the first, then the end. Moments the episode never reaches are left out, and so is one
-    within 0.05 s of the moment before; evenly spaced times stand in when only the end is left."""
+    tip back above the rim, the end. Other scenes: the start of each phase after the first, then the end. Moments the
+    episode never reaches are left out, and so is one within 0.05 s of the moment before; evenly spaced times stand
+    in when only the end is left."""
     t = np.asarray(ep["time"], dtype=float)
     names = [str(x) for x in ep.get("phase_names", [])]
     phase = np.asarray(ep["phase"]) if "phase" in ep else np.zeros(len(t), dtype=np.int64)
