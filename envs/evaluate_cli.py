@@ -74,6 +74,12 @@ def _names(paths: Sequence[Path]) -> list[str]:
     return names
 
 
+PANDA_HINT = ("(A policy that does not raise IK there inserts no peg on the Panda, and one that resists does not let the "
+              "operator guide it. The Panda configs name a shipped policy that passes both, in policies/; `make "
+              "policy` retrains it.)")
+"""Printed under the Panda lines when a policy fails either."""
+
+
 def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed: int = 0,
            json_path: str | Path | None = None, out=None) -> dict[str, dict[str, bool]]:
     """Evaluate the saved policies with the baselines; print the table, regions and checks (to `out`, default the
@@ -137,6 +143,8 @@ def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed
         print("Panda guidance (|f_ope|/f̄_ope 0.1-0.5; a policy must raise w2 and lower f_d there to let the operator "
               "guide it): " + ", ".join(f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({'yields' if a > 0 and d < 0 else 'resists'})"
                                         for n, (a, d) in guided.items()), file=out)
+        if any(r <= 0 for r in free_motion.values()) or any(not (a > 0 and d < 0) for a, d in guided.values()):
+            print(PANDA_HINT, file=out)
     if json_path:
         result.write_json(json_path, {"checks": checks, "literal_regions": regions, "free_motion_w1_rate": free_motion,
                                       "guided_w2_fd_rates": guided,

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from a3cqp_rl.config import config_from_dict
+from envs.evaluate_cli import PANDA_HINT
 from envs.point_mass import PointMassEnv, agent_step
 from envs.point_mass_eval import (EVAL_SCENARIOS, baseline_policies, behaviour_checks, evaluate, scenario_config,
                                   switching_rule)
@@ -124,6 +125,9 @@ def test_evaluate_cli(tmp_path, capsys):
         assert f"{n} ẇ1 {r:+.2f} ({'raises IK' if r > 0 else 'does not raise IK'})" in printed
     for n, (a, d) in data["guided_w2_fd_rates"].items():
         assert f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({'yields' if a > 0 and d < 0 else 'resists'})" in printed
+    failing = any(r <= 0 for r in rates.values()) or any(not (a > 0 and d < 0)
+                                                         for a, d in data["guided_w2_fd_rates"].values())
+    assert (PANDA_HINT in printed) == failing  # the way to a policy that transfers, only where one does not
     assert main(["evaluate", "--episodes", "2"]) == 0  # baselines only
     assert main(["evaluate", "--policy", str(tmp_path / "missing.pt")]) == 2
     assert "not found" in capsys.readouterr().err
