@@ -51,6 +51,9 @@ def test_every_controller_runs_the_same_trials_and_the_json_has_table_vi_keys() 
     assert "joint speed, worst [x limit]" in table
     ep = res.episodes["ik_fc"]
     assert ep["weights"].shape[1:] == (6, 3) and len(ep["time"]) == len(ep["depth"]) > 100
+    # the scene's own moments of the recorded trial (for the plot's snapshots): its first contact, as in the metrics
+    assert ep["contact_time"].shape == (1,) and ep["contact_time"][0] == res.per_trial["ik_fc"]["contact_time"][0]
+    assert ep["contact_time"][0] in ep["time"]
 
 
 def test_qp_fallbacks_are_counted_per_trial_instead_of_logged(monkeypatch, caplog) -> None:  # noqa: ANN001

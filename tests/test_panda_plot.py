@@ -52,18 +52,20 @@ def test_render_strip_draws_the_scene_or_says_why_not(tmp_path) -> None:  # noqa
 def test_snapshots_are_taken_at_the_moments_of_the_insertion_as_in_fig_7() -> None:
     ep = _episode()  # phases approach (t <= 1), insert, disengage (t > 2)
     t = ep["time"]
-    ep["f_env_local"][t >= 1.2, 2] = -3.0  # first contact
+    ep["contact_time"], ep["bore_time"] = np.array([1.2]), np.array([1.5])  # the scene's, recorded by evaluate
+    ep["f_env_local"][t >= 1.0, 2] = 3.0  # a sensed force before the scene's contact is not its contact
     ep["depth"][:] = np.where(t >= 1.5, 0.01, 0.0)  # in the bore from 1.5 s, back above the rim at 2.6 s
     ep["depth"][t >= 2.6] = -0.01
-    ep["f_env_local"][t > 2.0, 2] = 0.0
     ep["f_ope_local"][t >= 2.3, 2] = 8.0  # the operator pulls
     got = snapshot_events(ep)
     names = [n for _, n in got]
-    assert names == ["first contact", "tip below the rim", "insertion over", "operator pulls", "peg out", "end"]
+    assert names == ["first contact", "in the bore", "insertion over", "operator pulls", "peg out", "end"]
     np.testing.assert_allclose([x for x, _ in got], [1.2, 1.5, 2.01, 2.3, 2.6, 2.99], atol=1e-9)
     assert len(snapshot_events(ep, frames=3)) == 3
-    # a peg that never touches: only the end of the insertion phase and the end; another scene: its phase starts
+    # a peg that never touches (no contact time, or NaN): only the end of the insertion phase and the end; another
+    # scene: its phase starts
     quiet = _episode()
+    quiet["contact_time"] = quiet["bore_time"] = np.array([np.nan])
     assert [n for _, n in snapshot_events(quiet)] == ["insertion over", "end"]
     del quiet["depth"]
     assert [n for _, n in snapshot_events(quiet)] == ["insert", "disengage", "end"]

@@ -31,10 +31,6 @@ def load_episode(path: str | Path) -> dict[str, np.ndarray]:
         return {k: z[k] for k in z.files}
 
 
-CONTACT_FORCE = 1.0
-"""|f_env| [N] on the translational axes of L that counts as the first contact (the scene's default)."""
-BORE_DEPTH = 0.001
-"""Tip depth below the rim [m] from which the peg counts as in the bore (the scene's split of the insertion time)."""
 PULL_FORCE = 5.0
 """|f_ope| [N] that marks the operator pulling (past the grasp's 0.2-s fade-in)."""
 
@@ -42,11 +38,11 @@ PULL_FORCE = 5.0
 def snapshot_events(ep: dict[str, np.ndarray], frames: int = 6) -> list[tuple[float, str]]:
     """Up to `frames` (time [s], name) moments worth a snapshot, as Fig. 7's (A)-(F), from the episode's own signals.
 
-    Peg-in-hole (a `depth` signal; the first cycle): the first contact, the tip 1 mm below the rim (in the bore, or
-    beside the block), the end of the insertion phase, the operator pulling (|f_ope| > 5 N in the disengagement), the
-    tip back above the rim, the end. Other scenes: the start of each phase after the first, then the end. Moments the
-    episode never reaches are left out, and so is one within 0.05 s of the moment before; evenly spaced times stand
-    in when only the end is left."""
+    Peg-in-hole (a `depth` signal; the first cycle): the first contact and the tip in the bore (the scene's own
+    `contact_time` and `bore_time`, which `a3cqp evaluate --out` records with the episode), the end of the insertion
+    phase, the operator pulling (|f_ope| > 5 N in the disengagement), the tip back above the rim, the end. Other
+    scenes: the start of each phase after the first, then the end. Moments the episode never reaches are left out,
+    and so is one within 0.05 s of the moment before; evenly spaced times stand in when only the end is left."""
     t = np.asarray(ep["time"], dtype=float)
     names = [str(x) for x in ep.get("phase_names", [])]
     phase = np.asarray(ep["phase"]) if "phase" in ep else np.zeros(len(t), dtype=np.int64)
@@ -63,10 +59,10 @@ def snapshot_events(ep: dict[str, np.ndarray], frames: int = 6) -> list[tuple[fl
     if "depth" in ep and "insert" in names:
         depth = np.asarray(ep["depth"], dtype=float)
         insert = phase == names.index("insert")
-        force = np.linalg.norm(np.asarray(ep["f_env_local"])[:, :3], axis=1)
-        c = first(insert & (force > CONTACT_FORCE), "first contact")
-        if c is not None:
-            first((after > c) & insert & (depth > BORE_DEPTH), "tip below the rim")
+        for key, name in (("contact_time", "first contact"), ("bore_time", "in the bore")):
+            when = np.asarray(ep.get(key, [np.nan]), dtype=float).reshape(-1)[0]
+            if np.isfinite(when):
+                events.append((float(when), name))
         ends = np.flatnonzero(insert[:-1] & ~insert[1:])
         if len(ends):
             events.append((float(t[ends[0] + 1]), "insertion over"))
