@@ -477,11 +477,9 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
            for j, c in enumerate(controllers)}
     meta = {"scene": env.scene.name, "tool": env.scene.tool, "scene_xml": env.scene.mjcf(),
             "phase_names": np.array(env.scene.phase_names), "phase_task": np.array(env.scene.phase_task)}
-    # the scene's own moments of the recorded trial, per cycle (peg-in-hole: from the true contact wrench)
-    moments = {k: metrics[m] for k, m in (("contact_time", "contact_time"), ("bore_time", "to_bore_time"))
-               if m in metrics}
-    if "bore_time" in moments:
-        moments["bore_time"] = moments["bore_time"] + moments["contact_time"]
+    # peg-in-hole: the scene's own moments of the recorded trial, per cycle (timed on the true contact wrench)
+    moments = ({"contact_time": env.scene.contact_time, "bore_time": env.scene.bore_time}
+               if env.scene.name == "peg_in_hole" else {})
     eps = {c: {**{k: np.asarray(v) for k, v in rec.items()}, **meta,
                **{k: np.asarray(v[arm], dtype=float) for k, v in moments.items()}}
            for (c, rec), arm in zip(episodes.items(), rec_arms)}
