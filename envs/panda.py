@@ -83,9 +83,8 @@ class PandaEnv(EnvBase):
             (a3cqp_rl.robot.sim.grid_origins), so that a share of a batch run on its own computes with the same
             coordinates as in the whole batch (default: the grid of these num_envs arms).
         sim_threads: MuJoCo models the arms are split into, stepped in as many threads (ShardedPandaSim). Default 1
-            (one PandaSim). Without contact the numbers are the same bit for bit; with contact they differ at the
-            solver's round-off (MuJoCo chooses its warm start for a whole model at once), as between batches of
-            different compositions. On a loaded 2-core machine 2 threads are slower (docs/panda.md, Benchmark).
+            (one PandaSim). The numbers are the same bit for bit, in contact too (PandaSim's `warmstart`). On a
+            loaded 2-core machine 2 threads are slower (docs/panda.md, Benchmark).
     """
 
     _has_dynamic_specs = False
@@ -533,7 +532,7 @@ class PandaEnv(EnvBase):
         """Set aside arms `idx` whose episode is over while the batch runs on (until their reset): their collisions
         off (PandaSim.park: a peg left in its bore costs collision and solver time at every step), IK weights and
         f_d = 0 from now on (free of contact, the arm holds its pose), no divergence checks (their motion no longer
-        counts). The other arms compute the same up to the contact solver's round-off."""
+        counts). The other arms compute the same numbers as without it."""
         idx = np.asarray(idx, dtype=np.intp).reshape(-1)
         if len(idx):
             self.sim.park(idx)

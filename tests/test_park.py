@@ -1,5 +1,6 @@
 """Parking finished arms (PandaSim.park, PandaEnv.park, `evaluate(park=True)`): their contacts stop, the arms still
-running compute the same up to the contact solver's round-off, and an evaluation's results do not change."""
+running compute the same numbers bit for bit, and an evaluation's results do not change (in worker processes: up to
+round-off)."""
 
 from __future__ import annotations
 
@@ -27,13 +28,13 @@ def _run(park: list[int], steps: int = 150) -> tuple[np.ndarray, np.ndarray, Pan
     return np.array(qs), np.array(pens), sim
 
 
-def test_a_parked_arm_stops_colliding_and_the_others_run_on_to_round_off() -> None:
+def test_a_parked_arm_stops_colliding_and_the_others_run_on_bit_for_bit() -> None:
     q_ref, pen_ref, _ = _run([])
     q, pen, sim = _run([1])
     assert (pen_ref[:, 1] > 0).all() and (pen_ref[:, 0] > 0).all()  # all touch the box without parking
     assert (pen[:, 1] == 0).all() and (pen[:, [0, 2]] > 0).all()  # the parked one no longer does, the others do
     assert np.abs(q_ref[:, 1] - q[:, 1]).max() > 1e-6  # ... and it moves otherwise (it sinks into the box)
-    np.testing.assert_allclose(q[:, [0, 2]], q_ref[:, [0, 2]], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(q[:, [0, 2]], q_ref[:, [0, 2]])  # their contact solves are their own
     sim.reset(np.tile(sim._q[1], (1, 1)), idx=[1])  # a reset arm collides again
     sim.observe()
     assert sim.max_penetration()[1] > 0
@@ -49,13 +50,18 @@ def test_an_evaluation_gives_the_same_results_parked_or_not_and_in_two_worker_pr
                                                       "time_limit": 2.0, "return_time": 0.5}}})
     kw = dict(trials=2, seed=0, config=cfg, controllers=("ik_fc", "ik"), progress=False)
     base = evaluate("peg_in_hole", None, park=False, **kw)
-    for res in (evaluate("peg_in_hole", None, park=True, **kw), evaluate("peg_in_hole", None, workers=2, **kw)):
-        for c in ("ik_fc", "ik"):
-            a, b = base.per_trial[c], res.per_trial[c]
-            assert a["success"] == b["success"] and a["extracted"] == b["extracted"]
-            # round-off of the contact solver only (an insertion time is a multiple of the 10 ms agent period)
-            np.testing.assert_allclose(np.array(b["insertion_time"], float), np.array(a["insertion_time"], float),
-                                       atol=0.0101)
+    parked, split = evaluate("peg_in_hole", None, park=True, **kw), evaluate("peg_in_hole", None, workers=2, **kw)
+    for c in ("ik_fc", "ik"):
+        a, b = base.per_trial[c], parked.per_trial[c]
+        assert a.keys() == b.keys()
+        for key in a:  # parking changes no arm's numbers: every per-trial value, bit for bit
+            np.testing.assert_array_equal(np.array(b[key], float), np.array(a[key], float), err_msg=f"{c} {key}")
+        b = split.per_trial[c]
+        assert a["success"] == b["success"] and a["extracted"] == b["extracted"]
+        # a batch of another size can still stop MuJoCo's solver at another iteration (docs/panda.md, "The same
+        # numbers in any batch"): round-off, grown by contact (an insertion time is a multiple of the 10 ms period)
+        np.testing.assert_allclose(np.array(b["insertion_time"], float), np.array(a["insertion_time"], float),
+                                   atol=0.0101)
     assert base.summary["ik_fc"]["successes"] >= 1
 
 

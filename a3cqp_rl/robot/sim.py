@@ -195,11 +195,19 @@ class PandaSim:
             of all N, so that every arm computes with the same coordinates, hence the same round-off, either way.
         buffers: arrays [n, ...] to write the outputs of `observe()` into (ShardedPandaSim: views of its own);
             default new ones (see `_output_buffers`).
+        warmstart: start MuJoCo's constraint solver from the previous step's accelerations where that is cheaper
+            (MuJoCo's default). Off by default: MuJoCo makes that choice once for the whole model, by the summed
+            cost of every arm's constraints, so with it an arm's contact solve depended on which other arms shared
+            its model (another batch, `--workers`, `--threads`: other numbers in contact at round-off, which the
+            contact's chaos grew into other trial outcomes). Without it, and with the sparse constraint Jacobian
+            (below), every arm's solve starts from its own unconstrained accelerations and runs on its own
+            constraint island, and an arm computes the same numbers, bit for bit, in any batch that places it at
+            the same coordinates (tests/test_sim_batched.py).
     """
 
     def __init__(self, n: int = 1, tool: str = DEFAULT_TOOL, scene: str = "", q0: tuple[float, ...] = PANDA_HOME,
                  timestep: float | None = None, control_site: str = "tcp", origins: np.ndarray | None = None,
-                 buffers: dict[str, np.ndarray] | None = None) -> None:
+                 buffers: dict[str, np.ndarray] | None = None, warmstart: bool = False) -> None:
         text = compose_mjcf(tool, scene)
         m1 = mujoco.MjModel.from_xml_string(text)
         # positions of arm i are reported in its own copy's frame: composite world minus self._origin[i]
@@ -207,6 +215,11 @@ class PandaSim:
                                                     else _replicate(text, n, origins))
         if timestep is not None:
             self.model.opt.timestep = timestep
+        if not warmstart:
+            self.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
+        # MuJoCo's default picks the dense Jacobian below 60 dofs (fewer than 9 arms), and its dense solver does not
+        # keep the arms' constraint islands apart: the same arm then solved differently next to other arms in contact
+        self.model.opt.jacobian = int(mujoco.mjtJacobian.mjJAC_SPARSE)
         if not _can_collide(m1):  # e.g. no scene: skip the collision pass (~1/3 of mj_step1 at N = 64), same physics
             self.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
         self.n = n
@@ -525,7 +538,7 @@ class ShardedPandaSim:
         n: number of arms (>= parts).
         parts: number of MuJoCo models and threads (1 works too: one part, no thread).
         origins: where the arms sit [n, 3] (m); default the grid of all n (PandaSim's `origins`).
-        **kwargs: PandaSim's (tool, scene, q0, timestep, control_site).
+        **kwargs: PandaSim's (tool, scene, q0, timestep, control_site, warmstart).
     """
 
     def __init__(self, n: int, parts: int = 2, origins: np.ndarray | None = None, **kwargs) -> None:

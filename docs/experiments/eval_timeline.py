@@ -1,0 +1,78 @@
+"""Where the peg-in-hole evaluation's wall time goes: wall seconds per simulated second, with the parked arms.
+
+    python docs/experiments/eval_timeline.py [--trials 13] [--seed 0] [--hole-segments 32] [--controllers ...]
+
+Runs one batched simulation of every controller on the trials of `--seed` (what one of `a3cqp evaluate`'s two
+worker processes runs for `--trials 26`: 13 trials x 5 controllers = 65 arms), in this process, and prints per
+simulated second the wall time it took and how many arms were parked (their episode over), and from that timeline
+an upper bound on what dropping the parked arms from the batch (compacting it) could save. docs/panda.md, section "Where the evaluation's time goes" has
+the numbers.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))  # this checkout's a3cqp_rl/envs/algorithms
+
+import envs.panda as panda_env  # noqa: E402
+from a3cqp_rl.config import load_config  # noqa: E402
+from envs import panda_eval  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--trials", type=int, default=13)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--hole-segments", type=int, default=None, help="boxes around the bore (config: 32)")
+    ap.add_argument("--controllers", default=",".join(panda_eval.CONTROLLERS))
+    ap.add_argument("--config", default=str(ROOT / "configs" / "panda_peg_in_hole.yaml"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)  # as each of evaluate's worker processes
+    cfg = load_config(args.config)
+    if args.hole_segments is not None:
+        cfg.panda.peg_in_hole.hole_segments = args.hole_segments
+    rows: list[tuple[float, float, int, int]] = []  # simulated time [s], wall [s], parked arms, arms
+    step, last = panda_env.PandaEnv._step, {"wall": None, "steps": 0}
+
+    def timed_step(env, td):  # noqa: ANN001, ANN202
+        out = step(env, td)
+        last["steps"] += 1
+        if last["steps"] % round(1.0 / env.adapt.dt) == 0:  # one simulated second
+            now = time.perf_counter()
+            if last["wall"] is not None:
+                rows.append((float(env.t.max()), now - last["wall"], int(env.parked.sum()), env.num_envs))
+            last["wall"] = now
+        return out
+
+    panda_env.PandaEnv._step = timed_step
+    controllers = tuple(c for c in args.controllers.split(",") if c)
+    t0 = time.perf_counter()
+    panda_eval._run("peg_in_hole", cfg.panda.policy, panda_eval.trial_seeds(args.seed, args.trials), cfg,
+                    controllers, (), 1, False, False, True)
+    wall = time.perf_counter() - t0
+    print(f"{len(controllers)} controllers x {args.trials} trials, seed {args.seed}, hole segments "
+          f"{cfg.panda.peg_in_hole.hole_segments}: {wall:.1f} s wall (start-up included)")
+    print("simulated [s] | wall per simulated s [s] | parked arms")
+    for t, w, p, _ in rows:
+        print(f"{t:13.1f} | {w:24.3f} | {p:11d}")
+    r = np.array(rows)
+    # A parked arm (no collisions, holding still) costs at most what an arm in free motion costs: its MuJoCo
+    # dynamics, sensing and controller. The first simulated seconds, before any contact, give that cost per arm
+    # with the period's fixed overhead counted in (an upper bound).
+    free = r[r[:, 0] <= 3.0]
+    per_arm = float(np.median(free[:, 1] / free[:, 3]))
+    bound = float((r[:, 2] * per_arm).sum() / r[:, 1].sum())
+    print(f"free motion: {per_arm * 1e3:.1f} ms wall per arm and simulated second (fixed overhead included)")
+    print(f"parked arm-seconds {r[:, 2].sum():.0f} of {r[:, 3].sum():.0f}: at most {100 * bound:.1f} % of the "
+          "timed wall, the most that compacting the batch (dropping parked arms) could save")
+
+
+if __name__ == "__main__":
+    main()
