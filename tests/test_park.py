@@ -1,5 +1,5 @@
 """Parking finished arms (PandaSim.park, PandaEnv.park, `evaluate(park=True)`): their contacts stop, the arms still
-running compute the same numbers bit for bit, and an evaluation's results do not change (in worker processes: up to
+running move bit for bit as before, and an evaluation's results do not change (in worker processes: up to
 round-off)."""
 
 from __future__ import annotations
@@ -54,8 +54,11 @@ def test_an_evaluation_gives_the_same_results_parked_or_not_and_in_two_worker_pr
     for c in ("ik_fc", "ik"):
         a, b = base.per_trial[c], parked.per_trial[c]
         assert a.keys() == b.keys()
-        for key in a:  # parking changes no arm's numbers: every per-trial value, bit for bit
-            np.testing.assert_array_equal(np.array(b[key], float), np.array(a[key], float), err_msg=f"{c} {key}")
+        assert a["success"] == b["success"] and a["extracted"] == b["extracted"]
+        for key in a:  # parking changes no arm's motion: every per-trial value to float round-off (the metrics'
+            # running sums over arm subsets may add in another order), no contact chaos grown from it
+            np.testing.assert_allclose(np.array(b[key], float), np.array(a[key], float), rtol=1e-12, atol=1e-12,
+                                       err_msg=f"{c} {key}")
         b = split.per_trial[c]
         assert a["success"] == b["success"] and a["extracted"] == b["extracted"]
         # a batch of another size can still stop MuJoCo's solver at another iteration (docs/panda.md, "The same
