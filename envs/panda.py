@@ -133,7 +133,8 @@ class PandaEnv(EnvBase):
         threads = min(int(sim_threads), n)
         if threads < 1:
             raise ValueError(f"sim_threads must be >= 1, got {sim_threads}")
-        sim_args = dict(tool=tool, scene=self.scene.mjcf(), q0=PANDA_HOME, timestep=self.dt, control_site="tcp")
+        sim_args = dict(tool=tool, scene=self.scene.mjcf(), q0=PANDA_HOME, timestep=self.dt, control_site="tcp",
+                        warmstart=self.pcfg.solver_warmstart)
         if grid is not None:
             total, places = grid
             if len(places) != n or min(places) < 0 or max(places) >= total:

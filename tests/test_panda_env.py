@@ -84,6 +84,22 @@ def test_fd_axes_restricts_the_desired_force() -> None:
     assert env.f_d[0, 2] > 0 and (env.f_d[0, [0, 1, 3, 4, 5]] == 0).all()
 
 
+def test_the_solver_warm_start_is_off_unless_the_config_asks_for_it() -> None:
+    import mujoco
+
+    from a3cqp_rl.config import ConfigError
+
+    warm = int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
+    for value, off in ((None, True), (False, True), (True, False)):
+        extra = {} if value is None else {"panda": {"solver_warmstart": value}}
+        for threads in (1, 2):
+            env = PandaEnv(2, _cfg(extra), seed=0, sim_threads=threads)
+            assert all(bool(m.opt.disableflags & warm) == off for m in env.sim.models), (value, threads)
+            assert all(m.opt.jacobian == mujoco.mjtJacobian.mjJAC_SPARSE for m in env.sim.models)
+    with pytest.raises(ConfigError, match="solver_warmstart"):
+        _cfg({"panda": {"solver_warmstart": "maybe"}})
+
+
 def test_the_scenes_task_reward_is_added_to_eq_30_on_every_axis() -> None:
     rewards = []
     for cost in (0.0, 2.5):
