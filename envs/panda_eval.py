@@ -151,10 +151,11 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
     `policy_path` None: the config's panda.policy (for the learned controller). `fixed`: FixedControllerConfig
     objects run after `controllers` under their own names. `sim_threads`: PandaEnv's (MuJoCo models and threads).
     `workers` > 1: the trials are split into that many contiguous groups, each run (all controllers) as its own
-    batched simulation in its own process; the metrics are the same bit for bit (each arm sits where it sits in
-    the batch of all trials, and MuJoCo solves every arm's constraints on their own: PandaSim's `warmstart`).
-    `park`: an arm whose episode is over is parked (PandaEnv.park: no collisions, IK holding) while the others run
-    on; its metrics are final by then, and the others' are the same as unparked."""
+    batched simulation in its own process; the metrics are the same (each arm sits where it sits in the batch of
+    all trials, and MuJoCo solves every arm's constraints on their own, PandaSim's `warmstart`: seed 0's 130 trials
+    bit for bit; a smaller batch can still stop MuJoCo's solver at another iteration, a round-off that contact may
+    grow). `park`: an arm whose episode is over is parked (PandaEnv.park: no collisions, IK holding) while the
+    others run on; its metrics are final by then, and the others' are the same as unparked (to round-off)."""
     from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict
 
     cfg = config or ExperimentConfig()
@@ -801,9 +802,9 @@ def main(argv: list[str] | None = None) -> int:
                    "(default 1; the same numbers; slower on a loaded machine)")
     p.add_argument("--workers", type=int, default=2, help="processes the trials are split among, each simulating "
                    "its share of the trials for every controller (default 2; 1: one batched simulation; the same "
-                   "numbers)")
+                   "numbers but for rare round-off)")
     p.add_argument("--no-park", action="store_true", help="keep simulating finished arms' contacts until the last "
-                   "episode ends (by default they are parked: the same metrics, less time)")
+                   "episode ends (by default they are parked: the same metrics to round-off, less time)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     torch.set_num_threads(1)

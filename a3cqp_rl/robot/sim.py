@@ -201,9 +201,9 @@ class PandaSim:
             its model (another batch, `--workers`, `--threads`: other numbers in contact at round-off, which the
             contact's chaos grew into other trial outcomes). Without it, and with the sparse constraint Jacobian
             (below), every arm's solve starts from its own unconstrained accelerations and runs on its own
-            constraint island: a batch split into models (ShardedPandaSim, the evaluation's worker processes)
-            computes the same numbers bit for bit (tests/test_sim_batched.py). Batches of other sizes can still
-            differ at round-off, where MuJoCo's solver stops at another iteration (docs/panda.md).
+            constraint island: a batch split into models (ShardedPandaSim) computes the same numbers bit for bit
+            (tests/test_sim_batched.py). Batches of other sizes can still differ at round-off, where MuJoCo's
+            solver stops at another iteration (docs/panda.md).
     """
 
     def __init__(self, n: int = 1, tool: str = DEFAULT_TOOL, scene: str = "", q0: tuple[float, ...] = PANDA_HOME,
