@@ -80,7 +80,7 @@ GUIDED_OBS = tuple((e, 0.0, f) for e in (0.01, 0.05) for f in (0.1, 0.2, 0.3, 0.
 
 @dataclass
 class EvalResult:
-    """Per-controller metrics and the recorded episodes of trial 0."""
+    """Per-controller metrics and the recorded episodes of one trial (`evaluate`'s `record_trial`, default 0)."""
 
     scene: str
     summary: dict
@@ -88,7 +88,8 @@ class EvalResult:
     per_trial: dict
     """Controller -> metric name -> list over trials (and cycles)."""
     episodes: dict
-    """Controller -> recorded arrays of trial 0 (RECORD_KEYS plus the scene's signals), [T, ...]."""
+    """Controller -> recorded arrays of the recorded trial (RECORD_KEYS plus the scene's signals), [T, ...]; their
+    "trial" is its index."""
     seconds: float
     sim_seconds: float
     metrics: dict = field(default_factory=dict)
@@ -145,7 +146,7 @@ def trial_seeds(seed: int, trials: int) -> list[int]:
 def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int = 0, config=None,  # noqa: ANN001
              controllers: tuple[str, ...] = CONTROLLERS, cycles: int | None = None,
              progress: bool = True, fixed: Sequence = (), sim_threads: int = 1, workers: int = 1,
-             park: bool = True) -> EvalResult:
+             park: bool = True, record_trial: int = 0) -> EvalResult:
     """Run every controller on the same `trials` trials of `scene` (batched simulations); return the metrics.
 
     `policy_path` None: the config's panda.policy (for the learned controller). `fixed`: FixedControllerConfig
@@ -155,7 +156,8 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
     all trials, and MuJoCo solves every arm's constraints on their own, PandaSim's `warmstart`: seed 0's 130 trials
     bit for bit; a smaller batch can still stop MuJoCo's solver at another iteration, a round-off that contact may
     grow). `park`: an arm whose episode is over is parked (PandaEnv.park: no collisions, IK holding) while the
-    others run on; its metrics are final by then, and the others' are the same as unparked (to round-off)."""
+    others run on; its metrics are final by then, and the others' are the same as unparked (to round-off).
+    `record_trial`: the trial whose episodes (every controller's) are recorded (`EvalResult.episodes`)."""
     from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict
 
     cfg = config or ExperimentConfig()
@@ -183,11 +185,14 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
         raise ValueError("no controller to evaluate")
     if not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    if isinstance(record_trial, bool) or not isinstance(record_trial, int) or not 0 <= record_trial < trials:
+        raise ValueError(f"the recorded trial must be one of the trials, 0 .. {trials - 1}, got {record_trial!r}")
     seeds = trial_seeds(seed, trials)
     groups = [g.tolist() for g in np.array_split(np.arange(trials), min(workers, trials))]
+    rec = next(i for i, g in enumerate(groups) if record_trial in g)  # the worker that records it
     # each worker's arms sit where they sit in the batch of all trials: the same coordinates, the same round-off
     jobs = [(scene, policy_path, [seeds[k] for k in g], cfg, tuple(controllers), tuple(fixed), sim_threads,
-             progress, i == 0, park,
+             progress, groups[rec].index(record_trial) if i == rec else None, park,
              None if len(groups) == 1 else (len(names) * trials, [j * trials + k for j in range(len(names)) for k in g]))
             for i, g in enumerate(groups)]
     t_wall = time.perf_counter()
@@ -199,7 +204,8 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
     scene_name = parts[0]["scene"]
     metrics = {c: {k: np.concatenate([p["metrics"][c][k] for p in parts]) for k in parts[0]["metrics"][c]}
                for c in names}
-    return EvalResult.from_metrics(scene_name, metrics, parts[0]["episodes"], seconds,
+    episodes = {c: {**ep, "trial": np.array(record_trial)} for c, ep in parts[rec]["episodes"].items()}
+    return EvalResult.from_metrics(scene_name, metrics, episodes, seconds,
                                    float(sum(p["sim_seconds"] for p in parts)), (seed,))
 
 
@@ -410,10 +416,11 @@ def _run_job(job: tuple) -> dict:
 
 
 def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tuple[str, ...],  # noqa: ANN001
-         fixed: tuple, sim_threads: int, progress: bool, record: bool, park: bool,
+         fixed: tuple, sim_threads: int, progress: bool, record: int | None, park: bool,
          grid: tuple[int, list[int]] | None = None, worker: int = 0) -> dict:
     """One batched simulation of every controller on the trials of `trial_seeds`: the per-controller metrics
-    (arrays [trials, ...]), the recorded episodes of its first trial (`record`) and the simulated arm-seconds.
+    (arrays [trials, ...]), the recorded episodes of its trial `record` (an index into `trial_seeds`; None: none)
+    and the simulated arm-seconds.
     `park`: arms whose episode is over are parked (PandaEnv.park) until the last one ends. `grid`: PandaEnv's."""
     from envs.panda import PandaEnv
     from envs.panda_fixed import FixedArms
@@ -434,8 +441,9 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     contact_force = getattr(getattr(env.scene, "cfg", None), "contact_force", 1.0)
     n = env.num_envs
     latched, since = np.zeros(n, dtype=bool), np.zeros(n)
-    rec_arms = np.arange(len(controllers)) * trials  # trial 0 of each controller
-    episodes = {c: {k: [] for k in RECORD_KEYS + env.signal_keys + ("q",)} for c in controllers} if record else {}
+    rec_arms = np.arange(len(controllers)) * trials + (record or 0)  # that trial of each controller
+    episodes = ({c: {k: [] for k in RECORD_KEYS + env.signal_keys + ("q",)} for c in controllers}
+                if record is not None else {})
     td = env.reset()
     finished = np.zeros(n, dtype=bool)
     fallbacks = np.zeros(n, dtype=np.int64)  # each trial's QP fallback periods, taken when its episode ends
@@ -805,6 +813,8 @@ def main(argv: list[str] | None = None) -> int:
                    "numbers but for rare round-off)")
     p.add_argument("--no-park", action="store_true", help="keep simulating finished arms' contacts until the last "
                    "episode ends (by default they are parked: the same metrics to round-off, less time)")
+    p.add_argument("--record-trial", type=int, default=0, metavar="K",
+                   help="the trial whose episodes --out records for `a3cqp plot episode` (default 0)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -846,7 +856,8 @@ def main(argv: list[str] | None = None) -> int:
                 if warning:
                     print(warning, file=sys.stderr)
         kw = dict(config=cfg, controllers=controllers, cycles=args.cycles, progress=not args.quiet, fixed=fixed,
-                  sim_threads=args.threads, workers=args.workers, park=not args.no_park)
+                  sim_threads=args.threads, workers=args.workers, park=not args.no_park,
+                  record_trial=args.record_trial)
         if args.seeds is not None:
             res = evaluate_seeds(args.scene, policy, args.trials, args.seeds, **kw)
         else:

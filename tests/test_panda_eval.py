@@ -322,3 +322,21 @@ def test_worker_processes_report_to_one_progress_bar_over_every_arm(capfd) -> No
     # 3 arms in two processes (2 + 1): the parent's bar counts them all, and the simulated time comes back with them
     assert re.search(r"3/3 episodes over \[[0-9:]+, 3 s simulated\]", err), err[-300:]
     assert "/2 episodes" not in err and "/1 episodes" not in err
+
+
+def test_the_recorded_trial_can_be_any_trial_and_comes_from_the_worker_that_ran_it(tmp_path, capsys) -> None:  # noqa: ANN001
+    from envs.panda_eval import main
+
+    cfg = config_from_dict(FAST)
+    res = evaluate("peg_in_hole", None, trials=3, seed=0, config=cfg, controllers=("ik",), workers=2, progress=False,
+                   record_trial=2)  # trials 0-1 in the first worker, trial 2 in the second
+    ep = res.episodes["ik"]
+    assert int(ep["trial"]) == 2 and len(ep["time"]) > 10
+    # the recorded arm is trial 2's: its scene moments are that trial's metrics
+    np.testing.assert_array_equal(ep["contact_time"], np.array(res.per_trial["ik"]["contact_time"][2], float))
+    assert not np.array_equal(ep["contact_time"], np.array(res.per_trial["ik"]["contact_time"][0], float))
+    with pytest.raises(ValueError, match="recorded trial must be one of the trials, 0 .. 2"):
+        evaluate("peg_in_hole", None, trials=3, seed=0, config=cfg, controllers=("ik",), record_trial=3)
+    assert main(["--scene", "peg_in_hole", "--trials", "2", "--controllers", "ik", "--record-trial", "-1",
+                 "--quiet"]) == 2
+    assert "recorded trial must be one of the trials" in capsys.readouterr().err

@@ -81,7 +81,9 @@ def main(argv: list[str] | None = None) -> int:
             data = load_episode(npz)
             base = npz.parent / f"episode_{args.controller}" if src.is_dir() else npz.with_suffix("")
             out = Path(args.out) if args.out else base.with_suffix(ext)
-            plot_episode(data, out, axis=args.axis, title=f"{data.get('scene', '')}: {args.controller}, axis {args.axis}")
+            trial = f", trial {int(data['trial'])}" if "trial" in data else ""  # `evaluate --record-trial`
+            plot_episode(data, out, axis=args.axis,
+                         title=f"{data.get('scene', '')}: {args.controller}{trial}, axis {args.axis}")
             if args.strip:
                 try:
                     strip = render_strip(data, out.with_name(out.stem + "_strip.png"))

@@ -55,7 +55,7 @@ def main() -> None:
     controllers = tuple(c for c in args.controllers.split(",") if c)
     t0 = time.perf_counter()
     panda_eval._run("peg_in_hole", cfg.panda.policy, panda_eval.trial_seeds(args.seed, args.trials), cfg,
-                    controllers, (), 1, False, False, True)
+                    controllers, (), 1, False, None, True)
     wall = time.perf_counter() - t0
     print(f"{len(controllers)} controllers x {args.trials} trials, seed {args.seed}, hole segments "
           f"{cfg.panda.peg_in_hole.hole_segments}: {wall:.1f} s wall (start-up included)")
