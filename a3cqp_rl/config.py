@@ -967,8 +967,9 @@ class PandaEnvConfig:
     solver_warmstart: bool = False
     """MuJoCo's constraint-solver warm start (a3cqp_rl.robot.PandaSim's `warmstart`). Off (default): every arm's
     contact solve starts from its own unconstrained accelerations, so a trial computes the same numbers with any
-    `--threads` or parking and, but for rare round-off, `--workers`; on: MuJoCo's choice, made once for the whole model, which made an arm's
-    numbers in contact depend on the other arms in its batch (docs/panda.md, "The same numbers across workers and threads")."""
+    `--threads` or parking and, but for rare round-off, `--workers`. On: MuJoCo's choice, made once for the whole
+    model, which made an arm's numbers in contact depend on the other arms in its batch (docs/panda.md, "The same
+    numbers across workers and threads")."""
     operator: OperatorConfig = field(default_factory=OperatorConfig)
     sensors: SensorConfig = field(default_factory=SensorConfig)
     peg_in_hole: PegInHoleConfig = field(default_factory=PegInHoleConfig)

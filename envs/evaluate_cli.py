@@ -74,8 +74,8 @@ def _names(paths: Sequence[Path]) -> list[str]:
     return names
 
 
-PANDA_HINT = ("(A policy that does not raise IK there inserts no peg on the Panda, and one that resists does not let the "
-              "operator guide it. The Panda configs name a shipped policy that passes both, in policies/; `make "
+PANDA_HINT = ("(A policy that does not raise IK there inserts no peg on the Panda, and one that resists does not let "
+              "the operator guide it. The Panda configs name a shipped policy that passes both, in policies/; `make "
               "policy` retrains it.)")
 """Printed under the Panda lines when a policy fails either."""
 
@@ -135,15 +135,17 @@ def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed
     # does not raise w2 and lower f_d under the operator's force pushes back against the hand (docs/panda.md)
     free_motion = {n: float(free_motion_rates(pol)[0]) for n, pol in learned.items()}
     guided = {n: guided_rates(pol)[[1, 3]].tolist() for n, pol in learned.items()}
+    raises = {n: r > 0 for n, r in free_motion.items()}
+    yields = {n: a > 0 and d < 0 for n, (a, d) in guided.items()}
     if learned:
         print(f"\nPanda free motion (|e|/ē {FREE_MOTION_E[0]}-{FREE_MOTION_E[-1]}, no force; a policy must raise "
               "IK's weight there to follow the Panda's references, docs/panda.md): "
-              + ", ".join(f"{n} ẇ1 {r:+.2f} ({'raises IK' if r > 0 else 'does not raise IK'})"
+              + ", ".join(f"{n} ẇ1 {r:+.2f} ({'raises IK' if raises[n] else 'does not raise IK'})"
                           for n, r in free_motion.items()), file=out)
         print("Panda guidance (|f_ope|/f̄_ope 0.1-0.5; a policy must raise w2 and lower f_d there to let the operator "
-              "guide it): " + ", ".join(f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({'yields' if a > 0 and d < 0 else 'resists'})"
+              "guide it): " + ", ".join(f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({'yields' if yields[n] else 'resists'})"
                                         for n, (a, d) in guided.items()), file=out)
-        if any(r <= 0 for r in free_motion.values()) or any(not (a > 0 and d < 0) for a, d in guided.values()):
+        if not (all(raises.values()) and all(yields.values())):
             print(PANDA_HINT, file=out)
     if json_path:
         result.write_json(json_path, {"checks": checks, "literal_regions": regions, "free_motion_w1_rate": free_motion,

@@ -324,7 +324,7 @@ def test_worker_processes_report_to_one_progress_bar_over_every_arm(capfd) -> No
     assert "/2 episodes" not in err and "/1 episodes" not in err
 
 
-def test_the_recorded_trial_can_be_any_trial_and_comes_from_the_worker_that_ran_it(tmp_path, capsys) -> None:  # noqa: ANN001
+def test_the_recorded_trial_can_be_any_trial_and_comes_from_the_worker_that_ran_it(capsys) -> None:  # noqa: ANN001
     from envs.panda_eval import main
 
     cfg = config_from_dict(FAST)

@@ -62,7 +62,8 @@ def test_an_evaluation_gives_the_same_results_parked_or_not_and_in_two_worker_pr
         b = split.per_trial[c]
         assert a["success"] == b["success"] and a["extracted"] == b["extracted"]
         # a batch of another size can still stop MuJoCo's solver at another iteration (docs/panda.md, "The same
-        # numbers across workers and threads"): round-off, grown by contact (an insertion time is a multiple of the 10 ms period)
+        # numbers across workers and threads"): round-off, grown by contact (an insertion time is a multiple of
+        # the 10 ms period)
         np.testing.assert_allclose(np.array(b["insertion_time"], float), np.array(a["insertion_time"], float),
                                    atol=0.0101)
     assert base.summary["ik_fc"]["successes"] >= 1

@@ -5,8 +5,8 @@
 Runs one batched simulation of every controller on the trials of `--seed` (what one of `a3cqp evaluate`'s two
 worker processes runs for `--trials 26`: 13 trials x 5 controllers = 65 arms), in this process, and prints per
 simulated second the wall time it took and how many arms were parked (their episode over), and from that timeline
-an upper bound on what dropping the parked arms from the batch (compacting it) could save. docs/panda.md, section "Where the evaluation's time goes" has
-the numbers.
+an upper bound on what dropping the parked arms from the batch (compacting it) could save. docs/panda.md, section
+"The same numbers across workers and threads, and where the evaluation's time goes", has the numbers.
 """
 from __future__ import annotations
 
