@@ -9,6 +9,8 @@ controller + MuJoCo + sensing + operator/scene at 100 Hz). Reported per N (media
   contacts   mean MuJoCo contacts per arm in the timed window
   2 threads  RTF of the same env with its arms in 2 MuJoCo models stepped in 2 threads (ShardedPandaSim), N >= 8;
              `x 2 thr` = its RTF / RTF (the one-thread env is its peer)
+  no filter  RTF of the same env without the exact contact pre-filter (`panda.contact_prefilter: false`: every
+             tool-box pair MuJoCo's broad phase passes goes to its narrow phase), N >= 8; `x filter` = RTF / its RTF
   bare RTF   the same arms, the same number of control periods, run as the bare loop of bench/controller.py (PandaSim
              + A3CQPController, free motion, no env): `env cost` = bare RTF / RTF
 Target: RTF >= 10x at N = 32 on this machine (2 cores).  `--eval POLICY` also times `a3cqp evaluate --scene
@@ -21,6 +23,7 @@ worker processes (`--workers 2`), finished arms parked in both (target: under a 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import statistics
 import sys
 import time
@@ -28,6 +31,7 @@ import time
 import numpy as np
 import torch
 
+from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.control import A3CQPController
 from a3cqp_rl.robot import PandaSim
 from envs.panda import PandaEnv
@@ -45,9 +49,11 @@ def _scripted(env: PandaEnv) -> None:
     env.hold_weights(np.ones(n, dtype=bool), W, f_d)
 
 
-def run_env(n: int, steps: int, threads: int = 1) -> dict[str, float]:
+def run_env(n: int, steps: int, threads: int = 1, prefilter: bool = True) -> dict[str, float]:
     """Agent steps/s of PandaEnv(n) in the insertion phase and the mean number of contacts per arm."""
-    env = PandaEnv(n, seed=0, sim_threads=threads)
+    cfg = ExperimentConfig()
+    cfg = dataclasses.replace(cfg, panda=dataclasses.replace(cfg.panda, contact_prefilter=prefilter))
+    env = PandaEnv(n, cfg, seed=0, sim_threads=threads)
     td = env.reset()
     action = torch.zeros(n, 6, 4)
     guard = 0
@@ -101,20 +107,28 @@ def main(argv: list[str] | None = None) -> int:
     repeats = 1 if args.quick else args.repeats
     print(f"PandaEnv benchmark (peg-in-hole, contacts on): {steps} timed agent steps (x10 control periods), "
           f"median of {repeats}")
-    print(f"{'N':>4} {'steps/s':>9} {'RTF':>8} {'contacts/arm':>13} {'2 threads':>10} {'x 2 thr':>8} {'bare RTF':>9} "
-          f"{'env cost':>9} {'target':>18}")
+    print(f"{'N':>4} {'steps/s':>9} {'RTF':>8} {'contacts/arm':>13} {'2 threads':>10} {'x 2 thr':>8} "
+          f"{'no filter':>10} {'x filter':>9} {'bare RTF':>9} {'env cost':>9} {'target':>18}")
     for n in args.sizes:
-        one, two = [], []
-        for _ in range(repeats):  # interleaved, so that both see the same load
+        one, two, unfiltered = [], [], []
+        for _ in range(repeats):  # interleaved, so that all see the same load
             one.append(run_env(n, steps, threads=1))
             if n >= 8:
                 two.append(run_env(n, steps, threads=2)["rtf"])
+                unfiltered.append(run_env(n, steps, prefilter=False)["rtf"])
         r = sorted(one, key=lambda x: x["rtf"])[len(one) // 2]
-        rtf2 = f"{statistics.median(two):>9.2f}x {statistics.median(two) / r['rtf']:>7.2f}x" if two else f"{'-':>10} {'-':>8}"
+
+        def peer(rtfs: list[float], width: int) -> str:  # the peer's RTF and ours over it
+            if not rtfs:
+                return f"{'-':>{width}} {'-':>{width - 1}}"
+            return f"{statistics.median(rtfs):>{width - 1}.2f}x {r['rtf'] / statistics.median(rtfs):>{width - 2}.2f}x"
+
+        rtf2 = (f"{statistics.median(two):>9.2f}x {statistics.median(two) / r['rtf']:>7.2f}x" if two
+                else f"{'-':>10} {'-':>8}")
         bare = statistics.median(run_bare(n, steps * 10) for _ in range(repeats))
         target = f">=10x RT: {'met' if r['rtf'] >= 10 else 'NOT met'}" if n == 32 else "-"
-        print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {rtf2} {bare:>8.2f}x "
-              f"{bare / r['rtf']:>8.2f}x {target:>18}")
+        print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {rtf2} {peer(unfiltered, 10)} "
+              f"{bare:>8.2f}x {bare / r['rtf']:>8.2f}x {target:>18}")
     if args.eval:
         from envs.panda_eval import CONTROLLERS, evaluate
 

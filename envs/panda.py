@@ -134,7 +134,7 @@ class PandaEnv(EnvBase):
         if threads < 1:
             raise ValueError(f"sim_threads must be >= 1, got {sim_threads}")
         sim_args = dict(tool=tool, scene=self.scene.mjcf(), q0=PANDA_HOME, timestep=self.dt, control_site="tcp",
-                        warmstart=self.pcfg.solver_warmstart)
+                        warmstart=self.pcfg.solver_warmstart, contact_prefilter=self.pcfg.contact_prefilter)
         if grid is not None:
             total, places = grid
             if len(places) != n or min(places) < 0 or max(places) >= total:

@@ -100,6 +100,20 @@ def test_the_solver_warm_start_is_off_unless_the_config_asks_for_it() -> None:
         _cfg({"panda": {"solver_warmstart": "maybe"}})
 
 
+def test_the_contact_prefilter_is_on_unless_the_config_switches_it_off() -> None:
+    from a3cqp_rl.config import ConfigError
+    from a3cqp_rl.robot import contact_filter
+
+    built = contact_filter._library.get() is not None
+    for value, on in ((None, built), (True, built), (False, False)):
+        extra = {} if value is None else {"panda": {"contact_prefilter": value}}
+        for threads in (1, 2):
+            env = PandaEnv(2, _cfg(extra), seed=0, sim_threads=threads)
+            assert env.sim.contact_prefilter == on, (value, threads)
+    with pytest.raises(ConfigError, match="contact_prefilter"):
+        _cfg({"panda": {"contact_prefilter": "yes please"}})
+
+
 def test_the_scenes_task_reward_is_added_to_eq_30_on_every_axis() -> None:
     rewards = []
     for cost in (0.0, 2.5):

@@ -5,11 +5,13 @@ from __future__ import annotations
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Callable
 
 import mujoco
 import numpy as np
 import torch
 
+from a3cqp_rl.robot import contact_filter
 from a3cqp_rl.robot.kinematics import Kinematics
 from a3cqp_rl.robot.mjcf import DEFAULT_TOOL, compose_mjcf
 from a3cqp_rl.robot.specs import PANDA_HOME
@@ -204,11 +206,15 @@ class PandaSim:
             constraint island: a batch split into models (ShardedPandaSim) computes the same numbers bit for bit
             (tests/test_sim_batched.py). Batches of other sizes can still differ at round-off, where MuJoCo's
             solver stops at another iteration (docs/panda.md).
+        contact_prefilter: drop, before MuJoCo's narrow phase, the pairs of the tool's collision mesh and the scene's
+            static boxes that a plane keeps apart (a3cqp_rl.robot.contact_filter: exact, the same contacts and
+            numbers bit for bit; the peg's 32 bore boxes are most of the collision time in contact). Default on.
     """
 
     def __init__(self, n: int = 1, tool: str = DEFAULT_TOOL, scene: str = "", q0: tuple[float, ...] = PANDA_HOME,
                  timestep: float | None = None, control_site: str = "tcp", origins: np.ndarray | None = None,
-                 buffers: dict[str, np.ndarray] | None = None, warmstart: bool = False) -> None:
+                 buffers: dict[str, np.ndarray] | None = None, warmstart: bool = False,
+                 contact_prefilter: bool = True) -> None:
         text = compose_mjcf(tool, scene)
         m1 = mujoco.MjModel.from_xml_string(text)
         # positions of arm i are reported in its own copy's frame: composite world minus self._origin[i]
@@ -226,6 +232,7 @@ class PandaSim:
         self.n = n
         self.data = mujoco.MjData(self.model)
         m = self.model
+        self._contact_counts = self._attach_contact_filter() if contact_prefilter else None
         # --- which element of the composite belongs to which arm (copies are contiguous in body order)
         nb1 = m1.nbody - 1
         body_arm = np.concatenate([[-1], np.arange(m.nbody - 1) // nb1])
@@ -364,6 +371,34 @@ class PandaSim:
             d.sensordata[keep_s], d.cacc[self._ft_body[others]] = saved
         self._tau_ext[arms] = 0.0
         self._ft[arms] = d.sensordata[self._ft_adr[arms]]
+
+    def _attach_contact_filter(self) -> Callable[[], tuple[int, int]] | None:
+        """Register this model with the exact tool-box contact pre-filter (a3cqp_rl.robot.contact_filter): the
+        tool's collision meshes against the scene's static boxes. Returns its counts() or None (nothing filtered)."""
+        m = self.model
+        if m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONTACT):
+            return None
+        collides = (m.geom_contype != 0) | (m.geom_conaffinity != 0)
+        tool_bodies = [m.body(p + "tool").id for p in self._prefixes if mujoco.mj_name2id(
+            m, mujoco.mjtObj.mjOBJ_BODY, p + "tool") >= 0]
+        tools = np.flatnonzero(collides & np.isin(m.geom_bodyid, tool_bodies)
+                               & (m.geom_type == int(mujoco.mjtGeom.mjGEOM_MESH)))
+        boxes = np.flatnonzero(collides & (m.body_weldid[m.geom_bodyid] == 0)
+                               & (m.geom_type == int(mujoco.mjtGeom.mjGEOM_BOX)))
+        counts = contact_filter.attach(m, self.data, tools, boxes)
+        if counts is not None:
+            weakref.finalize(self, counts.detach)
+        return counts
+
+    def contact_filter_counts(self) -> tuple[int, int]:
+        """(tool-box pairs MuJoCo's broad phase passed, pairs the exact pre-filter dropped) so far; (0, 0) without
+        it (`contact_prefilter=False`, no tool mesh or box, or the library not built)."""
+        return (0, 0) if self._contact_counts is None else self._contact_counts()
+
+    @property
+    def contact_prefilter(self) -> bool:
+        """Whether this model runs the exact contact pre-filter (asked for, a tool mesh and a box, library built)."""
+        return self._contact_counts is not None
 
     def park(self, idx: list[int] | np.ndarray) -> None:
         """Switch off the collisions of arms `idx` (their geoms' contype and conaffinity, until their next reset).
@@ -539,7 +574,7 @@ class ShardedPandaSim:
         n: number of arms (>= parts).
         parts: number of MuJoCo models and threads (1 works too: one part, no thread).
         origins: where the arms sit [n, 3] (m); default the grid of all n (PandaSim's `origins`).
-        **kwargs: PandaSim's (tool, scene, q0, timestep, control_site, warmstart).
+        **kwargs: PandaSim's (tool, scene, q0, timestep, control_site, warmstart, contact_prefilter).
     """
 
     def __init__(self, n: int, parts: int = 2, origins: np.ndarray | None = None, **kwargs) -> None:
@@ -616,6 +651,16 @@ class ShardedPandaSim:
             mine = (arms >= a) & (arms < b)
             if mine.any():
                 p.reset(q[mine], qd[mine], idx=(arms[mine] - a).tolist())
+
+    def contact_filter_counts(self) -> tuple[int, int]:
+        """PandaSim.contact_filter_counts summed over the parts."""
+        counts = [p.contact_filter_counts() for p in self.parts]
+        return sum(c[0] for c in counts), sum(c[1] for c in counts)
+
+    @property
+    def contact_prefilter(self) -> bool:
+        """Whether every part runs the exact contact pre-filter."""
+        return all(p.contact_prefilter for p in self.parts)
 
     def park(self, idx: list[int] | np.ndarray) -> None:
         """PandaSim.park: switch off the collisions of arms `idx` until their next reset."""

@@ -1,0 +1,146 @@
+"""The exact tool-box contact pre-filter (a3cqp_rl.robot.contact_filter): it drops pairs, yet every contact and
+every state stay bit for bit; MuJoCo's contype/conaffinity test still holds for every model; another contact filter
+is left alone."""
+
+from __future__ import annotations
+
+import logging
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+from a3cqp_rl.robot import PandaSim, contact_filter
+from a3cqp_rl.robot.scenes import HoleGeometry, hole_block_xml
+from tests.test_panda_scene import _prism
+from tests.test_sim_batched import table_scene
+
+GEOM = HoleGeometry(center=(0.0, 0.0), top=0.1)
+
+pytestmark = pytest.mark.skipif(contact_filter._library.get() is None, reason="contact_filter.c not built")
+
+
+def _peg_in_bore(x0: float) -> mujoco.MjModel:
+    """A peg on x, y, z slides above the bore of GEOM, `x0` off its axis, tilted 2 degrees about y."""
+    slides = "".join(f'<joint name="{a}" type="slide" axis="{ax}"/>'
+                     for a, ax in (("x", "1 0 0"), ("y", "0 1 0"), ("z", "0 0 1")))
+    xml = f"""<mujoco><option timestep="0.001" integrator="implicitfast" impratio="10"/>
+      <asset><mesh name="p" vertex="{_prism()}"/></asset>
+      <worldbody>{hole_block_xml(GEOM)}
+        <body name="peg" pos="{x0} 0 {GEOM.top + 0.052}" euler="0 2 0">{slides}
+          <geom name="peg" type="mesh" mesh="p" mass="1" contype="2" conaffinity="1"/>
+        </body></worldbody></mujoco>"""
+    return mujoco.MjModel.from_xml_string(xml)
+
+
+def _run(m: mujoco.MjModel, filtered: bool, steps: int = 1500) -> tuple[np.ndarray, list, tuple[int, int]]:
+    """Push the peg down and toward the axis; (qpos per step, every step's contacts, the filter's counts)."""
+    d = mujoco.MjData(m)
+    counts = None
+    if filtered:
+        boxes = np.flatnonzero(m.geom_type == int(mujoco.mjtGeom.mjGEOM_BOX))
+        counts = contact_filter.attach(m, d, [m.geom("peg").id], boxes)
+        assert counts is not None
+    qpos, contacts = [], []
+    try:
+        for _ in range(steps):
+            d.xfrc_applied[m.body("peg").id, :3] = (-3.0, 0.0, -10.0)
+            mujoco.mj_step(m, d)
+            qpos.append(d.qpos.copy())
+            contacts.append([(c.geom[0], c.geom[1], c.dist, *c.pos, *c.frame) for c in d.contact])
+        return np.array(qpos), contacts, (counts() if counts else (0, 0))
+    finally:
+        if counts:
+            counts.detach()
+
+
+def test_the_prefilter_drops_pairs_yet_every_contact_and_state_stay_bit_for_bit() -> None:
+    m = _peg_in_bore(0.002)  # on the rim, pushed over it and down the bore
+    q0, c0, _ = _run(m, filtered=False)
+    q1, c1, (seen, dropped) = _run(m, filtered=True)
+    assert q0[-1, 2] < -0.02  # the peg went down the bore: contacts on the rim, then on the bore's walls
+    assert sum(map(len, c0)) > 1000
+    assert np.array_equal(q0, q1) and c0 == c1
+    assert seen > 0 and dropped > 0.3 * seen
+
+
+def test_callback_keeps_mujocos_contype_conaffinity_test_for_any_model() -> None:
+    m = _peg_in_bore(0.002)
+    contact_filter.attach(m, mujoco.MjData(m), [m.geom("peg").id], [m.geom("hole_block_seg0").id])  # installs
+    assert mujoco.get_mjcb_contactfilter() is not None
+    xml = """<mujoco><worldbody>
+      <geom name="a" type="box" size="0.1 0.1 0.1" contype="1" conaffinity="1"/>
+      <body pos="-0.12 0 0.15"><freejoint/><geom name="b" type="sphere" size="0.1" contype="2" conaffinity="2"/></body>
+      <body pos="0.12 0 0.15"><freejoint/><geom name="c" type="sphere" size="0.1" contype="2" conaffinity="1"/></body>
+    </worldbody></mujoco>"""
+    other = mujoco.MjModel.from_xml_string(xml)  # never registered
+
+    def pairs() -> set:
+        d = mujoco.MjData(other)
+        mujoco.mj_forward(other, d)
+        return {tuple(sorted((other.geom(c.geom[0]).name, other.geom(c.geom[1]).name))) for c in d.contact}
+
+    ours = mujoco.get_mjcb_contactfilter()
+    with_ours = pairs()
+    mujoco.set_mjcb_contactfilter(None)
+    try:
+        without = pairs()
+    finally:
+        mujoco.set_mjcb_contactfilter(ours)
+    assert with_ours == without == {("a", "c")}  # b overlaps a, but 2 & 1 = 0 both ways
+
+
+def test_another_contact_filter_is_left_alone(monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+                                              ) -> None:
+    before = mujoco.get_mjcb_contactfilter()
+    monkeypatch.setattr(contact_filter, "_state", {})  # as in a process where ours was never installed
+
+    def theirs(m, d, g1, g2):  # noqa: ANN001, ANN202
+        return 0
+
+    mujoco.set_mjcb_contactfilter(theirs)
+    try:
+        m = _peg_in_bore(0.0)
+        peg, box = [m.geom("peg").id], [m.geom("hole_block_seg0").id]
+        with caplog.at_level(logging.WARNING, logger="a3cqp_rl.robot.contact_filter"):
+            assert contact_filter.attach(m, mujoco.MjData(m), peg, box) is None
+        assert mujoco.get_mjcb_contactfilter() is theirs
+        assert "already set" in caplog.text
+    finally:
+        mujoco.set_mjcb_contactfilter(before)
+
+
+def test_the_bounding_cylinder_holds_every_vertex_of_the_peg_and_the_disc() -> None:
+    sim = PandaSim(1, tool="peg_mesh")
+    m = sim.model
+    g = m.geom("peg").id
+    axis, h, rho = contact_filter.bounding_cylinder(m, g)
+    assert axis == 2 and h == pytest.approx(0.05, rel=1e-6) and rho == pytest.approx(0.01, rel=1e-6)
+    disc = PandaSim(1, tool="disc_mesh").model
+    mesh_geoms = np.flatnonzero(disc.geom_type == int(mujoco.mjtGeom.mjGEOM_MESH))
+    assert len(mesh_geoms)
+    for g in mesh_geoms:
+        axis, h, rho = contact_filter.bounding_cylinder(disc, g)
+        mesh = disc.geom_dataid[g]
+        v = disc.mesh_vert[disc.mesh_vertadr[mesh]:disc.mesh_vertadr[mesh] + disc.mesh_vertnum[mesh]]
+        assert h < rho  # a disc: the short axis
+        assert (np.abs(v[:, axis]) <= h).all() and (np.linalg.norm(np.delete(v, axis, 1), axis=1) <= rho).all()
+
+
+def test_panda_sim_registers_its_tool_mesh_and_computes_the_same_numbers() -> None:
+    """Two arms with the peg's collision mesh pressed on a table: with the pre-filter or without, every output
+    of 300 steps bit for bit; the filter saw the tool-table pairs."""
+    out, press = {}, torch.tensor([0.0, 0.0, -25.0, 0.0, 0.0, 0.0], dtype=torch.float64)[:, None]
+    for on in (True, False):
+        sim = PandaSim(2, tool="peg_mesh", scene=table_scene(), contact_prefilter=on)
+        rows = []
+        for _ in range(300):
+            s = sim.observe()
+            sim.step(s.bias + (s.kin.jac.transpose(1, 2) @ press)[..., 0])
+            rows.append(np.concatenate([s.q.numpy().ravel(), s.f_env.numpy().ravel()]))
+        out[on] = (np.array(rows), sim.contact_filter_counts(), sim.ncon)
+    assert np.array_equal(out[True][0], out[False][0])
+    assert out[True][2] > 0  # in contact at the end
+    assert out[True][1][0] > 0 and out[False][1] == (0, 0)
+
