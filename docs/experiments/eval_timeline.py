@@ -1,16 +1,21 @@
 """Where the peg-in-hole evaluation's wall time goes: wall seconds per simulated second, with the parked arms.
 
     python docs/experiments/eval_timeline.py [--trials 13] [--seed 0] [--hole-segments 32] [--controllers ...]
+                                             [--breakdown]
 
 Runs one batched simulation of every controller on the trials of `--seed` (what one of `a3cqp evaluate`'s two
 worker processes runs for `--trials 26`: 13 trials x 5 controllers = 65 arms), in this process, and prints per
 simulated second the wall time it took and how many arms were parked (their episode over), and from that timeline
-an upper bound on what dropping the parked arms from the batch (compacting it) could save. docs/panda.md, section
-"The same numbers across workers and threads, and where the evaluation's time goes", has the numbers.
+an upper bound on what dropping the parked arms from the batch (compacting it) could save. `--breakdown` also
+times MuJoCo's two halves of a step and the C controller and QP (wrapped calls: ~1 % slower), the floor that no
+change of the Python glue can go below. docs/panda.md, sections "The same numbers across workers and threads, and
+where the evaluation's time goes" and "An exact contact pre-filter, the evaluation's floor, ...", have the numbers.
 """
 from __future__ import annotations
 
 import argparse
+import collections
+import functools
 import sys
 import time
 from pathlib import Path
@@ -33,7 +38,9 @@ def main() -> None:
     ap.add_argument("--hole-segments", type=int, default=None, help="boxes around the bore (config: 32)")
     ap.add_argument("--controllers", default=",".join(panda_eval.CONTROLLERS))
     ap.add_argument("--config", default=str(ROOT / "configs" / "panda_peg_in_hole.yaml"))
+    ap.add_argument("--breakdown", action="store_true", help="also time MuJoCo and the C controller and QP")
     args = ap.parse_args()
+    spent = _time_native_calls() if args.breakdown else None
     torch.set_num_threads(1)  # as each of evaluate's worker processes
     cfg = load_config(args.config)
     if args.hole_segments is not None:
@@ -72,6 +79,43 @@ def main() -> None:
     print(f"free motion: {per_arm * 1e3:.1f} ms wall per arm and simulated second (fixed overhead included)")
     print(f"parked arm-seconds {r[:, 2].sum():.0f} of {r[:, 3].sum():.0f}: at most {100 * bound:.1f} % of the "
           "timed wall, the most that compacting the batch (dropping parked arms) could save")
+    if spent is not None:
+        for name, seconds in spent.items():
+            print(f"{name:36s} {seconds:6.1f} s  {100 * seconds / wall:4.1f} %")
+        floor = sum(spent.values())
+        print(f"{'together':36s} {floor:6.1f} s  {100 * floor / wall:4.1f} %  (the rest, {wall - floor:.1f} s: the "
+              "numpy/torch glue, the policy, the scene and start-up)")
+
+
+def _time_native_calls() -> dict[str, float]:
+    """Wrap MuJoCo's mj_step1 / mj_step2 and the C controller's assembly, QP and torque law with wall-clock
+    counters; returns the dict they add their seconds to."""
+    import mujoco
+
+    from a3cqp_rl.control.native import NativeStep
+    from a3cqp_rl.qp import solver
+
+    spent: dict[str, float] = collections.defaultdict(float)
+
+    def wrap(owner, attr: str, label: str) -> None:  # noqa: ANN001
+        f = getattr(owner, attr)
+
+        @functools.wraps(f)
+        def timed(*a, **k):  # noqa: ANN002, ANN003, ANN202
+            t = time.perf_counter()
+            try:
+                return f(*a, **k)
+            finally:
+                spent[label] += time.perf_counter() - t
+
+        setattr(owner, attr, timed)
+
+    wrap(mujoco, "mj_step1", "MuJoCo mj_step1 (collision in it)")
+    wrap(mujoco, "mj_step2", "MuJoCo mj_step2 (constraint solver)")
+    wrap(NativeStep, "assemble", "C controller: QP assembly")
+    wrap(solver, "_fast_c", "C QP solver")
+    wrap(NativeStep, "torque", "C controller: torque law")
+    return spent
 
 
 if __name__ == "__main__":
