@@ -973,7 +973,7 @@ class PandaEnvConfig:
     contact_prefilter: bool = True
     """Drop, before MuJoCo's narrow phase, the tool-box collision pairs that a plane keeps apart (PandaSim's
     `contact_prefilter`, a3cqp_rl.robot.contact_filter): exact, the same contacts and numbers bit for bit, and the
-    peg-in-hole evaluation ~8 % faster (docs/panda.md, "An exact contact pre-filter"). Off: MuJoCo's own pairs."""
+    peg-in-hole evaluation ~10 % faster (docs/panda.md, "An exact contact pre-filter"). Off: MuJoCo's own pairs."""
     operator: OperatorConfig = field(default_factory=OperatorConfig)
     sensors: SensorConfig = field(default_factory=SensorConfig)
     peg_in_hole: PegInHoleConfig = field(default_factory=PegInHoleConfig)
