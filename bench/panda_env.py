@@ -117,17 +117,13 @@ def main(argv: list[str] | None = None) -> int:
                 two.append(run_env(n, steps, threads=2)["rtf"])
                 unfiltered.append(run_env(n, steps, prefilter=False)["rtf"])
         r = sorted(one, key=lambda x: x["rtf"])[len(one) // 2]
-
-        def peer(rtfs: list[float], width: int) -> str:  # the peer's RTF and ours over it
-            if not rtfs:
-                return f"{'-':>{width}} {'-':>{width - 1}}"
-            return f"{statistics.median(rtfs):>{width - 1}.2f}x {r['rtf'] / statistics.median(rtfs):>{width - 2}.2f}x"
-
         rtf2 = (f"{statistics.median(two):>9.2f}x {statistics.median(two) / r['rtf']:>7.2f}x" if two
                 else f"{'-':>10} {'-':>8}")
+        plain = statistics.median(unfiltered) if unfiltered else None  # the peer: MuJoCo's own pairs
+        nofilter = f"{plain:>9.2f}x {r['rtf'] / plain:>8.2f}x" if plain else f"{'-':>10} {'-':>9}"
         bare = statistics.median(run_bare(n, steps * 10) for _ in range(repeats))
         target = f">=10x RT: {'met' if r['rtf'] >= 10 else 'NOT met'}" if n == 32 else "-"
-        print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {rtf2} {peer(unfiltered, 10)} "
+        print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {rtf2} {nofilter} "
               f"{bare:>8.2f}x {bare / r['rtf']:>8.2f}x {target:>18}")
     if args.eval:
         from envs.panda_eval import CONTROLLERS, evaluate
