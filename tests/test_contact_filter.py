@@ -144,3 +144,22 @@ def test_panda_sim_registers_its_tool_mesh_and_computes_the_same_numbers() -> No
     assert out[True][2] > 0  # in contact at the end
     assert out[True][1][0] > 0 and out[False][1] == (0, 0)
 
+
+
+def test_two_models_stepped_in_two_threads_each_filtered_compute_what_one_unfiltered_model_computes() -> None:
+    """ShardedPandaSim's parts run mj_step1 at the same time, each registered with the filter: the same numbers as
+    one PandaSim without it, bit for bit, and both parts' pairs went through the filter."""
+    from a3cqp_rl.robot.sim import ShardedPandaSim
+
+    n, press = 4, torch.tensor([0.0, 0.0, -25.0, 0.0, 0.0, 0.0], dtype=torch.float64)[:, None]
+    one = PandaSim(n, tool="peg_mesh", scene=table_scene(), contact_prefilter=False)
+    two = ShardedPandaSim(n, parts=2, tool="peg_mesh", scene=table_scene())
+    assert two.contact_prefilter and not one.contact_prefilter
+    for _ in range(300):
+        a, b = one.observe(), two.observe()
+        assert torch.equal(a.q, b.q) and torch.equal(a.f_env, b.f_env)
+        tau = a.bias + (a.kin.jac.transpose(1, 2) @ press)[..., 0]
+        one.step(tau)
+        two.step(tau)
+    assert one.ncon > 0
+    assert all(p.contact_filter_counts()[0] > 0 for p in two.parts)
