@@ -55,14 +55,17 @@ def _run(m: mujoco.MjModel, filtered: bool, steps: int = 1500) -> tuple[np.ndarr
             counts.detach()
 
 
-def test_the_prefilter_drops_pairs_yet_every_contact_and_state_stay_bit_for_bit() -> None:
+@pytest.mark.parametrize("margin", [0.0, 0.001])
+def test_the_prefilter_drops_pairs_yet_every_contact_and_state_stay_bit_for_bit(margin: float) -> None:
+    """`margin` on every geom: MuJoCo adds the pair's two (contacts up to 2 mm apart), and so must the filter."""
     m = _peg_in_bore(0.002)  # on the rim, pushed over it and down the bore
+    m.geom_margin[:] = margin
     q0, c0, _ = _run(m, filtered=False)
     q1, c1, (seen, dropped) = _run(m, filtered=True)
     assert q0[-1, 2] < -0.02  # the peg went down the bore: contacts on the rim, then on the bore's walls
-    assert sum(map(len, c0)) > 1000
+    assert sum(map(len, c0)) > 500
     assert np.array_equal(q0, q1) and c0 == c1
-    assert seen > 0 and dropped > 0.3 * seen
+    assert seen > 0 and dropped > (0.3 if margin == 0 else 0.1) * seen
 
 
 def test_callback_keeps_mujocos_contype_conaffinity_test_for_any_model() -> None:

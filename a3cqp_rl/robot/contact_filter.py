@@ -10,7 +10,9 @@ stays as it was (tests/test_contact_filter.py: bit for bit).
 MuJoCo has one contact filter per process, which replaces its contype/conaffinity test for every model; the C
 callback applies that test first, so unregistered models collide as without it. `attach` installs the callback on
 first use unless another one is set (then it warns once and filters nothing). `A3CQP_NATIVE_CONTACT=0` switches it
-off; a library not built at install time logs one warning and nothing is filtered.
+off; a library not built at install time logs one warning and nothing is filtered. A model with MuJoCo's contact
+override on at registration is not registered (its o_margin would replace the margins the test reads); switching the
+override on later is not followed.
 """
 
 from __future__ import annotations
@@ -127,6 +129,10 @@ def attach(m: mujoco.MjModel, d: mujoco.MjData, tools: np.ndarray, boxes: np.nda
         raise ValueError("contact pre-filter: the tool geoms must be meshes")
     if not (m.geom_type[boxes] == mujoco.mjtGeom.mjGEOM_BOX).all():
         raise ValueError("contact pre-filter: the box geoms must be boxes")
+    if m.opt.enableflags & int(mujoco.mjtEnableBit.mjENBL_OVERRIDE):
+        _log.warning("contact pre-filter off for a model with MuJoCo's contact override (its o_margin replaces the "
+                     "geoms' margins, which the filter reads)")
+        return None
     with _lock:
         try:
             if not _install(lib, m):

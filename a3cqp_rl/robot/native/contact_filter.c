@@ -113,8 +113,8 @@ int cf_filter(const void* m, void* d, int g1, int g2) {
     const double* R = e->xmat + 9 * tool;
     int k = (int)e->cylinder[3 * tool];
     double a[3] = {R[k], R[3 + k], R[6 + k]};
-    double margin = e->margin[tool] > e->margin[box] ? e->margin[tool] : e->margin[box];
-    double gap = margin + e->gap[tool] + e->gap[box] + e->slack;
+    /* MuJoCo's margin and gap of a geom pair are the sums of the geoms' (engine_collision_driver.c, getMargin) */
+    double gap = e->margin[tool] + e->margin[box] + e->gap[tool] + e->gap[box] + e->slack;
     int drop = separated(e->xpos + 3 * tool, a, e->cylinder[3 * tool + 1], e->cylinder[3 * tool + 2],
                          e->xpos + 3 * box, e->xmat + 9 * box, e->size + 3 * box, gap);
     e->tested++;  /* (a registration's data is stepped by one thread at a time) */
