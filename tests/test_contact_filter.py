@@ -37,11 +37,11 @@ def _peg_in_bore(x0: float) -> mujoco.MjModel:
 def _run(m: mujoco.MjModel, filtered: bool, steps: int = 1500) -> tuple[np.ndarray, list, tuple[int, int]]:
     """Push the peg down and toward the axis; (qpos per step, every step's contacts, the filter's counts)."""
     d = mujoco.MjData(m)
-    counts = None
+    reg = None
     if filtered:
         boxes = np.flatnonzero(m.geom_type == int(mujoco.mjtGeom.mjGEOM_BOX))
-        counts = contact_filter.attach(m, d, [m.geom("peg").id], boxes)
-        assert counts is not None
+        reg = contact_filter.attach(m, d, [m.geom("peg").id], boxes)
+        assert reg is not None
     qpos, contacts = [], []
     try:
         for _ in range(steps):
@@ -49,10 +49,10 @@ def _run(m: mujoco.MjModel, filtered: bool, steps: int = 1500) -> tuple[np.ndarr
             mujoco.mj_step(m, d)
             qpos.append(d.qpos.copy())
             contacts.append([(c.geom[0], c.geom[1], c.dist, *c.pos, *c.frame) for c in d.contact])
-        return np.array(qpos), contacts, (counts() if counts else (0, 0))
+        return np.array(qpos), contacts, (reg.counts() if reg else (0, 0))
     finally:
-        if counts:
-            counts.detach()
+        if reg:
+            reg.detach()
 
 
 @pytest.mark.parametrize("margin", [0.0, 0.001])

@@ -21,14 +21,13 @@ import ctypes
 import logging
 import threading
 from pathlib import Path
-from typing import Callable
 
 import mujoco
 import numpy as np
 
 from a3cqp_rl.native_build import LazyLibrary
 
-__all__ = ["attach", "SLACK", "bounding_cylinder"]
+__all__ = ["attach", "Registration", "SLACK", "bounding_cylinder"]
 
 SOURCE = Path(__file__).with_name("native") / "contact_filter.c"
 SLACK = 1e-5
@@ -36,7 +35,7 @@ SLACK = 1e-5
 tolerance (ccd_tolerance 1e-6), well below the bore's 0.25 mm clearance."""
 
 _log = logging.getLogger(__name__)
-_FIELDS = ("m", "d", "contype", "conaffinity", "size", "margin", "gap", "xpos", "xmat", "role", "cylinder")
+_FIELDS = ("m", "d", "size", "margin", "gap", "xpos", "xmat", "role", "cylinder")
 _lock = threading.Lock()
 _state: dict = {}  # "callback": the installed ctypes function, "foreign": warned about another filter
 
@@ -120,13 +119,11 @@ def bounding_cylinder(m: mujoco.MjModel, geom: int) -> tuple[int, float, float]:
     return axis, h * (1 + 1e-9), rho * (1 + 1e-9)
 
 
-def attach(m: mujoco.MjModel, d: mujoco.MjData, tools: np.ndarray, boxes: np.ndarray
-           ) -> Callable[[], tuple[int, int]] | None:
+def attach(m: mujoco.MjModel, d: mujoco.MjData, tools: np.ndarray, boxes: np.ndarray) -> Registration | None:
     """Register (m, d) with the pre-filter for the pairs of the mesh geoms `tools` and the box geoms `boxes`.
 
-    Returns `counts()` -> (pairs seen, pairs dropped) so far, whose `detach()` attribute unregisters (call it before
-    m or d is freed; PandaSim does at its collection); None when nothing is filtered (no library, another filter,
-    or every registration slot taken)."""
+    Returns the Registration (detach it before m or d is freed; PandaSim does at its collection), or None when
+    nothing is filtered (no library, another filter, MuJoCo's contact override, or every registration slot taken)."""
     lib = _library.get()
     tools, boxes = np.asarray(tools, dtype=np.intp), np.asarray(boxes, dtype=np.intp)
     if lib is None or not len(tools) or not len(boxes):
@@ -151,24 +148,29 @@ def attach(m: mujoco.MjModel, d: mujoco.MjData, tools: np.ndarray, boxes: np.nda
         role[boxes] = 2
         role[tools] = 1
         cylinder[tools] = [bounding_cylinder(m, g) for g in tools]
-        arrays = (m.geom_contype, m.geom_conaffinity, m.geom_size, m.geom_margin, m.geom_gap, d.geom_xpos,
-                  d.geom_xmat, role, cylinder)
+        arrays = (m.geom_size, m.geom_margin, m.geom_gap, d.geom_xpos, d.geom_xmat, role, cylinder)
         entry = _Entry(m._address, d._address, *(_addr(a) for a in arrays), SLACK, 0, 0)
         slot = int(lib.cf_register(ctypes.byref(entry)))
     if slot < 0:
         _log.warning("contact pre-filter: every registration slot is taken; this simulation runs without it")
         return None
-    out = np.zeros(2, dtype=np.int64)
-    detached = []
+    return Registration(lib, slot, (role, cylinder))
 
-    def counts() -> tuple[int, int]:
-        lib.cf_counts(slot, out.ctypes.data)
-        return int(out[0]), int(out[1])
 
-    def detach() -> None:
-        if not detached:  # the arrays the slot reads live until here
-            lib.cf_unregister(slot)
-            detached.append((role, cylinder))
+class Registration:
+    """One (model, data) registered with the pre-filter: its counts, and `detach()` (before m or d is freed)."""
 
-    counts.detach = detach
-    return counts
+    def __init__(self, lib: ctypes.CDLL, slot: int, arrays: tuple[np.ndarray, ...]) -> None:
+        self._lib, self._slot, self._arrays = lib, slot, arrays  # the slot reads `arrays` until detach()
+        self._out = np.zeros(2, dtype=np.int64)
+
+    def counts(self) -> tuple[int, int]:
+        """(tool-box pairs seen, pairs dropped) so far."""
+        self._lib.cf_counts(self._slot, self._out.ctypes.data)
+        return int(self._out[0]), int(self._out[1])
+
+    def detach(self) -> None:
+        """Unregister (once); the filter then leaves this model's pairs to MuJoCo."""
+        if self._arrays is not None:
+            self._lib.cf_unregister(self._slot)
+            self._arrays = None

@@ -5,7 +5,6 @@ from __future__ import annotations
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Callable
 
 import mujoco
 import numpy as np
@@ -232,7 +231,7 @@ class PandaSim:
         self.n = n
         self.data = mujoco.MjData(self.model)
         m = self.model
-        self._contact_counts = self._attach_contact_filter() if contact_prefilter else None
+        self._contact_filter = self._attach_contact_filter() if contact_prefilter else None
         # --- which element of the composite belongs to which arm (copies are contiguous in body order)
         nb1 = m1.nbody - 1
         body_arm = np.concatenate([[-1], np.arange(m.nbody - 1) // nb1])
@@ -372,33 +371,32 @@ class PandaSim:
         self._tau_ext[arms] = 0.0
         self._ft[arms] = d.sensordata[self._ft_adr[arms]]
 
-    def _attach_contact_filter(self) -> Callable[[], tuple[int, int]] | None:
+    def _attach_contact_filter(self) -> contact_filter.Registration | None:
         """Register this model with the exact tool-box contact pre-filter (a3cqp_rl.robot.contact_filter): the
-        tool's collision meshes against the scene's static boxes. Returns its counts() or None (nothing filtered)."""
+        tool's collision meshes against the scene's static boxes. None: nothing filtered."""
         m = self.model
         if m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONTACT):
             return None
         collides = (m.geom_contype != 0) | (m.geom_conaffinity != 0)
-        tool_bodies = [m.body(p + "tool").id for p in self._prefixes if mujoco.mj_name2id(
-            m, mujoco.mjtObj.mjOBJ_BODY, p + "tool") >= 0]
+        tool_bodies = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, p + "tool") for p in self._prefixes]
         tools = np.flatnonzero(collides & np.isin(m.geom_bodyid, tool_bodies)
                                & (m.geom_type == int(mujoco.mjtGeom.mjGEOM_MESH)))
         boxes = np.flatnonzero(collides & (m.body_weldid[m.geom_bodyid] == 0)
                                & (m.geom_type == int(mujoco.mjtGeom.mjGEOM_BOX)))
-        counts = contact_filter.attach(m, self.data, tools, boxes)
-        if counts is not None:
-            weakref.finalize(self, counts.detach)
-        return counts
+        registration = contact_filter.attach(m, self.data, tools, boxes)
+        if registration is not None:
+            weakref.finalize(self, registration.detach)
+        return registration
 
     def contact_filter_counts(self) -> tuple[int, int]:
         """(tool-box pairs MuJoCo's broad phase passed, pairs the exact pre-filter dropped) so far; (0, 0) without
         it (`contact_prefilter=False`, no tool mesh or box, or the library not built)."""
-        return (0, 0) if self._contact_counts is None else self._contact_counts()
+        return (0, 0) if self._contact_filter is None else self._contact_filter.counts()
 
     @property
     def contact_prefilter(self) -> bool:
         """Whether this model runs the exact contact pre-filter (asked for, a tool mesh and a box, library built)."""
-        return self._contact_counts is not None
+        return self._contact_filter is not None
 
     def park(self, idx: list[int] | np.ndarray) -> None:
         """Switch off the collisions of arms `idx` (their geoms' contype and conaffinity, until their next reset).

@@ -18,9 +18,7 @@
 typedef struct {
   const void* m;              /* mjModel* and mjData* of the registration (NULL: a free slot) */
   const void* d;
-  const int* contype;         /* the model's geom arrays */
-  const int* conaffinity;
-  const double* size;         /* geom_size [ngeom, 3] */
+  const double* size;         /* the model's geom_size [ngeom, 3], geom_margin, geom_gap */
   const double* margin;
   const double* gap;
   const double* xpos;         /* the data's geom_xpos [ngeom, 3] and geom_xmat [ngeom, 9] */
