@@ -21,10 +21,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+def help_summary(doc: str | None) -> str:
+    """A module docstring's first paragraph on one line: the `--help` description (argparse rewraps it)."""
+    head = (doc or "").strip().split("\n\n", 1)[0]
+    return " ".join(line.strip() for line in head.splitlines())
+
+
 def main(argv: list[str] | None = None) -> int:
     """Dispatch `a3cqp <command> ...` to the command's module; returns the process exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(prog="a3cqp", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="a3cqp", description=help_summary(__doc__))
     parser.add_argument("command", choices=sorted(COMMANDS), help="; ".join(f"{k}: {v[1]}" for k, v in COMMANDS.items()))
     if not argv or argv[0] in ("-h", "--help"):
         parser.print_help()

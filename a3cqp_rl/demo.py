@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from a3cqp_rl.cli import help_summary
+
 __all__ = ["main", "controller_demo"]
 
 
@@ -133,7 +135,7 @@ def controller_demo(seconds: float = 6.0, png: Path | None = None, tool: str = "
 
 def main(argv: list[str] | None = None) -> int:
     """Dispatch `a3cqp demo <name>`; returns the exit code."""
-    parser = argparse.ArgumentParser(prog="a3cqp demo", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="a3cqp demo", description=help_summary(__doc__))
     sub = parser.add_subparsers(dest="name", required=True)
     p = sub.add_parser("controller", help="Panda A3CQP controller: IK -> AC -> IK+JC -> FC, plot to a PNG")
     p.add_argument("--seconds", type=float, default=6.0, help="simulated time [s] (the schedule needs 6)")

@@ -20,6 +20,7 @@ import math
 import sys
 from pathlib import Path
 
+from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "point_mass_a2c_default.yaml"
@@ -45,7 +46,7 @@ def parse_seeds(text: str) -> list[int]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="a3cqp train", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="a3cqp train", description=help_summary(__doc__))
     p.add_argument("--config", default=None, help=f"YAML config (default: {DEFAULT_CONFIG.name} on the point mass, "
                                                     "the paper's Table IV settings (configs/point_mass_a2c.yaml) "
                                                     "on other envs)")

@@ -22,6 +22,8 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
+from a3cqp_rl.cli import help_summary
+
 _ROOT = Path(__file__).resolve().parents[1]
 if str(_ROOT) not in sys.path:
     sys.path.insert(0, str(_ROOT))
@@ -75,7 +77,7 @@ def _load() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=help_summary(__doc__))
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--steps", type=int, default=1_000_000, help="steps per GA-trial training")
     p.add_argument("--default-steps", type=int, default=4_000_000, help="steps of the make-train config run")

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 import a3cqp_rl.control.controller as controller_module
+from a3cqp_rl.cli import help_summary
 from a3cqp_rl.control import A3CQPController, ControllerOptions
 from a3cqp_rl.robot import PandaSim
 from bench.arm_loop import PartTimer, drive
@@ -100,7 +101,7 @@ def run(n: int, steps: int, warmup: int, seed: int = 0, kin_source: str = "mujoc
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print one row per N; returns 0."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=help_summary(__doc__))
     parser.add_argument("--quick", action="store_true", help="few steps (smoke test)")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64], help="numbers of arms N")

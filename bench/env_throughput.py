@@ -19,6 +19,8 @@ import time
 
 import torch
 
+from a3cqp_rl.cli import help_summary
+
 
 def _median_rate(fn, samples_per_call: int, repeats: int) -> float:
     fn()  # warm-up
@@ -36,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from envs.point_mass import PointMassEnv, agent_step
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=help_summary(__doc__))
     p.add_argument("--quick", action="store_true", help="fewer steps and repeats")
     args = p.parse_args(argv)
     steps, repeats = (50, 3) if args.quick else (200, 5)

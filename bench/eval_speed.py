@@ -16,6 +16,8 @@ import time
 
 import torch
 
+from a3cqp_rl.cli import help_summary
+
 
 def _mlp_policy(seed: int = 0):
     gen = torch.Generator().manual_seed(seed)
@@ -31,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; print seconds per evaluation, episode-steps/s and the ratio to the one-episode loop."""
     from envs.point_mass_eval import EVAL_SCENARIOS, baseline_policies, evaluate, scenario_config
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=help_summary(__doc__))
     p.add_argument("--quick", action="store_true", help="one repeat, fewer peer episodes")
     p.add_argument("--episodes", type=int, default=64)
     p.add_argument("--repeats", type=int, default=3)

@@ -23,6 +23,7 @@ import time
 
 import torch
 
+from a3cqp_rl.cli import help_summary
 from a3cqp_rl.control import A3CQPController, ControllerOptions
 from a3cqp_rl.robot import PandaSim
 from bench.arm_loop import PartTimer, drive
@@ -61,7 +62,7 @@ def run(n: int, levels: dict | None, backend: str, steps: int, warmup: int, seed
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print one row per (N, stack); returns 0."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=help_summary(__doc__))
     parser.add_argument("--quick", action="store_true", help="few steps (smoke test)")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1, 64], help="numbers of arms N")
     parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")

@@ -20,6 +20,7 @@ import time
 import numpy as np
 import torch
 
+from a3cqp_rl.cli import help_summary
 from a3cqp_rl.config import config_from_dict
 from a3cqp_rl.control import A3CQPController, ControllerOptions
 from a3cqp_rl.robot import PandaModel, mujoco_dynamics
@@ -81,7 +82,7 @@ def env_tick_cost(n: int, repeats: int, agent_steps: int = 20) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     """Print the table of the module docstring; returns 0."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=help_summary(__doc__))
     p.add_argument("--quick", action="store_true", help="few calls (smoke test)")
     p.add_argument("--sizes", type=int, nargs="+", default=[1, 32])
     p.add_argument("--repeats", type=int, default=7, help="runs per N; the row shows the median")

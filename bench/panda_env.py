@@ -31,6 +31,7 @@ import time
 import numpy as np
 import torch
 
+from a3cqp_rl.cli import help_summary
 from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.control import A3CQPController
 from a3cqp_rl.robot import PandaSim
@@ -95,7 +96,7 @@ def run_bare(n: int, periods: int) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print one row per N; returns 0."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=help_summary(__doc__))
     p.add_argument("--quick", action="store_true", help="few steps (smoke test)")
     p.add_argument("--sizes", type=int, nargs="+", default=[1, 8, 32])
     p.add_argument("--repeats", type=int, default=3, help="runs per N; the row shows the median")

@@ -22,6 +22,8 @@ import sys
 import time
 from pathlib import Path
 
+from a3cqp_rl.cli import help_summary
+
 _ROOT = Path(__file__).resolve().parent.parent
 CONFIG = _ROOT / "configs" / "pendulum_a2c.yaml"
 
@@ -85,7 +87,7 @@ def learn(cfg_path: Path, seeds: list[int], out: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Print steps/s of SB3 and ours, their ratio, and with --learn the learning check; returns 0."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=help_summary(__doc__))
     p.add_argument("--steps", type=int, default=None, help="agent steps per timed run (default 40000; 8000 --quick)")
     p.add_argument("--repeats", type=int, default=None, help="runs of each (default 3; 1 with --quick)")
     p.add_argument("--quick", action="store_true")

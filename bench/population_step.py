@@ -21,13 +21,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from a3cqp_rl.cli import help_summary
+
 _ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(_ROOT), str(_ROOT / "tests")]
 
 
 def main(argv: list[str] | None = None) -> int:
     """Print ms per step for each population and backend, and the ratio."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=help_summary(__doc__))
     p.add_argument("--arms", type=int, default=16)
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--quick", action="store_true", help="3 repeats")

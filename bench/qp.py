@@ -41,6 +41,7 @@ import torch
 # an editable install elsewhere would otherwise be what is measured).
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from a3cqp_rl.cli import help_summary
 from a3cqp_rl.qp import qp_vjp, solve_qp  # noqa: E402
 from a3cqp_rl.qp.random_qp import RandomQP, clarabel_reference, random_qp_batch  # noqa: E402
 
@@ -494,7 +495,7 @@ def blocks(repeats: int = 21, calls: int = 100) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the QP benchmark and print the table and ratios (or, with --check, the status tables); returns 0."""
-    parser = argparse.ArgumentParser(prog="a3cqp bench qp", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="a3cqp bench qp", description=help_summary(__doc__))
     parser.add_argument("--quick", action="store_true", help="B = 1, 64 only and fewer repeats")
     parser.add_argument("--batches", type=int, nargs="+", default=None, help="batch sizes (default 1 64 1024)")
     parser.add_argument("--threads", type=int, default=1, help="torch / ProxSuite threads (default 1: on a shared 2-core box, OpenMP batch loops with 2 threads stall for ms)")

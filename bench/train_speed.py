@@ -38,6 +38,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from a3cqp_rl.cli import help_summary
+
 _HERE = Path(__file__).resolve().parent
 _ROOT = _HERE.parent
 CONFIG = _ROOT / "configs" / "point_mass_a2c.yaml"
@@ -182,7 +184,7 @@ def _fmt_duration(seconds: float) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print steps/s, the ratio ours/SB3 and projected 1e6-step times; returns 0."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=help_summary(__doc__))
     p.add_argument("--steps", type=int, default=None, help="agent steps per training run (default 20000; 2000 with --quick)")
     p.add_argument("--repeats", type=int, default=None, help="runs of each trainer; medians reported (default 3; 1 with --quick)")
     p.add_argument("--quick", action="store_true", help="short smoke run: 2000 steps, 1 repeat")

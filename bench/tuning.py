@@ -33,6 +33,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from a3cqp_rl.cli import help_summary
+
 _ROOT = Path(__file__).resolve().parents[1]
 if str(_ROOT) not in sys.path:
     sys.path.insert(0, str(_ROOT))
@@ -193,7 +195,7 @@ def bench_panda(genomes: int, horizon: float, repeats: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the tuning benchmarks; returns an exit code."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=help_summary(__doc__))
     p.add_argument("--generations", type=int, default=3, help="GA generations bred after the initial one")
     p.add_argument("--steps", type=int, default=1_000_000, help="agent steps per GA trial (Table V run: 1e6)")
     p.add_argument("--quick", action="store_true", help="1 generation of 1e5-step trials; NSGA-II 10 generations")

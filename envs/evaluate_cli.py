@@ -17,6 +17,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
 
 
@@ -32,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
             print("error: the Panda scenes are not available in this version", file=sys.stderr)
             return 2
         return int(panda.main(argv) or 0)
-    p = argparse.ArgumentParser(prog="a3cqp evaluate", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="a3cqp evaluate", description=help_summary(__doc__))
     p.add_argument("--env", default="point_mass", choices=["point_mass"], help="environment (default: %(default)s)")
     p.add_argument("--policy", nargs="*", default=[], help="policy.pt, checkpoint.pt or run folder(s); none: baselines only")
     p.add_argument("--episodes", type=int, default=64, help="episodes per scenario (default: %(default)s)")
@@ -40,7 +41,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default=None, help="also write the metrics as JSON to this file")
     p.add_argument("--config", default=None,
                    help="YAML whose dynamics, adaptation and reward the evaluation uses (default: the first policy's)")
-    p.add_argument("--scene", default=None, help="a Panda scene (envs.panda_eval)")
+    p.add_argument("--scene", default=None, choices=["peg_in_hole", "polishing", "guidance"],
+                   help="evaluate on the simulated Panda instead; `a3cqp evaluate --scene S --help` lists its options "
+                        "(--trials, --controllers, --record-trial, ...)")
     args = p.parse_args(argv)
 
     import torch

@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "trial_seeds", "paired", "free_motion_rates", "free_motion_warning",
@@ -787,7 +788,7 @@ def _write_json(path: Path, doc: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry for `a3cqp evaluate --scene ...`; returns an exit code."""
-    p = argparse.ArgumentParser(prog="a3cqp evaluate", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="a3cqp evaluate", description=help_summary(__doc__))
     p.add_argument("--scene", required=True, choices=["peg_in_hole", "polishing", "guidance"])
     p.add_argument("--policy", default=None, help="policy.pt of the learned controller (a run folder also works; "
                    "default: the config's panda.policy)")

@@ -2,6 +2,8 @@
 
 from pathlib import Path
 
+import pytest
+
 from a3cqp_rl.cli import main
 
 CONFIG = str(Path(__file__).parents[1] / "configs" / "point_mass_a2c.yaml")
@@ -97,7 +99,33 @@ def test_file_errors_are_one_line_naming_the_file(tmp_path, capsys, monkeypatch)
     bad.write_bytes(b"a2c: {ent_coef: \xff}\n")
     assert main(["train", "--config", str(bad)]) == 2
     assert f"{bad}: not UTF-8" in capsys.readouterr().err
-    import pytest
 
     with pytest.raises(Exception, match="not UTF-8"):  # --debug: the traceback, for developers
         main(["train", "--config", str(bad), "--debug"])
+
+
+def test_help_summary_keeps_the_whole_first_paragraph():
+    from a3cqp_rl.cli import help_summary
+
+    doc = "Train a\n    policy; one seed or a\n    sweep.\n\n    usage: ..."
+    assert help_summary(doc) == "Train a policy; one seed or a sweep."
+    assert help_summary(None) == ""
+
+
+@pytest.mark.parametrize("command", ["train", "evaluate", "tune", "pareto", "plot", "demo"])
+def test_every_command_help_ends_its_description(command, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main([command, "--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    description = " ".join(out.split("\n\n")[1].split())  # usage, blank line, description
+    assert description.endswith((".", ")")), description
+
+
+def test_the_point_mass_help_names_every_panda_scene(capsys):
+    from envs.scenarios import SCENES
+
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--help"])
+    out = capsys.readouterr().out
+    assert "{" + ",".join(SCENES) + "}" in out

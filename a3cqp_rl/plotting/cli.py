@@ -10,6 +10,7 @@ import importlib
 import sys
 from pathlib import Path
 
+from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
 
 POLICY_LOADER = "algorithms.a2c:load_policy"
@@ -33,7 +34,7 @@ def _plot_parser(sub, name: str, text: str, first: str, help_first: str, **first
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry for the plot sub-commands; returns an exit code."""
-    p = argparse.ArgumentParser(prog="a3cqp plot", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="a3cqp plot", description=help_summary(__doc__))
     sub = p.add_subparsers(dest="what", required=True)
     pm = _plot_parser(sub, "policy-map", "paper Fig. 5: actions over the normalised state space", "policy",
                       "OUT/policy.pt or OUT/checkpoint.pt (or a run folder)")

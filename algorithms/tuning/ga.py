@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from a3cqp_rl.cli import help_summary
 from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, config_to_dict
 from a3cqp_rl.exceptions import A3CQPError, ConfigError
 
@@ -193,7 +194,7 @@ def _comparison(genes: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """`a3cqp tune`: run or resume the GA; returns an exit code."""
-    p = argparse.ArgumentParser(prog="a3cqp tune", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="a3cqp tune", description=help_summary(__doc__))
     p.add_argument("--config", default=None,
                    help="YAML config (default: configs/ga_point_mass.yaml; OUT/config.yaml with --resume)")
     p.add_argument("--generations", type=int, default=None, help="generations after the initial one (ga.num_generations)")

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from a3cqp_rl.cli import help_summary
 from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.tuning_files import read_rows, read_state
@@ -207,7 +208,7 @@ def pick(out: str | Path, k: int) -> Path:
 # ----------------------------------------------------------------------------------------------- CLI
 def main(argv: list[str] | None = None) -> int:
     """`a3cqp pareto`: run / resume NSGA-II, or pick a Pareto solution; returns an exit code."""
-    p = argparse.ArgumentParser(prog="a3cqp pareto", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="a3cqp pareto", description=help_summary(__doc__))
     p.add_argument("--config", default=None, help="YAML config (default: configs/nsga2_zdt1.yaml; OUT/config.yaml "
                                                   "with --resume or --pick)")
     p.add_argument("--generations", type=int, default=None, help="generations after the initial one (nsga2.generations)")
