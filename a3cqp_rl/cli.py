@@ -12,8 +12,8 @@ import sys
 # sub-command -> "module:function" taking the remaining argv list and returning an exit code.
 COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("algorithms.train:main", "train an A2C adaptation policy (point mass by default)"),
-    "evaluate": ("envs.evaluate_cli:main", "closed-loop evaluation against fixed-weight baselines: point mass, or --scene "
-                 "peg_in_hole|polishing|guidance on the simulated Panda (Table VI)"),
+    "evaluate": ("envs.evaluate_cli:main", "closed-loop evaluation against fixed-weight baselines: point mass, "
+                 "or --scene peg_in_hole|polishing|guidance on the simulated Panda (Table VI)"),
     "tune": ("algorithms.tuning.ga:main", "GA over A2C hyper-parameters (paper Table V, fitness eq. 34)"),
     "pareto": ("algorithms.tuning.nsga2:main", "NSGA-II multi-objective tuning; --pick K writes a Pareto solution"),
     "plot": ("a3cqp_rl.plotting.cli:main", "policy maps (Fig. 5), loss curves (Fig. 4), Panda episodes (Fig. 7/8), "
