@@ -1,7 +1,13 @@
-"""`a3cqp plot policy-map POLICY [--out F] [--fixed e --levels 0,0.05,0.3]` and
-`a3cqp plot loss-curves RUN [RUN ...] [--out F]` and `a3cqp plot regions RUN [RUN ...] [--out F]` and
-`a3cqp plot episode RUN [--controller learned] [--axis z] [--strip] [--out F]` (a Panda episode, Fig. 7/8) and
-`a3cqp plot ga DIR [--out F]` and `a3cqp plot pareto DIR [--out F]` (PNG by default; --pdf or a .pdf name for PDF)."""
+"""`a3cqp plot KIND ...`: the paper's figures from policies and run folders (PNG by default; --pdf or a .pdf name for
+PDF).
+
+    a3cqp plot policy-map POLICY [--out F] [--fixed e --levels 0,0.05,0.3]       (Fig. 5)
+    a3cqp plot loss-curves RUN [RUN ...] [--out F]                               (Fig. 4)
+    a3cqp plot regions RUN [RUN ...] [--out F]
+    a3cqp plot episode RUN [--controller learned] [--axis z] [--strip] [--out F] (a Panda episode, Fig. 7/8)
+    a3cqp plot ga DIR [--out F]
+    a3cqp plot pareto DIR [--out F]
+"""
 
 from __future__ import annotations
 
