@@ -41,6 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default=None, help="also write the metrics as JSON to this file")
     p.add_argument("--config", default=None,
                    help="YAML whose dynamics, adaptation and reward the evaluation uses (default: the first policy's)")
+    # envs.scenarios.SCENES, spelled out: importing it (torch, MuJoCo) would take seconds of every --help
+    # (tests/test_cli.py checks that the two agree)
     p.add_argument("--scene", default=None, choices=["peg_in_hole", "polishing", "guidance"],
                    help="evaluate on the simulated Panda instead; `a3cqp evaluate --scene S --help` lists its options "
                         "(--trials, --controllers, --record-trial, ...)")
