@@ -523,6 +523,11 @@ class PointMassConfig:
     """free: the target moves at a constant speed drawn per episode in ±target_speed_max [m/s] (a reference to
     follow, as the Panda's IK phases follow moving ones), and IK's damping acts on ė = ẋ_d − ẋ. 0 (the default, the
     paper's surrogate): a fixed target. Torch env only (the C point mass refuses it)."""
+    disturbance_max: float = 0.0
+    """free: a constant force on the mass drawn per episode in ±disturbance_max [N] that no sensor measures (neither
+    f_env nor f_ope: the Panda's model errors and moving references leave a tracking error that IK has to hold
+    against), so lowering IK's weight at a small error lets the mass drift. 0 (the default, the paper's surrogate):
+    none. Torch env only (the C point mass refuses it)."""
     idle_force: Literal["free", "damps"] = "free"
     """What the share of force control that does not push, w3 (1 − min(1, f_d / 1 N)), does. 'free' (the default):
     eq. 35, nothing. 'damps': what the Panda env's `panda.idle_force: damps` makes of it, IK's damping with weight
@@ -599,6 +604,8 @@ class PointMassConfig:
             err.add("kv", f"must be >= 0 or null, got {self.kv}")
         if not (self.target_speed_max >= 0.0 and math.isfinite(self.target_speed_max)):
             err.add("target_speed_max", f"must be a finite speed >= 0 [m/s], got {self.target_speed_max}")
+        if not (self.disturbance_max >= 0.0 and math.isfinite(self.disturbance_max)):
+            err.add("disturbance_max", f"must be a finite force >= 0 [N], got {self.disturbance_max}")
         if not 0.0 <= self.operator_toward_wall <= 1.0:
             err.add("operator_toward_wall", f"must be a probability in [0, 1], got {self.operator_toward_wall}")
         if self.idle_force not in ("free", "damps"):

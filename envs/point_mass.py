@@ -13,7 +13,8 @@ wall in front of the target, both) are sampled per reset; see `a3cqp_rl.config.P
 `envs.point_mass_eval`). Two options bring the surrogate closer to the Panda env (torch only): `target_speed_max`
 makes the free scenario's target move at a constant speed (IK's damping then acts on ė = ẋ_d − ẋ), and
 `idle_force: damps` gives the share of force control that does not push, w3 (1 − min(1, f_d / 1 N)), to IK's
-damping, as the Panda env's `panda.idle_force: damps` does.
+damping, as the Panda env's `panda.idle_force: damps` does; `disturbance_max` adds an unmeasured constant force to
+the free scenario, which IK has to hold against.
 All randomness is drawn at reset (targets, walls and the whole operator force schedule), so the
 step is a pure function of (state, action): deterministic, and compilable by `torch.compile`.
 Each env also holds a *pending* next episode, drawn in advance, so fused trainers can step through
@@ -123,6 +124,8 @@ class PointMassEnv(EnvBase):
             self._state.update(hand_x0=z.clone(), hand_t0=torch.zeros(N, dtype=torch.int64, device=dev))
         if self.cfg.target_speed_max > 0.0:
             self._state["target_speed"] = z.clone()
+        if self.cfg.disturbance_max > 0.0:
+            self._state["disturbance"] = z.clone()
         self._pending = {k: self._state[k].clone() for k in _episode_keys(self._state)}
 
     def _uniform(self, n: int, lo: float, hi: float, *shape: int) -> Tensor:
@@ -165,6 +168,9 @@ class PointMassEnv(EnvBase):
         if c.target_speed_max > 0.0:
             speed = self._uniform(n, -c.target_speed_max, c.target_speed_max)
             dest["target_speed"][idx] = torch.where(scen == 0, speed, torch.zeros_like(speed))
+        if c.disturbance_max > 0.0:
+            push = self._uniform(n, -c.disturbance_max, c.disturbance_max)
+            dest["disturbance"][idx] = torch.where(scen == 0, push, torch.zeros_like(push))
         slot = self._state["slot"][idx]
         self._schedule[(1 - slot) if pending else slot, idx] = self._operator_schedule(n) * has_op.unsqueeze(-1)
         if not pending:
@@ -294,7 +300,7 @@ EPISODE_KEYS = ("target", "wall_pos", "has_wall", "scenario", "w_logits", "f_d")
 
 
 def _episode_keys(state: dict[str, Tensor]) -> tuple[str, ...]:
-    return EPISODE_KEYS + (("target_speed",) if "target_speed" in state else ())
+    return EPISODE_KEYS + tuple(k for k in ("target_speed", "disturbance") if k in state)
 
 
 def auto_reset(state: dict[str, Tensor], pending: dict[str, Tensor], done: Tensor) -> dict[str, Tensor]:
@@ -404,6 +410,7 @@ def agent_step(
     moving = "target_speed" in state
     speed = state.get("target_speed")
     damps = cfg.idle_force == "damps"
+    f_dist = state.get("disturbance")  # unmeasured: in the dynamics, not in f_ext (what the admittance task sees)
     w_damp, w_fc = w1, w3  # IK's damping weight and force control's weight
     if damps:  # the share of force control that does not push damps as IK does (the Panda env's panda.idle_force)
         idle = w3 * (1.0 - f_d.clamp(0.0, 1.0))
@@ -440,14 +447,15 @@ def agent_step(
         else:  # a hand with a linear force-velocity law: yielding along the push relieves the force
             f_ope = f_cmd * (1.0 - v * sgn / cfg.operator_v_hand).clamp(grip_min, 1.0)
         f_ext = f_env + f_ope
+        f_act = f_ext if f_dist is None else f_ext + f_dist  # the force that acts on the mass
         e = target - x
         if moving or damps:  # IK's damping on ė = ẋ_d − ẋ, with the idle share's weight where it damps
             de = (speed - v) if moving else -v
-            acc = (f_ext + m * (w1 * kp * e + w_damp * kv * de) + w2 * (adm_gain * f_ext - cfg.c_d * v)
+            acc = (f_act + m * (w1 * kp * e + w_damp * kv * de) + w2 * (adm_gain * f_ext - cfg.c_d * v)
                    + w_fc * f_d) / m
         else:
             # eq. 35 (ẍ_pd = 0 for a fixed target)
-            acc = (f_ext + w1 * m * (kp * e - kv * v) + w2 * (adm_gain * f_ext - cfg.c_d * v) + w3 * f_d) / m
+            acc = (f_act + w1 * m * (kp * e - kv * v) + w2 * (adm_gain * f_ext - cfg.c_d * v) + w3 * f_d) / m
         v = v + acc * dt
         x = x + v * dt
         if moving:

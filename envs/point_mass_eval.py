@@ -75,7 +75,7 @@ EVAL_SCENARIOS: dict[str, Scenario] = {
     s.name: s for s in (
         Scenario("free", "targets ±5-60 cm, no forces",
                  {"scenario_probs": {"free": 1.0}, "episode_steps": 300, "target_min": 0.05, "target_max": 0.6,
-                  "target_speed_max": 0.0},
+                  "target_speed_max": 0.0, "disturbance_max": 0.0},
                  ("final_e", "reached", "time_to_2cm", "return")),
         Scenario("contact", "stiff damped wall 20-40 cm away, target 1-5 mm behind it",
                  {"scenario_probs": {"wall": 1.0}, "episode_steps": 400, **_WALL},

@@ -184,6 +184,32 @@ def test_privileged_critic_observation_extends_the_eq26_observation():
     assert out[1].shape == out[2].shape == (6, 3 + PRIVILEGED_DIM)
 
 
+def test_an_unmeasured_disturbance_leaves_the_ik_error_it_predicts_and_drifts_without_ik():
+    env = scenario_env(8, "free", disturbance_max=10.0, target_min=0.0, target_max=1e-6, episode_steps=400)
+    td = run_const(env, [1.0, -1.0, -1.0, -1.0], 300)  # IK: 3 s, settled
+    d = env._state["disturbance"]
+    assert d.abs().max() <= 10.0 and d.abs().min() > 0 and len(set(d.tolist())) == 8
+    w1 = td["w"][:, -1, 0]
+    # steady state of eq. 35 with the extra force: w1 Λ Kp e = −d (the sensors read nothing)
+    expected = -d / (w1 * env.cfg.mass * env.cfg.kp)
+    assert torch.allclose(td["e"][:, -1], expected, rtol=1e-3)
+    assert td["f_env"].abs().max() == 0 and td["f_ope"].abs().max() == 0
+    # with IK's weight driven down the mass drifts far along the force
+    td = run_const(env, [-1.0, 1.0, 1.0, -1.0], 300)  # (new episodes, new forces)
+    ik_error = env._state["disturbance"] / (env.cfg.mass * env.cfg.kp)  # what full IK would leave
+    assert (td["e"][:, -1].abs() > 100 * ik_error.abs()).all()
+    # only free episodes carry one; validation and the C point mass refuse it
+    e2 = PointMassEnv(64, config_from_dict({"point_mass": {"scenario_probs": {"free": 0.5, "wall": 0.5},
+                                                             "disturbance_max": 5.0}}), seed=1)
+    e2.reset()
+    s = e2._state
+    assert torch.all(s["disturbance"][s["scenario"] != 0] == 0) and torch.any(s["disturbance"] != 0)
+    with pytest.raises(Exception, match="disturbance_max"):
+        config_from_dict({"point_mass": {"disturbance_max": float("nan")}})
+    from envs.native import unsupported
+    assert "disturbance" in unsupported(config_from_dict({"point_mass": {"disturbance_max": 1.0}}))
+
+
 def test_a_moving_target_is_tracked_and_keeps_its_speed_through_resets():
     env = scenario_env(8, "free", target_speed_max=0.1, target_min=0.0, target_max=1e-3, episode_steps=200)
     td = run_const(env, [1.0, -1.0, -1.0, -1.0], 150)  # IK: 1.5 s of tracking, one episode

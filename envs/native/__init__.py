@@ -47,6 +47,8 @@ def unsupported(cfg: ExperimentConfig) -> str | None:
         return f"the C point mass has the 'push' and 'drag' operators only, not {cfg.point_mass.operator_model!r}"
     if cfg.point_mass.target_speed_max > 0.0:
         return "the C point mass has fixed targets only (point_mass.target_speed_max > 0)"
+    if cfg.point_mass.disturbance_max > 0.0:
+        return "the C point mass has no unmeasured disturbance force (point_mass.disturbance_max > 0)"
     if cfg.point_mass.operator_toward_wall != 0.5:
         return "the C point mass's operator pushes either way alike (point_mass.operator_toward_wall 0.5)"
     if cfg.point_mass.idle_force != "free":
