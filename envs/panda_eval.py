@@ -3,11 +3,12 @@
     a3cqp evaluate --scene peg_in_hole [--policy runs/mine/policy.pt] --trials 26 [--seed 0 | --seeds 0,3-10]
                    [--json F]
                    [--config configs/panda_peg_in_hole.yaml] [--controllers learned,ik,ik_fc,equal,vic]
-                   [--cycles 1] [--out RUN] [--controller-config PICK.yaml [PICK.yaml ...]] [--workers 2]
+                   [--cycles 1] [--out RUN] [--controller-config PICK.yaml [PICK.yaml ...]] [--workers N]
                    [--threads 1] [--no-park]
 
 Every controller runs the same K trials (trial k has the same seed, hence the same misalignment, operator tremor and
-sensor noise, for all of them), in batched simulations: the trials split between `--workers` processes (default 2),
+sensor noise, for all of them), in batched simulations: the trials split between `--workers` processes (default:
+the CPU cores this process may use, at most `MAX_DEFAULT_WORKERS`),
 each simulating its share for every controller in one batch; an arm whose episode is over is parked (no contacts)
 while its batch runs on (`--no-park` keeps it colliding). Controllers (the adaptation law in the loop):
 
@@ -136,6 +137,20 @@ def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, sin
     op = m & (task == "AC") & env.operator.active
     scale[op] = VIC_OPERATOR
     return W, f_d, scale, ctrl != "learned"
+
+
+MAX_DEFAULT_WORKERS = 8
+"""The most worker processes `a3cqp evaluate --scene` starts unless told (each holds ~0.5 GB: torch, its MuJoCo model
+and controller)."""
+
+
+def default_workers() -> int:
+    """`--workers` when not given: the CPU cores this process may use (its affinity), at most `MAX_DEFAULT_WORKERS`."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity outside Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_DEFAULT_WORKERS))
 
 
 def trial_seeds(seed: int, trials: int) -> list[int]:
@@ -812,9 +827,10 @@ def main(argv: list[str] | None = None) -> int:
                         "controllers")
     p.add_argument("--threads", type=int, default=1, help="threads (MuJoCo models) the arms' physics is split into "
                    "(default 1; the same numbers; slower on a loaded machine)")
-    p.add_argument("--workers", type=int, default=2, help="processes the trials are split among, each simulating "
-                   "its share of the trials for every controller (default 2; 1: one batched simulation; the same "
-                   "numbers but for rare round-off)")
+    p.add_argument("--workers", type=int, default=None, help="processes the trials are split among, each simulating "
+                   "its share of the trials for every controller (default: the CPU cores this process may use, at most "
+                   f"{MAX_DEFAULT_WORKERS}; 1: one batched simulation; any count gives the same numbers but for rare "
+                   "round-off)")
     p.add_argument("--no-park", action="store_true", help="keep simulating finished arms' contacts until the last "
                    "episode ends (by default they are parked: the same metrics to round-off, less time)")
     p.add_argument("--record-trial", type=int, default=0, metavar="K",
@@ -829,6 +845,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--trials must be >= 1, got {args.trials}")
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
+        if args.workers is None:
+            args.workers = default_workers()
         if args.workers < 1:
             raise ValueError(f"--workers must be >= 1, got {args.workers}")
         cfg_path = args.config
@@ -870,8 +888,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     which = f"seed {args.seed}" if args.seeds is None else f"seeds {','.join(map(str, args.seeds))} pooled"
+    used = min(args.workers, args.trials)  # the trials split into at most this many groups
     print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller, {which}, config {cfg_path or 'defaults'}; "
-          f"{res.sim_seconds:.0f} s simulated in {res.seconds:.1f} s ({res.sim_seconds / res.seconds:.1f}x real time)")
+          f"{res.sim_seconds:.0f} s simulated in {res.seconds:.1f} s ({res.sim_seconds / res.seconds:.1f}x real time, "
+          f"{used} worker{'s' if used > 1 else ''})")
     if policy is not None:
         print(f"learned: {policy} (parameters {prints})")
     print(format_table(res))
@@ -880,6 +900,7 @@ def main(argv: list[str] | None = None) -> int:
         if lines:
             print(lines)
     doc = to_json(res)
+    doc["workers"] = used
     if policy is not None:
         doc["policy"], doc["policy_fingerprint"] = str(policy), prints
     if args.json:

@@ -107,6 +107,19 @@ def test_main_reports_bad_input_in_one_line(tmp_path, capsys) -> None:  # noqa: 
         main(["--scene", "kitchen"])
 
 
+def test_the_default_worker_count_is_the_usable_cores_up_to_a_bound(monkeypatch) -> None:  # noqa: ANN001
+    import envs.panda_eval as pe
+
+    for cores, expected in ((1, 1), (2, 2), (6, 6), (64, pe.MAX_DEFAULT_WORKERS)):
+        monkeypatch.setattr(pe.os, "sched_getaffinity", lambda _pid, n=cores: set(range(n)), raising=False)
+        assert pe.default_workers() == expected
+    monkeypatch.delattr(pe.os, "sched_getaffinity", raising=False)  # macOS, Windows
+    monkeypatch.setattr(pe.os, "cpu_count", lambda: 3)
+    assert pe.default_workers() == 3
+    monkeypatch.setattr(pe.os, "cpu_count", lambda: None)
+    assert pe.default_workers() == 1
+
+
 def test_main_takes_the_learned_policy_from_the_config(tmp_path, capsys) -> None:  # noqa: ANN001
     path = tmp_path / "pol" / "policy.pt"
     layout = ParamLayout(3, 4, (64, 64), "separate")
@@ -121,7 +134,10 @@ def test_main_takes_the_learned_policy_from_the_config(tmp_path, capsys) -> None
     assert doc["controller"] == "learned" and doc["trials"] == 1
     # which parameters ran: the file and their fingerprint, in the JSON and the header
     assert doc["policy"] == str(path) and doc["policy_fingerprint"] == fingerprint(load_policy(path))
-    assert f"learned: {path} (parameters {doc['policy_fingerprint']})" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert f"learned: {path} (parameters {doc['policy_fingerprint']})" in printed
+    # one trial: one worker, whatever the machine's cores
+    assert doc["workers"] == 1 and re.search(r"x real time, 1 worker\)", printed)
     # a configured policy that is missing: one line naming panda.policy
     cfg.write_text(yaml.safe_dump({"env": "panda", "panda": {**FAST["panda"], "policy": str(tmp_path / "no.pt")}}))
     capsys.readouterr()
