@@ -11,7 +11,7 @@ with e = x_target − x and ẍ_pd = 0 (fixed target). Scenarios (free motion, o
 wall in front of the target, both) are sampled per reset; see `a3cqp_rl.config.PointMassConfig`, whose
 `operator_model` also offers an operator guiding the mass by hand through a spring-damper grip (used by
 `envs.point_mass_eval`). Three options bring the surrogate closer to the Panda env (torch only): `target_speed_max`
-makes the free scenario's target move at a constant speed (IK's damping then acts on ė = ẋ_d − ẋ), and
+makes the free scenario's target move at a constant speed (IK's damping then acts on ė = ẋ_d − ẋ),
 `idle_force: damps` gives the share of force control that does not push, w3 (1 − min(1, f_d / 1 N)), to IK's
 damping, as the Panda env's `panda.idle_force: damps` does; `disturbance_max` adds an unmeasured constant force to
 the free scenario, which IK has to hold against.
