@@ -1,6 +1,6 @@
 """`a3cqp evaluate --scene peg_in_hole|polishing|guidance`: the learned policy and scripted baselines on the same trials.
 
-    a3cqp evaluate --scene peg_in_hole [--policy runs/mine/policy.pt] --trials 26 [--seed 0 | --seeds 0,3-10]
+    a3cqp evaluate --scene peg_in_hole [--policy runs/mine/policy.pt ...] --trials 26 [--seed 0 | --seeds 0,3-10]
                    [--json F]
                    [--config configs/panda_peg_in_hole.yaml] [--controllers learned,ik,ik_fc,equal,vic]
                    [--cycles 1] [--out RUN] [--controller-config PICK.yaml [PICK.yaml ...]] [--workers N]
@@ -32,7 +32,9 @@ sees eq. 26. Peg-in-hole prints Table VI (success rate, insertion time, misalign
 the paper's, then the learned policy against each baseline on the same trials (`paired`: the insertion-time
 difference over the insertions both made, with its standard error, and the insertions only one of them made);
 polishing and guidance print the metrics their scenes define (envs/scenarios.py). `--seeds` runs the trials of each
-seed as `--seed` does and pools them (a difference of a few tenths of a second needs several seeds to show).
+seed as `--seed` does and pools them (a difference of a few tenths of a second needs several seeds to show). Several
+`--policy` paths (e.g. the runs of a training sweep) are evaluated one after the other on the same trials, and a
+line per policy with the scene's headline metrics ends the output (picking a run that transfers).
 """
 
 from __future__ import annotations
@@ -804,12 +806,81 @@ def _write_json(path: Path, doc: dict) -> None:
     tmp.replace(path)  # atomic
 
 
+def _policy_file(path: str | Path | None, from_cli: bool, cfg_path: str | Path | None) -> Path | None:
+    """The policy.pt that `--policy PATH` (a file or a run folder) or the config's panda.policy names; raises
+    FileNotFoundError naming where the path came from."""
+    if path is None:
+        return None
+    path = Path(path)
+    if path.is_dir():
+        path = path / "policy.pt"
+    if not path.is_file():
+        where = "" if from_cli else (f" (panda.policy of {cfg_path}: the repository ships it; pass --policy PATH, or "
+                                     "leave learned out of --controllers)")
+        raise FileNotFoundError(f"policy file not found: {path}{where}")
+    return path
+
+
+def _report(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalResult, policy: Path | None,
+            prints: str | None) -> dict:
+    """Print one evaluation (header, table, paired differences, targets) and return its JSON document."""
+    which = f"seed {args.seed}" if args.seeds is None else f"seeds {','.join(map(str, args.seeds))} pooled"
+    used = min(args.workers, args.trials)  # the trials split into at most this many groups
+    print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller, {which}, config {cfg_path or 'defaults'}; "
+          f"{res.sim_seconds:.0f} s simulated in {res.seconds:.1f} s ({res.sim_seconds / res.seconds:.1f}x real time, "
+          f"{used} worker{'s' if used > 1 else ''})")
+    if policy is not None:
+        print(f"learned: {policy} (parameters {prints})")
+    print(format_table(res))
+    primary = "learned" if "learned" in res.summary else next(iter(res.summary))
+    for lines in (format_paired(res, primary), format_targets(res, primary)):
+        if lines:
+            print(lines)
+    doc = to_json(res)
+    doc["workers"] = used
+    if policy is not None:
+        doc["policy"], doc["policy_fingerprint"] = str(policy), prints
+    return doc
+
+
+def _num(v: float | None, fmt: str) -> str:
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else fmt.format(v)
+
+
+RANKING_COLUMNS = {
+    "peg_in_hole": (("successes", lambda d: f"{d['successes']}/{d['trials']}"),
+                    ("insertion time [s]", lambda d: "-" if not d["successes"] else
+                     _num(d["insertion_time_mean_s"], "{:.2f}") + " ± " + _num(d["insertion_time_std_s"], "{:.2f}"))),
+    "polishing": (("zones reached", lambda d: _num(d["zones_reached_mean"], "{:.0%}")),
+                  ("force error [N]", lambda d: _num(d["force_error_mean"], "{:.2f}")),
+                  ("|f_ope| relocating [N]", lambda d: _num(d["relocation_force_mean"], "{:.2f}"))),
+    "guidance": (("|f_ope| guiding [N]", lambda d: _num(d["guide_force_mean"], "{:.2f}")),
+                 ("hand to goal [mm]", lambda d: _num(1e3 * d["goal_error_mean"], "{:.0f}")),
+                 ("drift [mm]", lambda d: _num(1e3 * d["drift_mean"], "{:.0f}"))),
+}
+"""Per scene, the learned controller's headline metrics (label, cell from its JSON document) that
+`format_policy_ranking` lists."""
+
+
+def format_policy_ranking(docs: list[dict]) -> str:
+    """One line per evaluated policy (the same trials), in the order given: the scene's headline metrics of the
+    learned controller (`a3cqp evaluate --scene S --policy A B ...`)."""
+    cols = RANKING_COLUMNS[docs[0]["scene"]]
+    head = ["policy", "parameters", *(label for label, _ in cols)]
+    rows = [[str(d.get("policy", "-")), str(d.get("policy_fingerprint", "-")), *(cell(d) for _, cell in cols)]
+            for d in docs]
+    widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
+    lines = [f"the learned controller of each policy, on the same trials ({docs[0]['scene']}):"]
+    lines += ["  " + "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in [head, *rows]]
+    return "\n".join(lines)
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry for `a3cqp evaluate --scene ...`; returns an exit code."""
     p = argparse.ArgumentParser(prog="a3cqp evaluate", description=help_summary(__doc__))
     p.add_argument("--scene", required=True, choices=["peg_in_hole", "polishing", "guidance"])
-    p.add_argument("--policy", default=None, help="policy.pt of the learned controller (a run folder also works; "
-                   "default: the config's panda.policy)")
+    p.add_argument("--policy", nargs="+", default=None, metavar="PATH",
+                   help="policy.pt of the learned controller (a run folder also works; default: the config's "
+                   "panda.policy); several: each on the same trials, one after the other, then a line per policy")
     p.add_argument("--trials", type=int, default=26, help="trials per controller (default: 26, Table VI's)")
     seeds = p.add_mutually_exclusive_group()
     seeds.add_argument("--seed", type=int, default=0, help="seed of the trials (default: 0)")
@@ -856,59 +927,45 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_config(cfg_path)
         controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
         fixed = [load_fixed_controller(f) for f in args.controller_config]
-        policy = args.policy if args.policy is not None else cfg.panda.policy  # the CLI's path wins
+        paths = args.policy if args.policy is not None else [cfg.panda.policy]  # the CLI's paths win
         if "learned" not in controllers:
-            policy = None  # no policy is read: a configured one need not exist
-        if policy is not None and Path(policy).is_dir():
-            policy = Path(policy) / "policy.pt"
-        if policy is not None and not Path(policy).is_file():
-            where = "" if args.policy is not None else (f" (panda.policy of {cfg_path}: the repository ships it; pass "
-                                                         "--policy PATH, or leave learned out of --controllers)")
-            raise FileNotFoundError(f"policy file not found: {policy}{where}")
-        if policy is None and "learned" in controllers:
+            paths = [None]  # no policy is read: a configured one need not exist
+        if len(paths) > 1 and args.out:
+            raise ValueError("--out records one policy's episodes: give one --policy")
+        policies = [_policy_file(path, args.policy is not None, cfg_path) for path in paths]  # all found first
+        if policies == [None] and "learned" in controllers:
             controllers = tuple(c for c in controllers if c != "learned")
             print("no --policy given: evaluating the baselines only", file=sys.stderr)
-        prints = None
-        if policy is not None:
-            from algorithms.policy import fingerprint, load_policy
-
-            loaded = load_policy(policy)
-            prints = fingerprint(loaded)
-            for warning in (free_motion_warning(loaded), guided_warning(loaded), sensing_warning(cfg.panda)):
-                if warning:
-                    print(warning, file=sys.stderr)
         kw = dict(config=cfg, controllers=controllers, cycles=args.cycles, progress=not args.quiet, fixed=fixed,
                   sim_threads=args.threads, workers=args.workers, park=not args.no_park,
                   record_trial=args.record_trial)
-        if args.seeds is not None:
-            res = evaluate_seeds(args.scene, policy, args.trials, args.seeds, **kw)
-        else:
-            res = evaluate(args.scene, policy, args.trials, args.seed, **kw)
+        docs = []
+        for policy in policies:
+            prints = None
+            if policy is not None:
+                from algorithms.policy import fingerprint, load_policy
+
+                loaded = load_policy(policy)
+                prints = fingerprint(loaded)
+                for warning in (free_motion_warning(loaded), guided_warning(loaded), sensing_warning(cfg.panda)):
+                    if warning:
+                        print(warning if len(policies) == 1 else f"{policy}: {warning}", file=sys.stderr)
+            if args.seeds is not None:
+                res = evaluate_seeds(args.scene, policy, args.trials, args.seeds, **kw)
+            else:
+                res = evaluate(args.scene, policy, args.trials, args.seed, **kw)
+            docs.append(_report(args, cfg_path, res, policy, prints))
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    which = f"seed {args.seed}" if args.seeds is None else f"seeds {','.join(map(str, args.seeds))} pooled"
-    used = min(args.workers, args.trials)  # the trials split into at most this many groups
-    print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller, {which}, config {cfg_path or 'defaults'}; "
-          f"{res.sim_seconds:.0f} s simulated in {res.seconds:.1f} s ({res.sim_seconds / res.seconds:.1f}x real time, "
-          f"{used} worker{'s' if used > 1 else ''})")
-    if policy is not None:
-        print(f"learned: {policy} (parameters {prints})")
-    print(format_table(res))
-    primary = "learned" if "learned" in res.summary else next(iter(res.summary))
-    for lines in (format_paired(res, primary), format_targets(res, primary)):
-        if lines:
-            print(lines)
-    doc = to_json(res)
-    doc["workers"] = used
-    if policy is not None:
-        doc["policy"], doc["policy_fingerprint"] = str(policy), prints
+    if len(docs) > 1:
+        print(format_policy_ranking(docs))
     if args.json:
-        _write_json(Path(args.json), doc)
+        _write_json(Path(args.json), docs[0] if len(docs) == 1 else {"policies": docs})
         print(f"wrote {args.json}")
     if args.out:
         out = Path(args.out)
-        _write_json(out / "results.json", doc)
+        _write_json(out / "results.json", docs[0])
         for c, ep in res.episodes.items():
             np.savez_compressed(out / f"episode_{c}.npz", **ep)
         print(f"wrote {out}/results.json and {out}/episode_<controller>.npz (plot: a3cqp plot episode {out})")

@@ -16,6 +16,7 @@ from a3cqp_rl.config import config_from_dict
 from algorithms.networks import ParamLayout
 from algorithms.policy import fingerprint, load_policy
 from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, PAPER_TABLE_VI, EvalResult, capped_time, evaluate,
+                             format_policy_ranking,
                              evaluate_seeds, format_paired, format_table, format_targets, free_motion_rates,
                              free_motion_warning, guided_rates, guided_warning, main, paired, targets, to_json)
 
@@ -105,6 +106,52 @@ def test_main_reports_bad_input_in_one_line(tmp_path, capsys) -> None:  # noqa: 
     assert "--cycles counts peg-in-hole insertions" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["--scene", "kitchen"])
+
+
+def test_several_policies_run_on_the_same_trials_and_end_with_a_line_each(tmp_path, capsys) -> None:  # noqa: ANN001
+    layout = ParamLayout(3, 4, (64, 64), "separate")
+    paths = []
+    for k in range(2):
+        path = tmp_path / f"run{k}" / "policy.pt"
+        save_atomic({"format": 1, "flat": layout.init(torch.Generator().manual_seed(k), 0.0),
+                     "layout": [3, 4, [64, 64], "separate", 3]}, path)
+        paths.append(path)
+    cfg = tmp_path / "peg.yaml"
+    cfg.write_text(yaml.safe_dump({"env": "panda", "panda": FAST["panda"]}))
+    out = tmp_path / "res.json"
+    base = ["--scene", "peg_in_hole", "--config", str(cfg), "--controllers", "learned", "--trials", "1", "--quiet"]
+    assert main([*base, "--policy", str(paths[0].parent), str(paths[1]), "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    docs = json.loads(out.read_text())["policies"]
+    assert [d["policy"] for d in docs] == [str(p) for p in paths]
+    assert docs[0]["policy_fingerprint"] != docs[1]["policy_fingerprint"]
+    # each policy's own table, then one line per policy in the order given
+    assert [line.split()[1] for line in printed.splitlines() if line.startswith("learned: ")] == [str(p) for p in paths]
+    tail = printed[printed.index("the learned controller of each policy"):].splitlines()
+    assert tail[1].split()[:2] == ["policy", "parameters"]
+    for d, line in zip(docs, tail[2:4]):
+        assert line.split()[:3] == [d["policy"], d["policy_fingerprint"], f"{d['successes']}/1"]
+    # a missing policy stops the command before any evaluation; --out records one policy
+    assert main([*base, "--policy", str(paths[0]), str(tmp_path / "nope.pt")]) == 2
+    captured = capsys.readouterr()
+    assert "nope.pt" in captured.err and "successes" not in captured.out
+    assert main([*base, "--policy", str(paths[0]), str(paths[1]), "--out", str(tmp_path / "r")]) == 2
+    assert "--out records one policy" in capsys.readouterr().err
+
+
+def test_the_policy_ranking_lists_each_scene_s_headline_metrics() -> None:
+    peg = {"scene": "peg_in_hole", "policy": "a.pt", "policy_fingerprint": "f1", "trials": 26, "successes": 0,
+           "insertion_time_mean_s": float("nan"), "insertion_time_std_s": float("nan")}
+    lines = format_policy_ranking([peg, {**peg, "policy": "b.pt", "successes": 25, "insertion_time_mean_s": 6.214,
+                                         "insertion_time_std_s": 1.07}]).splitlines()
+    assert lines[2].split() == ["a.pt", "f1", "0/26", "-"]
+    assert lines[3].split() == ["b.pt", "f1", "25/26", "6.21", "±", "1.07"]
+    gui = {"scene": "guidance", "policy": "c.pt", "policy_fingerprint": "f2", "guide_force_mean": 6.26,
+           "goal_error_mean": 0.0131, "drift_mean": 0.002}
+    assert format_policy_ranking([gui]).splitlines()[2].split() == ["c.pt", "f2", "6.26", "13", "2"]
+    pol = {"scene": "polishing", "policy": "d.pt", "policy_fingerprint": "f3", "zones_reached_mean": 1.0,
+           "force_error_mean": 4.84, "relocation_force_mean": 8.39}
+    assert format_policy_ranking([pol]).splitlines()[2].split() == ["d.pt", "f3", "100%", "4.84", "8.39"]
 
 
 def test_the_default_worker_count_is_the_usable_cores_up_to_a_bound(monkeypatch) -> None:  # noqa: ANN001
