@@ -874,6 +874,7 @@ def format_policy_ranking(docs: list[dict]) -> str:
     lines += ["  " + "  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in [head, *rows]]
     return "\n".join(lines)
 
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry for `a3cqp evaluate --scene ...`; returns an exit code."""
     p = argparse.ArgumentParser(prog="a3cqp evaluate", description=help_summary(__doc__))
