@@ -956,13 +956,16 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 res = evaluate(args.scene, policy, args.trials, args.seed, **kw)
             docs.append(_report(args, cfg_path, res, policy, prints))
+            if args.json and len(policies) > 1:  # after each policy: a long sweep stopped midway keeps what ran
+                _write_json(Path(args.json), {"policies": docs})
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if len(docs) > 1:
         print(format_policy_ranking(docs))
     if args.json:
-        _write_json(Path(args.json), docs[0] if len(docs) == 1 else {"policies": docs})
+        if len(docs) == 1:
+            _write_json(Path(args.json), docs[0])
         print(f"wrote {args.json}")
     if args.out:
         out = Path(args.out)

@@ -137,6 +137,13 @@ def test_several_policies_run_on_the_same_trials_and_end_with_a_line_each(tmp_pa
     assert "nope.pt" in captured.err and "successes" not in captured.out
     assert main([*base, "--policy", str(paths[0]), str(paths[1]), "--out", str(tmp_path / "r")]) == 2
     assert "--out records one policy" in capsys.readouterr().err
+    # a policy that fails to load midway: one line, and the JSON keeps the policies evaluated before it
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    out.unlink()
+    assert main([*base, "--policy", str(paths[0]), str(bad), "--json", str(out)]) == 2
+    assert "corrupt" in capsys.readouterr().err
+    assert [d["policy"] for d in json.loads(out.read_text())["policies"]] == [str(paths[0])]
 
 
 def test_the_policy_ranking_lists_each_scene_s_headline_metrics() -> None:
