@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from a3cqp_rl.config import config_from_dict
-from envs.evaluate_cli import PANDA_HINT
+from envs.evaluate_cli import PANDA_CHECK, PANDA_HINT
 from envs.point_mass import PointMassEnv, agent_step
 from envs.point_mass_eval import (EVAL_SCENARIOS, baseline_policies, behaviour_checks, evaluate, scenario_config,
                                   switching_rule)
@@ -128,6 +128,9 @@ def test_evaluate_cli(tmp_path, capsys):
     failing = any(r <= 0 for r in rates.values()) or any(not (a > 0 and d < 0)
                                                          for a, d in data["guided_w2_fd_rates"].values())
     assert (PANDA_HINT in printed) == failing  # the way to a policy that transfers, only where one does not
+    passing = [n for n, r in rates.items() if r > 0 and (lambda a, d: a > 0 and d < 0)(*data["guided_w2_fd_rates"][n])]
+    check = [line for line in printed.splitlines() if line.startswith(PANDA_CHECK)]
+    assert check == ([f"{PANDA_CHECK} --policy " + " ".join(str(tmp_path / n) for n in passing)] if passing else [])
     assert main(["evaluate", "--episodes", "2"]) == 0  # baselines only
     assert main(["evaluate", "--policy", str(tmp_path / "missing.pt")]) == 2
     assert "not found" in capsys.readouterr().err
@@ -147,3 +150,15 @@ def test_evaluate_cli_hands_panda_scenes_to_panda_eval(monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "envs.panda_eval", None)  # a version without the Panda scenes
     assert main(["evaluate", "--scene=peg_in_hole"]) == 2
     assert "Panda scenes are not available" in capsys.readouterr().err
+
+
+def test_policies_that_pass_both_panda_rules_are_named_with_the_command_that_checks_them(capsys):
+    from pathlib import Path
+
+    from envs.evaluate_cli import report
+
+    shipped = Path(__file__).parents[1] / "policies" / "point_mass_fig5_fd_1e6_seed0.pt"  # raises IK and yields
+    report([shipped], episodes=2)
+    printed = capsys.readouterr().out
+    assert f"{PANDA_CHECK} --policy {shipped}" in printed.splitlines()
+    assert PANDA_HINT not in printed
