@@ -940,6 +940,8 @@ def main(argv: list[str] | None = None) -> int:
         kw = dict(config=cfg, controllers=controllers, cycles=args.cycles, progress=not args.quiet, fixed=fixed,
                   sim_threads=args.threads, workers=args.workers, park=not args.no_park,
                   record_trial=args.record_trial)
+        if policies != [None] and (warning := sensing_warning(cfg.panda)):  # the config's: once for every policy
+            print(warning, file=sys.stderr)
         docs = []
         for policy in policies:
             prints = None
@@ -948,7 +950,7 @@ def main(argv: list[str] | None = None) -> int:
 
                 loaded = load_policy(policy)
                 prints = fingerprint(loaded)
-                for warning in (free_motion_warning(loaded), guided_warning(loaded), sensing_warning(cfg.panda)):
+                for warning in (free_motion_warning(loaded), guided_warning(loaded)):
                     if warning:
                         print(warning if len(policies) == 1 else f"{policy}: {warning}", file=sys.stderr)
             if args.seeds is not None:
@@ -956,16 +958,14 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 res = evaluate(args.scene, policy, args.trials, args.seed, **kw)
             docs.append(_report(args, cfg_path, res, policy, prints))
-            if args.json and len(policies) > 1:  # after each policy: a long sweep stopped midway keeps what ran
-                _write_json(Path(args.json), {"policies": docs})
+            if args.json:  # after each policy: a long sweep stopped midway keeps what ran
+                _write_json(Path(args.json), docs[0] if len(policies) == 1 else {"policies": docs})
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if len(docs) > 1:
         print(format_policy_ranking(docs))
     if args.json:
-        if len(docs) == 1:
-            _write_json(Path(args.json), docs[0])
         print(f"wrote {args.json}")
     if args.out:
         out = Path(args.out)
