@@ -178,6 +178,15 @@ class A2CConfig:
     """Fraction in [0, 1) of the run, at its end, whose parameters policy.pt averages uniformly (stochastic weight
     averaging, Izmailov et al. 2018; for A2C, Nikishin et al. 2018). 0 = the last parameters (the paper). Training
     itself uses the raw parameters; the average only smooths the noise the last updates leave in the saved policy."""
+    select_policy: Literal["last", "transfer"] = "last"
+    """Which parameters policy.pt holds. "last": the run's last (or average_last's average). "transfer": of the
+    parameters at the log rows in the run's last `select_last` fraction, those with the largest transfer margin
+    (a3cqp_rl.transfer: raise IK in the Panda's free motion, yield to the operator's push). The point-mass policy
+    swings there from one log row to the next, since the surrogate's return hardly depends on it, and a final
+    policy that fails either check does not drive the Panda (docs/panda.md, "Keeping the parameters that
+    transfer"). Training itself is unchanged: the same updates, the same random numbers."""
+    select_last: float = 0.5
+    """Fraction in (0, 1] of the run, at its end, whose log rows `select_policy: transfer` chooses among."""
     init_policy: str | None = None
     """Fine-tuning: a policy.pt (or checkpoint.pt, or run folder) whose parameters the run starts from instead of
     the random init: every tensor whose name and shape match (the actor, its log σ, the critic where its input has
@@ -212,6 +221,11 @@ class A2CConfig:
             err.add("gae_lambda", f"must be in [0, 1], got {self.gae_lambda}")
         if not 0.0 <= self.average_last < 1.0:
             err.add("average_last", f"must be in [0, 1), got {self.average_last}")
+        if not 0.0 < self.select_last <= 1.0:
+            err.add("select_last", f"must be in (0, 1], got {self.select_last}")
+        if self.select_policy == "transfer" and self.average_last > 0:
+            err.add("select_policy", "transfer keeps one row's parameters, average_last averages many: set one of them "
+                    "(average_last: 0 or select_policy: last)")
         if not 0.0 <= self.rms_alpha < 1.0:
             err.add("rms_alpha", f"must be in [0, 1), got {self.rms_alpha}")
         if not self.hidden or any(h <= 0 for h in self.hidden):

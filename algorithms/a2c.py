@@ -39,12 +39,13 @@ from torch import Tensor
 
 from a3cqp_rl.config import A2CConfig, ExperimentConfig
 from a3cqp_rl.timing import Timer, process_age
-from algorithms.a2c_run import Checkpoints, ParameterAverage, RegionChecks, SigintCheckpoint, open_run_folder
+from algorithms.a2c_run import (Checkpoints, ParameterAverage, RegionChecks, SigintCheckpoint, TransferSelection,
+                               open_run_folder)
 from algorithms.networks import LOG_2PI, ParamLayout, backward, forward, policy_forward
 from algorithms.policy import init_from_policy, load_actor, load_policy
 from algorithms.rmsprop import clip_grad_norm_, rmsprop_step_
 from a3cqp_rl.regions import REGION_COLUMNS
-from algorithms.run_log import CSV_COLUMNS, METRICS, RunLog, truncate_csv
+from algorithms.run_log import CSV_COLUMNS, METRICS, TRANSFER_COLUMNS, RunLog, truncate_csv
 
 __all__ = ["Batch", "HeldNoise", "ParameterAverage", "EnvLayout", "read_env_layout", "nstep_returns", "gae_advantages",
            "a2c_update", "train", "TrainResult", "load_policy", "load_actor", "METRICS", "CSV_COLUMNS"]
@@ -568,6 +569,10 @@ class TrainResult:
     """Process start to the end of this run's first update [s] (the first update's compile included)."""
     fig5_applies: bool = False
     """Whether the env is the point mass, whose eq. 26 observation the Fig. 5 regions and policy maps are drawn in."""
+    selected_update: int | None = None
+    """With `a2c.select_policy: transfer`, the update whose parameters policy.pt holds."""
+    transfer_margin: float = float("nan")
+    """With `a2c.select_policy: transfer`, their transfer margin (a3cqp_rl.transfer; > 0: both Panda checks pass)."""
 
 
 def train(
@@ -622,7 +627,8 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     num_updates = math.ceil(total / per_update)
 
     average = ParameterAverage(num_updates, hp.average_last)
-    ckpt = Checkpoints(folder, cfg, layout, spec, flat, square_avg, gen, runner, average)
+    selection = TransferSelection(layout, spec, num_updates, hp)
+    ckpt = Checkpoints(folder, cfg, layout, spec, flat, square_avg, gen, runner, average, selection)
     start = ckpt.begin(resume, override)
     log = RunLog(folder.path if folder else None, start, per_update, hp.log_every)
     regions = RegionChecks(layout, flat, average, num_updates, hp) if _fig5_applies(env) else None
@@ -647,6 +653,7 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
             if done % hp.log_every == 0 or done == num_updates:
                 with timer("regions"):
                     row_regions = regions(done) if regions else {}
+                    row_regions.update(selection(done, flat))
                 with timer("log"):
                     last = _log_row(log, ckpt, done, per_update, runner, t_start, compile_s, start, row_regions)
                 if not math.isfinite(last["value_loss"]) or not bool(torch.isfinite(flat).all()):
@@ -671,6 +678,7 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
         out_dir=folder.path if folder else None, policy_path=policy_path, final_metrics=last,
         episode_returns=[r for r, _ in runner.finished], timings=dict(timer.totals), startup_seconds=startup_s,
         fig5_applies=regions is not None,
+        selected_update=selection.update if selection.best is not None else None, transfer_margin=selection.margin,
     )
 
 
@@ -720,7 +728,7 @@ def _log_row(log: RunLog, ckpt, updates, per_update, runner, t_start, compile_s,
            "episode_reward": float(sum(recent) / len(recent)) if recent else float("nan"),
            "episodes": ckpt.episodes_before + len(runner.finished),
            "steps_per_second": (updates - start) * per_update / max(time.perf_counter() - t_start - compile_s, 1e-9),
-           **{k: regions.get(k, float("nan")) for k in REGION_COLUMNS}}
+           **{k: regions.get(k, float("nan")) for k in (*REGION_COLUMNS, *TRANSFER_COLUMNS)}}
     log.write(row)
     return row
 

@@ -17,9 +17,9 @@ from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, confi
 from a3cqp_rl.exceptions import A3CQPError, CheckpointError
 from a3cqp_rl.run_folder import RunFolder, RunFolderError, config_changes
 from algorithms.networks import ParamLayout, policy_mean
-from algorithms.policy import layout_key
+from algorithms.policy import A2CPolicy, layout_key
 
-__all__ = ["open_run_folder", "Checkpoints", "ParameterAverage", "RegionChecks", "SigintCheckpoint",
+__all__ = ["open_run_folder", "Checkpoints", "ParameterAverage", "TransferSelection", "RegionChecks", "SigintCheckpoint",
            "TrainingInterrupted", "CKPT_KEYS", "RESUMABLE_CHANGES"]
 
 CKPT_KEYS = ("format", "update", "flat", "square_avg", "gen", "rollout", "config", "layout", "metric_sum", "metric_count")
@@ -72,15 +72,67 @@ class ParameterAverage:
                           f"rebuilt from a checkpoint at update {start}; policy.pt averages {start + 1}-{self.num_updates}")
 
 
+class TransferSelection:
+    """`a2c.select_policy: transfer`: of the parameters at the log rows in the run's last `a2c.select_last` fraction,
+    policy.pt holds those with the largest transfer margin (a3cqp_rl.transfer; a later row wins a tie) instead of the
+    last ones. The rates and the margin of the live parameters go to metrics.csv on every row of a per-axis policy
+    (eq. 26 observation, four actions), selecting or not."""
+
+    def __init__(self, layout: ParamLayout, spec, num_updates: int, hp: A2CConfig) -> None:
+        """Select over updates num_updates − ⌈select_last·num_updates⌉ + 1 … num_updates if `hp.select_policy` asks."""
+        self.layout, self.low, self.high = layout, spec.low, spec.high
+        self.applies = layout.obs_dim == 3 and layout.act_dim == 4
+        self.enabled = hp.select_policy == "transfer"
+        if self.enabled and not self.applies:
+            raise ValueError(f"a2c.select_policy: transfer needs the per-axis agents' policy (3 observations, 4 "
+                             f"actions: eq. 26-29), this env's has {layout.obs_dim} and {layout.act_dim}")
+        self.first = num_updates - math.ceil(hp.select_last * num_updates) + 1
+        self.best: Tensor | None = None
+        self.update, self.margin = 0, -math.inf
+
+    def __call__(self, done: int, flat: Tensor) -> dict[str, float]:
+        """TRANSFER_COLUMNS of the live parameters at log row `done` (empty if the policy is not per-axis); keeps them
+        if selecting, inside the window, and their margin is the largest so far."""
+        from a3cqp_rl.transfer import transfer_margin
+
+        if not self.applies:
+            return {}
+        margin, free, guided = transfer_margin(A2CPolicy(self.layout, flat, self.low, self.high))
+        if self.enabled and done >= self.first and margin >= self.margin:
+            self.best, self.update, self.margin = flat.clone(), done, margin
+        return {"transfer_margin": margin, "free_w1": float(free[0]), "guided_w2": float(guided[1]),
+                "guided_fd": float(guided[3])}
+
+    def policy(self, flat: Tensor) -> Tensor:
+        """The parameters policy.pt gets now: the selected ones once the window has begun, else `flat`."""
+        return self.best if self.best is not None else flat
+
+    def meta(self) -> dict:
+        """What policy.pt says about the selection (empty when not selecting)."""
+        return {"selected_update": self.update, "transfer_margin": self.margin} if self.best is not None else {}
+
+    def state_dict(self) -> dict:
+        """Checkpoint entry (empty before the window)."""
+        return {"first": self.first, "best": self.best, "update": self.update, "margin": self.margin} \
+            if self.best is not None else {}
+
+    def load_state_dict(self, d: dict, start: int) -> None:
+        """Restore at checkpoint update `start`; a window moved by another --steps keeps the rows it still covers."""
+        if d and int(d["update"]) >= self.first:
+            self.best, self.update, self.margin = d["best"].clone(), int(d["update"]), float(d["margin"])
+
+
 class Checkpoints:
     """Everything a run must keep to continue bit-identically: parameters, optimiser, RNG, rollout and env state,
-    the metric window, episode count and parameter average; written atomically to OUT/checkpoint.pt."""
+    the metric window, episode count, parameter average and selection; written atomically to OUT/checkpoint.pt."""
 
     def __init__(self, folder: RunFolder | None, cfg: ExperimentConfig, layout: ParamLayout, spec, flat: Tensor,
-                 square_avg: Tensor, gen: torch.Generator, runner, average: ParameterAverage) -> None:
+                 square_avg: Tensor, gen: torch.Generator, runner, average: ParameterAverage,
+                 selection: TransferSelection) -> None:
         """Hold references to the live training state (updated in place by the loop)."""
         self.folder, self.cfg, self.layout, self.spec = folder, cfg, layout, spec
         self.flat, self.square_avg, self.gen, self.runner, self.average = flat, square_avg, gen, runner, average
+        self.selection = selection
         self.layout_key = [layout.obs_dim, layout.act_dim, list(layout.hidden), layout.network, layout.critic_obs_dim]
         self.metric_sum = torch.zeros(5)  # running sums of METRICS since the last logged row
         self.metric_count = 0
@@ -127,12 +179,14 @@ class Checkpoints:
                      "gen": self.gen.get_state(), "rollout": r.state_dict(), **self._meta(),
                      "finished": [list(x) for x in r.finished[-1000:]], "episodes": self.episodes_before + len(r.finished),
                      "metric_sum": self.metric_sum, "metric_count": self.metric_count,
-                     "average": self.average.state_dict()}, self.path)
+                     "average": self.average.state_dict(), "selection": self.selection.state_dict()}, self.path)
 
     def save_policy(self) -> Path:
-        """Write OUT/policy.pt: the parameters policy.pt holds (averaged with a2c.average_last), layout and bounds."""
-        return save_atomic({"format": 1, "flat": self.average.policy(self.flat).clone(), **self._meta(),
-                            "averaged_updates": self.average.count}, self.folder.path / "policy.pt")
+        """Write OUT/policy.pt: the parameters policy.pt holds (averaged with a2c.average_last or selected with
+        a2c.select_policy), layout and bounds."""
+        flat = self.selection.policy(self.average.policy(self.flat))
+        return save_atomic({"format": 1, "flat": flat.clone(), **self._meta(), "averaged_updates": self.average.count,
+                            **self.selection.meta()}, self.folder.path / "policy.pt")
 
     def restore(self, override: bool) -> int:
         """Load OUT/checkpoint.pt into the live state; refuse a changed config unless `override` (then recorded in
@@ -157,6 +211,7 @@ class Checkpoints:
         self.episodes_before = int(ck.get("episodes", len(self.runner.finished))) - len(self.runner.finished)
         self.metric_sum, self.metric_count = ck["metric_sum"].clone(), int(ck["metric_count"])
         self.average.load_state_dict(ck.get("average", {}), start)
+        self.selection.load_state_dict(ck.get("selection", {}), start)
         return start
 
     def _write_config(self) -> None:

@@ -124,6 +124,8 @@ def _run(args: argparse.Namespace) -> int:
         print(f"trained {res.steps:,} steps in {res.seconds:.1f} s ({res.steps_per_second:,.0f} steps/s"
               f"{f', plus {res.compile_seconds:.0f} s compiling' if res.compile_seconds else ''}); "
               + _reward_text(res.final_metrics.get("episode_reward", float("nan"))))
+        if res.selected_update is not None:
+            print(_selection_text(res, run_cfg.a2c.select_last))
         if args.timings:
             blocks = ", ".join(f"{k} {v:.2f} s" for k, v in res.timings.items())
             print(f"timings: start-up {res.startup_seconds:.2f} s (process start to the first update); {blocks}")
@@ -173,6 +175,16 @@ def _reward_text(r: float) -> str:
     if math.isnan(r):
         return "no episode finished yet (episodes are longer than this run per env)"
     return f"last mean episode reward {r:.2f}"
+
+
+def _selection_text(res, select_last: float) -> str:  # noqa: ANN001
+    """The line saying which parameters `a2c.select_policy: transfer` kept in policy.pt."""
+    text = (f"policy.pt: the parameters after update {res.selected_update:,} of {res.updates:,}, the largest transfer "
+            f"margin ({res.transfer_margin:+.2f}) over the last {select_last:.0%} of the run (a2c.select_policy: transfer)")
+    if res.transfer_margin <= 0:
+        text += ("; at no log row did the policy both raise IK over admittance in the Panda's free motion and yield to "
+                 "the operator: it will probably not drive the Panda (docs/panda.md)")
+    return text
 
 
 def _print_regions(policy_path: Path) -> int:

@@ -100,7 +100,7 @@ def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed
     from a3cqp_rl.config import config_from_dict
     from a3cqp_rl.regions import check_fig5_regions, format_regions
     from algorithms.a2c import load_policy
-    from envs.panda_eval import FREE_MOTION_E, free_motion_rates, guided_rates
+    from a3cqp_rl.transfer import FREE_MOTION_E, free_motion_rates, guided_rates, raises_ik, yields
     from envs.point_mass_eval import CHECKS, baseline_policies, behaviour_checks, evaluate
 
     out = sys.stdout if out is None else out  # looked up per call: a default bound at import outlives a redirect
@@ -141,26 +141,29 @@ def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed
                   + ", ".join(f"{k} {sum(c[k] for c in checks.values())}" for k in CHECKS), file=out)
     # on the Panda a policy that does not raise w1 at small force-free errors lets the reference go, and one that
     # does not raise w2 and lower f_d under the operator's force pushes back against the hand (docs/panda.md)
-    free_motion = {n: float(free_motion_rates(pol)[0]) for n, pol in learned.items()}
-    guided = {n: guided_rates(pol)[[1, 3]].tolist() for n, pol in learned.items()}
-    raises = {n: r > 0 for n, r in free_motion.items()}
-    yields = {n: a > 0 and d < 0 for n, (a, d) in guided.items()}
+    free_rates = {n: free_motion_rates(pol) for n, pol in learned.items()}
+    guided_all = {n: guided_rates(pol) for n, pol in learned.items()}
+    free_motion = {n: float(r[0]) for n, r in free_rates.items()}
+    guided = {n: r[[1, 3]].tolist() for n, r in guided_all.items()}
+    raises = {n: raises_ik(r) for n, r in free_rates.items()}
+    yielding = {n: yields(r) for n, r in guided_all.items()}
     if learned:
         print(f"\nPanda free motion (|e|/ē {FREE_MOTION_E[0]}-{FREE_MOTION_E[-1]}, no force; a policy must raise "
-              "IK's weight there to follow the Panda's references, docs/panda.md): "
-              + ", ".join(f"{n} ẇ1 {r:+.2f} ({'raises IK' if raises[n] else 'does not raise IK'})"
-                          for n, r in free_motion.items()), file=out)
+              "IK's weight over admittance's there to follow the Panda's references, docs/panda.md): "
+              + ", ".join(f"{n} ẇ1 {r[0]:+.2f} ẇ2 {r[1]:+.2f} ({'raises IK' if raises[n] else 'does not raise IK'})"
+                          for n, r in free_rates.items()), file=out)
         print("Panda guidance (|f_ope|/f̄_ope 0.1-0.5; a policy must raise w2 and lower f_d there to let the operator "
-              "guide it): " + ", ".join(f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({'yields' if yields[n] else 'resists'})"
+              "guide it): " + ", ".join(f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({'yields' if yielding[n] else 'resists'})"
                                         for n, (a, d) in guided.items()), file=out)
-        if not (all(raises.values()) and all(yields.values())):
+        if not (all(raises.values()) and all(yielding.values())):
             print(PANDA_HINT, file=out)
         both = [str(path.parent if path.name == "policy.pt" else path) for n, path in zip(names, paths)
-                if raises[n] and yields[n]]
+                if raises[n] and yielding[n]]
         if both:  # the two rules are necessary, not sufficient: the Panda itself decides
             print(f"{PANDA_CHECK} --policy {' '.join(both)}", file=out)
     if json_path:
         result.write_json(json_path, {"checks": checks, "literal_regions": regions, "free_motion_w1_rate": free_motion,
+                                      "free_motion_w2_rate": {n: float(r[1]) for n, r in free_rates.items()},
                                       "guided_w2_fd_rates": guided,
                                       "policy_files": {n: str(p) for n, p in zip(names, paths)}})
         print(f"wrote {json_path}", file=out)

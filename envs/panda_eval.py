@@ -55,6 +55,8 @@ import torch
 
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
+from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, guided_rates,  # noqa: F401 (re-exported)
+                                raises_ik, yields)
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "trial_seeds", "paired", "free_motion_rates", "free_motion_warning",
            "guided_rates", "guided_warning", "sensing_warning", "limit_stress", "LimitStress", "capped_time",
@@ -76,10 +78,6 @@ axis, 50 along it."""
 VIC_OPERATOR = (0.2, 0.2, 0.2, 0.5, 0.5, 0.5)
 """vic's stiffness scales while the operator holds the handle (compliant)."""
 RECORD_KEYS = ("time", "phase", "e_local", "f_env_local", "f_ope_local", "weights", "f_d")
-FREE_MOTION_E = (0.001, 0.003, 0.01, 0.02)
-"""|e|/ē on the Panda in free motion (the approach of peg-in-hole: 0.001-0.018 with ē = 1 m, no force sensed)."""
-GUIDED_OBS = tuple((e, 0.0, f) for e in (0.01, 0.05) for f in (0.1, 0.2, 0.3, 0.5))
-"""Eq. 26 observations of an arm the operator guides: small error, |f_ope|/f̄_ope 0.1-0.5, no contact."""
 
 
 @dataclass
@@ -516,29 +514,12 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     return {"scene": env.scene.name, "metrics": per, "episodes": eps, "sim_seconds": steps * env.adapt.dt * n}
 
 
-def _mean_action(policy, obs) -> np.ndarray:  # noqa: ANN001
-    with torch.no_grad():
-        return policy(torch.tensor(obs, dtype=torch.float32)).mean(0).double().numpy()
-
-
-def free_motion_rates(policy) -> np.ndarray:  # noqa: ANN001
-    """A policy's mean action (ẇ1, ẇ2, ẇ3, ḟd) [4] over the eq. 26 observations of the Panda's free motion
-    (|e|/ē in FREE_MOTION_E, no force). A point-mass policy sees such small errors with no force only once it has
-    reached a fixed target, where its weights cost nothing, so training leaves them to chance."""
-    return _mean_action(policy, [[e, 0.0, 0.0] for e in FREE_MOTION_E])
-
-
-def guided_rates(policy) -> np.ndarray:  # noqa: ANN001
-    """A policy's mean action (ẇ1, ẇ2, ẇ3, ḟd) [4] over GUIDED_OBS: what it does while the operator pushes."""
-    return _mean_action(policy, GUIDED_OBS)
-
-
 def guided_warning(policy) -> str | None:  # noqa: ANN001
     """A warning when a policy does not yield to the operator's push (mean ẇ2 <= 0 or ḟd >= 0 at GUIDED_OBS): on
     the Panda it then pushes back with force control and the operator cannot guide the arm (docs/panda.md,
     "Yielding to the operator is a second draw"); None otherwise."""
     r = guided_rates(policy)
-    if r[1] > 0.0 and r[3] < 0.0:
+    if yields(r):
         return None
     return (f"warning: under the operator's force (|f_ope|/f̄_ope 0.1-0.5) this policy does not both raise admittance "
             f"and lower f_d (mean ẇ2 {r[1]:+.2f}, ḟd {r[3]:+.2f}): on the Panda the operator will probably not be able "
@@ -546,15 +527,16 @@ def guided_warning(policy) -> str | None:  # noqa: ANN001
 
 
 def free_motion_warning(policy) -> str | None:  # noqa: ANN001
-    """A warning when a policy does not raise IK's weight in free motion (mean ẇ1 <= 0 at FREE_MOTION_E): on the
-    Panda it then lets the reference go (docs/panda.md, "Which point-mass policies transfer"); None otherwise."""
+    """A warning when a policy does not raise IK's weight over admittance's in free motion (mean ẇ1 <= 0 or ẇ2 >= 0
+    at FREE_MOTION_E): on the Panda it then lets the reference go (docs/panda.md, "Which point-mass policies
+    transfer"); None otherwise."""
     r = free_motion_rates(policy)
-    if r[0] > 0.0:
+    if raises_ik(r):
         return None
     return (f"warning: in free motion (|e|/ē {FREE_MOTION_E[0]}-{FREE_MOTION_E[-1]}, no force) this policy does not "
-            f"raise IK's weight (mean ẇ1 {r[0]:+.2f}, ẇ2 {r[1]:+.2f}, ẇ3 {r[2]:+.2f}): on the Panda it will probably "
-            "not follow the reference (every such point-mass policy measured inserted at most 2 of 26 pegs; "
-            "docs/panda.md)")
+            f"raise IK's weight over admittance's (mean ẇ1 {r[0]:+.2f}, ẇ2 {r[1]:+.2f}, ẇ3 {r[2]:+.2f}): on the Panda "
+            "it will probably not follow the reference (every such point-mass policy measured inserted at most 3 of 26 "
+            "pegs; docs/panda.md)")
 
 
 def sensing_warning(panda) -> str | None:  # noqa: ANN001

@@ -119,16 +119,16 @@ def test_evaluate_cli(tmp_path, capsys):
     data = json.loads(out.read_text())
     assert set(data["checks"]) == {"a", "b"} and "guided_contact" in data["policies"]["a"]
     # the Panda's free-motion check, per policy (its sign decides the words)
-    rates = data["free_motion_w1_rate"]
-    assert set(rates) == {"a", "b"}
+    rates, rates2 = data["free_motion_w1_rate"], data["free_motion_w2_rate"]
+    assert set(rates) == set(rates2) == {"a", "b"}
+    raises = {n: r > 0 > rates2[n] for n, r in rates.items()}  # IK over admittance
     for n, r in rates.items():
-        assert f"{n} ẇ1 {r:+.2f} ({'raises IK' if r > 0 else 'does not raise IK'})" in printed
+        assert f"{n} ẇ1 {r:+.2f} ẇ2 {rates2[n]:+.2f} ({'raises IK' if raises[n] else 'does not raise IK'})" in printed
     for n, (a, d) in data["guided_w2_fd_rates"].items():
         assert f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({'yields' if a > 0 and d < 0 else 'resists'})" in printed
-    failing = any(r <= 0 for r in rates.values()) or any(not (a > 0 and d < 0)
-                                                         for a, d in data["guided_w2_fd_rates"].values())
+    failing = not all(raises.values()) or any(not (a > 0 and d < 0) for a, d in data["guided_w2_fd_rates"].values())
     assert (PANDA_HINT in printed) == failing  # the way to a policy that transfers, only where one does not
-    passing = [n for n, r in rates.items() if r > 0 and (lambda a, d: a > 0 and d < 0)(*data["guided_w2_fd_rates"][n])]
+    passing = [n for n in rates if raises[n] and (lambda a, d: a > 0 and d < 0)(*data["guided_w2_fd_rates"][n])]
     check = [line for line in printed.splitlines() if line.startswith(PANDA_CHECK)]
     assert check == ([f"{PANDA_CHECK} --policy " + " ".join(str(tmp_path / n) for n in passing)] if passing else [])
     assert main(["evaluate", "--episodes", "2"]) == 0  # baselines only
