@@ -333,7 +333,10 @@ def test_free_motion_warning_names_a_policy_that_leaves_ik_at_small_errors() -> 
     assert seen[0][:, 0].tolist() == pytest.approx(list(FREE_MOTION_E)) and not seen[0][:, 1:].any()
     leaves = policy((-0.8, -0.3, 0.95, -0.2))  # to force control with f_d falling: the arm creeps
     text = free_motion_warning(leaves)
-    assert text is not None and "ẇ1 -0.80" in text and "ẇ3 +0.95" in text
+    assert text is not None and "ẇ1 -0.80" in text and "ẇ3 +0.95" in text and "at most 2 of 26" in text
+    shares = policy((0.6, 0.3, -0.6, -0.7))  # IK and admittance both up: eq. 29's logits end level, half each
+    text = free_motion_warning(shares)
+    assert text is not None and "over admittance's" in text and "ẇ2 +0.30" in text and "5 inserted" in text
 
 
 def test_guided_warning_names_a_policy_that_pushes_back_against_the_operator() -> None:
