@@ -678,7 +678,8 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
         out_dir=folder.path if folder else None, policy_path=policy_path, final_metrics=last,
         episode_returns=[r for r, _ in runner.finished], timings=dict(timer.totals), startup_seconds=startup_s,
         fig5_applies=regions is not None,
-        selected_update=selection.update if selection.best is not None else None, transfer_margin=selection.margin,
+        selected_update=selection.update if selection.best is not None else None,
+        transfer_margin=selection.margin if selection.best is not None else float("nan"),
     )
 
 

@@ -16,6 +16,7 @@ from a3cqp_rl.checkpoint import load_checkpoint, save_atomic
 from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, config_to_dict
 from a3cqp_rl.exceptions import A3CQPError, CheckpointError
 from a3cqp_rl.run_folder import RunFolder, RunFolderError, config_changes
+from a3cqp_rl.transfer import transfer_margin
 from algorithms.networks import ParamLayout, policy_mean
 from algorithms.policy import A2CPolicy, layout_key
 
@@ -93,8 +94,6 @@ class TransferSelection:
     def __call__(self, done: int, flat: Tensor) -> dict[str, float]:
         """TRANSFER_COLUMNS of the live parameters at log row `done` (empty if the policy is not per-axis); keeps them
         if selecting, inside the window, and their margin is the largest so far."""
-        from a3cqp_rl.transfer import transfer_margin
-
         if not self.applies:
             return {}
         margin, free, guided = transfer_margin(A2CPolicy(self.layout, flat, self.low, self.high))
