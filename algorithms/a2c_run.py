@@ -99,8 +99,8 @@ class TransferSelection:
         margin, free, guided = transfer_margin(A2CPolicy(self.layout, flat, self.low, self.high))
         if self.enabled and done >= self.first and margin >= self.margin:
             self.best, self.update, self.margin = flat.clone(), done, margin
-        return {"transfer_margin": margin, "free_w1": float(free[0]), "guided_w2": float(guided[1]),
-                "guided_fd": float(guided[3])}
+        return {"transfer_margin": margin, "free_w1": float(free[0]), "free_w2": float(free[1]),
+                "guided_w2": float(guided[1]), "guided_fd": float(guided[3])}
 
     def policy(self, flat: Tensor) -> Tensor:
         """The parameters policy.pt gets now: the selected ones once the window has begun, else `flat`."""

@@ -16,9 +16,10 @@ from a3cqp_rl.run_folder import RunFolderError
 __all__ = ["METRICS", "TRANSFER_COLUMNS", "CSV_COLUMNS", "RunLog", "truncate_csv"]
 
 METRICS = ("policy_loss", "value_loss", "entropy", "grad_norm", "explained_variance")
-TRANSFER_COLUMNS = ("transfer_margin", "free_w1", "guided_w2", "guided_fd")
-"""metrics.csv columns of a per-axis policy's live parameters (a3cqp_rl.transfer): mean ẇ1 in the Panda's free motion,
-mean ẇ2 and ḟd under the operator's push, and their margin min(ẇ1, ẇ2, −ḟd); NaN for other policies."""
+TRANSFER_COLUMNS = ("transfer_margin", "free_w1", "free_w2", "guided_w2", "guided_fd")
+"""metrics.csv columns of a per-axis policy's live parameters (a3cqp_rl.transfer): mean ẇ1 and ẇ2 in the Panda's free
+motion, mean ẇ2 and ḟd under the operator's push, and the margin min(free ẇ1, −free ẇ2, guided ẇ2, −guided ḟd); NaN
+for other policies."""
 CSV_COLUMNS = ("step", "update", *METRICS, "episode_reward", "episodes", "steps_per_second", *REGION_COLUMNS,
                *TRANSFER_COLUMNS)
 """metrics.csv columns. The region columns check the policy policy.pt would hold at that row (with `a2c.average_last`,

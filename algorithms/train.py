@@ -146,7 +146,8 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _plot(run_dirs: list[Path], out: Path, results: list, region_checks: int) -> list[str]:
-    """Loss curves of all runs; on the point mass, each run's policy map and the Fig. 5 regions over training."""
+    """Loss curves of all runs; on the point mass, each run's policy map and the Fig. 5 regions over training; for
+    per-axis policies, the Panda transfer checks over training."""
     from a3cqp_rl.plotting.loss_curves import plot_loss_curves
     from algorithms.a2c import load_policy
 
@@ -161,6 +162,10 @@ def _plot(run_dirs: list[Path], out: Path, results: list, region_checks: int) ->
         from a3cqp_rl.plotting.region_history import plot_region_history
 
         made.append(f"{plot_region_history(run_dirs, out / 'regions.png')} (Fig. 5 regions over training)")
+    if all(math.isfinite(r.final_metrics.get("transfer_margin", math.nan)) for r in results):
+        from a3cqp_rl.plotting.transfer_history import plot_transfer_history
+
+        made.append(f"{plot_transfer_history(run_dirs, out / 'transfer.png')} (Panda transfer checks over training)")
     return made
 
 

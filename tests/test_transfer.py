@@ -81,6 +81,8 @@ def test_select_policy_keeps_the_largest_margin_of_the_window_and_resumes_exactl
     rows = _rows(tmp_path / "run" / "metrics.csv")
     assert [int(r["update"]) for r in rows] == list(range(1, 9))
     assert all(math.isfinite(r["transfer_margin"]) for r in rows)
+    for r in rows:  # the margin is the minimum of its four terms
+        assert r["transfer_margin"] == pytest.approx(min(r["free_w1"], -r["free_w2"], r["guided_w2"], -r["guided_fd"]))
     margins = [r["transfer_margin"] for r in rows]
     assert len(set(margins)) > 1  # the rates move while training, or there would be nothing to choose
     window = rows[4:]  # updates 5-8
@@ -108,6 +110,19 @@ def test_select_policy_keeps_the_largest_margin_of_the_window_and_resumes_exactl
     train(cfg, tmp_path / "killed", total_steps=16 * 8, resume=True)
     resumed = torch.load(tmp_path / "killed" / "policy.pt", weights_only=True)
     assert torch.equal(resumed["flat"], saved["flat"]) and resumed["selected_update"] == chosen
+
+    # the plot: a panel per run, the kept update named; a run from before the columns is refused with its path
+    from a3cqp_rl.cli import main
+    from a3cqp_rl.plotting.transfer_history import kept_update
+
+    assert kept_update(tmp_path / "run") == chosen and kept_update(tmp_path / "plain") is None
+    assert main(["plot", "transfer", str(tmp_path / "run"), str(tmp_path / "plain"), "--out",
+                 str(tmp_path / "t.png")]) == 0
+    assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "metrics.csv").write_text("step,update,policy_loss\n16,1,0.5\n")
+    assert main(["plot", "transfer", str(old)]) == 2
 
 
 def test_select_policy_config_is_checked():

@@ -4,6 +4,7 @@ PDF).
     a3cqp plot policy-map POLICY [--out F] [--fixed e --levels 0,0.05,0.3]       (Fig. 5)
     a3cqp plot loss-curves RUN [RUN ...] [--out F]                               (Fig. 4)
     a3cqp plot regions RUN [RUN ...] [--out F]
+    a3cqp plot transfer RUN [RUN ...] [--out F]                                  (the Panda transfer checks)
     a3cqp plot episode RUN [--controller learned] [--axis z] [--strip] [--out F] (a Panda episode, Fig. 7/8)
     a3cqp plot ga DIR [--out F]
     a3cqp plot pareto DIR [--out F]
@@ -49,7 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     pm.add_argument("--fixed", default="e", choices=["e", "f_env", "f_ope"])
     pm.add_argument("--levels", default="0,0.05,0.3", help="comma-separated levels of the fixed variable in [0, 1]")
     for name, text in (("loss-curves", "paper Fig. 4: policy/value loss, mean and IQR over runs"),
-                       ("regions", "Fig. 5 regions passed over training (metrics.csv region checks)")):
+                       ("regions", "Fig. 5 regions passed over training (metrics.csv region checks)"),
+                       ("transfer", "the Panda transfer checks over training, a panel per run, the kept update")):
         _plot_parser(sub, name, text, "runs", "run folders holding metrics.csv (e.g. runs/sweep/seed_*)", nargs="+")
     ep = _plot_parser(sub, "episode", "paper Fig. 7/8: one Panda episode of `a3cqp evaluate --scene ... --out RUN`",
                       "run", "RUN folder (or an episode_<controller>.npz)")
@@ -97,6 +99,11 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"wrote {strip}")
                 except RuntimeError as exc:
                     print(f"no image strip: {exc}", file=sys.stderr)
+        elif args.what == "transfer":
+            from a3cqp_rl.plotting.transfer_history import plot_transfer_history
+
+            out = Path(args.out) if args.out else Path(args.runs[0]).parent / ("transfer" + ext)
+            plot_transfer_history(args.runs, out)
         elif args.what == "ga":
             from a3cqp_rl.plotting.ga_history import plot_ga_run
 
