@@ -564,7 +564,7 @@ class TrainResult:
     final_metrics: dict[str, float] = field(default_factory=dict)
     episode_returns: list[float] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
-    """Totals of the loop's named blocks [s]: iterate (rollout + update), log, regions, checkpoint."""
+    """Totals of the loop's named blocks [s]: iterate (rollout + update), log, regions, transfer, checkpoint."""
     startup_seconds: float = float("nan")
     """Process start to the end of this run's first update [s] (the first update's compile included)."""
     fig5_applies: bool = False
@@ -652,10 +652,11 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
                 bar.compiled()
             if done % hp.log_every == 0 or done == num_updates:
                 with timer("regions"):
-                    row_regions = regions(done) if regions else {}
-                    row_regions.update(selection(done, flat))
+                    row_checks = regions(done) if regions else {}
+                with timer("transfer"):
+                    row_checks.update(selection(done, flat))
                 with timer("log"):
-                    last = _log_row(log, ckpt, done, per_update, runner, t_start, compile_s, start, row_regions)
+                    last = _log_row(log, ckpt, done, per_update, runner, t_start, compile_s, start, row_checks)
                 if not math.isfinite(last["value_loss"]) or not bool(torch.isfinite(flat).all()):
                     raise FloatingPointError(f"training diverged at update {done}: {last}")
                 if callback:
@@ -721,15 +722,16 @@ def _fig5_applies(env) -> bool:
     return isinstance(env, PointMassEnv)
 
 
-def _log_row(log: RunLog, ckpt, updates, per_update, runner, t_start, compile_s, start, regions) -> dict[str, float]:
-    """The metric row after `updates` updates (means since the last row), written to `log`."""
+def _log_row(log: RunLog, ckpt, updates, per_update, runner, t_start, compile_s, start, checks) -> dict[str, float]:
+    """The metric row after `updates` updates (means since the last row), written to `log`; `checks` holds the row's
+    Fig. 5 region and transfer columns (missing ones: NaN)."""
     recent = [r for r, _ in runner.finished[-100:]]
     row = {"step": updates * per_update, "update": updates,
            **{k: float(v) for k, v in zip(METRICS, ckpt.metric_means(updates))},
            "episode_reward": float(sum(recent) / len(recent)) if recent else float("nan"),
            "episodes": ckpt.episodes_before + len(runner.finished),
            "steps_per_second": (updates - start) * per_update / max(time.perf_counter() - t_start - compile_s, 1e-9),
-           **{k: regions.get(k, float("nan")) for k in (*REGION_COLUMNS, *TRANSFER_COLUMNS)}}
+           **{k: checks.get(k, float("nan")) for k in (*REGION_COLUMNS, *TRANSFER_COLUMNS)}}
     log.write(row)
     return row
 
