@@ -178,15 +178,27 @@ class A2CConfig:
     """Fraction in [0, 1) of the run, at its end, whose parameters policy.pt averages uniformly (stochastic weight
     averaging, Izmailov et al. 2018; for A2C, Nikishin et al. 2018). 0 = the last parameters (the paper). Training
     itself uses the raw parameters; the average only smooths the noise the last updates leave in the saved policy."""
-    select_policy: Literal["last", "transfer"] = "last"
+    select_policy: Literal["last", "transfer", "panda"] = "last"
     """Which parameters policy.pt holds. "last": the run's last (or average_last's average). "transfer": of the
     parameters at the log rows in the run's last `select_last` fraction, those with the largest transfer margin
     (a3cqp_rl.transfer: raise IK in the Panda's free motion, yield to the operator's push). The point-mass policy
     swings there from one log row to the next, since the surrogate's return hardly depends on it, and a final
     policy that fails either check does not drive the Panda (docs/panda.md, "Keeping the parameters that
-    transfer"). Training itself is unchanged: the same updates, the same random numbers."""
+    transfer"). "panda": the `select_candidates` rows of that window with the largest margins are each run on
+    `select_trials` peg-in-hole trials of the Panda after training (algorithms.panda_select); policy.pt holds the
+    one that inserts the most pegs, then the fastest. Training itself is unchanged: the same updates, the same
+    random numbers."""
     select_last: float = 0.5
-    """Fraction in (0, 1] of the run, at its end, whose log rows `select_policy: transfer` chooses among."""
+    """Fraction in (0, 1] of the run, at its end, whose log rows `select_policy` transfer or panda chooses among."""
+    select_candidates: int = 4
+    """`select_policy: panda`: how many of the window's parameters (the largest transfer margins) run on the Panda."""
+    select_trials: int = 8
+    """`select_policy: panda`: peg-in-hole trials per candidate (each ~2-3 s of CPU)."""
+    select_seed: int = 1000
+    """`select_policy: panda`: the trials' seed (`a3cqp evaluate --seed`); keep it off the seeds you report."""
+    select_config: str = "configs/panda_peg_in_hole.yaml"
+    """`select_policy: panda`: the Panda config those trials run under (`a3cqp evaluate --config`), relative to the
+    working directory."""
     init_policy: str | None = None
     """Fine-tuning: a policy.pt (or checkpoint.pt, or run folder) whose parameters the run starts from instead of
     the random init: every tensor whose name and shape match (the actor, its log σ, the critic where its input has
@@ -223,9 +235,15 @@ class A2CConfig:
             err.add("average_last", f"must be in [0, 1), got {self.average_last}")
         if not 0.0 < self.select_last <= 1.0:
             err.add("select_last", f"must be in (0, 1], got {self.select_last}")
-        if self.select_policy == "transfer" and self.average_last > 0:
-            err.add("select_policy", "transfer keeps one row's parameters, average_last averages many: set one of them "
-                    "(average_last: 0 or select_policy: last)")
+        if self.select_policy != "last" and self.average_last > 0:
+            err.add("select_policy", f"{self.select_policy} keeps one row's parameters, average_last averages many: set "
+                    "one of them (average_last: 0 or select_policy: last)")
+        for name in ("select_candidates", "select_trials"):
+            err.positive(self, name)
+        if self.select_seed < 0:
+            err.add("select_seed", f"must be >= 0, got {self.select_seed}")
+        if not self.select_config.strip():
+            err.add("select_config", "must name a Panda config file")
         if not 0.0 <= self.rms_alpha < 1.0:
             err.add("rms_alpha", f"must be in [0, 1), got {self.rms_alpha}")
         if not self.hidden or any(h <= 0 for h in self.hidden):

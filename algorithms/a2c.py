@@ -573,6 +573,8 @@ class TrainResult:
     """With `a2c.select_policy: transfer`, the update whose parameters policy.pt holds."""
     transfer_margin: float = float("nan")
     """With `a2c.select_policy: transfer`, their transfer margin (a3cqp_rl.transfer; > 0: both Panda checks pass)."""
+    panda_selection: list[dict] = field(default_factory=list)
+    """With `a2c.select_policy: panda`, each candidate's row (algorithms.panda_select), in the margins' order."""
 
 
 def train(
@@ -594,6 +596,11 @@ def train(
     total = int(total_steps if total_steps is not None else hp.total_steps)
     if total <= 0:
         raise ValueError(f"total_steps must be > 0, got {total}")
+    if hp.select_policy == "panda":  # before training: the selection after it needs both
+        if out_dir is None:
+            raise ValueError("a2c.select_policy: panda writes its candidates into the run folder: give out_dir")
+        if not Path(hp.select_config).is_file():
+            raise FileNotFoundError(f"a2c.select_config: {hp.select_config} not found (relative to {Path.cwd()})")
     folder = open_run_folder(out_dir, resume=resume, force=force)
     try:
         return _train(cfg, folder, total, resume, override, progress, env, callback)
@@ -672,6 +679,14 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     if isinstance(runner, TorchRLRollout):
         runner.close()
     elapsed = time.perf_counter() - t_start
+    panda_rows: list[dict] = []
+    if hp.select_policy == "panda" and selection.candidates:
+        from algorithms.panda_select import PANDA_SELECTION_KEYS, select_on_panda
+
+        print(f"a2c.select_policy: panda: {len(selection.candidates)} candidates on {hp.select_trials} peg-in-hole "
+              f"trials each (seed {hp.select_seed})")
+        chosen, panda_rows = select_on_panda(selection.candidates, ckpt.meta(), folder.path, hp, progress)
+        selection.choose(chosen, {k: panda_rows[chosen][k] for k in PANDA_SELECTION_KEYS})
     policy_path = ckpt.save_policy() if folder else None
     return TrainResult(
         steps=num_updates * per_update, updates=num_updates, seconds=elapsed, compile_seconds=compile_s,
@@ -681,6 +696,7 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
         fig5_applies=regions is not None,
         selected_update=selection.update if selection.best is not None else None,
         transfer_margin=selection.margin if selection.best is not None else float("nan"),
+        panda_selection=panda_rows,
     )
 
 

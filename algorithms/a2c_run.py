@@ -74,33 +74,58 @@ class ParameterAverage:
 
 
 class TransferSelection:
-    """`a2c.select_policy: transfer`: of the parameters at the log rows in the run's last `a2c.select_last` fraction,
-    policy.pt holds those with the largest transfer margin (a3cqp_rl.transfer; a later row wins a tie) instead of the
-    last ones. The rates and the margin of the live parameters go to metrics.csv on every row of a per-axis policy
-    (eq. 26 observation, four actions), selecting or not."""
+    """`a2c.select_policy` transfer or panda: of the parameters at the log rows in the run's last `a2c.select_last`
+    fraction, keeps those with the largest transfer margins (a3cqp_rl.transfer; a later row wins a tie): one for
+    transfer, which policy.pt then holds, `a2c.select_candidates` for panda, which algorithms.panda_select runs on
+    the Panda after training (`choose`). The rates and the margin of the live parameters go to metrics.csv on every
+    row of a per-axis policy (eq. 26 observation, four actions), selecting or not."""
 
     def __init__(self, layout: ParamLayout, spec, num_updates: int, hp: A2CConfig) -> None:
         """Select over updates num_updates − ⌈select_last·num_updates⌉ + 1 … num_updates if `hp.select_policy` asks."""
         self.layout, self.low, self.high = layout, spec.low, spec.high
         self.applies = layout.obs_dim == 3 and layout.act_dim == 4
-        self.enabled = hp.select_policy == "transfer"
+        self.enabled = hp.select_policy in ("transfer", "panda")
         if self.enabled and not self.applies:
-            raise ValueError(f"a2c.select_policy: transfer needs the per-axis agents' policy (3 observations, 4 "
-                             f"actions: eq. 26-29), this env's has {layout.obs_dim} and {layout.act_dim}")
+            raise ValueError(f"a2c.select_policy: {hp.select_policy} needs the per-axis agents' policy (3 observations, "
+                             f"4 actions: eq. 26-29), this env's has {layout.obs_dim} and {layout.act_dim}")
+        self.keep = hp.select_candidates if hp.select_policy == "panda" else 1
         self.first = num_updates - math.ceil(hp.select_last * num_updates) + 1
-        self.best: Tensor | None = None
-        self.update, self.margin = 0, -math.inf
+        self.candidates: list[tuple[float, int, Tensor]] = []
+        """(margin, update, parameters), the largest margin first; a later update first among equal margins."""
+        self.chosen = 0
+        """Index into `candidates` of the parameters policy.pt holds."""
+        self.panda: dict = {}
+        """What the Panda trials gave the chosen candidate (select_policy: panda, once `choose` ran)."""
 
     def __call__(self, done: int, flat: Tensor) -> dict[str, float]:
         """TRANSFER_COLUMNS of the live parameters at log row `done` (empty if the policy is not per-axis); keeps them
-        if selecting, inside the window, and their margin is the largest so far."""
+        if selecting, inside the window, and their margin is among the `keep` largest so far."""
         if not self.applies:
             return {}
         margin, free, guided = transfer_margin(A2CPolicy(self.layout, flat, self.low, self.high))
-        if self.enabled and done >= self.first and margin >= self.margin:
-            self.best, self.update, self.margin = flat.clone(), done, margin
+        if self.enabled and done >= self.first:
+            self.candidates.append((margin, done, flat.clone()))
+            self.candidates.sort(key=lambda c: (-c[0], -c[1]))
+            del self.candidates[self.keep:]
         return {"transfer_margin": margin, "free_w1": float(free[0]), "free_w2": float(free[1]),
                 "guided_w2": float(guided[1]), "guided_fd": float(guided[3])}
+
+    @property
+    def best(self) -> Tensor | None:
+        """The selected parameters (None before the window)."""
+        return self.candidates[self.chosen][2] if self.candidates else None
+
+    @property
+    def update(self) -> int:
+        return self.candidates[self.chosen][1] if self.candidates else 0
+
+    @property
+    def margin(self) -> float:
+        return self.candidates[self.chosen][0] if self.candidates else -math.inf
+
+    def choose(self, index: int, panda: dict) -> None:
+        """Make candidate `index` the one policy.pt holds, with what the Panda trials gave it."""
+        self.chosen, self.panda = index, dict(panda)
 
     def policy(self, flat: Tensor) -> Tensor:
         """The parameters policy.pt gets now: the selected ones once the window has begun, else `flat`."""
@@ -108,17 +133,23 @@ class TransferSelection:
 
     def meta(self) -> dict:
         """What policy.pt says about the selection (empty when not selecting)."""
-        return {"selected_update": self.update, "transfer_margin": self.margin} if self.best is not None else {}
+        if self.best is None:
+            return {}
+        return {"selected_update": self.update, "transfer_margin": self.margin,
+                **({"panda_selection": self.panda} if self.panda else {})}
 
     def state_dict(self) -> dict:
         """Checkpoint entry (empty before the window)."""
-        return {"first": self.first, "best": self.best, "update": self.update, "margin": self.margin} \
-            if self.best is not None else {}
+        return {"first": self.first, "candidates": [(m, u, f) for m, u, f in self.candidates]} \
+            if self.candidates else {}
 
     def load_state_dict(self, d: dict, start: int) -> None:
         """Restore at checkpoint update `start`; a window moved by another --steps keeps the rows it still covers."""
-        if d and int(d["update"]) >= self.first:
-            self.best, self.update, self.margin = d["best"].clone(), int(d["update"]), float(d["margin"])
+        if not d:
+            return
+        # checkpoints written before candidates were kept hold the best row alone
+        rows = d["candidates"] if "candidates" in d else [(d["margin"], d["update"], d["best"])]
+        self.candidates = [(float(m), int(u), f.clone()) for m, u, f in rows if int(u) >= self.first][:self.keep]
 
 
 class Checkpoints:
@@ -164,7 +195,7 @@ class Checkpoints:
             self.metric_count = 0
         return means
 
-    def _meta(self) -> dict:
+    def meta(self) -> dict:
         """What policy.pt and checkpoint.pt say about the network and the env."""
         s = self.spec
         return {"layout": self.layout_key, "config": config_to_dict(self.cfg), "env": self.cfg.env,
@@ -175,7 +206,7 @@ class Checkpoints:
         """Write the checkpoint after `update` updates."""
         r = self.runner
         save_atomic({"format": 1, "update": update, "flat": self.flat, "square_avg": self.square_avg,
-                     "gen": self.gen.get_state(), "rollout": r.state_dict(), **self._meta(),
+                     "gen": self.gen.get_state(), "rollout": r.state_dict(), **self.meta(),
                      "finished": [list(x) for x in r.finished[-1000:]], "episodes": self.episodes_before + len(r.finished),
                      "metric_sum": self.metric_sum, "metric_count": self.metric_count,
                      "average": self.average.state_dict(), "selection": self.selection.state_dict()}, self.path)
@@ -184,7 +215,7 @@ class Checkpoints:
         """Write OUT/policy.pt: the parameters policy.pt holds (averaged with a2c.average_last or selected with
         a2c.select_policy), layout and bounds."""
         flat = self.selection.policy(self.average.policy(self.flat))
-        return save_atomic({"format": 1, "flat": flat.clone(), **self._meta(), "averaged_updates": self.average.count,
+        return save_atomic({"format": 1, "flat": flat.clone(), **self.meta(), "averaged_updates": self.average.count,
                             **self.selection.meta()}, self.folder.path / "policy.pt")
 
     def restore(self, override: bool) -> int:

@@ -183,7 +183,21 @@ def _reward_text(r: float) -> str:
 
 
 def _selection_text(res, select_last: float) -> str:  # noqa: ANN001
-    """The line saying which parameters `a2c.select_policy: transfer` kept in policy.pt."""
+    """The line(s) saying which parameters `a2c.select_policy` transfer or panda kept in policy.pt."""
+    if getattr(res, "panda_selection", None):
+        from algorithms.panda_select import format_selection
+
+        rows = res.panda_selection
+        chosen = next(i for i, r in enumerate(rows) if r["update"] == res.selected_update)
+        r = rows[chosen]
+        text = (f"policy.pt: the parameters after update {r['update']:,} of {res.updates:,}, which inserted the most "
+                f"pegs (then yields, then fastest) of the {len(rows)} largest transfer margins over the last {select_last:.0%} of "
+                f"the run, on {r['trials']} peg-in-hole trials (seed {r['seed']}; a2c.select_policy: panda):\n"
+                + format_selection(rows, chosen))
+        if r["successes"] < r["insertions"]:
+            text += (f"\nno candidate inserted every peg (the best {r['successes']} of {r['insertions']}): the policy "
+                     "will probably miss pegs on the Panda (docs/panda.md)")
+        return text
     text = (f"policy.pt: the parameters after update {res.selected_update:,} of {res.updates:,}, the largest transfer "
             f"margin ({res.transfer_margin:+.2f}) over the last {select_last:.0%} of the run (a2c.select_policy: transfer)")
     if res.transfer_margin <= 0:

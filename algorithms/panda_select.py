@@ -1,0 +1,132 @@
+"""`a2c.select_policy: panda`: choose a point-mass run's policy.pt by what its candidates do on the Panda.
+
+The transfer margin (a3cqp_rl.transfer) ranks the parameters of the run's last log rows by a few mean actions: it
+is necessary, not sufficient (docs/panda.md, "Keeping the parameters that transfer"). So the rows with the largest
+margins are each run, after training, on `a2c.select_trials` peg-in-hole trials of the Panda (learned controller
+alone, trial seed `a2c.select_seed`, config `a2c.select_config`: `a3cqp evaluate` on the same trials gives the
+same numbers), and policy.pt holds the one that inserts the most pegs; among equals, one that yields to the
+operator's push (a3cqp_rl.transfer.yields: the collaborative scenes need it, and it costs microseconds), then the
+shortest time over every trial (a miss counted at the time limit), then the largest margin. Like keeping the checkpoint with the best
+evaluation return (SB3's EvalCallback), on the robot the policy is trained for, on trials kept off the reported ones.
+
+Each candidate's parameters are written to OUT/candidates/update_UUUUUU.pt and its result to
+OUT/candidates/selection.json after each evaluation, so a run stopped while selecting resumes there.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from a3cqp_rl.checkpoint import save_atomic
+from a3cqp_rl.config import A2CConfig
+
+__all__ = ["SELECTION_FILE", "PANDA_SELECTION_KEYS", "select_on_panda", "rank_key", "format_selection"]
+
+SELECTION_FILE = "selection.json"
+PANDA_SELECTION_KEYS = ("update", "transfer_margin", "successes", "insertions", "capped_time_mean_s",
+                        "insertion_time_mean_s", "trials", "seed", "config")
+"""What policy.pt's `panda_selection` records of the chosen candidate."""
+
+
+def rank_key(row: dict) -> tuple:
+    """Sort key of a candidate's row, best first: most pegs inserted, then yielding to the operator, shortest capped
+    time, largest margin."""
+    return (-row["successes"], not row["yields"], row["capped_time_mean_s"], -row["transfer_margin"], -row["update"])
+
+
+def select_on_panda(candidates: list[tuple[float, int, Tensor]], meta: dict, folder: Path, hp: A2CConfig,
+                    progress: bool = False, log: Callable[[str], None] = print) -> tuple[int, list[dict]]:
+    """Run each candidate (margin, update, parameters) on the Panda's peg-in-hole trials; return the index of the
+    one policy.pt should hold and every candidate's row (update, margin, successes, times [s], fingerprint)."""
+    from a3cqp_rl.config import load_config
+
+    if not candidates:
+        raise ValueError("a2c.select_policy: panda has no candidates: no log row fell in the run's last "
+                         "a2c.select_last (log more often: a2c.log_every)")
+    cfg_path = Path(hp.select_config)
+    if not cfg_path.is_file():
+        raise FileNotFoundError(f"a2c.select_config: {cfg_path} not found (relative to {Path.cwd()})")
+    panda_cfg = load_config(cfg_path)
+    out = folder / "candidates"
+    out.mkdir(exist_ok=True)
+    done = _read_rows(out / SELECTION_FILE)
+    # a row is reused only for the same trials under the same config text
+    trials_key = {"trials": hp.select_trials, "seed": hp.select_seed, "config": str(cfg_path),
+                  "config_sha256": hashlib.sha256(cfg_path.read_bytes()).hexdigest()[:16]}
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the arms' tiny networks and QPs: threads cost more than they give (as `a3cqp evaluate`)
+    try:
+        rows = _evaluate_all(candidates, meta, out, done, trials_key, panda_cfg, hp, progress, log)
+    finally:
+        torch.set_num_threads(threads)
+    best = min(range(len(rows)), key=lambda i: rank_key(rows[i]))
+    return best, rows
+
+
+def _evaluate_all(candidates, meta, out, done, trials_key, panda_cfg, hp, progress, log) -> list[dict]:  # noqa: ANN001
+    """Each candidate's row: from `done` (an earlier selection in this folder) if it holds the same parameters on
+    the same trials, else evaluated now; the rows are written after each candidate."""
+    from algorithms.policy import fingerprint, load_policy
+    from a3cqp_rl.transfer import guided_rates, yields
+    from envs.panda_eval import default_workers, evaluate
+
+    rows = []
+    for k, (margin, update, flat) in enumerate(candidates):
+        path = out / f"update_{update:06d}.pt"
+        save_atomic({"format": 1, "flat": flat.clone(), **meta, "averaged_updates": 0, "selected_update": update,
+                     "transfer_margin": margin}, path)
+        policy = load_policy(path)
+        prints, guided = fingerprint(policy), guided_rates(policy)
+        row = next((r for r in done if r.get("fingerprint") == prints and all(r.get(a) == b for a, b in
+                                                                              trials_key.items())), None)
+        if row is None:
+            res = evaluate("peg_in_hole", path, hp.select_trials, hp.select_seed, config=panda_cfg,
+                           controllers=("learned",), progress=progress, workers=min(default_workers(), hp.select_trials))
+            s = res.summary["learned"]
+            row = {"update": update, "transfer_margin": margin, "fingerprint": prints, **trials_key,
+                   "successes": int(s["successes"]), "insertions": int(s["insertions"]),
+                   "capped_time_mean_s": float(s["capped_time_mean_s"]),
+                   "insertion_time_mean_s": _finite(s["insertion_time_mean_s"]), "wall_seconds": res.seconds}
+        row["yields"] = yields(guided)  # cheap: recomputed, never read back
+        rows.append(row)
+        log(f"candidate {k + 1}/{len(candidates)}: update {update:,} (transfer margin {margin:+.2f}): "
+            f"{row['successes']}/{row['insertions']} pegs, {row['capped_time_mean_s']:.2f} s")
+        _write_rows(out / SELECTION_FILE, rows + [r for r in done if r not in rows])
+    return rows
+
+
+def format_selection(rows: list[dict], chosen: int) -> str:
+    """The candidates' table, the chosen one marked."""
+    lines = ["   update  margin   pegs  yields  time, misses at the limit [s]"]
+    for i, r in enumerate(rows):
+        lines.append(f"{'*' if i == chosen else ' '} {r['update']:>7,}  {r['transfer_margin']:+.2f}  "
+                     f"{r['successes']:>3}/{r['insertions']:<3} {'yes' if r['yields'] else 'no':<6}  "
+                     f"{r['capped_time_mean_s']:.2f}")
+    return "\n".join(lines)
+
+
+def _finite(v) -> float | None:  # noqa: ANN001
+    return float(v) if v is not None and math.isfinite(float(v)) else None
+
+
+def _read_rows(path: Path) -> list[dict]:
+    """The rows a previous selection in this folder wrote (none if absent or unreadable)."""
+    try:
+        return list(json.loads(path.read_text())["candidates"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+
+
+def _write_rows(path: Path, rows: list[dict]) -> None:
+    """Write the rows atomically (a temporary file renamed over the old one)."""
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps({"candidates": rows}, indent=1) + "\n")
+    os.replace(tmp, path)
