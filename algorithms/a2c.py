@@ -685,7 +685,7 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
 
         print(f"a2c.select_policy: panda: {len(selection.candidates)} candidates on {hp.select_trials} peg-in-hole "
               f"trials each (seed {hp.select_seed})")
-        chosen, panda_rows = select_on_panda(selection.candidates, ckpt.meta(), folder.path, hp, progress)
+        chosen, panda_rows = select_on_panda(selection.candidates, ckpt.meta(), folder.path, hp)
         selection.choose(chosen, {k: panda_rows[chosen][k] for k in PANDA_SELECTION_KEYS})
     policy_path = ckpt.save_policy() if folder else None
     return TrainResult(

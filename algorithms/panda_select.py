@@ -43,10 +43,14 @@ def rank_key(row: dict) -> tuple:
 
 
 def select_on_panda(candidates: list[tuple[float, int, Tensor]], meta: dict, folder: Path, hp: A2CConfig,
-                    progress: bool = False, log: Callable[[str], None] = print) -> tuple[int, list[dict]]:
-    """Run each candidate (margin, update, parameters) on the Panda's peg-in-hole trials; return the index of the
-    one policy.pt should hold and every candidate's row (update, margin, successes, times [s], fingerprint)."""
+                    log: Callable[[str], None] = print, workers: int | None = None) -> tuple[int, list[dict]]:
+    """Run each candidate (margin, update, parameters) on the Panda's peg-in-hole trials, `workers` processes at a
+    time (default: the usable cores); return the index of the one policy.pt should hold and every candidate's row
+    (update, margin, fingerprint, successes, times [s], whether it yields)."""
     from a3cqp_rl.config import load_config
+    from a3cqp_rl.transfer import guided_rates, yields
+    from algorithms.policy import fingerprint, load_policy
+    from envs.panda_eval import default_workers
 
     if not candidates:
         raise ValueError("a2c.select_policy: panda has no candidates: no log row fell in the run's last "
@@ -58,49 +62,69 @@ def select_on_panda(candidates: list[tuple[float, int, Tensor]], meta: dict, fol
     out = folder / "candidates"
     out.mkdir(exist_ok=True)
     done = _read_rows(out / SELECTION_FILE)
-    # a row is reused only for the same trials under the same config text
-    trials_key = {"trials": hp.select_trials, "seed": hp.select_seed, "config": str(cfg_path),
-                  "config_sha256": hashlib.sha256(cfg_path.read_bytes()).hexdigest()[:16]}
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # the arms' tiny networks and QPs: threads cost more than they give (as `a3cqp evaluate`)
-    try:
-        rows = _evaluate_all(candidates, meta, out, done, trials_key, panda_cfg, hp, progress, log)
-    finally:
-        torch.set_num_threads(threads)
-    best = min(range(len(rows)), key=lambda i: rank_key(rows[i]))
-    return best, rows
-
-
-def _evaluate_all(candidates, meta, out, done, trials_key, panda_cfg, hp, progress, log) -> list[dict]:  # noqa: ANN001
-    """Each candidate's row: from `done` (an earlier selection in this folder) if it holds the same parameters on
-    the same trials, else evaluated now; the rows are written after each candidate."""
-    from algorithms.policy import fingerprint, load_policy
-    from a3cqp_rl.transfer import guided_rates, yields
-    from envs.panda_eval import default_workers, evaluate
-
-    rows = []
-    for k, (margin, update, flat) in enumerate(candidates):
+    # a row is reused only for the same parameters on the same trials under the same config text
+    trials = {"trials": hp.select_trials, "seed": hp.select_seed, "config": str(cfg_path),
+              "config_sha256": hashlib.sha256(cfg_path.read_bytes()).hexdigest()[:16]}
+    rows, paths = [], []
+    for margin, update, flat in candidates:
         path = out / f"update_{update:06d}.pt"
         save_atomic({"format": 1, "flat": flat.clone(), **meta, "averaged_updates": 0, "selected_update": update,
                      "transfer_margin": margin}, path)
         policy = load_policy(path)
-        prints, guided = fingerprint(policy), guided_rates(policy)
-        row = next((r for r in done if r.get("fingerprint") == prints and all(r.get(a) == b for a, b in
-                                                                              trials_key.items())), None)
-        if row is None:
-            res = evaluate("peg_in_hole", path, hp.select_trials, hp.select_seed, config=panda_cfg,
-                           controllers=("learned",), progress=progress, workers=min(default_workers(), hp.select_trials))
-            s = res.summary["learned"]
-            row = {"update": update, "transfer_margin": margin, "fingerprint": prints, **trials_key,
-                   "successes": int(s["successes"]), "insertions": int(s["insertions"]),
-                   "capped_time_mean_s": float(s["capped_time_mean_s"]),
-                   "insertion_time_mean_s": _finite(s["insertion_time_mean_s"]), "wall_seconds": res.seconds}
-        row["yields"] = yields(guided)  # cheap: recomputed, never read back
-        rows.append(row)
-        log(f"candidate {k + 1}/{len(candidates)}: update {update:,} (transfer margin {margin:+.2f}): "
-            f"{row['successes']}/{row['insertions']} pegs, {row['capped_time_mean_s']:.2f} s")
-        _write_rows(out / SELECTION_FILE, rows + [r for r in done if r not in rows])
-    return rows
+        row = {"update": update, "transfer_margin": margin, "fingerprint": fingerprint(policy), **trials}
+        old = next((r for r in done if all(r.get(k) == v for k, v in row.items() if k != "update")), None)
+        rows.append({**(old or {}), **row, "yields": yields(guided_rates(policy))})  # yields: microseconds, redone
+        paths.append(path)
+    todo = [k for k, r in enumerate(rows) if "successes" not in r]
+    for k in range(len(rows)):
+        if k not in todo:
+            log(_line(rows, k, "(measured before)"))
+    for k, summary, seconds in _evaluate(paths, todo, hp, panda_cfg, workers or default_workers()):
+        rows[k].update({"successes": int(summary["successes"]), "insertions": int(summary["insertions"]),
+                        "capped_time_mean_s": float(summary["capped_time_mean_s"]),
+                        "insertion_time_mean_s": _finite(summary["insertion_time_mean_s"]), "wall_seconds": seconds})
+        log(_line(rows, k, f"({seconds:.0f} s)"))
+        _write_rows(out / SELECTION_FILE, [r for r in rows if "successes" in r] + [r for r in done if r not in rows])
+    best = min(range(len(rows)), key=lambda i: rank_key(rows[i]))
+    return best, rows
+
+
+def _evaluate(paths: list[Path], todo: list[int], hp: A2CConfig, panda_cfg, workers: int):  # noqa: ANN001, ANN202
+    """Yield (index, learned controller's summary, wall seconds) for each candidate in `todo` as it ends: each is
+    `a3cqp evaluate --workers 1` on the selection trials, in a process of its own when `workers` > 1 (the
+    candidates, not the trials, are spread: eight arms hardly fill one core)."""
+    jobs = [(k, str(paths[k]), hp.select_trials, hp.select_seed, panda_cfg) for k in todo]
+    if workers <= 1 or len(jobs) <= 1:
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # the arms' tiny networks and QPs: threads cost more than they give
+        try:
+            yield from map(_evaluate_one, jobs)
+        finally:
+            torch.set_num_threads(threads)
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no forked torch or MuJoCo state
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=ctx, initializer=torch.set_num_threads,
+                             initargs=(1,)) as pool:
+        for future in as_completed([pool.submit(_evaluate_one, job) for job in jobs]):
+            yield future.result()
+
+
+def _evaluate_one(job: tuple) -> tuple[int, dict, float]:
+    """One candidate on the selection trials: (index, the learned controller's summary, wall seconds)."""
+    from envs.panda_eval import evaluate
+
+    k, path, trials, seed, cfg = job
+    res = evaluate("peg_in_hole", path, trials, seed, config=cfg, controllers=("learned",), progress=False, workers=1)
+    return k, res.summary["learned"], res.seconds
+
+
+def _line(rows: list[dict], k: int, note: str) -> str:
+    r = rows[k]
+    return (f"candidate {k + 1}/{len(rows)}: update {r['update']:,} (transfer margin {r['transfer_margin']:+.2f}): "
+            f"{r['successes']}/{r['insertions']} pegs, {r['capped_time_mean_s']:.2f} s {note}")
 
 
 def format_selection(rows: list[dict], chosen: int) -> str:

@@ -77,7 +77,9 @@ def test_the_panda_result_outranks_the_margin_and_a_rerun_reuses_it(tmp_path, mo
     assert chosen == 1 and [r["update"] for r in rows] == [20, 10]
     assert rows[0]["successes"] == 0 and rows[0]["capped_time_mean_s"] == pytest.approx(7.0)
     assert rows[1]["successes"] == 1 and rows[1]["capped_time_mean_s"] < 7.0
-    assert len(lines) == 2 and "1/1 pegs" in lines[1]
+    # two candidates, two processes (the default on this machine's cores); a line each as it ends
+    assert sorted(line.split(":")[0] for line in lines) == ["candidate 1/2", "candidate 2/2"]
+    assert any(line.startswith("candidate 2/2") and "1/1 pegs" in line for line in lines)
     # the candidate files are what `a3cqp evaluate --policy` runs: the same parameters, the same numbers
     files = sorted((tmp_path / "candidates").glob("update_*.pt"))
     assert [f.name for f in files] == ["update_000010.pt", "update_000020.pt"]
@@ -93,9 +95,10 @@ def test_the_panda_result_outranks_the_margin_and_a_rerun_reuses_it(tmp_path, mo
     calls = []
     monkeypatch.setattr(envs.panda_eval, "evaluate", lambda *a, **k: calls.append(a) or (_ for _ in ()).throw(
         RuntimeError("evaluated again")))
+    lines.clear()
     assert select_on_panda([(0.5, 20, bad), (-0.2, 10, shipped["flat"])], meta, tmp_path, hp,
                            log=lines.append) == (chosen, rows)
-    assert not calls
+    assert not calls and all("(measured before)" in line for line in lines)
     with pytest.raises(RuntimeError, match="evaluated again"):
         select_on_panda([(0.5, 20, bad)], meta, tmp_path, A2CConfig(select_policy="panda", select_trials=1,
                                                                     select_seed=4, select_config=str(cfg)))

@@ -27,7 +27,8 @@ def test_the_panda_configs_name_the_shipped_policy_and_it_passes_the_transfer_ch
     assert free_motion_warning(policy) is None and guided_warning(policy) is None
 
 
-def test_the_shipped_policy_is_what_its_config_trains(tmp_path: Path) -> None:
+def test_the_shipped_policy_is_what_its_config_trains(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.chdir(ROOT)  # a2c.select_config is relative to the working directory, as `make policy` runs it
     shipped = load_checkpoint(ROOT / SHIPPED, ("flat", "config"))
     cfg = load_config(ROOT / "configs/point_mass_a2c_fig5_fd_1e6.yaml")
     assert shipped["config"]["seed"] == cfg.seed == 0
@@ -38,6 +39,9 @@ def test_the_shipped_policy_is_what_its_config_trains(tmp_path: Path) -> None:
         f"{fingerprint(load_policy(ROOT / SHIPPED))}: the training's numbers changed (retrain and re-measure the Panda "
         "tables) or this machine rounds differently")
     assert fingerprint(load_policy(res.policy_path)) == fingerprint(load_policy(ROOT / SHIPPED))
+    # the config chooses on the Panda (a2c.select_policy: panda): seed 0's last parameters inserted every peg
+    kept = torch.load(res.policy_path, weights_only=True)["panda_selection"]
+    assert kept["update"] == res.updates and kept["successes"] == kept["insertions"] == cfg.a2c.select_trials
 
 
 def test_the_fingerprint_follows_the_parameters_not_the_files_other_entries(tmp_path: Path, capsys) -> None:
