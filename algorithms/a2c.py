@@ -564,7 +564,8 @@ class TrainResult:
     final_metrics: dict[str, float] = field(default_factory=dict)
     episode_returns: list[float] = field(default_factory=list)
     timings: dict[str, float] = field(default_factory=dict)
-    """Totals of the loop's named blocks [s]: iterate (rollout + update), log, regions, transfer, checkpoint."""
+    """Totals of the loop's named blocks [s]: iterate (rollout + update), log, regions, transfer, checkpoint; and
+    select, the Panda trials of `a2c.select_policy: panda` after the loop."""
     startup_seconds: float = float("nan")
     """Process start to the end of this run's first update [s] (the first update's compile included)."""
     fig5_applies: bool = False
@@ -685,7 +686,8 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
 
         print(f"a2c.select_policy: panda: {len(selection.candidates)} candidates on {hp.select_trials} peg-in-hole "
               f"trials each (seed {hp.select_seed})")
-        chosen, panda_rows = select_on_panda(selection.candidates, ckpt.meta(), folder.path, hp)
+        with timer("select"):
+            chosen, panda_rows = select_on_panda(selection.candidates, ckpt.meta(), folder.path, hp)
         selection.choose(chosen, {k: panda_rows[chosen][k] for k in PANDA_SELECTION_KEYS})
     policy_path = ckpt.save_policy() if folder else None
     return TrainResult(

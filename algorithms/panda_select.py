@@ -6,8 +6,9 @@ margins are each run, after training, on `a2c.select_trials` peg-in-hole trials 
 alone, trial seed `a2c.select_seed`, config `a2c.select_config`: `a3cqp evaluate` on the same trials gives the
 same numbers), and policy.pt holds the one that inserts the most pegs; among equals, one that yields to the
 operator's push (a3cqp_rl.transfer.yields: the collaborative scenes need it, and it costs microseconds), then the
-shortest time over every trial (a miss counted at the time limit), then the largest margin. Like keeping the checkpoint with the best
-evaluation return (SB3's EvalCallback), on the robot the policy is trained for, on trials kept off the reported ones.
+shortest time over every trial (a miss counted at the time limit), then the largest margin. Like keeping the
+checkpoint with the best evaluation return (SB3's EvalCallback), but on the robot the policy is trained for, on
+trials kept off the reported ones.
 
 Each candidate's parameters are written to OUT/candidates/update_UUUUUU.pt and its result to
 OUT/candidates/selection.json after each evaluation, so a run stopped while selecting resumes there.

@@ -191,9 +191,9 @@ def _selection_text(res, select_last: float) -> str:  # noqa: ANN001
         chosen = next(i for i, r in enumerate(rows) if r["update"] == res.selected_update)
         r = rows[chosen]
         text = (f"policy.pt: the parameters after update {r['update']:,} of {res.updates:,}, which inserted the most "
-                f"pegs (then yields, then fastest) of the {len(rows)} largest transfer margins over the last {select_last:.0%} of "
-                f"the run, on {r['trials']} peg-in-hole trials (seed {r['seed']}; a2c.select_policy: panda):\n"
-                + format_selection(rows, chosen))
+                f"pegs (then yields, then fastest) of the {len(rows)} largest transfer margins over the last "
+                f"{select_last:.0%} of the run, on {r['trials']} peg-in-hole trials (seed {r['seed']}; "
+                "a2c.select_policy: panda):\n" + format_selection(rows, chosen))
         if r["successes"] < r["insertions"]:
             text += (f"\nno candidate inserted every peg (the best {r['successes']} of {r['insertions']}): the policy "
                      "will probably miss pegs on the Panda (docs/panda.md)")
