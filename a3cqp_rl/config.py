@@ -186,8 +186,8 @@ class A2CConfig:
     policy that fails either check does not drive the Panda (docs/panda.md, "Keeping the parameters that
     transfer"). "panda": the `select_candidates` rows of that window with the largest margins are each run on
     `select_trials` peg-in-hole trials of the Panda after training (algorithms.panda_select); policy.pt holds the
-    one that inserts the most pegs, then the fastest. Training itself is unchanged: the same updates, the same
-    random numbers."""
+    one that inserts the most pegs, then yields to the operator, then is the fastest. Training itself is unchanged:
+    the same updates, the same random numbers."""
     select_last: float = 0.5
     """Fraction in (0, 1] of the run, at its end, whose log rows `select_policy` transfer or panda chooses among."""
     select_candidates: int = 4

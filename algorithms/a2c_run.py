@@ -117,10 +117,12 @@ class TransferSelection:
 
     @property
     def update(self) -> int:
+        """The update after which the selected parameters were logged (0 before the window)."""
         return self.candidates[self.chosen][1] if self.candidates else 0
 
     @property
     def margin(self) -> float:
+        """The selected parameters' transfer margin (−inf before the window)."""
         return self.candidates[self.chosen][0] if self.candidates else -math.inf
 
     def choose(self, index: int, panda: dict) -> None:
