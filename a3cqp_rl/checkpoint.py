@@ -16,7 +16,7 @@ import torch
 
 from a3cqp_rl.exceptions import CheckpointError
 
-__all__ = ["save_atomic", "load_checkpoint"]
+__all__ = ["save_atomic", "write_text_atomic", "load_checkpoint"]
 
 
 def save_atomic(obj: Any, path: str | Path) -> Path:
@@ -38,6 +38,23 @@ def save_atomic(obj: Any, path: str | Path) -> Path:
         raise
     return path
 
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """Write `text` to `path` atomically (temp file beside it, fsync, rename), readable by other users."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide the logs from other users
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
 
 def load_checkpoint(path: str | Path, required: tuple[str, ...] = ()) -> dict:
     """Load a checkpoint dict with weights_only=True; clear CheckpointError if missing, corrupt or incomplete."""

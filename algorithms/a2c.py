@@ -598,10 +598,11 @@ def train(
     if total <= 0:
         raise ValueError(f"total_steps must be > 0, got {total}")
     if hp.select_policy == "panda":  # before training: the selection after it needs both
+        from algorithms.panda_select import select_config_path
+
         if out_dir is None:
             raise ValueError("a2c.select_policy: panda writes its candidates into the run folder: give out_dir")
-        if not Path(hp.select_config).is_file():
-            raise FileNotFoundError(f"a2c.select_config: {hp.select_config} not found (relative to {Path.cwd()})")
+        select_config_path(hp)
     folder = open_run_folder(out_dir, resume=resume, force=force)
     try:
         return _train(cfg, folder, total, resume, override, progress, env, callback)

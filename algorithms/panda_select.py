@@ -19,17 +19,17 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 from collections.abc import Callable
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
-from a3cqp_rl.checkpoint import save_atomic
+from a3cqp_rl.checkpoint import save_atomic, write_text_atomic
 from a3cqp_rl.config import A2CConfig
 
-__all__ = ["SELECTION_FILE", "PANDA_SELECTION_KEYS", "select_on_panda", "rank_key", "format_selection"]
+__all__ = ["SELECTION_FILE", "PANDA_SELECTION_KEYS", "select_config_path", "select_on_panda", "rank_key",
+           "format_selection"]
 
 SELECTION_FILE = "selection.json"
 PANDA_SELECTION_KEYS = ("update", "transfer_margin", "successes", "insertions", "capped_time_mean_s",
@@ -41,6 +41,14 @@ def rank_key(row: dict) -> tuple:
     """Sort key of a candidate's row, best first: most pegs inserted, then yielding to the operator, shortest capped
     time, largest margin."""
     return (-row["successes"], not row["yields"], row["capped_time_mean_s"], -row["transfer_margin"], -row["update"])
+
+
+def select_config_path(hp: A2CConfig) -> Path:
+    """`a2c.select_config` as a path; FileNotFoundError naming the working directory if it is not a file."""
+    path = Path(hp.select_config)
+    if not path.is_file():
+        raise FileNotFoundError(f"a2c.select_config: {path} not found (relative to {Path.cwd()})")
+    return path
 
 
 def select_on_panda(candidates: list[tuple[float, int, Tensor]], meta: dict, folder: Path, hp: A2CConfig,
@@ -56,9 +64,7 @@ def select_on_panda(candidates: list[tuple[float, int, Tensor]], meta: dict, fol
     if not candidates:
         raise ValueError("a2c.select_policy: panda has no candidates: no log row fell in the run's last "
                          "a2c.select_last (log more often: a2c.log_every)")
-    cfg_path = Path(hp.select_config)
-    if not cfg_path.is_file():
-        raise FileNotFoundError(f"a2c.select_config: {cfg_path} not found (relative to {Path.cwd()})")
+    cfg_path = select_config_path(hp)
     panda_cfg = load_config(cfg_path)
     out = folder / "candidates"
     out.mkdir(exist_ok=True)
@@ -85,7 +91,8 @@ def select_on_panda(candidates: list[tuple[float, int, Tensor]], meta: dict, fol
                         "capped_time_mean_s": float(summary["capped_time_mean_s"]),
                         "insertion_time_mean_s": _finite(summary["insertion_time_mean_s"]), "wall_seconds": seconds})
         log(_line(rows, k, f"({seconds:.0f} s)"))
-        _write_rows(out / SELECTION_FILE, [r for r in rows if "successes" in r] + [r for r in done if r not in rows])
+        kept = [r for r in rows if "successes" in r] + [r for r in done if r not in rows]
+        write_text_atomic(out / SELECTION_FILE, json.dumps({"candidates": kept}, indent=1) + "\n")
     best = min(range(len(rows)), key=lambda i: rank_key(rows[i]))
     return best, rows
 
@@ -150,8 +157,3 @@ def _read_rows(path: Path) -> list[dict]:
         return []
 
 
-def _write_rows(path: Path, rows: list[dict]) -> None:
-    """Write the rows atomically (a temporary file renamed over the old one)."""
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps({"candidates": rows}, indent=1) + "\n")
-    os.replace(tmp, path)

@@ -23,7 +23,6 @@ import csv
 import json
 import math
 import os
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -32,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from a3cqp_rl.checkpoint import write_text_atomic
 from a3cqp_rl.config import ExperimentConfig, config_to_dict
 from a3cqp_rl.exceptions import CheckpointError, ConfigError
 from a3cqp_rl.tuning_files import STATE_FORMAT, read_rows, read_state
@@ -112,7 +112,7 @@ def run(problem: Problem, cfg: ExperimentConfig, out: str | Path, *, workers: in
             raise CheckpointError(f"{out} already holds a tuning run: add --resume to continue it, or pick another --out")
         state, start_gen = None, None
     out.mkdir(parents=True, exist_ok=True)
-    _write_atomic(out / "config.yaml", yaml.safe_dump(cfg_dict, sort_keys=False))
+    write_text_atomic(out / "config.yaml", yaml.safe_dump(cfg_dict, sort_keys=False))
 
     columns = ["generation", "individual", *problem.spec.columns, *problem.objectives, "seconds", "new"]
     csv_path = out / "evaluations.csv"
@@ -122,7 +122,7 @@ def run(problem: Problem, cfg: ExperimentConfig, out: str | Path, *, workers: in
         for r in rows:
             cache[tuple(float(r[c]) for c in problem.spec.columns)] = np.array([float(r[c]) for c in problem.objectives])
     else:
-        _write_atomic(csv_path, ",".join(columns) + "\n")
+        write_text_atomic(csv_path, ",".join(columns) + "\n")
 
     loop = _Loop(problem, cfg, out, columns, cache, state, start_gen, progress)
     pool = make_pool(workers, ray, problem.preload)
@@ -261,7 +261,7 @@ class _Loop:
                  "numpy_rng": _plain(ga.numpy_random_generator.get_state()),
                  "python_rng": _plain(ga.python_random_generator.getstate()),
                  "seconds": seconds, "times": self.times, "evaluations": self.evaluations}
-        _write_atomic(self.out / "state.json", json.dumps(state))
+        write_text_atomic(self.out / "state.json", json.dumps(state))
         self.saved = gen
         self.fresh.clear()
         self.bar.update(1)
@@ -306,7 +306,7 @@ def _truncate_rows(path: Path, columns: list[str], last_gen: int) -> list[dict]:
     with path.open(newline="") as f:
         lines = f.read().splitlines()
     keep = [lines[0]] + [ln for ln in lines[1:] if ln and int(ln.split(",", 1)[0]) <= last_gen]
-    _write_atomic(path, "\n".join(keep) + "\n")
+    write_text_atomic(path, "\n".join(keep) + "\n")
     return rows
 
 
@@ -336,21 +336,6 @@ def _flatten(d: dict, prefix: str = "") -> dict:
         else:
             out[f"{prefix}{k}"] = v
     return out
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    """Write text to a temporary file beside `path`, fsync, rename over it."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide the logs from other users
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _plain(x):
