@@ -184,7 +184,7 @@ def _reward_text(r: float) -> str:
 
 def _selection_text(res, select_last: float) -> str:  # noqa: ANN001
     """The line(s) saying which parameters `a2c.select_policy` transfer or panda kept in policy.pt."""
-    if getattr(res, "panda_selection", None):
+    if res.panda_selection:
         from algorithms.panda_select import format_selection
 
         rows = res.panda_selection
