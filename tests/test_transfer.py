@@ -142,8 +142,10 @@ def test_select_policy_config_is_checked():
 def test_train_says_which_parameters_it_kept():
     from algorithms.train import _selection_text
 
-    kept = _selection_text(SimpleNamespace(selected_update=9500, updates=15625, transfer_margin=0.55, panda_selection=[]), 0.5)
+    kept = _selection_text(SimpleNamespace(selected_update=9500, updates=15625, transfer_margin=0.55,
+                                           panda_selection=[]), 0.5)
     assert "after update 9,500 of 15,625" in kept and "(+0.55)" in kept and "last 50%" in kept
     assert "will probably not drive the Panda" not in kept
-    none = _selection_text(SimpleNamespace(selected_update=15625, updates=15625, transfer_margin=-0.2, panda_selection=[]), 0.5)
+    none = _selection_text(SimpleNamespace(selected_update=15625, updates=15625, transfer_margin=-0.2,
+                                           panda_selection=[]), 0.5)
     assert "(-0.20)" in none and "will probably not drive the Panda" in none
