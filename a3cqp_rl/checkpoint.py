@@ -43,6 +43,7 @@ def save_atomic(obj: Any, path: str | Path) -> Path:
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """Write `text` to `path` atomically (temp file beside it, fsync, rename), readable by other users."""
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide the logs from other users

@@ -12,7 +12,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from a3cqp_rl.checkpoint import load_checkpoint, save_atomic
+from a3cqp_rl.checkpoint import load_checkpoint, save_atomic, write_text_atomic
 from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, config_to_dict
 from a3cqp_rl.exceptions import A3CQPError, CheckpointError
 from a3cqp_rl.run_folder import RunFolder, RunFolderError, config_changes
@@ -251,7 +251,7 @@ class Checkpoints:
 
         path = self.folder.path / "config.yaml"
         try:
-            path.write_text(yaml.safe_dump(config_to_dict(self.cfg), sort_keys=False))
+            write_text_atomic(path, yaml.safe_dump(config_to_dict(self.cfg), sort_keys=False))
         except OSError as exc:
             raise RunFolderError(f"cannot write {path}: {exc.strerror or exc}") from None
 

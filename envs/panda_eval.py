@@ -53,6 +53,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from a3cqp_rl.checkpoint import write_text_atomic
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, guided_rates,  # noqa: F401 (re-exported)
@@ -785,10 +786,7 @@ def to_json(res: EvalResult, primary: str = "learned") -> dict:
 
 
 def _write_json(path: Path, doc: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + f".{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(doc, indent=2))
-    tmp.replace(path)  # atomic
+    write_text_atomic(path, json.dumps(doc, indent=2))
 
 
 def _policy_file(path: str | Path | None, from_cli: bool, cfg_path: str | Path | None) -> Path | None:

@@ -35,6 +35,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from a3cqp_rl.checkpoint import write_text_atomic
 from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict
 from envs.point_mass import PointMassEnv, agent_step, observe_state
 
@@ -164,13 +165,8 @@ class EvalResult:
 
     def write_json(self, path: str | Path, extra: dict | None = None) -> Path:
         """Write `to_dict()` (and the entries of `extra`) to `path` atomically; NaN is written as null."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
         text = json.dumps(_nan_to_none({**self.to_dict(), **(extra or {})}), indent=1)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text(text + "\n")
-        tmp.replace(path)
-        return path
+        return write_text_atomic(path, text + "\n")
 
     def table(self) -> str:
         """Two markdown tables, policies as rows: the behaviour metrics per scenario, then the returns."""

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from a3cqp_rl.checkpoint import write_text_atomic
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, config_to_dict
 from a3cqp_rl.exceptions import A3CQPError, ConfigError
@@ -178,7 +179,7 @@ def write_best(cfg: ExperimentConfig, result: RunResult, path: Path) -> Path:
              f"# Trained there for {cfg.ga.steps_per_trial:,} steps on seed {cfg.seed}; reproduce with "
              f"`a3cqp train --config {path}`.",
              "# Genes: " + ", ".join(f"{k} = {v:.6g}" for k, v in genes.items())]
-    path.write_text("\n".join(lines) + "\n" + yaml.safe_dump(d, sort_keys=False))
+    write_text_atomic(path, "\n".join(lines) + "\n" + yaml.safe_dump(d, sort_keys=False))
     return path
 
 

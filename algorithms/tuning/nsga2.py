@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from a3cqp_rl.checkpoint import write_text_atomic
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.exceptions import A3CQPError
@@ -179,7 +180,7 @@ def _plot(out: Path, objective: Objective) -> list[Path]:
     if objective.reference_front is not None:
         known = np.asarray(objective.reference_front(200))
         lines = [",".join(objective.objectives)] + [",".join(repr(float(v)) for v in row) for row in known]
-        (out / "known_front.csv").write_text("\n".join(lines) + "\n")
+        write_text_atomic(out / "known_front.csv", "\n".join(lines) + "\n")
     return plot_pareto_run(out)
 
 
@@ -201,7 +202,7 @@ def pick(out: str | Path, k: int) -> Path:
     path = out / f"pick_{k}.yaml"
     header = (f"# Pareto solution {k} of {len(front)} of the NSGA-II run in {out} (objective {cfg.nsga2.objective}: "
               + ", ".join(f"{n} = {v:.6g}" for n, v in values.items()) + ")\n")
-    path.write_text(header + yaml.safe_dump(data, sort_keys=False))
+    write_text_atomic(path, header + yaml.safe_dump(data, sort_keys=False))
     return path
 
 

@@ -1,0 +1,47 @@
+"""Text and JSON outputs are written atomically: a temp file beside the target, renamed over it."""
+from __future__ import annotations
+
+import json
+import math
+import stat
+
+import pytest
+
+from a3cqp_rl.checkpoint import write_text_atomic
+
+
+def test_write_text_atomic_creates_folders_leaves_no_temp_and_is_readable(tmp_path) -> None:
+    path = write_text_atomic(tmp_path / "a" / "b" / "out.json", '{"x": 1}\n')
+    assert path.read_text() == '{"x": 1}\n'
+    assert sorted(p.name for p in path.parent.iterdir()) == ["out.json"]
+    assert stat.S_IMODE(path.stat().st_mode) == 0o644
+
+
+def test_write_text_atomic_keeps_the_old_file_when_the_write_fails(tmp_path) -> None:
+    path = write_text_atomic(tmp_path / "out.txt", "old\n")
+    with pytest.raises(TypeError):
+        write_text_atomic(path, 123)  # type: ignore[arg-type]  (f.write raises inside the temp file)
+    assert path.read_text() == "old\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
+
+
+def test_panda_and_point_mass_json_writers_go_through_it(tmp_path, monkeypatch) -> None:
+    import envs.panda_eval as panda_eval
+    import envs.point_mass_eval as point_mass_eval
+
+    seen = []
+    real = point_mass_eval.write_text_atomic
+
+    def spy(path, text):  # noqa: ANN001, ANN202
+        seen.append(path)
+        return real(path, text)
+
+    monkeypatch.setattr(panda_eval, "write_text_atomic", spy)
+    panda_eval._write_json(tmp_path / "p" / "results.json", {"trials": 2})
+    assert json.loads((tmp_path / "p" / "results.json").read_text()) == {"trials": 2}
+    monkeypatch.setattr(point_mass_eval, "write_text_atomic", spy)
+    res = point_mass_eval.EvalResult.__new__(point_mass_eval.EvalResult)
+    monkeypatch.setattr(point_mass_eval.EvalResult, "to_dict", lambda self: {"v": math.nan})
+    res.write_json(tmp_path / "m.json")
+    assert json.loads((tmp_path / "m.json").read_text()) == {"v": None}
+    assert [p.name for p in seen] == ["results.json", "m.json"]
