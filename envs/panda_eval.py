@@ -46,7 +46,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -58,6 +58,7 @@ from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, guided_rates,  # noqa: F401 (re-exported)
                                 raises_ik, yields)
+from envs import eval_cache
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "trial_seeds", "paired", "free_motion_rates", "free_motion_warning",
            "guided_rates", "guided_warning", "sensing_warning", "limit_stress", "LimitStress", "capped_time",
@@ -227,13 +228,16 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
 
 
 def evaluate_seeds(scene: str, policy_path: str | Path | None, trials: int, seeds: Sequence[int],
-                   **kwargs) -> EvalResult:
+                   cache: str | Path | None = None, policy_fingerprint: str | None = None,
+                   log: Callable[[str], None] | None = None, **kwargs) -> EvalResult:
     """`evaluate` on the `trials` trials of each seed in `seeds` (each run as `evaluate` runs it alone, so a seed's
     trials give the same numbers as `--seed S`), pooled: every metric over all len(seeds) × trials trials; the
-    recorded episodes are the first seed's."""
+    recorded episodes are the first seed's. `cache`: a folder keeping each seed's result as it ends, read back on
+    a rerun with the same settings (envs/eval_cache.py; `log` says which)."""
     if not seeds:
         raise ValueError("seeds must name at least one seed")
-    runs = [evaluate(scene, policy_path, trials, int(s), **kwargs) for s in seeds]
+    runs = [eval_cache.cached(evaluate, cache, scene, policy_path, trials, int(s), policy_fingerprint, log, **kwargs)
+            for s in seeds]
     metrics = {c: {k: np.concatenate([r.metrics[c][k] for r in runs]) for k in runs[0].metrics[c]}
                for c in runs[0].metrics}
     return EvalResult.from_metrics(runs[0].scene, metrics, runs[0].episodes, sum(r.seconds for r in runs),
@@ -890,6 +894,8 @@ def main(argv: list[str] | None = None) -> int:
                    "episode ends (by default they are parked: the same metrics to round-off, less time)")
     p.add_argument("--record-trial", type=int, default=0, metavar="K",
                    help="the trial whose episodes --out records for `a3cqp plot episode` (default 0)")
+    p.add_argument("--cache", default=None, metavar="DIR", help="keep each seed's (and policy's) result in DIR as it "
+                   "ends; the same command again reads the finished ones back (a stopped sweep resumes)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -936,10 +942,9 @@ def main(argv: list[str] | None = None) -> int:
                 for warning in (free_motion_warning(loaded), guided_warning(loaded)):
                     if warning:
                         print(warning if len(policies) == 1 else f"{policy}: {warning}", file=sys.stderr)
-            if args.seeds is not None:
-                res = evaluate_seeds(args.scene, policy, args.trials, args.seeds, **kw)
-            else:
-                res = evaluate(args.scene, policy, args.trials, args.seed, **kw)
+            log = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
+            res = evaluate_seeds(args.scene, policy, args.trials, [args.seed] if args.seeds is None else args.seeds,
+                                 cache=args.cache, policy_fingerprint=prints, log=log, **kw)
             docs.append(_report(args, cfg_path, res, policy, prints))
             if args.json:  # after each policy: a long sweep stopped midway keeps what ran
                 _write_json(Path(args.json), docs[0] if len(policies) == 1 else {"policies": docs})
