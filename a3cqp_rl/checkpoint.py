@@ -10,52 +10,46 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO, Callable
 
 import torch
 
 from a3cqp_rl.exceptions import CheckpointError
 
-__all__ = ["save_atomic", "write_text_atomic", "load_checkpoint"]
+__all__ = ["write_atomic", "save_atomic", "write_text_atomic", "load_checkpoint"]
+
+
+def write_atomic(path: str | Path, write: Callable[[BinaryIO], Any]) -> Path:
+    """Write `path` with `write(f)` (f: a binary file) atomically: a temp file beside it, fsync, rename; the folder is
+    created, the file is readable by other users (mode 0644). A failed write leaves the old file and no temp file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide the files from other users
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
 
 
 def save_atomic(obj: Any, path: str | Path) -> Path:
-    """Write `obj` with torch.save to `path` atomically (temp file in the same folder + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    """Write `obj` with torch.save to `path` atomically (`write_atomic`); CheckpointError naming the file on OSError."""
     try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        return write_atomic(path, lambda f: torch.save(obj, f))
     except OSError as exc:  # a full disk, a folder made read-only: name the file, no traceback
-        Path(tmp).unlink(missing_ok=True)
         raise CheckpointError(f"cannot write {path}: {exc.strerror or exc}") from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:
-    """Write `text` to `path` atomically (temp file beside it, fsync, rename), readable by other users."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        os.chmod(tmp, 0o644)  # mkstemp's 0600 would hide the logs from other users
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """Write `text` (UTF-8) to `path` atomically (`write_atomic`)."""
+    return write_atomic(path, lambda f: f.write(text.encode("utf-8")))
+
 
 def load_checkpoint(path: str | Path, required: tuple[str, ...] = ()) -> dict:
     """Load a checkpoint dict with weights_only=True; clear CheckpointError if missing, corrupt or incomplete."""

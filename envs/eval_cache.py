@@ -14,14 +14,13 @@ import functools
 import hashlib
 import json
 import logging
-import os
-import tempfile
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
+from a3cqp_rl.checkpoint import write_atomic
 from a3cqp_rl.config import config_to_dict
 
 logger = logging.getLogger(__name__)
@@ -60,24 +59,14 @@ def key_file(cache: Path, key: dict) -> Path:
 
 
 def save(path: Path, key: dict, res) -> None:  # noqa: ANN001
-    """Write an EvalResult's metrics, recorded episodes and timings to `path` atomically (temp file, fsync, rename)."""
+    """Write an EvalResult's metrics, recorded episodes and timings to `path` atomically (`write_atomic`)."""
     arrays = {"key": np.array(json.dumps(key, sort_keys=True, default=str)), "scene": np.array(res.scene),
               "seconds": np.array(res.seconds), "sim_seconds": np.array(res.sim_seconds)}
     for group, data in (("m", res.metrics), ("e", res.episodes)):
         for c, fields in data.items():
             for k, v in fields.items():
                 arrays[f"{group}|{c}|{k}"] = np.asarray(v)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, **arrays)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, lambda f: np.savez_compressed(f, **arrays))
 
 
 def load(path: Path, key: dict, seed: int):  # noqa: ANN201

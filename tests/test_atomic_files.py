@@ -7,7 +7,7 @@ import stat
 
 import pytest
 
-from a3cqp_rl.checkpoint import write_text_atomic
+from a3cqp_rl.checkpoint import write_atomic, write_text_atomic
 
 
 def test_write_text_atomic_creates_folders_leaves_no_temp_and_is_readable(tmp_path) -> None:
@@ -19,8 +19,13 @@ def test_write_text_atomic_creates_folders_leaves_no_temp_and_is_readable(tmp_pa
 
 def test_write_text_atomic_keeps_the_old_file_when_the_write_fails(tmp_path) -> None:
     path = write_text_atomic(tmp_path / "out.txt", "old\n")
-    with pytest.raises(TypeError):
-        write_text_atomic(path, 123)  # type: ignore[arg-type]  (f.write raises inside the temp file)
+
+    def fails(f):  # noqa: ANN001, ANN202
+        f.write(b"half")
+        raise RuntimeError("disk gone")
+
+    with pytest.raises(RuntimeError):
+        write_atomic(path, fails)
     assert path.read_text() == "old\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
 
