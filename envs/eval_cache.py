@@ -66,6 +66,10 @@ def save(path: Path, key: dict, res) -> None:  # noqa: ANN001
         for c, fields in data.items():
             for k, v in fields.items():
                 arrays[f"{group}|{c}|{k}"] = np.asarray(v)
+    odd = [k for k, a in arrays.items() if a.dtype == object]
+    if odd:  # such arrays need pickle, which `load` refuses: the seed would be measured again on every run
+        logger.warning("evaluation cache: %s not written (no plain array for %s)", path, ", ".join(odd))
+        return
     write_atomic(path, lambda f: np.savez_compressed(f, **arrays))
 
 

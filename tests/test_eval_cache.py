@@ -87,3 +87,14 @@ def test_main_resumes_a_sweep_with_cache(tmp_path, capsys, monkeypatch) -> None:
     assert err.count("read back from") == 2
     again = json.loads((tmp_path / "r.json").read_text())
     assert again["per_trial"] == first["per_trial"] and again["seeds"] == [0, 1]
+
+
+def test_a_result_that_needs_pickle_is_not_kept(tmp_path, caplog) -> None:  # noqa: ANN001
+    from envs.panda_eval import EvalResult
+
+    ragged = np.empty(2, dtype=object)
+    ragged[:] = [np.zeros(1), np.zeros(2)]
+    res = EvalResult(scene="peg_in_hole", summary={}, per_trial={}, episodes={"ik": {"q": ragged}}, seconds=1.0,
+                     sim_seconds=2.0, metrics={"ik": {"success": np.array([True, False])}}, seeds=(0,))
+    eval_cache.save(tmp_path / "x.npz", {"seed": 0}, res)
+    assert not (tmp_path / "x.npz").exists() and "not written" in caplog.text and "e|ik|q" in caplog.text
