@@ -46,7 +46,8 @@ bench: $(STAMP)
 # shipped so that every machine evaluates the parameters of the README's tables (tests/test_shipped_policy.py trains
 # the config and checks it gives that file's parameters bit for bit).
 #   make peg PEG_SEED=3                                  other trials
-#   make peg PEG_SEEDS=0,3-10 PEG_ARGS="--controllers learned,ik_fc"   several seeds' trials pooled (paired times)
+#   make peg PEG_SEEDS=0,3-10 PEG_ARGS="--controllers learned,ik_fc"   several seeds' trials pooled (paired times);
+#                  each seed kept in runs/peg_cache as it ends, so the same command resumes a stopped sweep
 #   make peg PEG_ARGS="--controllers learned,ik_fc"      a subset of the controllers
 #   make fig7      Fig. 7: three insertions with the operator, learned and IK + FC, plotted into runs/peg_fig7
 #                  (add the snapshots with: a3cqp plot episode runs/peg_fig7 --strip, needs EGL or OSMesa)
@@ -66,7 +67,7 @@ policy: runs/pm_default/policy.pt
 	$(BIN)/python -m algorithms.policy runs/pm_default/policy.pt $(PANDA_POLICY)
 
 peg: | $(STAMP)
-	$(A3CQP) evaluate --scene peg_in_hole --trials 26 $(if $(PEG_SEEDS),--seeds $(PEG_SEEDS) --out runs/peg26_seeds$(PEG_SEEDS),--seed $(PEG_SEED) --out runs/peg26_seed$(PEG_SEED)) $(PEG_ARGS)
+	$(A3CQP) evaluate --scene peg_in_hole --trials 26 $(if $(PEG_SEEDS),--seeds $(PEG_SEEDS) --cache runs/peg_cache --out runs/peg26_seeds$(PEG_SEEDS),--seed $(PEG_SEED) --out runs/peg26_seed$(PEG_SEED)) $(PEG_ARGS)
 
 fig7: | $(STAMP)
 	$(A3CQP) evaluate --scene peg_in_hole --trials 1 --cycles 3 --controllers learned,ik_fc --out runs/peg_fig7
