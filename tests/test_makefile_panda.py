@@ -48,7 +48,8 @@ def test_make_peg_dry_run_evaluates_without_training(tmp_path: Path) -> None:
     lines = dry("peg")
     assert len(lines) == 1 and "a3cqp evaluate --scene peg_in_hole --trials 26 --seed 0" in lines[0], lines
     pooled = dry("peg", "PEG_SEEDS=0,3-10")
-    assert len(pooled) == 1 and "--seeds 0,3-10 --out runs/peg26_seeds0,3-10" in pooled[0] and "--seed " not in pooled[0]
+    assert len(pooled) == 1 and "--seeds 0,3-10 --cache runs/peg_cache --out runs/peg26_seeds0,3-10" in pooled[0]
+    assert "--seed " not in pooled[0]
     fig7 = dry("fig7")
     assert len(fig7) == 3 and "--cycles 3" in fig7[0]
     assert all("a3cqp plot episode runs/peg_fig7" in ln for ln in fig7[1:])
