@@ -4,7 +4,7 @@
                    [--json F]
                    [--config configs/panda_peg_in_hole.yaml] [--controllers learned,ik,ik_fc,equal,vic]
                    [--cycles 1] [--out RUN] [--controller-config PICK.yaml [PICK.yaml ...]] [--workers N]
-                   [--threads 1] [--no-park]
+                   [--threads 1] [--no-park] [--cache DIR]
 
 Every controller runs the same K trials (trial k has the same seed, hence the same misalignment, operator tremor and
 sensor noise, for all of them), in batched simulations: the trials split between `--workers` processes (default:
@@ -34,7 +34,8 @@ difference over the insertions both made, with its standard error, and the inser
 polishing and guidance print the metrics their scenes define (envs/scenarios.py). `--seeds` runs the trials of each
 seed as `--seed` does and pools them (a difference of a few tenths of a second needs several seeds to show). Several
 `--policy` paths (e.g. the runs of a training sweep) are evaluated one after the other on the same trials, and a
-line per policy with the scene's headline metrics ends the output (picking a run that transfers).
+line per policy with the scene's headline metrics ends the output (picking a run that transfers). `--cache DIR`
+keeps each seed's (and policy's) result as it ends; the same command again reads those back (envs/eval_cache.py).
 """
 
 from __future__ import annotations
