@@ -10,6 +10,7 @@ NATIVE_SOURCES = {
     "a3cqp_rl/qp/native/gi_qp.c": (),  # also a CPython extension module (_gi_qp: solve, vjp), loaded by a3cqp_rl.qp.native
     "a3cqp_rl/control/native/a3cqp_step.c": (),
     "a3cqp_rl/robot/native/contact_filter.c": (),
+    "a3cqp_rl/robot/native/sense.c": (),
     "algorithms/native/a2c_iteration.c": ("-fopenmp-simd", "-fno-math-errno", "-ffp-contract=off"),
     "envs/native/point_mass.c": ("-fno-math-errno",),
 }

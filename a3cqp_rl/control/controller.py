@@ -26,6 +26,7 @@ from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer
                                     JointCentering, Residual, Task)
 from a3cqp_rl.qp import QPSolution, solve_qp
 from a3cqp_rl.robot.kinematics import Kinematics, PandaModel
+from a3cqp_rl.robot.sense import wrench as _native_wrench
 from a3cqp_rl.robot.specs import PANDA_HOME, PANDA_LIMITS, PandaLimits
 
 __all__ = ["ControllerOptions", "ControlOutput", "A3CQPController", "wrench_from_joint_torques", "INVALID_INPUT",
@@ -152,6 +153,9 @@ def wrench_from_joint_torques(tau_ext: torch.Tensor, jac: torch.Tensor, mass: to
         # the 1 kHz loop's case: two numpy solves (~15 µs) instead of four torch.linalg calls (~100 µs), and none
         # for the robots nothing pushes (τ_ext = 0 exactly, f_ext = 0: an arm in free motion)
         tau = tau_ext.numpy()
+        native = _native_wrench(tau, jac.numpy(), mass.numpy(), damping)  # the same in C (a3cqp_rl/robot/sense.py)
+        if native is not None:
+            return torch.from_numpy(native)
         out = np.zeros(tau.shape[:-1] + (6,))
         live = tau.any(-1)  # NaN counts as pushing: it propagates as before
         if live.any():

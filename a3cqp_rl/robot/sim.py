@@ -10,7 +10,7 @@ import mujoco
 import numpy as np
 import torch
 
-from a3cqp_rl.robot import contact_filter
+from a3cqp_rl.robot import contact_filter, sense
 from a3cqp_rl.robot.kinematics import Kinematics
 from a3cqp_rl.robot.mjcf import DEFAULT_TOOL, compose_mjcf
 from a3cqp_rl.robot.specs import PANDA_HOME
@@ -297,6 +297,7 @@ class PandaSim:
                                    for i, j in plus + minus], dtype=np.intp)
         self._skew_src = np.array([2, 0, 1, 5, 3, 4, 8, 6, 7, 11, 9, 10], dtype=np.intp)
         self._site_cache: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
+        self._native_observe = sense.observer(self)  # None: the numpy read-out below
         self.reset(np.broadcast_to(np.asarray(q0, dtype=np.float64), (n, 7)))
 
     @staticmethod
@@ -423,6 +424,9 @@ class PandaSim:
             self._tau_push[:] = 0.0
             self._pushed = False
         mujoco.mj_step1(m, d)  # kinematics, M, h + g, position/velocity sensors at the current state
+        if self._native_observe is not None:  # the same read-out in C (a3cqp_rl/robot/sense.py)
+            self._native_observe()
+            return
         take(d.qpos, self._qadr, out=self._q)
         take(d.qvel, self._dadr, out=self._qd)
         take(d.qfrc_bias, self._dadr, out=self._bias)
