@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -17,17 +19,17 @@ OUTPUTS = ("_q", "_qd", "_mass", "_bias", "_ft", "_f_env", "_cs_pos", "_cs_rot",
 needs_library = pytest.mark.skipif(sense._library.get() is None, reason="the native sensing library is not built")
 
 
-def _both(sim: PandaSim) -> tuple[dict, dict]:
+def _both(sim: PandaSim, names: tuple[str, ...] = OUTPUTS) -> tuple[dict, dict]:
     """The observe() arrays after one mj_step1, from the C read-out and from the numpy one (the same state)."""
     native = sim._native_observe
     sim._observe_arrays()
-    c = {k: getattr(sim, k).copy() for k in OUTPUTS}
+    c = {k: getattr(sim, k).copy() for k in names}
     sim._native_observe = None
     try:
         sim._observe_arrays()  # mj_step1 again at the same state: the same MuJoCo arrays
     finally:
         sim._native_observe = native
-    return c, {k: getattr(sim, k).copy() for k in OUTPUTS}
+    return c, {k: getattr(sim, k).copy() for k in names}
 
 
 def _drive(sim, steps: int, seed: int) -> None:  # noqa: ANN001
@@ -103,6 +105,29 @@ def test_native_wrench_says_nan_for_a_mass_matrix_that_is_not_positive_definite(
     mass[1] = -mass[1]
     out = sense.wrench(tau, jt[:, :, :6].transpose(0, 2, 1), mass, 1e-6)
     assert np.isfinite(out[0]).all() and np.isnan(out[1]).all()
+
+
+@needs_library
+def test_a_copied_sim_reads_its_own_data() -> None:
+    sim = PandaSim(2, tool="peg")
+    _drive(sim, 20, seed=6)
+    twin = copy.deepcopy(sim)
+    q_seen, q_now = sim._q.copy(), sim.data.qpos[sim._qadr]
+    twin.data.qpos[:] += 0.01  # the copy moves, the original does not
+    s = twin.observe()
+    assert twin._native_observe is not sim._native_observe
+    np.testing.assert_array_equal(sim._q, q_seen)  # the copy's read-out did not write into the original's arrays
+    np.testing.assert_allclose(s.q.numpy(), q_now + 0.01, atol=1e-12)
+    np.testing.assert_allclose(sim.observe().q.numpy(), q_now, atol=1e-12)
+
+
+@needs_library
+def test_without_a_control_site_the_read_out_still_matches() -> None:
+    sim = PandaSim(2, tool="peg", control_site=None)
+    _drive(sim, 20, seed=7)
+    c, py = _both(sim, OUTPUTS[:6])
+    for k in OUTPUTS[:6]:
+        np.testing.assert_allclose(c[k], py[k], rtol=0, atol=1e-12 * max(1.0, float(np.abs(py[k]).max())), err_msg=k)
 
 
 def test_switched_off_the_numpy_read_out_runs(monkeypatch) -> None:  # noqa: ANN001

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import ctypes
 import logging
+import weakref
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable
 
@@ -87,6 +88,7 @@ def observer(sim: PandaSim) -> Callable[[], None] | None:
         fn(ref)
 
     observe._keep = (keep, args)  # the arrays and the struct live as long as the call
+    observe.owner = weakref.ref(sim)  # a copy of the sim (copy.deepcopy) has other arrays: it binds its own
     return observe
 
 

@@ -424,8 +424,11 @@ class PandaSim:
             self._tau_push[:] = 0.0
             self._pushed = False
         mujoco.mj_step1(m, d)  # kinematics, M, h + g, position/velocity sensors at the current state
-        if self._native_observe is not None:  # the same read-out in C (a3cqp_rl/robot/sense.py)
-            self._native_observe()
+        native = self._native_observe
+        if native is not None:  # the same read-out in C (a3cqp_rl/robot/sense.py)
+            if native.owner() is not self:  # this sim is a copy: the call holds the original's addresses
+                native = self._native_observe = sense.observer(self)
+            native()
             return
         take(d.qpos, self._qadr, out=self._q)
         take(d.qvel, self._dadr, out=self._qd)
