@@ -100,6 +100,17 @@ def test_native_wrench_matches_the_numpy_solves(monkeypatch) -> None:  # noqa: A
 
 
 @needs_library
+def test_native_wrench_leaves_other_shapes_to_the_numpy_path() -> None:
+    tau, jt, mass = _random_inputs(3, seed=8)
+    jac = jt[:, :, :6].transpose(0, 2, 1)
+    assert sense.wrench(tau, jac[:1], mass, 1e-6) is None  # a batch of one J for three arms: never read past it
+    assert sense.wrench(tau[:, :6], jac, mass, 1e-6) is None
+    expanded = torch.from_numpy(jac[:1].copy()).expand(3, 6, 7)  # stride 0 along the batch: read with its strides
+    one = wrench_from_joint_torques(torch.from_numpy(tau), expanded, torch.from_numpy(mass)).numpy()
+    np.testing.assert_allclose(one, sense.wrench(tau, np.repeat(jac[:1], 3, axis=0), mass, 1e-6), rtol=1e-9, atol=1e-9)
+
+
+@needs_library
 def test_native_wrench_says_nan_for_a_mass_matrix_that_is_not_positive_definite() -> None:
     tau, jt, mass = _random_inputs(2, seed=4)
     mass[1] = -mass[1]

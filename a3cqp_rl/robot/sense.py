@@ -96,12 +96,12 @@ def wrench(tau: np.ndarray, jac: np.ndarray, mass: np.ndarray, damping: float) -
     """f_ext = Λ J B⁻¹ τ [B, 6] (N, N m) from τ_ext [B, 7], J [B, 6, 7] (any strides) and B(q) [B, 7, 7], float64;
     0 where τ = 0; None where the library is off or absent (the caller's numpy path then runs)."""
     lib = _library.get()
-    if lib is None or tau.ndim != 2 or jac.ndim != 3 or mass.ndim != 3:
-        return None
+    n = tau.shape[0] if tau.ndim == 2 else -1
+    if lib is None or tau.shape != (n, 7) or jac.shape != (n, 6, 7) or mass.shape != (n, 7, 7):
+        return None  # (other shapes, e.g. broadcast batches: the numpy path broadcasts them or says why not)
     tau, mass = np.ascontiguousarray(tau, dtype=np.float64), np.ascontiguousarray(mass, dtype=np.float64)
     if jac.dtype != np.float64 or any(s % 8 for s in jac.strides):
         jac = np.ascontiguousarray(jac, dtype=np.float64)
-    n = tau.shape[0]
     out = np.empty((n, 6))
     if n:
         s0, s1, s2 = (s // 8 for s in jac.strides)
