@@ -11,6 +11,8 @@ controller + MuJoCo + sensing + operator/scene at 100 Hz). Reported per N (media
              `x 2 thr` = its RTF / RTF (the one-thread env is its peer)
   no filter  RTF of the same env without the exact contact pre-filter (`panda.contact_prefilter: false`: every
              tool-box pair MuJoCo's broad phase passes goes to its narrow phase), N >= 8; `x filter` = RTF / its RTF
+  numpy sns  RTF of the same env with the sensing in numpy (`A3CQP_NATIVE_SENSE=0`: PandaSim's read-out after
+             mj_step1 and f_ext = J^T+ tau_ext, a3cqp_rl/robot/sense.py); `x sense` = RTF / its RTF
   bare RTF   the same arms, the same number of control periods, run as the bare loop of bench/controller.py (PandaSim
              + A3CQPController, free motion, no env): `env cost` = bare RTF / RTF
 Target: RTF >= 10x at N = 32 on this machine (2 cores).  `--eval POLICY` also times `a3cqp evaluate --scene
@@ -23,10 +25,13 @@ worker processes (`--workers 2`), finished arms parked in both (target: under a 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import os
 import statistics
 import sys
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import torch
@@ -34,7 +39,7 @@ import torch
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.control import A3CQPController
-from a3cqp_rl.robot import PandaSim
+from a3cqp_rl.robot import PandaSim, sense
 from envs.panda import PandaEnv
 
 
@@ -77,6 +82,22 @@ def run_env(n: int, steps: int, threads: int = 1, prefilter: bool = True) -> dic
     return {"steps_s": steps / wall, "rtf": n * env.adapt.dt * steps / wall, "contacts": float(np.mean(contacts))}
 
 
+@contextlib.contextmanager
+def numpy_sensing() -> Iterator[None]:
+    """Within the block, new PandaSims and f_ext take the numpy sensing (the peer of the C one)."""
+    old = os.environ.get("A3CQP_NATIVE_SENSE")
+    os.environ["A3CQP_NATIVE_SENSE"] = "0"
+    sense._library.reset()
+    try:
+        yield
+    finally:
+        if old is None:
+            del os.environ["A3CQP_NATIVE_SENSE"]
+        else:
+            os.environ["A3CQP_NATIVE_SENSE"] = old
+        sense._library.reset()
+
+
 def run_bare(n: int, periods: int) -> float:
     """Aggregate RTF of the bare PandaSim + A3CQPController loop (free motion), the same n and control periods."""
     sim = PandaSim(n, tool="peg")
@@ -109,11 +130,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"PandaEnv benchmark (peg-in-hole, contacts on): {steps} timed agent steps (x10 control periods), "
           f"median of {repeats}")
     print(f"{'N':>4} {'steps/s':>9} {'RTF':>8} {'contacts/arm':>13} {'2 threads':>10} {'x 2 thr':>8} "
-          f"{'no filter':>10} {'x filter':>9} {'bare RTF':>9} {'env cost':>9} {'target':>18}")
+          f"{'no filter':>10} {'x filter':>9} {'numpy sns':>10} {'x sense':>8} {'bare RTF':>9} {'env cost':>9} "
+          f"{'target':>18}")
     for n in args.sizes:
-        one, two, unfiltered = [], [], []
+        one, two, unfiltered, numpy_rtf = [], [], [], []
         for _ in range(repeats):  # interleaved, so that all see the same load
             one.append(run_env(n, steps, threads=1))
+            with numpy_sensing():
+                numpy_rtf.append(run_env(n, steps, threads=1)["rtf"])
             if n >= 8:
                 two.append(run_env(n, steps, threads=2)["rtf"])
                 unfiltered.append(run_env(n, steps, prefilter=False)["rtf"])
@@ -122,9 +146,11 @@ def main(argv: list[str] | None = None) -> int:
                 else f"{'-':>10} {'-':>8}")
         plain = statistics.median(unfiltered) if unfiltered else None  # the peer: MuJoCo's own pairs
         nofilter = f"{plain:>9.2f}x {r['rtf'] / plain:>8.2f}x" if plain else f"{'-':>10} {'-':>9}"
+        slow = statistics.median(numpy_rtf)
+        sensing = f"{slow:>9.2f}x {r['rtf'] / slow:>7.2f}x"
         bare = statistics.median(run_bare(n, steps * 10) for _ in range(repeats))
         target = f">=10x RT: {'met' if r['rtf'] >= 10 else 'NOT met'}" if n == 32 else "-"
-        print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {rtf2} {nofilter} "
+        print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {rtf2} {nofilter} {sensing} "
               f"{bare:>8.2f}x {bare / r['rtf']:>8.2f}x {target:>18}")
     if args.eval:
         from envs.panda_eval import CONTROLLERS, evaluate
