@@ -54,7 +54,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from a3cqp_rl.checkpoint import write_text_atomic
+from a3cqp_rl.checkpoint import write_atomic, write_text_atomic
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, guided_rates,  # noqa: F401 (re-exported)
@@ -790,6 +790,13 @@ def to_json(res: EvalResult, primary: str = "learned") -> dict:
     return doc
 
 
+def write_episodes(out: Path, episodes: dict[str, dict]) -> None:
+    """Each controller's recorded episode to out/episode_<controller>.npz, atomically (a stopped write leaves the
+    previous file, not half of one)."""
+    for c, ep in episodes.items():
+        write_atomic(Path(out) / f"episode_{c}.npz", lambda f, ep=ep: np.savez_compressed(f, **ep))
+
+
 def _write_json(path: Path, doc: dict) -> None:
     write_text_atomic(path, json.dumps(doc, indent=2))
 
@@ -959,8 +966,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         out = Path(args.out)
         _write_json(out / "results.json", docs[0])
-        for c, ep in res.episodes.items():
-            np.savez_compressed(out / f"episode_{c}.npz", **ep)
+        write_episodes(out, res.episodes)
         print(f"wrote {out}/results.json and {out}/episode_<controller>.npz (plot: a3cqp plot episode {out})")
     return 0
 

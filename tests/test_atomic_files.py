@@ -50,3 +50,25 @@ def test_panda_and_point_mass_json_writers_go_through_it(tmp_path, monkeypatch) 
     res.write_json(tmp_path / "m.json")
     assert json.loads((tmp_path / "m.json").read_text()) == {"v": None}
     assert [p.name for p in seen] == ["results.json", "m.json"]
+
+
+def test_the_recorded_episodes_are_written_atomically(tmp_path, monkeypatch) -> None:
+    import numpy as np
+
+    import envs.panda_eval as panda_eval
+
+    panda_eval.write_episodes(tmp_path, {"learned": {"t": np.arange(3.0)}, "ik": {"t": np.zeros(2)}})
+    with np.load(tmp_path / "episode_learned.npz") as z:
+        assert z["t"].tolist() == [0.0, 1.0, 2.0]
+
+    def fails(f, **arrays):  # noqa: ANN001, ANN003, ANN202
+        f.write(b"PK half a zip")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez_compressed", fails)
+    with pytest.raises(OSError):
+        panda_eval.write_episodes(tmp_path, {"learned": {"t": np.ones(4)}})
+    monkeypatch.undo()
+    with np.load(tmp_path / "episode_learned.npz") as z:  # the previous file, whole
+        assert z["t"].tolist() == [0.0, 1.0, 2.0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["episode_ik.npz", "episode_learned.npz"]
