@@ -7,9 +7,11 @@ is logged once; TensorBoard hides those events with `purge_step`.
 from __future__ import annotations
 
 import csv
+import io
 import math
 from pathlib import Path
 
+from a3cqp_rl.checkpoint import write_text_atomic
 from a3cqp_rl.regions import REGION_COLUMNS
 from a3cqp_rl.run_folder import RunFolderError
 
@@ -76,10 +78,11 @@ def truncate_csv(path: Path, keep_until_update: int, log_every: int) -> None:
                              f"row): {type(exc).__name__}: {exc}") from None
     if not rows:
         return
-    with path.open("w", newline="") as f:  # files from before a column existed get it, as NaN
-        w = csv.DictWriter(f, fieldnames=CSV_COLUMNS, restval="nan", extrasaction="ignore")
-        w.writeheader()
-        w.writerows(keep)
+    text = io.StringIO(newline="")
+    w = csv.DictWriter(text, fieldnames=CSV_COLUMNS, restval="nan", extrasaction="ignore")  # older files: NaN columns
+    w.writeheader()
+    w.writerows(keep)
+    write_text_atomic(path, text.getvalue())  # killed mid-write, the run keeps its old file, not half of it
 
 
 def _tensorboard(out: Path, purge_step: int):

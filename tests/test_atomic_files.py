@@ -1,6 +1,7 @@
 """Text and JSON outputs are written atomically: a temp file beside the target, renamed over it."""
 from __future__ import annotations
 
+import csv
 import json
 import math
 import stat
@@ -72,3 +73,24 @@ def test_the_recorded_episodes_are_written_atomically(tmp_path, monkeypatch) -> 
     with np.load(tmp_path / "episode_learned.npz") as z:  # the previous file, whole
         assert z["t"].tolist() == [0.0, 1.0, 2.0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["episode_ik.npz", "episode_learned.npz"]
+
+
+def test_a_resumed_runs_metrics_file_is_rewritten_atomically(tmp_path, monkeypatch) -> None:
+    import algorithms.run_log as run_log
+
+    path = tmp_path / "metrics.csv"
+    path.write_text("update,step,policy_loss\n1,16,0.5\n2,32,0.4\n3,48,0.3\n")
+    before = path.read_text()
+
+    def fails(p, text):  # noqa: ANN001, ANN202
+        raise OSError("killed while writing")
+
+    monkeypatch.setattr(run_log, "write_text_atomic", fails)
+    with pytest.raises(OSError):
+        run_log.truncate_csv(path, keep_until_update=2, log_every=1)
+    assert path.read_text() == before  # nothing was written in place
+    monkeypatch.undo()
+    run_log.truncate_csv(path, keep_until_update=2, log_every=1)
+    rows = list(csv.DictReader(path.open(newline="")))
+    assert [r["update"] for r in rows] == ["1", "2"] and [r["policy_loss"] for r in rows] == ["0.5", "0.4"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["metrics.csv"]

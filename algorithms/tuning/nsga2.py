@@ -155,15 +155,17 @@ def pareto_front(values: np.ndarray, keep: int | None = None) -> np.ndarray:
 
 def _write_front(out: Path, problem: Problem, result: RunResult, front: np.ndarray) -> None:
     import csv
+    import io
 
     cols = ["k", *problem.spec.columns, *problem.objectives]
     pop = np.asarray(read_state(out)["population"], dtype=np.float64)
     decoded = problem.spec.decode_matrix(pop)
-    with (out / "front.csv").open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(cols)
-        for k, i in enumerate(front):
-            w.writerow([k, *(repr(float(v)) for v in decoded[i]), *(repr(float(v)) for v in result.values[i])])
+    text = io.StringIO(newline="")
+    w = csv.writer(text)
+    w.writerow(cols)
+    for k, i in enumerate(front):
+        w.writerow([k, *(repr(float(v)) for v in decoded[i]), *(repr(float(v)) for v in result.values[i])])
+    write_text_atomic(out / "front.csv", text.getvalue())
 
 
 def read_front(out: str | Path) -> list[dict]:
