@@ -15,6 +15,8 @@ import importlib.machinery
 import logging
 import os
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Generic, TypeVar
 
@@ -104,3 +106,15 @@ class LazyLibrary(Generic[T]):
         """Forget the loaded library (tests: re-read the environment on the next `get()`)."""
         with self._lock:
             self._state = (False, None)
+
+    @contextmanager
+    def off(self) -> Iterator[None]:
+        """Within the block `get()` returns None, so callers take their fallback (a benchmark's peer); the state
+        before it comes back after."""
+        with self._lock:
+            saved, self._state = self._state, (True, None)
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._state = saved

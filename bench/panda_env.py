@@ -11,8 +11,9 @@ controller + MuJoCo + sensing + operator/scene at 100 Hz). Reported per N (media
              `x 2 thr` = its RTF / RTF (the one-thread env is its peer)
   no filter  RTF of the same env without the exact contact pre-filter (`panda.contact_prefilter: false`: every
              tool-box pair MuJoCo's broad phase passes goes to its narrow phase), N >= 8; `x filter` = RTF / its RTF
-  numpy sns  RTF of the same env with the sensing in numpy (`A3CQP_NATIVE_SENSE=0`: PandaSim's read-out after
-             mj_step1 and f_ext = J^T+ tau_ext, a3cqp_rl/robot/sense.py); `x sense` = RTF / its RTF
+  numpy sns  RTF of the same env with the sensing in numpy (`sense.numpy_sensing()`, as `A3CQP_NATIVE_SENSE=0`:
+             PandaSim's read-out after mj_step1 and f_ext = J^T+ tau_ext, a3cqp_rl/robot/sense.py); `x sense` = RTF /
+             its RTF
   bare RTF   the same arms, the same number of control periods, run as the bare loop of bench/controller.py (PandaSim
              + A3CQPController, free motion, no env): `env cost` = bare RTF / RTF
 Target: RTF >= 10x at N = 32 on this machine (2 cores).  `--eval POLICY` also times `a3cqp evaluate --scene
@@ -25,13 +26,10 @@ worker processes (`--workers 2`), finished arms parked in both (target: under a 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
-import os
 import statistics
 import sys
 import time
-from collections.abc import Iterator
 
 import numpy as np
 import torch
@@ -82,22 +80,6 @@ def run_env(n: int, steps: int, threads: int = 1, prefilter: bool = True) -> dic
     return {"steps_s": steps / wall, "rtf": n * env.adapt.dt * steps / wall, "contacts": float(np.mean(contacts))}
 
 
-@contextlib.contextmanager
-def numpy_sensing() -> Iterator[None]:
-    """Within the block, new PandaSims and f_ext take the numpy sensing (the peer of the C one)."""
-    old = os.environ.get("A3CQP_NATIVE_SENSE")
-    os.environ["A3CQP_NATIVE_SENSE"] = "0"
-    sense._library.reset()
-    try:
-        yield
-    finally:
-        if old is None:
-            del os.environ["A3CQP_NATIVE_SENSE"]
-        else:
-            os.environ["A3CQP_NATIVE_SENSE"] = old
-        sense._library.reset()
-
-
 def run_bare(n: int, periods: int) -> float:
     """Aggregate RTF of the bare PandaSim + A3CQPController loop (free motion), the same n and control periods."""
     sim = PandaSim(n, tool="peg")
@@ -136,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         one, two, unfiltered, numpy_rtf = [], [], [], []
         for _ in range(repeats):  # interleaved, so that all see the same load
             one.append(run_env(n, steps, threads=1))
-            with numpy_sensing():
+            with sense.numpy_sensing():
                 numpy_rtf.append(run_env(n, steps, threads=1)["rtf"])
             if n >= 8:
                 two.append(run_env(n, steps, threads=2)["rtf"])

@@ -13,10 +13,9 @@ def test_the_panda_benchmark_times_arms_in_contact() -> None:
 
 def test_the_benchmarks_numpy_peer_runs_the_numpy_sensing_and_restores_the_c_one() -> None:
     from a3cqp_rl.robot import PandaSim, sense
-    from bench.panda_env import numpy_sensing
 
     native = sense._library.get() is not None
-    with numpy_sensing():
+    with sense.numpy_sensing():
         assert PandaSim(1, tool="peg")._native_observe is None
         assert sense._library.get() is None
     assert (PandaSim(1, tool="peg")._native_observe is not None) == native

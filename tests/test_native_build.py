@@ -49,6 +49,9 @@ def test_lazy_library_loads_a_built_library_once(tmp_path: Path, monkeypatch) ->
     out = tmp_path / "_answer.so"  # the plain suffix is one of EXTENSION_SUFFIXES
     subprocess.run([CC, "-shared", "-fPIC", "-o", str(out), str(src)], check=True)
     assert lazy.get().answer() == 42 and lazy.get().answer() == 42 and len(binds) == 1
+    with lazy.off():  # a benchmark's peer: the fallback within the block, the library again after it
+        assert lazy.get() is None
+    assert lazy.get().answer() == 42 and len(binds) == 1
     monkeypatch.setenv("A3CQP_TEST_NATIVE", "0")
     lazy.reset()
     assert lazy.get() is None and len(binds) == 1

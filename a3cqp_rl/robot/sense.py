@@ -16,6 +16,7 @@ import ctypes
 import logging
 import weakref
 from pathlib import Path
+from contextlib import AbstractContextManager
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
@@ -25,7 +26,7 @@ from a3cqp_rl.native_build import LazyLibrary, address
 if TYPE_CHECKING:
     from a3cqp_rl.robot.sim import PandaSim
 
-__all__ = ["observer", "wrench", "SOURCE"]
+__all__ = ["observer", "wrench", "numpy_sensing", "SOURCE"]
 
 SOURCE = Path(__file__).with_name("native") / "sense.c"
 
@@ -55,6 +56,11 @@ def _bind(path: Path) -> ctypes.CDLL:
 
 _library = LazyLibrary(SOURCE, "A3CQP_NATIVE_SENSE", _bind, _log, "a3cqp_rl.robot: native sensing",
                        "the numpy sensing")
+
+
+def numpy_sensing() -> AbstractContextManager[None]:
+    """Within the block new PandaSims and f_ext take the numpy sensing (e.g. the peer of a benchmark)."""
+    return _library.off()
 
 
 def _index(a: np.ndarray | None) -> np.ndarray | None:
