@@ -308,7 +308,7 @@ class PandaEnv(EnvBase):
             self.f_d[mask] = f_o[mask]
             self.w_logits[mask] = np.log(np.clip(w_o[mask], 1e-12, 1.0))
             self._override = None
-        if self.parked.any():  # IK holds a parked arm's pose
+        if self.parked.any():  # what a parked arm reports: IK, f_d = 0 (the controller leaves it out, h + g holds it)
             p = self.parked
             self.w_logits[p] = self._ik_logits
             self.weights[p] = _softmax(self.w_logits[p])
@@ -420,7 +420,7 @@ class PandaEnv(EnvBase):
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin,
                              leak_extra=None if self._idle_leak is None else torch.from_numpy(self._idle_leak),
-                             f_ext_limits=held)
+                             f_ext_limits=held, active=torch.from_numpy(~self.parked) if self.parked.any() else None)
         self.fallbacks += out.fallback.numpy()
         tau = out.tau.numpy()
         self.tau[:] = tau
@@ -531,9 +531,10 @@ class PandaEnv(EnvBase):
 
     def park(self, idx: np.ndarray) -> None:
         """Set aside arms `idx` whose episode is over while the batch runs on (until their reset): their collisions
-        off (PandaSim.park: a peg left in its bore costs collision and solver time at every step), IK weights and
-        f_d = 0 from now on (free of contact, the arm holds its pose), no divergence checks (their motion no longer
-        counts). The other arms compute the same numbers as without it."""
+        off (PandaSim.park: a peg left in its bore costs collision and solver time at every step), the controller
+        leaves them out (h + g holds them still: `A3CQPController.step`'s `active`), MuJoCo lets them sleep, and
+        no divergence checks (their motion no longer counts). The other arms compute the same numbers as without
+        it, bit for bit."""
         idx = np.asarray(idx, dtype=np.intp).reshape(-1)
         if len(idx):
             self.sim.park(idx)

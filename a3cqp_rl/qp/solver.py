@@ -158,6 +158,46 @@ class QPSolution:
             for t in (self._y, self._z, self._z_lb, self._z_ub):
                 t.index_fill_(0, idx, 0.0)
 
+    _FIELDS = ("x", "y", "z", "z_lb", "z_ub", "status", "iterations")
+
+    def _parts(self) -> tuple[np.ndarray, ...]:
+        """numpy views [B, ...] of a C solve's output buffer: x, duals (y | z | z_lb | z_ub), status, solves."""
+        B, n = self._dims[:2]
+        return self._np("_x"), self._duals(), self._buf[-2 * B:-B].reshape(B, 1), self._buf[-B:].reshape(B, 1)
+
+    def take(self, rows: np.ndarray) -> "QPSolution":
+        """The solution of the instances `rows` only (copies): a warm start for those QPs alone."""
+        if self._buf is not None:  # a buffer in the C layout again, so that the next solve reads it without copies
+            B, n, p, m = self._dims
+            buf = np.concatenate([a[rows].reshape(-1) for a in self._parts()])
+            return QPSolution._from_buffer(buf, None, len(rows), n, p, m)
+        return QPSolution(*(getattr(self, f)[torch.as_tensor(rows, dtype=torch.long)] for f in self._FIELDS))
+
+    def put(self, rows: np.ndarray, part: "QPSolution") -> "QPSolution":
+        """A copy of this solution with the instances `rows` replaced by `part`'s (in that order); a C solve's buffer
+        stays one (the next solve then reads it without copies). Never in place: this solution's fields may be
+        tensors a caller holds."""
+        if self._buf is not None and part._buf is not None and self._dims[1:] == part._dims[1:]:
+            out = QPSolution._from_buffer(self._buf.copy(), None, *self._dims)
+            for whole, sub in zip(out._parts(), part._parts()):
+                whole[rows] = sub
+            return out
+        idx = torch.as_tensor(rows, dtype=torch.long)
+        fields = []
+        for f in self._FIELDS:
+            v = getattr(self, f).clone()
+            v[idx] = getattr(part, f)
+            fields.append(v)
+        return QPSolution(*fields)
+
+    @classmethod
+    def zeros_like(cls, sol: "QPSolution", batch: int) -> "QPSolution":
+        """A solution of `batch` instances shaped as `sol`'s, every field zero (a cold warm start)."""
+        if sol._buf is not None:
+            _, n, p, m = sol._dims
+            return cls._from_buffer(np.zeros(batch * (3 * n + p + m + 2)), None, batch, n, p, m)
+        return cls(*(getattr(sol, f).new_zeros((batch, *getattr(sol, f).shape[1:])) for f in cls._FIELDS))
+
     def __repr__(self) -> str:
         return f"QPSolution(x={self.x!r}, status={self.status!r})"
 

@@ -40,7 +40,8 @@ _OUT = ("q", "qd", "bias", "mass", "ft", "f_env", "cs_pos", "cs_rot", "jt", "twi
 class _Args(ctypes.Structure):
     """`sense_args` of sense.c (the same field order)."""
 
-    _fields_ = [("n", ctypes.c_int64), *((f, ctypes.c_void_p) for f in (*_DATA, *_INDEX, "cs_mask", "origin", *_OUT)),
+    _fields_ = [("n", ctypes.c_int64), *((f, ctypes.c_void_p) for f in (*_DATA, *_INDEX, "cs_mask", "origin",
+                                                                        "tree_awake", "arm_tree", *_OUT)),
                 ("tool_mass", ctypes.c_double)]
 
 
@@ -80,7 +81,8 @@ def observer(sim: PandaSim) -> Callable[[], None] | None:
                 ft_site=_index(sim._ft_site), ft_body=_index(sim._ft_body), root_body=_index(sim._root_body),
                 cs=_index(sim._cs) if kin else None, cs_body=_index(sim._cs_body) if kin else None,
                 cs_mask=None if not kin or sim._cs_mask is None else np.ascontiguousarray(sim._cs_mask, np.float64),
-                origin=np.ascontiguousarray(sim._origin, dtype=np.float64))
+                origin=np.ascontiguousarray(sim._origin, dtype=np.float64),
+                tree_awake=d.tree_awake if d.tree_awake.dtype == np.int32 else None, arm_tree=_index(sim._arm_tree))
     keep.update(q=sim._q, qd=sim._qd, bias=sim._bias, mass=sim._mass, ft=sim._ft, f_env=sim._f_env,
                 cs_pos=sim._cs_pos, cs_rot=sim._cs_rot, jt=sim._jt, twist=sim._twist, jdot_qdot=sim._jdot_qdot)
     for name in _OUT:

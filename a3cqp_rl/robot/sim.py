@@ -297,6 +297,12 @@ class PandaSim:
                                    for i, j in plus + minus], dtype=np.intp)
         self._skew_src = np.array([2, 0, 1, 5, 3, 4, 8, 6, 7, 11, 9, 10], dtype=np.intp)
         self._site_cache: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
+        # park(): MuJoCo's sleeping skips a parked arm's dynamics; no tree sleeps on its own (policy "never")
+        self._arm_tree = m.body_treeid[[m.body(p + "link1").id for p in self._prefixes]].astype(np.intp)
+        self._body_arm = body_arm
+        self._body_contype, self._body_conaffinity = m.body_contype.copy(), m.body_conaffinity.copy()
+        m.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+        m.tree_sleep_policy[:] = int(mujoco.mjtSleepPolicy.mjSLEEP_NEVER)
         self._native_observe = sense.observer(self)  # None: the numpy read-out below
         self.reset(np.broadcast_to(np.asarray(q0, dtype=np.float64), (n, 7)))
 
@@ -345,6 +351,9 @@ class PandaSim:
         qd = np.zeros_like(q) if qd is None else np.asarray(qd, dtype=np.float64).reshape(len(arms), 7)
         g = np.flatnonzero(np.isin(self._geom_arm, arms))  # a parked arm collides again
         m.geom_contype[g], m.geom_conaffinity[g] = self._contype[g], self._conaffinity[g]
+        b = np.flatnonzero(np.isin(self._body_arm, arms))
+        m.body_contype[b], m.body_conaffinity[b] = self._body_contype[b], self._body_conaffinity[b]
+        m.tree_sleep_policy[self._arm_tree[arms]] = int(mujoco.mjtSleepPolicy.mjSLEEP_NEVER)  # mj_forward wakes it
         partial = len(np.unique(arms)) < self.n
         if not partial:
             mujoco.mj_resetData(m, d)
@@ -400,15 +409,29 @@ class PandaSim:
         return self._contact_filter is not None
 
     def park(self, idx: list[int] | np.ndarray) -> None:
-        """Switch off the collisions of arms `idx` (their geoms' contype and conaffinity, until their next reset).
+        """Set arms `idx` aside until their next reset: their collisions off (geoms' and bodies' contype and
+        conaffinity: out of the broad phase too), their velocity zeroed, and MuJoCo lets them sleep from the end of
+        this step for as long as nothing moves them (held by h + g: `A3CQPController.step`'s `active`; a push wakes
+        one). A sleeping arm costs MuJoCo nothing and its read-out is skipped (its arrays keep their last values).
 
         For an arm whose episode is over while the batch runs on: one that rests in contact (a peg left in its
         bore) would cost MuJoCo's collision and constraint solver at every step, for nothing. Its own motion is
-        no longer meaningful; the other arms compute the same up to the solver's round-off (MuJoCo chooses its
-        warm start once per model, by the cost of all its constraints)."""
-        g = np.flatnonzero(np.isin(self._geom_arm, np.asarray(idx, dtype=np.intp)))
-        self.model.geom_contype[g] = 0
-        self.model.geom_conaffinity[g] = 0
+        no longer meaningful; the other arms compute the same numbers bit for bit (MuJoCo solves each arm's
+        constraints on their own, `warmstart`)."""
+        idx = np.asarray(idx, dtype=np.intp).reshape(-1)
+        m, d = self.model, self.data
+        g = np.flatnonzero(np.isin(self._geom_arm, idx))
+        m.geom_contype[g] = 0
+        m.geom_conaffinity[g] = 0
+        b = np.flatnonzero(np.isin(self._body_arm, idx))  # out of the broad phase too (bodies' own bitmasks)
+        m.body_contype[b] = m.body_conaffinity[b] = 0
+        # at rest and marked ready, the arm sleeps at the end of this step (MuJoCo then skips its dynamics) as long
+        # as nothing moves it: the caller holds it with h + g (A3CQPController.step's `active`)
+        if len(idx):
+            d.qvel[np.concatenate([self._arm_dof[i] for i in idx])] = 0.0
+        t = self._arm_tree[idx]
+        m.tree_sleep_policy[t] = int(mujoco.mjtSleepPolicy.mjSLEEP_ALLOWED)
+        d.tree_asleep[t] = np.where(d.tree_asleep[t] < 0, -1, d.tree_asleep[t])
 
     def observe(self) -> SimState:
         """Run mj_step1 (all arms) and return state, B(q), h + g, last-step sensors and the control site's
@@ -668,7 +691,7 @@ class ShardedPandaSim:
         return all(p.contact_prefilter for p in self.parts)
 
     def park(self, idx: list[int] | np.ndarray) -> None:
-        """PandaSim.park: switch off the collisions of arms `idx` until their next reset."""
+        """PandaSim.park: set arms `idx` aside (collisions off, asleep once at rest) until their next reset."""
         arms = np.asarray(idx, dtype=np.intp).reshape(-1)
         for p, (a, b) in zip(self.parts, self._ranges):
             mine = arms[(arms >= a) & (arms < b)]

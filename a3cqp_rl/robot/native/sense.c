@@ -25,6 +25,10 @@ typedef struct {
   const int64_t *qadr, *dadr, *m_idx, *ft_adr, *ft_site, *ft_body, *root_body, *cs, *cs_body;
   const double* cs_mask; /* [7]: 1 for the joints that move the control site, 0 for the others; NULL: all */
   const double* origin;  /* [n, 3]: where each arm's copy sits in the model's world (m) */
+  /* mjData's tree_awake [ntree] and each arm's tree [n] (NULL: read every arm). A sleeping arm's data do not change
+     (MuJoCo skips its dynamics), so its read-out keeps the values of its last one. */
+  const int32_t* tree_awake;
+  const int64_t* arm_tree;
   /* outputs [n, ...] */
   double *q, *qd, *bias, *mass, *ft, *f_env, *cs_pos, *cs_rot, *jt, *twist, *jdot_qdot;
   double tool_mass; /* kg: the F/T site's body's subtree (sensor and tool) */
@@ -109,6 +113,7 @@ static void site_kinematics(const sense_args* a, int64_t i) {
 
 void sense_observe(const sense_args* a) {
   for (int64_t i = 0; i < a->n; i++) {
+    if (a->tree_awake && !a->tree_awake[a->arm_tree[i]]) continue;
     for (int k = 0; k < 7; k++) {
       int64_t dof = a->dadr[7 * i + k];
       a->q[7 * i + k] = a->qpos[a->qadr[7 * i + k]];
