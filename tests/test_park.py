@@ -40,6 +40,45 @@ def test_a_parked_arm_stops_colliding_and_the_others_run_on_bit_for_bit() -> Non
     assert sim.max_penetration()[1] > 0
 
 
+def test_a_parked_arm_held_by_h_plus_g_sleeps_until_pushed_or_reset() -> None:
+    """At rest under h + g a parked arm sleeps from the step it was parked on: MuJoCo leaves it where it is (pushes
+    and torques do not move it) and its read-out keeps its values; a reset wakes it at its new pose; the others run
+    on bit for bit."""
+    from a3cqp_rl.robot import sense
+
+    q_ref, _, _ = _run([])
+    sim = PandaSim(3, tool="peg_mesh", scene=_BOX)
+    for k in range(150):
+        if k == 20:
+            sim.park([1])
+        s = sim.observe()
+        if k < 20:
+            tau = 0.97 * s.bias.numpy()
+        else:  # the parked arm held by h + g, as the controller's inactive robots are
+            tau = s.bias.numpy() * np.array([[0.97], [1.0], [0.97]])
+        sim.step(tau)
+        np.testing.assert_array_equal(s.q.numpy()[[0, 2]], q_ref[k, [0, 2]])
+        if k == 21:
+            q_asleep, read = s.q.numpy()[1].copy(), {k: v.numpy()[1].copy() for k, v in (("q", s.q), ("bias", s.bias))}
+    assert sim.data.ntree_awake == 2 and sim.data.tree_awake[sim._arm_tree[1]] == 0
+    s = sim.observe()
+    np.testing.assert_array_equal(s.q.numpy()[1], q_asleep)  # not moved for 128 steps
+    if sense.observer(sim) is not None:  # the C read-out skipped it: its values are those of its last read-out
+        np.testing.assert_array_equal(s.bias.numpy()[1], read["bias"])
+    sim.push(np.array([[0.0, 0.0, 0.0], [5.0, 0.0, 0.0], [0.0, 0.0, 0.0]]), site="handle")
+    sim.step(s.bias.numpy() + 3.0)
+    np.testing.assert_array_equal(sim.observe().q.numpy()[1], q_asleep)  # frozen: pushes and torques do not move it
+    assert sim.data.ntree_awake == 2
+    q_new = q_asleep + 0.2
+    sim.reset(q_new[None], idx=[1])  # a reset wakes it where it is put, its kinematics with it
+    assert sim.data.ntree_awake == 3
+    s = sim.observe()
+    np.testing.assert_array_equal(s.q.numpy()[1], q_new)
+    pos, _ = sim.site_pose()
+    sim2 = PandaSim(1, tool="peg_mesh", scene=_BOX, q0=tuple(q_new))
+    np.testing.assert_allclose(pos[1], sim2.site_pose()[0][0], atol=1e-12)
+
+
 @pytest.mark.slow
 def test_an_evaluation_gives_the_same_results_parked_or_not_and_in_two_worker_processes() -> None:
     from a3cqp_rl.config import config_from_dict

@@ -410,9 +410,10 @@ class PandaSim:
 
     def park(self, idx: list[int] | np.ndarray) -> None:
         """Set arms `idx` aside until their next reset: their collisions off (geoms' and bodies' contype and
-        conaffinity: out of the broad phase too), their velocity zeroed, and MuJoCo lets them sleep from the end of
-        this step for as long as nothing moves them (held by h + g: `A3CQPController.step`'s `active`; a push wakes
-        one). A sleeping arm costs MuJoCo nothing and its read-out is skipped (its arrays keep their last values).
+        conaffinity: out of the broad phase too) and their velocity zeroed; MuJoCo puts an arm to sleep at the end
+        of the first step it ends at rest (at once when held by h + g, as `A3CQPController.step`'s `active` does).
+        A sleeping arm is frozen until its reset (torques and pushes no longer move it), costs MuJoCo nothing, and
+        its read-out is skipped (its arrays keep the values of its last one).
 
         For an arm whose episode is over while the batch runs on: one that rests in contact (a peg left in its
         bore) would cost MuJoCo's collision and constraint solver at every step, for nothing. Its own motion is
