@@ -16,6 +16,9 @@ controller + MuJoCo + sensing + operator/scene at 100 Hz). Reported per N (media
              its RTF
   bare RTF   the same arms, the same number of control periods, run as the bare loop of bench/controller.py (PandaSim
              + A3CQPController, free motion, no env): `env cost` = bare RTF / RTF
+Then what a finished (parked) arm costs per control period while its batch runs on, against a live arm in free
+motion (PandaEnv(65) with 52 arms parked, and unparked, each against PandaEnv(13); `a3cqp evaluate` parks finished
+arms: the controller leaves them out, MuJoCo lets them sleep).
 Target: RTF >= 10x at N = 32 on this machine (2 cores).  `--eval POLICY` also times `a3cqp evaluate --scene
 peg_in_hole` on 26 trials (learned policy alone, and all five controllers with `--eval-all`) in 1 process and in 2
 worker processes (`--workers 2`), finished arms parked in both (target: under a minute).
@@ -80,6 +83,33 @@ def run_env(n: int, steps: int, threads: int = 1, prefilter: bool = True) -> dic
     return {"steps_s": steps / wall, "rtf": n * env.adapt.dt * steps / wall, "contacts": float(np.mean(contacts))}
 
 
+def run_parked(n: int, parked: int, steps: int) -> float:
+    """Wall time per control period [s] of PandaEnv(n) in free motion (the procedure's first agent steps, random
+    actions) with its last `parked` arms parked (PandaEnv.park, as `a3cqp evaluate` parks finished arms)."""
+    env = PandaEnv(n, ExperimentConfig(), seed=0)
+    td = env.reset()
+    env.park(np.arange(n - parked, n))
+    torch.manual_seed(0)
+    for _ in range(5):
+        td = env.step(env.rand_action(td))["next"]
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        td = env.step(env.rand_action(td))["next"]
+    return (time.perf_counter() - t0) / (steps * env.substeps)
+
+
+def parked_cost(n: int, parked: int, steps: int, repeats: int) -> tuple[float, float]:
+    """(a parked arm's, a live arm's) extra wall time per control period [s]: PandaEnv(n) with `parked` of its arms
+    parked and with none, against PandaEnv(n − parked), medians of interleaved runs."""
+    few, some, none = [], [], []
+    for _ in range(repeats):
+        few.append(run_parked(n - parked, 0, steps))
+        some.append(run_parked(n, parked, steps))
+        none.append(run_parked(n, 0, steps))
+    base = statistics.median(few)
+    return (statistics.median(some) - base) / parked, (statistics.median(none) - base) / parked
+
+
 def run_bare(n: int, periods: int) -> float:
     """Aggregate RTF of the bare PandaSim + A3CQPController loop (free motion), the same n and control periods."""
     sim = PandaSim(n, tool="peg")
@@ -134,6 +164,11 @@ def main(argv: list[str] | None = None) -> int:
         target = f">=10x RT: {'met' if r['rtf'] >= 10 else 'NOT met'}" if n == 32 else "-"
         print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {rtf2} {nofilter} {sensing} "
               f"{bare:>8.2f}x {bare / r['rtf']:>8.2f}x {target:>18}")
+    n_all, n_parked = (13, 8) if args.quick else (65, 52)
+    per_parked, per_live = parked_cost(n_all, n_parked, steps, repeats)
+    print(f"finished arms (PandaEnv({n_all}), {n_parked} parked, free motion): {1e6 * per_parked:.1f} us per parked "
+          f"arm and control period, {1e6 * per_live:.1f} us per live arm (peer, the same env unparked): "
+          f"x{per_live / max(per_parked, 1e-9):.1f}")
     if args.eval:
         from envs.panda_eval import CONTROLLERS, evaluate
 
