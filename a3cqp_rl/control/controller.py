@@ -589,7 +589,10 @@ class A3CQPController:
         try:
             sol = solve_qp(P, c, G=G, h=h, warm_start=warm if rows is None or warm is None else warm.take(rows),
                            max_iter=self.options.qp_max_iter, hand_on=self.options.qp_hand_on)
-            self._warm = sol if rows is None else (warm or QPSolution.zeros_like(sol, n)).put(rows, sol)
+            if rows is None:
+                self._warm = sol
+            else:  # the other robots' warm starts stay (cold where none was kept)
+                self._warm = (warm if warm is not None else QPSolution.zeros_like(sol, n)).put(rows, sol)
             return sol.x, sol.status, sol.iterations
         except Exception:  # a solver bug must not take the arms down: brake every robot and say so loudly
             return self._solver_raised(P)
@@ -657,10 +660,10 @@ class A3CQPController:
             f_ext_limits: bool [N], the robots whose joint-limit rows count the measured f_ext, as
                 `ControllerOptions.joint_limits_include_f_ext` does for every robot; default None, none.
             active: bool [N], the robots controlled this step; default None, all. An inactive robot gets
-                τ = h + g (gravity and Coriolis compensation, clipped), no QP, status 0, no fallback, zeros for
-                the other outputs, and keeps q*, q̇* (and, on the C route, its QP warm start) as they were. The
-                C route computes only the active robots (a batch whose finished arms wait for the others):
-                their numbers are the same as in a step of all.
+                τ = h + g (gravity and Coriolis compensation, clipped), status 0, no fallback, zeros for the other
+                outputs, and keeps q*, q̇* as they were. From `SUBSET_MIN_IDLE` inactive robots on, the C route
+                computes only the active ones (a batch whose finished arms wait for the others); the active
+                robots' numbers are those of a step of all either way.
 
         A robot whose inputs are not finite (or whose QP fails) gets the safe fallback: a viable brake with gravity
         compensation, `fallback` True and status INVALID_INPUT (or the QP's status).
@@ -720,8 +723,9 @@ class A3CQPController:
             v = getattr(out, name).clone()
             v[idle] = 0
             fields[name] = v
-        tau_max = self.tau_max.to(torch.float64)
-        fields["tau"][idle] = torch.as_tensor(bias, dtype=torch.float64)[idle].clip(-tau_max, tau_max)
+        dev = fields["tau"].device
+        tau_max = self.tau_max.to(device=dev, dtype=torch.float64)
+        fields["tau"][idle] = torch.as_tensor(bias, dtype=torch.float64, device=dev)[idle].clip(-tau_max, tau_max)
         self.q_des[idle], self.qd_des[idle] = refs[0][idle], refs[1][idle]
         return ControlOutput(**fields)
 
