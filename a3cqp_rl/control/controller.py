@@ -680,13 +680,9 @@ class A3CQPController:
         rows = self._active_rows(active)
         native_route = inp.all_valid and inp.xp is np and self._native is not None and self._native_fits() and (
             self._native_for == (tuple(map(id, self.tasks)), tuple(map(id, self.limits))))
-        if native_route and (rows is None or type(self)._native_qp is A3CQPController._native_qp):
+        if native_route:
             return self._step_native(inp) if rows is None else self._step_native(inp, rows)
-        if rows is not None:  # the other routes compute every robot, then hold the inactive ones
-            refs = self.q_des.clone(), self.qd_des.clone()
-            out = A3CQPController.step(self, q, qd, mass, bias, weights, f_d, pos_d, rot_d, f_ext, in_contact, f_env,
-                                       kin, leak_extra, f_ext_limits)
-            return self._hold(out, self._idle(rows), inp.bias, refs)
+        refs = None if rows is None else (self.q_des.clone(), self.qd_des.clone())  # the other routes hold after
         if not inp.all_valid:
             inp = self._stand_ins(inp)
         ctx = self.build_context(inp.q, inp.qd, inp.mass, inp.weights, inp.f_d, inp.pos_d, inp.rot_d, inp.f_ext,
@@ -698,7 +694,8 @@ class A3CQPController:
         else:
             P, c, G, h = (torch.as_tensor(a) for a in self.build_qp(ctx))
             x, qp_status, iterations = self._solve(P, c, G, h)
-        return self._apply(inp, ctx, x, qp_status, iterations)
+        out = self._apply(inp, ctx, x, qp_status, iterations)
+        return out if rows is None else self._hold(out, self._idle(rows), inp.bias, refs)
 
     def _active_rows(self, active: torch.Tensor | np.ndarray | None) -> np.ndarray | None:
         """The indices of `step`'s active robots, or None where every robot is (or `active` is None)."""
@@ -725,7 +722,8 @@ class A3CQPController:
             fields[name] = v
         dev = fields["tau"].device
         tau_max = self.tau_max.to(device=dev, dtype=torch.float64)
-        fields["tau"][idle] = torch.as_tensor(bias, dtype=torch.float64, device=dev)[idle].clip(-tau_max, tau_max)
+        h = torch.as_tensor(bias, dtype=torch.float64, device=dev)[idle].clip(-tau_max, tau_max)
+        fields["tau"][idle] = h.nan_to_num(nan=0.0)  # (as `_finish` does: a non-finite reading gives no torque)
         self.q_des[idle], self.qd_des[idle] = refs[0][idle], refs[1][idle]
         return ControlOutput(**fields)
 
@@ -867,7 +865,8 @@ class A3CQPController:
         the active robots (`step`'s `active`), None: all."""
         # a few idle robots are computed with the others and held after: gathering and scattering the arrays costs
         # ~50 µs, ~13 robots' C step at 65
-        sub = rows is not None and self.n - len(rows) >= SUBSET_MIN_IDLE
+        sub = (rows is not None and self.n - len(rows) >= SUBSET_MIN_IDLE
+               and type(self)._native_qp is A3CQPController._native_qp)  # (a population assembles its own way)
         asm, x, qp_status, iterations = self._native_qp(inp, rows) if sub else self._native_qp(inp)
         xn = _np(x)
         ok = (_np(qp_status) == 0) & np.isfinite(xn).all(axis=1)
