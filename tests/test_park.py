@@ -40,7 +40,7 @@ def test_a_parked_arm_stops_colliding_and_the_others_run_on_bit_for_bit() -> Non
     assert sim.max_penetration()[1] > 0
 
 
-def test_a_parked_arm_held_by_h_plus_g_sleeps_until_pushed_or_reset() -> None:
+def test_a_parked_arm_held_by_h_plus_g_sleeps_until_its_reset() -> None:
     """At rest under h + g a parked arm sleeps from the step it was parked on: MuJoCo leaves it where it is (pushes
     and torques do not move it) and its read-out keeps its values; a reset wakes it at its new pose; the others run
     on bit for bit."""
