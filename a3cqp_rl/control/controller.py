@@ -701,7 +701,7 @@ class A3CQPController:
         """The indices of `step`'s active robots, or None where every robot is (or `active` is None)."""
         if active is None:
             return None
-        a = active.numpy() if isinstance(active, torch.Tensor) else np.asarray(active)
+        a = active.detach().cpu().numpy() if isinstance(active, torch.Tensor) else np.asarray(active)
         if a.shape != (self.n,) or a.dtype != np.bool_:
             raise ControlShapeError(f"active must be a bool tensor of shape ({self.n},), got {a.dtype} {a.shape}")
         return None if a.all() else np.flatnonzero(a)
