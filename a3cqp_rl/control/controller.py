@@ -871,18 +871,18 @@ class A3CQPController:
         xn = _np(x)
         ok = (_np(qp_status) == 0) & np.isfinite(xn).all(axis=1)
         extra = inp.leak_extra if not sub or inp.leak_extra is None else inp.leak_extra[rows]
-        out = [*self._native.torque(xn, ok, asm, extra), asm.pose_error, asm.f_adm, asm.f_ctc, ok,
-               _np(qp_status).copy(), _np(iterations).copy()]
-        if sub:
-            out = [_spread(self.n, rows, a) for a in out]
+        out = [*self._native.torque(xn, ok, asm, extra), asm.pose_error, asm.f_adm, asm.f_ctc, ok]
         if rows is not None:  # the inactive robots: h + g, their q*, q̇* kept, no fallback, zeros elsewhere
-            idle = self._idle(rows)
-            for a in out:
-                a[idle] = 0
+            idle, counts = self._idle(rows), [_np(qp_status), _np(iterations)]
+            if sub:  # (spread: zeros in the idle rows already)
+                out, counts = ([_spread(self.n, rows, a) for a in arrays] for arrays in (out, counts))
+            else:  # every robot computed: the fresh outputs zeroed in place; status and iterations are views of the
+                counts = [a.copy() for a in counts]  # solver's buffer, which the warm start keeps
+                for a in out + counts:
+                    a[idle] = 0
             out[0][idle] = np.clip(inp.bias[idle], -self._tau_max_np, self._tau_max_np)
             out[4][idle], out[5][idle], out[10][idle] = _np(self.q_des)[idle], _np(self.qd_des)[idle], True
-        *out, qp_status, iterations = out
-        qp_status, iterations = torch.from_numpy(qp_status), torch.from_numpy(iterations)
+            qp_status, iterations = (torch.from_numpy(a) for a in counts)
         tau, qdd, f, qdd_pd, q_des, qd_des, saturated, pose_error, f_adm, f_ctc, ok = out
         if not ok.all():
             self._report_fallback(ok, qp_status, np.ones(self.n, dtype=bool))

@@ -162,7 +162,7 @@ class QPSolution:
 
     def _parts(self) -> tuple[np.ndarray, ...]:
         """numpy views [B, ...] of a C solve's output buffer: x, duals (y | z | z_lb | z_ub), status, solves."""
-        B, n = self._dims[:2]
+        B = self._dims[0]
         return self._np("_x"), self._duals(), self._buf[-2 * B:-B].reshape(B, 1), self._buf[-B:].reshape(B, 1)
 
     def take(self, rows: np.ndarray) -> "QPSolution":
