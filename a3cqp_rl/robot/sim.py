@@ -296,7 +296,7 @@ class PandaSim:
         self._skew_idx = np.array([12 * (r0 + i) + c0 + j for r0, c0 in ((0, 0), (6, 6), (0, 6))
                                    for i, j in plus + minus], dtype=np.intp)
         self._skew_src = np.array([2, 0, 1, 5, 3, 4, 8, 6, 7, 11, 9, 10], dtype=np.intp)
-        self._site_cache: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}
+        self._site_cache: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]] = {}
         # park(): MuJoCo's sleeping skips a parked arm's dynamics; no tree sleeps on its own (policy "never")
         self._arm_tree = m.body_treeid[[m.body(p + "link1").id for p in self._prefixes]].astype(np.intp)
         self._body_arm = body_arm
@@ -513,25 +513,26 @@ class PandaSim:
         """Apply a world-frame force [N, 3] (N) (and torque [N, 3], N m) at `site` during the next step()."""
         force = np.asarray(force_world, dtype=np.float64).reshape(self.n, 3)
         torque = np.zeros_like(force) if torque_world is None else np.asarray(torque_world, np.float64).reshape(-1, 3)
-        pushed = np.any(force != 0, axis=1) | np.any(torque != 0, axis=1)
-        if not pushed.any():
+        arms = np.flatnonzero(np.any(force != 0, axis=1) | np.any(torque != 0, axis=1))
+        if not len(arms):
             return
-        force, torque = force * pushed[:, None], torque * pushed[:, None]
+        force, torque = force[arms], torque[arms]  # (the arms pushed only: a few of a batch at a time)
         d = self.data
         if site not in self._site_cache:  # (a name lookup per arm costs ~1 µs: once per site, not per push)
             sid = self._site_index(site)
             body = self.model.site_bodyid[sid]
-            self._site_cache[site] = sid, body, self._ancestor_mask(body[0])
-        sid, body, mask = self._site_cache[site]
+            self._site_cache[site] = sid, body, self.model.body_rootid[body], self._ancestor_mask(body[0])
+        sid, body, root, mask = self._site_cache[site]
+        sid, body, root = sid[arms], body[arms], root[arms]
         p = d.site_xpos[sid]
         # a body force (xfrc_applied, at the body CoM) so that the F/T sensor sees pushes below it
         d.xfrc_applied[body, :3] += force
         d.xfrc_applied[body, 3:] += torque + cross3(p - d.xipos[body], force)
         # its joint torques Jᵀ(f; τ) at p (as mj_applyFT), for tau_ext: cdof_lin·f + cdof_ang·(r × f + τ)
-        cdof = d.cdof[self._dadr]
-        moment = cross3(p - d.subtree_com[self.model.body_rootid[body]], force) + torque
+        cdof = d.cdof[self._dadr[arms]]
+        moment = cross3(p - d.subtree_com[root], force) + torque
         tau = np.einsum("nkj,nj->nk", cdof[:, :, 3:], force) + np.einsum("nkj,nj->nk", cdof[:, :, :3], moment)
-        self._tau_push += tau if mask is None else tau * mask
+        self._tau_push[arms] += tau if mask is None else tau * mask
         self._pushed = True
 
     def step(self, tau: torch.Tensor | np.ndarray) -> None:
