@@ -54,6 +54,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from a3cqp_rl import worker_exit
 from a3cqp_rl.checkpoint import write_atomic, write_text_atomic
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
@@ -368,10 +369,12 @@ _PROGRESS_QUEUE = None
 
 
 def _init_worker(queue) -> None:  # noqa: ANN001
-    """Worker process set-up: one torch thread (the workers share the cores), progress to the parent's `queue`."""
+    """Worker process set-up: one torch thread (the workers share the cores), progress to the parent's `queue`, no
+    interpreter teardown at exit (`a3cqp_rl.worker_exit`)."""
     global _PROGRESS_QUEUE
     torch.set_num_threads(1)
     _PROGRESS_QUEUE = queue
+    worker_exit.install()
 
 
 class _QueueBar:

@@ -15,6 +15,7 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
+from a3cqp_rl import worker_exit
 from a3cqp_rl.exceptions import A3CQPError
 
 __all__ = ["make_pool", "SerialPool", "ProcessPool", "RayPool"]
@@ -35,6 +36,7 @@ def _init_worker(preload: tuple[str, ...] = ()) -> None:
         os.environ[var] = "1"
     for module in preload:  # heavy imports (torch, torchrl) once at start, not inside the first task's timing
         importlib.import_module(module)
+    worker_exit.install()  # no interpreter teardown (~1 s with torch and torchrl) for the pool's shutdown to wait on
 
 
 class SerialPool:
