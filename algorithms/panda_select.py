@@ -115,15 +115,15 @@ def _evaluate(paths: list[Path], todo: list[int], hp: A2CConfig, panda_cfg, work
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
     ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no forked torch or MuJoCo state
-    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=ctx, initializer=_init_worker) as pool:
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=ctx, initializer=worker_exit.initializer,
+                             initargs=("algorithms.panda_select:_init_worker",)) as pool:
         for future in as_completed([pool.submit(_evaluate_one, job) for job in jobs]):
             yield future.result()
 
 
 def _init_worker() -> None:
-    """Worker process set-up: one torch thread, no interpreter teardown at exit (`a3cqp_rl.worker_exit`)."""
+    """Worker process set-up: one torch thread (the arms' tiny networks and QPs)."""
     torch.set_num_threads(1)
-    worker_exit.install()
 
 
 def _evaluate_one(job: tuple) -> tuple[int, dict, float]:

@@ -369,12 +369,10 @@ _PROGRESS_QUEUE = None
 
 
 def _init_worker(queue) -> None:  # noqa: ANN001
-    """Worker process set-up: one torch thread (the workers share the cores), progress to the parent's `queue`, no
-    interpreter teardown at exit (`a3cqp_rl.worker_exit`)."""
+    """Worker process set-up: one torch thread (the workers share the cores), progress to the parent's `queue`."""
     global _PROGRESS_QUEUE
     torch.set_num_threads(1)
     _PROGRESS_QUEUE = queue
-    worker_exit.install()
 
 
 class _QueueBar:
@@ -420,7 +418,9 @@ def _run_workers(jobs: list[tuple], arms: int, progress: bool) -> list[dict]:
 
     jobs = [job + (i,) for i, job in enumerate(jobs)]
     try:
-        with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=_init_worker, initargs=(q,)) as pool:
+        # (the workers end without their interpreter's teardown, which the shutdown would wait for: worker_exit)
+        with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=worker_exit.initializer,
+                                 initargs=("envs.panda_eval:_init_worker", q)) as pool:
             futures = [pool.submit(_run_job, job) for job in jobs]
             while not all(f.done() for f in futures):
                 wait(futures, timeout=0.5)

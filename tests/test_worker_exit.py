@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import atexit
 import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -19,8 +20,9 @@ class _Finaliser:
     def __init__(self, path: str) -> None:
         self.path = path
 
-    def __del__(self) -> None:
-        Path(self.path).write_text("torn down")
+    def __del__(self, _open=open) -> None:  # noqa: ANN001 (open bound now: the teardown may clear modules first)
+        with _open(self.path, "w") as f:
+            f.write("torn down")
 
 
 def _worker(folder: str, install: bool, out: multiprocessing.Queue) -> None:
@@ -47,3 +49,24 @@ def test_a_worker_sends_its_result_runs_later_handlers_and_skips_the_teardown(tm
     assert (tmp_path / "handler").read_text() == "ran"
     assert (tmp_path / "teardown").exists() is not install
     assert "unflushed" in capfd.readouterr().out
+
+
+def _set_up(folder: str) -> None:
+    """A pool's set-up: registers an exit handler, as torch does when imported, and keeps a module global."""
+    atexit.register(Path(folder, "handler").write_text, "ran")
+    global _KEEP
+    _KEEP = _Finaliser(str(Path(folder, "teardown")))
+
+
+def _answer() -> int:
+    return 42
+
+
+def test_a_pool_initializer_installs_it_before_the_set_up(tmp_path: Path) -> None:
+    """`initializer("module:function", ...)`: the set-up's exit handler runs, the teardown does not, results arrive."""
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(1, mp_context=ctx, initializer=worker_exit.initializer,
+                             initargs=("tests.test_worker_exit:_set_up", str(tmp_path))) as pool:
+        assert pool.submit(_answer).result(timeout=60) == 42
+    assert (tmp_path / "handler").read_text() == "ran"
+    assert not (tmp_path / "teardown").exists()

@@ -36,7 +36,6 @@ def _init_worker(preload: tuple[str, ...] = ()) -> None:
         os.environ[var] = "1"
     for module in preload:  # heavy imports (torch, torchrl) once at start, not inside the first task's timing
         importlib.import_module(module)
-    worker_exit.install()  # no interpreter teardown (~1 s with torch and torchrl) for the pool's shutdown to wait on
 
 
 class SerialPool:
@@ -58,8 +57,9 @@ class ProcessPool:
 
     def __init__(self, workers: int, preload: tuple[str, ...] = ()) -> None:
         self.workers = workers
-        self._ex = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker,
-                                       initargs=(tuple(preload),))
+        # (the workers end without their interpreter's teardown, ~1 s with torch and torchrl: worker_exit)
+        self._ex = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=worker_exit.initializer,
+                                       initargs=("algorithms.tuning.pool:_init_worker", tuple(preload)))
 
     def imap(self, fn: Callable, chunks: Sequence, args: tuple = ()) -> Iterator[Result]:
         """Yield (index, fn(chunk, *args), seconds) as chunks finish."""
