@@ -962,6 +962,11 @@ def main(argv: list[str] | None = None) -> int:
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        kept = (f"; the seeds that ended are kept in {args.cache} and the same command resumes" if args.cache else
+                "" if not (args.json and docs) else f"; the policies that ended are in {args.json}")
+        print(f"\ninterrupted{kept}", file=sys.stderr)
+        return 130
     if len(docs) > 1:
         print(format_policy_ranking(docs))
     if args.json:

@@ -98,3 +98,28 @@ def test_a_result_that_needs_pickle_is_not_kept(tmp_path, caplog) -> None:  # no
                      sim_seconds=2.0, metrics={"ik": {"success": np.array([True, False])}}, seeds=(0,))
     eval_cache.save(tmp_path / "x.npz", {"seed": 0}, res)
     assert not (tmp_path / "x.npz").exists() and "not written" in caplog.text and "e|ik|q" in caplog.text
+
+
+def test_main_says_what_an_interrupted_sweep_kept(tmp_path, capsys, monkeypatch) -> None:  # noqa: ANN001
+    """Ctrl-C during the second seed: exit 130 with one line (no traceback), the first seed kept for the rerun."""
+    cfg_path = tmp_path / "fast.yaml"
+    import yaml
+
+    cfg_path.write_text(yaml.safe_dump(FAST))
+    real, calls = panda_eval.evaluate, []
+
+    def interrupted_second(*a, **k):  # noqa: ANN002, ANN003, ANN202
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(panda_eval, "evaluate", interrupted_second)
+    args = ["--scene", "peg_in_hole", "--trials", "1", "--seeds", "0-1", "--controllers", "ik_fc", "--config",
+            str(cfg_path), "--workers", "1", "--quiet", "--cache", str(tmp_path / "c")]
+    assert main(args) == 130
+    err = capsys.readouterr().err
+    assert "interrupted; the seeds that ended are kept in" in err and "Traceback" not in err
+    monkeypatch.setattr(panda_eval, "evaluate", real)
+    assert main(args) == 0
+    assert capsys.readouterr().err.count("read back from") == 1  # seed 0 from the cache, seed 1 simulated
