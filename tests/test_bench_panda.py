@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from bench.panda_env import parked_cost, run_env
+import math
+
+from bench.panda_env import parked_cost, run_env, run_parked
 
 
 def test_the_panda_benchmark_times_arms_in_contact() -> None:
@@ -22,6 +24,8 @@ def test_the_benchmarks_numpy_peer_runs_the_numpy_sensing_and_restores_the_c_one
 
 
 def test_the_benchmark_times_parked_and_live_arms() -> None:
-    """The parked-arm line measures two positive costs per arm and period (their ratio is printed, not asserted)."""
+    """The parked-arm line measures a cost per arm and period for each (differences of wall times, so either can
+    come out at ~0 or below in a short run on a busy machine: finite is what is asserted, the ratio is printed)."""
+    assert run_parked(3, 2, 1) > 0.0
     parked, live = parked_cost(4, 2, 2, 1)
-    assert live > 0.0 and parked == parked  # a parked arm's cost can come out at ~0 or below (timer noise): finite
+    assert math.isfinite(parked) and math.isfinite(live)
