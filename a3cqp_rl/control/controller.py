@@ -677,12 +677,12 @@ class A3CQPController:
                 raise ControlShapeError(f"f_ext_limits must be a bool tensor of shape ({self.n},), got "
                                         f"{m.dtype} {tuple(m.shape)}")
             inp.f_ext_limits = _np(m) if inp.xp is np else m.to(inp.q.device)
-        rows = self._active_rows(active)
+        split = self._active_rows(active)
         native_route = inp.all_valid and inp.xp is np and self._native is not None and self._native_fits() and (
             self._native_for == (tuple(map(id, self.tasks)), tuple(map(id, self.limits))))
         if native_route:
-            return self._step_native(inp) if rows is None else self._step_native(inp, rows)
-        refs = None if rows is None else (self.q_des.clone(), self.qd_des.clone())  # the other routes hold after
+            return self._step_native(inp) if split is None else self._step_native(inp, *split)
+        refs = None if split is None else (self.q_des.clone(), self.qd_des.clone())  # the other routes hold after
         if not inp.all_valid:
             inp = self._stand_ins(inp)
         ctx = self.build_context(inp.q, inp.qd, inp.mass, inp.weights, inp.f_d, inp.pos_d, inp.rot_d, inp.f_ext,
@@ -695,22 +695,17 @@ class A3CQPController:
             P, c, G, h = (torch.as_tensor(a) for a in self.build_qp(ctx))
             x, qp_status, iterations = self._solve(P, c, G, h)
         out = self._apply(inp, ctx, x, qp_status, iterations)
-        return out if rows is None else self._hold(out, self._idle(rows), inp.bias, refs)
+        return out if split is None else self._hold(out, split[1], inp.bias, refs)
 
-    def _active_rows(self, active: torch.Tensor | np.ndarray | None) -> np.ndarray | None:
-        """The indices of `step`'s active robots, or None where every robot is (or `active` is None)."""
+    def _active_rows(self, active: torch.Tensor | np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """The indices of `step`'s active and inactive robots, or None where every robot is active (or `active` is
+        None)."""
         if active is None:
             return None
         a = active.detach().cpu().numpy() if isinstance(active, torch.Tensor) else np.asarray(active)
         if a.shape != (self.n,) or a.dtype != np.bool_:
             raise ControlShapeError(f"active must be a bool tensor of shape ({self.n},), got {a.dtype} {a.shape}")
-        return None if a.all() else np.flatnonzero(a)
-
-    def _idle(self, rows: np.ndarray) -> np.ndarray:
-        """The robots not in `rows` (sorted indices)."""
-        keep = np.ones(self.n, dtype=bool)
-        keep[rows] = False
-        return np.flatnonzero(keep)
+        return None if a.all() else (np.flatnonzero(a), np.flatnonzero(~a))
 
     def _hold(self, out: ControlOutput, idle: np.ndarray, bias: Array, refs: tuple[torch.Tensor, ...]) -> ControlOutput:
         """`out` with the robots `idle` given `step`'s inactive output (τ = h + g clipped, q*, q̇* from `refs`)."""
@@ -860,9 +855,10 @@ class A3CQPController:
                                    inp.f_ext, inp.in_contact, inp.kin, inp.f_ext_limits, rows)
         return asm, *self._solve(*(torch.from_numpy(a) for a in (asm.P, asm.c, asm.G, asm.h)), rows=rows)
 
-    def _step_native(self, inp: _StepInputs, rows: np.ndarray | None = None) -> ControlOutput:
-        """Stages 3-4 by the C translation of the default tasks, limits and torque law (finite numpy inputs); `rows`:
-        the active robots (`step`'s `active`), None: all."""
+    def _step_native(self, inp: _StepInputs, rows: np.ndarray | None = None,
+                     idle: np.ndarray | None = None) -> ControlOutput:
+        """Stages 3-4 by the C translation of the default tasks, limits and torque law (finite numpy inputs); `rows`,
+        `idle`: the active and the inactive robots (`step`'s `active`), None: all active."""
         # a few idle robots are computed with the others and held after: gathering and scattering the arrays costs
         # ~50 µs, ~13 robots' C step at 65
         sub = (rows is not None and self.n - len(rows) >= SUBSET_MIN_IDLE
@@ -873,7 +869,7 @@ class A3CQPController:
         extra = inp.leak_extra if not sub or inp.leak_extra is None else inp.leak_extra[rows]
         out = [*self._native.torque(xn, ok, asm, extra), asm.pose_error, asm.f_adm, asm.f_ctc, ok]
         if rows is not None:  # the inactive robots: h + g, their q*, q̇* kept, no fallback, zeros elsewhere
-            idle, counts = self._idle(rows), [_np(qp_status), _np(iterations)]
+            counts = [_np(qp_status), _np(iterations)]
             if sub:  # (spread: zeros in the idle rows already)
                 out, counts = ([_spread(self.n, rows, a) for a in arrays] for arrays in (out, counts))
             else:  # every robot computed: the fresh outputs zeroed in place; status and iterations are views of the
