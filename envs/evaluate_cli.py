@@ -17,14 +17,35 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from a3cqp_rl import worker_start
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
+
+PANDA_WORKER_IMPORTS = ("envs.panda_eval", "envs.panda", "envs.panda_fixed", "algorithms.a2c")
+"""What the worker processes of `a3cqp evaluate --scene` import before they simulate (their fork server's preload)."""
+
+
+def _starts_workers(argv: Sequence[str]) -> bool:
+    """Whether `a3cqp evaluate --scene` with these arguments will run worker processes (more than one, not --help)."""
+    if any(a in ("-h", "--help") for a in argv):
+        return False
+    workers = None
+    for i, a in enumerate(argv):
+        if a == "--workers" and i + 1 < len(argv):
+            workers = argv[i + 1]
+        elif a.startswith("--workers="):
+            workers = a.split("=", 1)[1]
+    if workers is None:
+        return worker_start.default_workers() > 1
+    return workers.strip().isdigit() and int(workers) > 1
 
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry; returns an exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if any(a == "--scene" or a.startswith("--scene=") for a in argv):
+        if _starts_workers(argv):  # their imports now run on another core while this process does its own
+            worker_start.start(PANDA_WORKER_IMPORTS)
         try:
             panda = importlib.import_module("envs.panda_eval")
         except ModuleNotFoundError as exc:

@@ -54,13 +54,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from a3cqp_rl import worker_exit
+from a3cqp_rl import worker_start
 from a3cqp_rl.checkpoint import write_atomic, write_text_atomic
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, guided_rates,  # noqa: F401 (re-exported)
                                 raises_ik, yields)
+from a3cqp_rl.worker_start import MAX_DEFAULT_WORKERS, default_workers  # noqa: F401 (re-exported)
 from envs import eval_cache
+from envs.evaluate_cli import PANDA_WORKER_IMPORTS as WORKER_IMPORTS
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "trial_seeds", "paired", "free_motion_rates", "free_motion_warning",
            "guided_rates", "guided_warning", "sensing_warning", "limit_stress", "LimitStress", "capped_time",
@@ -141,20 +143,6 @@ def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, sin
     op = m & (task == "AC") & env.operator.active
     scale[op] = VIC_OPERATOR
     return W, f_d, scale, ctrl != "learned"
-
-
-MAX_DEFAULT_WORKERS = 8
-"""The most worker processes `a3cqp evaluate --scene` starts unless told (each holds ~0.5 GB: torch, its MuJoCo model
-and controller)."""
-
-
-def default_workers() -> int:
-    """`--workers` when not given: the CPU cores this process may use (its affinity), at most `MAX_DEFAULT_WORKERS`."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # no affinity outside Linux
-        cores = os.cpu_count() or 1
-    return max(1, min(cores, MAX_DEFAULT_WORKERS))
 
 
 def trial_seeds(seed: int, trials: int) -> list[int]:
@@ -393,13 +381,12 @@ class _QueueBar:
 
 
 def _run_workers(jobs: list[tuple], arms: int, progress: bool) -> list[dict]:
-    """`_run_job` of each job in its own process (spawned: a fresh interpreter, no forked torch or MuJoCo state); one
-    progress bar over all `arms`, fed by the workers through a queue."""
-    import multiprocessing
+    """`_run_job` of each job in its own process (forked from a server that has imported `WORKER_IMPORTS`, or
+    spawned: `a3cqp_rl.worker_start`); one progress bar over all `arms`, fed by the workers through a queue."""
     import queue as queue_mod
     from concurrent.futures import ProcessPoolExecutor, wait
 
-    ctx = multiprocessing.get_context("spawn")
+    ctx = worker_start.context(WORKER_IMPORTS)
     q = ctx.Queue()
     bar = _progress(arms, progress)
     simulated = [0.0] * len(jobs)
@@ -418,9 +405,9 @@ def _run_workers(jobs: list[tuple], arms: int, progress: bool) -> list[dict]:
 
     jobs = [job + (i,) for i, job in enumerate(jobs)]
     try:
-        # (the workers end without their interpreter's teardown, which the shutdown would wait for: worker_exit)
-        with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=worker_exit.initializer,
-                                 initargs=("envs.panda_eval:_init_worker", q)) as pool:
+        # (spawned workers end without their interpreter's teardown, which the shutdown would wait for: worker_exit)
+        with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=worker_start.initializer,
+                                 initargs=worker_start.initargs("envs.panda_eval:_init_worker", q)) as pool:
             futures = [pool.submit(_run_job, job) for job in jobs]
             while not all(f.done() for f in futures):
                 wait(futures, timeout=0.5)
