@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from a3cqp_rl import worker_exit
+from a3cqp_rl import worker_start
 from a3cqp_rl.checkpoint import save_atomic, write_text_atomic
 from a3cqp_rl.config import A2CConfig
 
@@ -111,12 +111,14 @@ def _evaluate(paths: list[Path], todo: list[int], hp: A2CConfig, panda_cfg, work
         finally:
             torch.set_num_threads(threads)
         return
-    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no forked torch or MuJoCo state
-    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=ctx, initializer=worker_exit.initializer,
-                             initargs=("algorithms.panda_select:_init_worker",)) as pool:
+    from envs.evaluate_cli import PANDA_WORKER_IMPORTS
+
+    # forked from a fresh server that has imported the Panda env once (not from this process: no forked torch state)
+    ctx = worker_start.context(PANDA_WORKER_IMPORTS)
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=ctx, initializer=worker_start.initializer,
+                             initargs=worker_start.initargs("algorithms.panda_select:_init_worker")) as pool:
         for future in as_completed([pool.submit(_evaluate_one, job) for job in jobs]):
             yield future.result()
 

@@ -457,8 +457,8 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     n = env.num_envs
     latched, since = np.zeros(n, dtype=bool), np.zeros(n)
     rec_arms = np.arange(len(controllers)) * trials + (record or 0)  # that trial of each controller
-    episodes = ({c: {k: [] for k in RECORD_KEYS + env.signal_keys + ("q",)} for c in controllers}
-                if record is not None else {})
+    rec_keys = RECORD_KEYS + env.signal_keys + ("q",)
+    episodes = {c: {k: [] for k in rec_keys} for c in controllers} if record is not None else {}
     td = env.reset()
     finished = np.zeros(n, dtype=bool)
     fallbacks = np.zeros(n, dtype=np.int64)  # each trial's QP fallback periods, taken when its episode ends
@@ -478,10 +478,11 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
         td["action"] = action
         td = env.step(td)["next"]
         steps += 1
-        for c, arm in zip(episodes, rec_arms):
-            if not finished[arm]:
-                for k in episodes[c]:
-                    episodes[c][k].append(env.q[arm].copy() if k == "q" else td[k][arm].numpy().copy())
+        live = [(rec, j) for j, (rec, arm) in enumerate(zip(episodes.values(), rec_arms)) if not finished[arm]]
+        for k in rec_keys if live else ():  # one gather per signal for every recorded arm (fancy indexing copies)
+            rows = (env.q if k == "q" else td[k].numpy())[rec_arms]
+            for rec, j in live:
+                rec[k].append(rows[j])
         newly = td["done"].reshape(n).numpy() & ~finished
         fallbacks[newly] = env.fallbacks[newly]
         if park:
