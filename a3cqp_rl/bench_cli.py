@@ -1,7 +1,7 @@
 """`a3cqp bench NAME [args]`: run one benchmark of the installed `bench` package (the repository's bench/ folder).
 
-NAME: env, train, pendulum, qp, controller, hierarchy, population, panda, tuning, eval, a2c, leak, or all (each with
---quick unless args are given). Each benchmark also runs as a script, `python bench/<file>.py --help`.
+NAME: env, train, pendulum, qp, controller, hierarchy, population, panda, tuning, eval, a2c, leak, workers, or all
+(each with --quick unless args are given). Each benchmark also runs as a script, `python bench/<file>.py --help`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import sys
 BENCHES = {"env": "bench.env_throughput", "train": "bench.train_speed", "pendulum": "bench.pendulum",
            "qp": "bench.qp", "controller": "bench.controller", "hierarchy": "bench.hierarchy",
            "population": "bench.population_step", "panda": "bench.panda_env", "tuning": "bench.tuning",
-           "eval": "bench.eval_speed", "a2c": "bench.a2c_cpu", "leak": "bench.leak_extra"}
+           "eval": "bench.eval_speed", "a2c": "bench.a2c_cpu", "leak": "bench.leak_extra",
+           "workers": "bench.worker_start"}
 """Benchmark name -> module with a `main(argv) -> int` (dispatched by name: a3cqp_rl imports nothing from bench)."""
 
 

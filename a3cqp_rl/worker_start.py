@@ -13,6 +13,8 @@ What a fork must not carry over (hence this module rather than `get_context("for
   interpreter's teardown when the command ends.)
 * the server's environment, fixed when it started: `initializer` gives each worker the parent's, as of the pool's
   creation, as a spawned worker gets it. (multiprocessing itself sends the working directory and sys.path.)
+
+`A3CQP_WORKER_START=spawn` spawns the workers instead (`a3cqp bench workers` compares the two; the same numbers).
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ from a3cqp_rl import worker_exit
 __all__ = ["context", "start", "initializer", "initargs", "default_workers", "MAX_DEFAULT_WORKERS"]
 
 SERVER_SETUP = "a3cqp_rl.fork_server_setup"
+START_METHODS = ("forkserver", "spawn")
+"""Values of the environment variable A3CQP_WORKER_START (default: the first)."""
 MAX_DEFAULT_WORKERS = 8
 """The most worker processes `a3cqp evaluate --scene` starts unless told (each holds ~0.5 GB: torch, its MuJoCo model
 and controller)."""
@@ -43,8 +47,11 @@ def default_workers() -> int:
 
 def context(preload: Sequence[str] = ()) -> BaseContext:
     """The multiprocessing context for pool workers: a fork server that imports `preload` (module names) once, where
-    the platform has one; spawn otherwise."""
-    if "forkserver" not in multiprocessing.get_all_start_methods():
+    the platform has one and A3CQP_WORKER_START does not say spawn; spawn otherwise."""
+    method = os.environ.get("A3CQP_WORKER_START", START_METHODS[0]).strip().lower()
+    if method not in START_METHODS:
+        raise ValueError(f"A3CQP_WORKER_START must be one of {', '.join(START_METHODS)}, got {method!r}")
+    if method == "spawn" or "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload([SERVER_SETUP, *preload])  # (no effect once the server runs: it keeps its imports)

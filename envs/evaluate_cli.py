@@ -45,7 +45,11 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if any(a == "--scene" or a.startswith("--scene=") for a in argv):
         if _starts_workers(argv):  # their imports now run on another core while this process does its own
-            worker_start.start(PANDA_WORKER_IMPORTS)
+            try:
+                worker_start.start(PANDA_WORKER_IMPORTS)
+            except ValueError as exc:
+                print(f"error: {exc}", file=sys.stderr)
+                return 2
         try:
             panda = importlib.import_module("envs.panda_eval")
         except ModuleNotFoundError as exc:

@@ -96,6 +96,18 @@ def test_without_a_fork_server_the_workers_are_spawned(monkeypatch: pytest.Monke
     assert (got["var"], got["set_up"], got["server_setup"]) == ("spawned", "ran", False)
 
 
+def test_the_environment_variable_chooses_spawn_and_a_bad_value_is_refused(monkeypatch: pytest.MonkeyPatch,
+                                                                           capsys: pytest.CaptureFixture) -> None:
+    monkeypatch.setenv("A3CQP_WORKER_START", "spawn")
+    assert worker_start.context(()).get_start_method() == "spawn" and worker_start.start(()) is False
+    monkeypatch.setenv("A3CQP_WORKER_START", "fork")
+    with pytest.raises(ValueError, match="A3CQP_WORKER_START must be one of forkserver, spawn, got 'fork'"):
+        worker_start.context(())
+    monkeypatch.setattr(worker_start, "default_workers", lambda: 2)
+    assert evaluate_cli.main(["--scene", "peg_in_hole", "--trials", "1"]) == 2
+    assert capsys.readouterr().err == ("error: A3CQP_WORKER_START must be one of forkserver, spawn, got 'fork'\n")
+
+
 @pytest.mark.parametrize("cores, argv, starts", [
     (2, ["--scene", "peg_in_hole"], True),
     (1, ["--scene", "peg_in_hole"], False),
@@ -108,3 +120,12 @@ def test_the_scene_evaluation_starts_the_server_only_for_workers(monkeypatch: py
                                                                  argv: list[str], starts: bool) -> None:
     monkeypatch.setattr(worker_start, "default_workers", lambda: cores)
     assert evaluate_cli._starts_workers(argv) is starts
+
+
+@pytest.mark.slow
+def test_the_benchmark_gets_the_same_sweep_from_forked_and_spawned_workers(capsys: pytest.CaptureFixture) -> None:
+    from bench import worker_start as bench
+
+    assert bench.main(["--quick"]) == 0
+    out = capsys.readouterr().out
+    assert "same results: yes" in out and "forkserver vs spawn:" in out
