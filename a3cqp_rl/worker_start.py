@@ -4,7 +4,7 @@ Why: `a3cqp evaluate --scene` runs its trials in one worker process per core. A 
 torchrl, MuJoCo and the Panda env before it simulates, ~2.5 s of CPU each: on 2 cores the simulations began 3.8-4.2 s
 after the command started (2026-11-29). multiprocessing's fork server does those imports once, in its own process,
 which `start` launches before the command imports anything itself; each worker is then a fork of it, ready at once.
-The simulations begin ~1.2 s sooner, and every number is the same.
+The simulations begin ~1 s sooner (a multi-seed sweep gains that for every seed), and every number is the same.
 
 What a fork must not carry over (hence this module rather than `get_context("forkserver")` alone):
 * a thread pool: GNU OpenMP cannot use threads it created before a fork. The server's first import,
@@ -19,8 +19,11 @@ What a fork must not carry over (hence this module rather than `get_context("for
 
 from __future__ import annotations
 
+import atexit
 import multiprocessing
 import os
+import signal
+import sys
 from collections.abc import Sequence
 from multiprocessing.context import BaseContext
 
@@ -66,7 +69,21 @@ def start(preload: Sequence[str] = ()) -> bool:
     from multiprocessing import forkserver
 
     forkserver.ensure_running()
+    atexit.unregister(_end_server)
+    atexit.register(_end_server)
     return True
+
+
+def _end_server() -> None:
+    # At this process's exit the server would only notice after its imports, holding the command's stdout till then
+    # (a command that stops at a bad argument waited ~2 s for it). CPython keeps the server's pid private.
+    module = sys.modules.get("multiprocessing.forkserver")
+    pid = getattr(getattr(module, "_forkserver", None), "_forkserver_pid", None)
+    if pid is not None:
+        try:
+            os.kill(pid, signal.SIGTERM)
+        except OSError:  # already gone
+            pass
 
 
 def initargs(target: str, *args: object) -> tuple:

@@ -33,6 +33,11 @@ class _Finaliser:
 
 if os.environ.get("A3CQP_TEST_TEARDOWN_FILE"):  # imported by a fork server (the teardown test below)
     _KEEP = _Finaliser(os.environ["A3CQP_TEST_TEARDOWN_FILE"])
+if os.environ.get("A3CQP_TEST_SLOW_IMPORT_FILE"):  # imported by a fork server (the early-exit test below)
+    import time
+
+    time.sleep(10.0)  # an import as slow as torchrl's, ten times over
+    Path(os.environ["A3CQP_TEST_SLOW_IMPORT_FILE"]).write_text("imported")
 
 
 def _set_up(marker: str) -> None:
@@ -83,6 +88,21 @@ def test_the_server_ends_without_its_teardown_when_the_command_ends(tmp_path: Pa
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "42"  # read to its end: the server, holding it too, has ended
     assert not marker.exists()
+
+
+def test_a_command_that_ends_early_ends_the_server_still_importing(tmp_path: Path) -> None:
+    """It would hold the command's stdout open until its imports ended (a bad argument waited for them)."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        pytest.skip("this platform has no fork server")
+    marker = tmp_path / "server imported"
+    script = ("from a3cqp_rl import worker_start\n"
+              "assert worker_start.start(['tests.test_worker_start'])\n"
+              "print('ended before any worker')\n")
+    out = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "A3CQP_TEST_SLOW_IMPORT_FILE": str(marker)})
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "ended before any worker"  # read to its end: the server has ended too
+    assert not marker.exists()  # stopped inside its imports, not after them
 
 
 def test_without_a_fork_server_the_workers_are_spawned(monkeypatch: pytest.MonkeyPatch) -> None:
