@@ -12,17 +12,7 @@ from pathlib import Path
 import pytest
 
 from a3cqp_rl import worker_exit
-
-
-class _Finaliser:
-    """Writes `path` when the interpreter's teardown collects it."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def __del__(self, _open=open) -> None:  # noqa: ANN001 (open bound now: the teardown may clear modules first)
-        with _open(self.path, "w") as f:
-            f.write("torn down")
+from tests.process_probes import Finaliser
 
 
 def _worker(folder: str, install: bool, out: multiprocessing.Queue) -> None:
@@ -31,7 +21,7 @@ def _worker(folder: str, install: bool, out: multiprocessing.Queue) -> None:
         worker_exit.install()  # twice: still one handler
     atexit.register(Path(folder, "handler").write_text, "ran")  # a library's handler, registered later
     global _KEEP
-    _KEEP = _Finaliser(str(Path(folder, "teardown")))  # a module global: collected only by the teardown
+    _KEEP = Finaliser(str(Path(folder, "teardown")))  # a module global: collected only by the teardown
     print("unflushed", end="")  # noqa: T201 (stdout is flushed before the process ends)
     out.put(41 + 1)
 
@@ -55,7 +45,7 @@ def _set_up(folder: str) -> None:
     """A pool's set-up: registers an exit handler, as torch does when imported, and keeps a module global."""
     atexit.register(Path(folder, "handler").write_text, "ran")
     global _KEEP
-    _KEEP = _Finaliser(str(Path(folder, "teardown")))
+    _KEEP = Finaliser(str(Path(folder, "teardown")))
 
 
 def _answer() -> int:

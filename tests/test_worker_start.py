@@ -15,24 +15,14 @@ import pytest
 
 from a3cqp_rl import worker_start
 from envs import evaluate_cli
+from tests.process_probes import Finaliser
 
 _SET_UP = None
 ROOT = Path(__file__).resolve().parents[1]
 
 
-class _Finaliser:
-    """Writes `path` when the interpreter's teardown collects it."""
-
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def __del__(self, _open=open) -> None:  # noqa: ANN001 (open bound now: the teardown may clear modules first)
-        with _open(self.path, "w") as f:
-            f.write("torn down")
-
-
 if os.environ.get("A3CQP_TEST_TEARDOWN_FILE"):  # imported by a fork server (the teardown test below)
-    _KEEP = _Finaliser(os.environ["A3CQP_TEST_TEARDOWN_FILE"])
+    _KEEP = Finaliser(os.environ["A3CQP_TEST_TEARDOWN_FILE"])
 if os.environ.get("A3CQP_TEST_SLOW_IMPORT_FILE"):  # imported by a fork server (the early-exit test below)
     import time
 
@@ -72,36 +62,37 @@ def test_a_forked_worker_has_the_parents_environment_and_folder_and_torch_on_one
                    "server_setup": True}
 
 
-def test_the_server_ends_without_its_teardown_when_the_command_ends(tmp_path: Path) -> None:
-    """It would outlive the command by its teardown (~1 s with torch), holding the command's stdout open."""
+def _command(script: str, start: bool, **env: str) -> str:
+    """stdout of `python -c "from a3cqp_rl import worker_start; <script>"`, with the fork server (preloading this
+    module) started first if `start`, and `env` added. The output is read to its end, so the server, which holds it
+    too, has ended."""
     if "forkserver" not in multiprocessing.get_all_start_methods():
         pytest.skip("this platform has no fork server")
+    first = "assert worker_start.start(['tests.test_worker_start'])\n" if start else ""
+    script = "from a3cqp_rl import worker_start\n" + first + script
+    out = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=300,
+                         env={**os.environ, **env})
+    assert out.returncode == 0, out.stderr
+    return out.stdout.strip()
+
+
+def test_the_server_ends_without_its_teardown_when_the_command_ends(tmp_path: Path) -> None:
+    """It would outlive the command by its teardown (~1 s with torch), holding the command's stdout open. (Started
+    by the pool, as in a library call: `start` would also stop it at the command's exit.)"""
     marker = tmp_path / "server torn down"
     script = ("from concurrent.futures import ProcessPoolExecutor\n"
-              "from a3cqp_rl import worker_start\n"
-              "assert worker_start.start(['tests.test_worker_start'])\n"
               "ctx = worker_start.context(['tests.test_worker_start'])\n"
               "with ProcessPoolExecutor(1, mp_context=ctx) as pool:\n"
               "    print(pool.submit(abs, -42).result())\n")
-    out = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=300,
-                         env={**os.environ, "A3CQP_TEST_TEARDOWN_FILE": str(marker)})
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "42"  # read to its end: the server, holding it too, has ended
+    assert _command(script, start=False, A3CQP_TEST_TEARDOWN_FILE=str(marker)) == "42"
     assert not marker.exists()
 
 
 def test_a_command_that_ends_early_ends_the_server_still_importing(tmp_path: Path) -> None:
     """It would hold the command's stdout open until its imports ended (a bad argument waited for them)."""
-    if "forkserver" not in multiprocessing.get_all_start_methods():
-        pytest.skip("this platform has no fork server")
     marker = tmp_path / "server imported"
-    script = ("from a3cqp_rl import worker_start\n"
-              "assert worker_start.start(['tests.test_worker_start'])\n"
-              "print('ended before any worker')\n")
-    out = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True, timeout=300,
-                         env={**os.environ, "A3CQP_TEST_SLOW_IMPORT_FILE": str(marker)})
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "ended before any worker"  # read to its end: the server has ended too
+    assert _command("print('ended before any worker')\n", start=True,
+                    A3CQP_TEST_SLOW_IMPORT_FILE=str(marker)) == "ended before any worker"
     assert not marker.exists()  # stopped inside its imports, not after them
 
 
