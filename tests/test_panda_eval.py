@@ -162,15 +162,17 @@ def test_the_policy_ranking_lists_each_scene_s_headline_metrics() -> None:
 
 
 def test_the_default_worker_count_is_the_usable_cores_up_to_a_bound(monkeypatch) -> None:  # noqa: ANN001
+    import os
+
     import envs.panda_eval as pe
 
     for cores, expected in ((1, 1), (2, 2), (6, 6), (64, pe.MAX_DEFAULT_WORKERS)):
-        monkeypatch.setattr(pe.os, "sched_getaffinity", lambda _pid, n=cores: set(range(n)), raising=False)
+        monkeypatch.setattr(os, "sched_getaffinity", lambda _pid, n=cores: set(range(n)), raising=False)
         assert pe.default_workers() == expected
-    monkeypatch.delattr(pe.os, "sched_getaffinity", raising=False)  # macOS, Windows
-    monkeypatch.setattr(pe.os, "cpu_count", lambda: 3)
+    monkeypatch.delattr(os, "sched_getaffinity", raising=False)  # macOS, Windows
+    monkeypatch.setattr(os, "cpu_count", lambda: 3)
     assert pe.default_workers() == 3
-    monkeypatch.setattr(pe.os, "cpu_count", lambda: None)
+    monkeypatch.setattr(os, "cpu_count", lambda: None)
     assert pe.default_workers() == 1
 
 
