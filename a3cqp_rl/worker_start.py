@@ -25,11 +25,12 @@ import os
 import signal
 import sys
 from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
 from multiprocessing.context import BaseContext
 
 from a3cqp_rl import worker_exit
 
-__all__ = ["context", "start", "initializer", "initargs", "default_workers", "MAX_DEFAULT_WORKERS"]
+__all__ = ["context", "start", "pool", "initializer", "initargs", "default_workers", "MAX_DEFAULT_WORKERS"]
 
 SERVER_SETUP = "a3cqp_rl.fork_server_setup"
 START_METHODS = ("forkserver", "spawn")
@@ -84,6 +85,13 @@ def _end_server() -> None:
             os.kill(pid, signal.SIGTERM)
         except OSError:  # already gone
             pass
+
+
+def pool(workers: int, ctx: BaseContext, target: str, *args: object) -> ProcessPoolExecutor:
+    """A process pool of `workers` in `ctx` (`context`) whose workers get this process's environment and run
+    `target(*args)` ("module:function") at set-up; spawned ones end without their interpreter's teardown, which the
+    pool's shutdown would wait for (`worker_exit`)."""
+    return ProcessPoolExecutor(workers, mp_context=ctx, initializer=initializer, initargs=initargs(target, *args))
 
 
 def initargs(target: str, *args: object) -> tuple:

@@ -111,14 +111,13 @@ def _evaluate(paths: list[Path], todo: list[int], hp: A2CConfig, panda_cfg, work
         finally:
             torch.set_num_threads(threads)
         return
-    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from concurrent.futures import as_completed
 
     from envs.evaluate_cli import PANDA_WORKER_IMPORTS
 
     # forked from a fresh server that has imported the Panda env once (not from this process: no forked torch state)
     ctx = worker_start.context(PANDA_WORKER_IMPORTS)
-    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=ctx, initializer=worker_start.initializer,
-                             initargs=worker_start.initargs("algorithms.panda_select:_init_worker")) as pool:
+    with worker_start.pool(min(workers, len(jobs)), ctx, "algorithms.panda_select:_init_worker") as pool:
         for future in as_completed([pool.submit(_evaluate_one, job) for job in jobs]):
             yield future.result()
 

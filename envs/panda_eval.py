@@ -383,7 +383,7 @@ def _run_workers(jobs: list[tuple], arms: int, progress: bool) -> list[dict]:
     """`_run_job` of each job in its own process (forked from a server that has imported `WORKER_IMPORTS`, or
     spawned: `a3cqp_rl.worker_start`); one progress bar over all `arms`, fed by the workers through a queue."""
     import queue as queue_mod
-    from concurrent.futures import ProcessPoolExecutor, wait
+    from concurrent.futures import wait
 
     ctx = worker_start.context(WORKER_IMPORTS)
     q = ctx.Queue()
@@ -404,9 +404,7 @@ def _run_workers(jobs: list[tuple], arms: int, progress: bool) -> list[dict]:
 
     jobs = [job + (i,) for i, job in enumerate(jobs)]
     try:
-        # (spawned workers end without their interpreter's teardown, which the shutdown would wait for: worker_exit)
-        with ProcessPoolExecutor(len(jobs), mp_context=ctx, initializer=worker_start.initializer,
-                                 initargs=worker_start.initargs("envs.panda_eval:_init_worker", q)) as pool:
+        with worker_start.pool(len(jobs), ctx, "envs.panda_eval:_init_worker", q) as pool:
             futures = [pool.submit(_run_job, job) for job in jobs]
             while not all(f.done() for f in futures):
                 wait(futures, timeout=0.5)

@@ -43,8 +43,7 @@ def _probe() -> dict:
 
 
 def _pool(ctx: multiprocessing.context.BaseContext) -> ProcessPoolExecutor:
-    return ProcessPoolExecutor(1, mp_context=ctx, initializer=worker_start.initializer,
-                               initargs=worker_start.initargs(f"{__name__}:_set_up", "ran"))
+    return worker_start.pool(1, ctx, f"{__name__}:_set_up", "ran")
 
 
 def test_a_forked_worker_has_the_parents_environment_and_folder_and_torch_on_one_thread(
