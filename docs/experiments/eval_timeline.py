@@ -6,7 +6,8 @@
 Runs one batched simulation of every controller on the trials of `--seed` (what one of `a3cqp evaluate`'s two
 worker processes runs for `--trials 26`: 13 trials x 5 controllers = 65 arms), in this process, and prints per
 simulated second the wall time it took and how many arms were parked (their episode over), and from that timeline
-an upper bound on what dropping the parked arms from the batch (compacting it) could save. `--breakdown` also
+an upper bound on what dropping the parked arms from the batch (compacting it) could save, and per controller when
+its episodes ended (simulated time) and how much of the wall came after its last one. `--breakdown` also
 times MuJoCo's two halves of a step and the C controller and QP (wrapped calls: ~1 % slower), the floor that no
 change of the Python glue can go below. docs/panda.md, sections "The same numbers across workers and threads, and
 where the evaluation's time goes" and "An exact contact pre-filter, the evaluation's floor, ...", have the numbers.
@@ -59,6 +60,14 @@ def main() -> None:
         return out
 
     panda_env.PandaEnv._step = timed_step
+    park, ended = panda_env.PandaEnv.park, {}  # arm -> simulated time its episode ended (its first park)
+
+    def recorded_park(env, idx):  # noqa: ANN001, ANN202
+        for i in np.asarray(idx, dtype=np.intp).reshape(-1):
+            ended.setdefault(int(i), float(env.t[i]))
+        return park(env, idx)
+
+    panda_env.PandaEnv.park = recorded_park
     controllers = tuple(c for c in args.controllers.split(",") if c)
     t0 = time.perf_counter()
     panda_eval._run("peg_in_hole", cfg.panda.policy, panda_eval.trial_seeds(args.seed, args.trials), cfg,
@@ -79,6 +88,13 @@ def main() -> None:
     print(f"free motion: {per_arm * 1e3:.1f} ms wall per arm and simulated second (fixed overhead included)")
     print(f"parked arm-seconds {r[:, 2].sum():.0f} of {r[:, 3].sum():.0f}: at most {100 * bound:.1f} % of the "
           "timed wall, the most that compacting the batch (dropping parked arms) could save")
+    # the batch's arms are controller-major (panda_eval._run): arm j * trials + k is controller j on trial k
+    print("controller | episodes ended at [s simulated]: first, median, last | wall after its last [s]")
+    for j, name in enumerate(controllers):
+        t_end = np.array([ended.get(j * args.trials + k, np.nan) for k in range(args.trials)])
+        after = float(r[r[:, 0] > np.nanmax(t_end), 1].sum())
+        print(f"{name:10s} | {np.nanmin(t_end):6.2f} {np.nanmedian(t_end):6.2f} {np.nanmax(t_end):6.2f} | "
+              f"{after:5.1f} ({100 * after / r[:, 1].sum():.0f} % of the timed wall)")
     if spent is not None:
         for name, seconds in spent.items():
             print(f"{name:36s} {seconds:6.1f} s  {100 * seconds / wall:4.1f} %")
