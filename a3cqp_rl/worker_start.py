@@ -11,7 +11,7 @@ What a fork must not carry over (hence this module rather than `get_context("for
   `a3cqp_rl.fork_server_setup`, puts torch on one thread, as every worker is, before any import runs a torch op;
   OpenBLAS (numpy) stops and restarts its own threads around a fork. (That import also spares the server its
   interpreter's teardown when the command ends.)
-* the server's environment, fixed when it started: `initializer` gives each worker the parent's, as of the pool's
+* the server's environment, fixed when it started: `pool` gives each worker the parent's, as of the pool's
   creation, as a spawned worker gets it. (multiprocessing itself sends the working directory and sys.path.)
 
 `A3CQP_WORKER_START=spawn` spawns the workers instead (`a3cqp bench workers` compares the two; the same numbers).
@@ -30,7 +30,7 @@ from multiprocessing.context import BaseContext
 
 from a3cqp_rl import worker_exit
 
-__all__ = ["context", "start", "pool", "initializer", "initargs", "default_workers", "MAX_DEFAULT_WORKERS"]
+__all__ = ["context", "start", "pool", "default_workers", "MAX_DEFAULT_WORKERS"]
 
 SERVER_SETUP = "a3cqp_rl.fork_server_setup"
 START_METHODS = ("forkserver", "spawn")
@@ -91,16 +91,11 @@ def pool(workers: int, ctx: BaseContext, target: str, *args: object) -> ProcessP
     """A process pool of `workers` in `ctx` (`context`) whose workers get this process's environment and run
     `target(*args)` ("module:function") at set-up; spawned ones end without their interpreter's teardown, which the
     pool's shutdown would wait for (`worker_exit`)."""
-    return ProcessPoolExecutor(workers, mp_context=ctx, initializer=initializer, initargs=initargs(target, *args))
+    return ProcessPoolExecutor(workers, mp_context=ctx, initializer=_initializer,
+                               initargs=(dict(os.environ), target, *args))
 
 
-def initargs(target: str, *args: object) -> tuple:
-    """`initializer`'s arguments for a pool created now: this process's environment, then `target`
-    ("module:function") and its arguments."""
-    return (dict(os.environ), target, *args)
-
-
-def initializer(environ: dict[str, str], target: str, *args: object) -> None:
+def _initializer(environ: dict[str, str], target: str, *args: object) -> None:
     """A pool worker's set-up: the parent's environment, then `worker_exit.initializer(target, *args)`."""
     if dict(os.environ) != environ:
         os.environ.clear()
