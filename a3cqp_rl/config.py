@@ -996,6 +996,14 @@ class PandaEnvConfig:
     while the operator holds its handle: the peg pulled out of its bore; configs/panda_peg_in_hole.yaml) or "off"
     (default: in stiff contact, the peg on the rim, the contact's impulses make the QP infeasible and the controller
     brakes; docs/panda.md, "External forces carry the joints past their limits")."""
+    ik_bound_tool_axis: float | None = None
+    """How far [m] the reference that the IK task of a policy-driven arm pulls toward may be from the tool along the
+    tool axis (local z); None: the scene's reference as it is. On the peg the procedure's reference goes on down at
+    4 mm/s while the peg sits on the hole's rim, so z's IK half (w1 = 0.5 in contact) presses harder and harder
+    (9 to 22 N; the scripted IK + FC presses 10 N) and friction holds the peg off the axis. 20 mm on the peg
+    (configs/panda_peg_in_hole.yaml) caps that press: the median insertion 0.2 s sooner (docs/panda.md, "A bound on
+    the tool axis's IK error"). Arms whose weights `PandaEnv.hold_weights` sets (the scripted baselines) keep the
+    scene's reference."""
     policy: str | None = None
     """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
     folder, relative to the working directory (None: --policy is needed for the learned controller)."""
@@ -1023,6 +1031,8 @@ class PandaEnvConfig:
         for name in ("e_max_rot", "f_env_max_rot", "f_ope_max_rot", "max_episode_time", "divergence_speed_factor",
                      "divergence_penetration"):
             err.positive(self, name)
+        if self.ik_bound_tool_axis is not None and not self.ik_bound_tool_axis > 0:
+            err.add("ik_bound_tool_axis", f"must be a distance > 0 [m] or null, got {self.ik_bound_tool_axis}")
         if self.policy is not None and not self.policy.strip():
             err.add("policy", "must be a path to a policy.pt or a run folder, or null")
         bad = [a for a in self.fd_axes if a not in ("x", "y", "z")]

@@ -168,6 +168,7 @@ class PandaEnv(EnvBase):
         """Per-arm, per-local-axis scale of the IK stiffness (1 = Table I), applied by moving the reference
         (x_d' = x + s (x_d − x) in L): lets a variable-impedance baseline run on the same controller."""
         self._override: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._scripted = np.zeros(n, dtype=bool)  # arms whose weights `hold_weights` set this step (not the policy)
         self._noise: dict[str, np.ndarray] = {}
         self._ft_bias = np.zeros((n, 6))
         self._tau_bias = np.zeros((n, 7))
@@ -302,8 +303,10 @@ class PandaEnv(EnvBase):
                               self.adapt.f_d_max, check=False)
         self.w_logits, self.weights = logits.numpy().copy(), w.numpy().copy()
         self.f_d = f_d.numpy() * self._fd_mask
+        self._scripted = np.zeros(self.num_envs, dtype=bool)
         if self._override is not None:
             mask, w_o, f_o = self._override
+            self._scripted = mask.copy()
             self.weights[mask] = w_o[mask]
             self.f_d[mask] = f_o[mask]
             self.w_logits[mask] = np.log(np.clip(w_o[mask], 1e-12, 1.0))
@@ -382,9 +385,16 @@ class PandaEnv(EnvBase):
         return self._output(done=truncated | self.diverged, terminated=self.diverged.copy(), reward=True)
 
     def _controller_reference(self, scale: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The scene's reference, moved toward the tool by `stiffness_scale` (times `scale` [N, 6]) where it is not 1
-        (arm frame)."""
+        """The scene's reference, at most `ik_bound_tool_axis` from the tool along its axis (the policy's arms), moved
+        toward the tool by `stiffness_scale` (times `scale` [N, 6]) where it is not 1 (arm frame)."""
         pos_d, rot_d = self.scene.pos_d.copy(), self.scene.rot_d.copy()
+        bound = self.pcfg.ik_bound_tool_axis
+        if bound is not None:
+            axis = self.rot[:, :, 2]  # local z in the arm frame
+            ez = np.einsum("nk,nk->n", pos_d - self.pos, axis)
+            over = (np.abs(ez) > bound) & ~self._scripted
+            if over.any():
+                pos_d[over] -= (ez[over] - np.copysign(bound, ez[over]))[:, None] * axis[over]
         s = self.stiffness_scale if scale is None else self.stiffness_scale * scale
         if np.any(s != 1.0):
             e_loc = to_local(self.rot, pose_error(pos_d, rot_d, self.pos, self.rot)) * s

@@ -574,3 +574,44 @@ def test_observation_filter_mean_observes_the_agent_periods_mean_wrench() -> Non
     # "last" observes the period's last sample (the behaviour before the option)
     env, samples, td = _pressing("last")
     assert np.allclose(td["f_env_local"].numpy(), to_local(env.rot, samples[-1]), atol=1e-12)
+
+
+def test_the_tool_axis_bound_moves_only_the_policy_arms_reference_along_the_tool_axis() -> None:
+    from a3cqp_rl.config import ConfigError
+
+    env = PandaEnv(3, _cfg({"panda": {"ik_bound_tool_axis": 0.02}}), seed=0)
+    env.reset()
+    axis = env.rot[:, :, 2]
+    across = np.cross(axis, np.array([1.0, 0.0, 0.0]))
+    across /= np.linalg.norm(across, axis=1, keepdims=True)
+    # 50 mm along the tool axis (arms 0, 2: toward the tool's front, arm 1: behind it) and 7 mm across it
+    along = np.array([0.05, -0.05, 0.05])
+    env.scene.pos_d[:] = env.pos + along[:, None] * axis + 0.007 * across
+    env._scripted = np.array([False, False, True])  # arm 2's weights are held by a script this step
+    pos_d, rot_d = (x.numpy() for x in env._controller_reference())
+    e = pos_d - env.pos
+    np.testing.assert_allclose(np.einsum("nk,nk->n", e, axis), [0.02, -0.02, 0.05], atol=1e-12)
+    np.testing.assert_allclose(np.einsum("nk,nk->n", e, across), 0.007, atol=1e-12)  # across: untouched
+    np.testing.assert_array_equal(rot_d, env.scene.rot_d)
+    # within the bound, or without one, the reference is the scene's
+    env.scene.pos_d[:] = env.pos + 0.015 * axis
+    np.testing.assert_array_equal(env._controller_reference()[0].numpy(), env.scene.pos_d)
+    free = PandaEnv(1, _cfg(), seed=0)
+    free.reset()
+    free.scene.pos_d[:] = free.pos + 0.05 * free.rot[:, :, 2]
+    np.testing.assert_array_equal(free._controller_reference()[0].numpy(), free.scene.pos_d)
+    for bad in (0.0, -0.01):
+        with pytest.raises(ConfigError, match="ik_bound_tool_axis"):
+            _cfg({"panda": {"ik_bound_tool_axis": bad}})
+
+
+def test_the_arms_a_script_holds_this_step_are_the_ones_left_unbounded() -> None:
+    env = PandaEnv(2, _cfg({"panda": {"ik_bound_tool_axis": 0.02}}), seed=0)
+    td = env.reset()
+    env.hold_weights(np.array([False, True]), np.tile([1.0, 0.0, 0.0], (2, 6, 1)), np.zeros((2, 6)))
+    td["action"] = _ik_action(2)
+    td = env.step(td)["next"]
+    np.testing.assert_array_equal(env._scripted, [False, True])
+    td["action"] = _ik_action(2)
+    env.step(td)  # the hold lasted one step
+    np.testing.assert_array_equal(env._scripted, [False, False])
