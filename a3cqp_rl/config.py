@@ -768,8 +768,8 @@ class PegInHoleConfig:
     (|f_env| > `contact_force`) -> insertion: the reference then goes on down at `insert_speed` to `insert_depth`
     below the rim (the inserted pose); success when the peg tip is `success_depth` below the rim, inside the bore,
     within `time_limit` of the first contact. Insertion time = first contact to success. Then the operator
-    disengages the peg (pulls the handle `disengage_lift` up; the reference stays, as in Fig. 7) and, if cycles
-    remain, the reference returns home over `return_time` and the next cycle starts (with
+    disengages the peg (pulls the handle `disengage_lift` up; the reference stays, as in Fig. 7; a peg not inserted
+    within the time limit only with cycles > 1 or `disengage_failed`) and, if cycles remain, the reference returns home over `return_time` and the next cycle starts (with
     `restart_needs_extraction`, only if the peg has left the bore by then).
     """
 
@@ -816,6 +816,11 @@ class PegInHoleConfig:
     """Insertions per episode (Fig. 7 shows three)."""
     operator_disengage: bool = True
     """After each insertion the operator pulls the peg out at the handle (else the reference alone returns home)."""
+    disengage_failed: bool = False
+    """Cycles = 1: the operator also pulls at a peg not inserted within `time_limit` (else that trial ends at its
+    time limit: its metrics are final, and no next approach needs the block cleared). With cycles > 1 a failed
+    insertion is always disengaged. (On: an arm that does not yield, as IK only, holds the hand until its
+    `operator.timeout`, 8 s of a five-controller evaluation's tail.)"""
     disengage_lift: float = 0.12
     """How far up the operator pulls the handle [m]."""
     return_time: float = 2.0

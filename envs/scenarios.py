@@ -404,6 +404,13 @@ class PegInHole(Scene):
             self.success_time[a[ok], cyc[ok]] = t[a[ok]]
             since = np.where(contacted, t[a] - self.contact_time[a, cyc], tau - c.descent_time)
             over = ok | (since > c.time_limit)
+            if c.operator_disengage and c.cycles == 1 and not c.disengage_failed:
+                # a single trial whose peg is not in by the time limit ends there: its metrics are final and no
+                # next approach needs the block cleared (the operator would pull at an arm that may not yield)
+                failed = np.isin(arms, a[over & ~ok])
+                self._enter(failed, self.DONE, t)
+                self.done[failed] = True
+                over &= ok
             finished = a[over]
             if len(finished):
                 fm = np.isin(arms, finished)

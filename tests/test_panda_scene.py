@@ -185,7 +185,7 @@ def test_a_disengagement_counts_as_one_that_can_pull_the_peg_out_only_with_the_p
     from a3cqp_rl.config import OperatorConfig, PegInHoleConfig
     from envs.scenarios import Operator, PegInHole, SceneInput
 
-    cfg = PegInHoleConfig(time_limit=1.0)
+    cfg = PegInHoleConfig(time_limit=1.0, disengage_failed=True)
     scene = PegInHole(2, Operator(2, OperatorConfig(), 0.01), np.array([0.3, 0.0, 0.5]), np.eye(3), cfg)
     scene.reset(np.arange(2), [np.random.default_rng(k) for k in range(2)])
     scene.phase[:] = PegInHole.INSERT
@@ -199,6 +199,33 @@ def test_a_disengagement_counts_as_one_that_can_pull_the_peg_out_only_with_the_p
     assert (scene.phase == PegInHole.DISENGAGE).all()
     assert scene.metrics()["in_bore_at_grasp"][:, 0].tolist() == [True, False]
     assert scene.extracted[1, 0]  # the tip above the rim reads as 'out' from the start: hence the flag
+
+
+@pytest.mark.parametrize("cycles, disengage_failed", [(1, False), (1, True), (2, False)])
+def test_a_single_trial_not_inserted_by_the_time_limit_ends_there(cycles: int, disengage_failed: bool) -> None:
+    """Arm 0 is inserted, arm 1 sits on the rim past the time limit. The operator grasps arm 0's handle either way;
+    arm 1's only with `disengage_failed` or a next cycle to clear the block for, else its episode ends."""
+    from a3cqp_rl.config import OperatorConfig, PegInHoleConfig
+    from envs.scenarios import Operator, PegInHole, SceneInput
+
+    cfg = PegInHoleConfig(time_limit=1.0, cycles=cycles, disengage_failed=disengage_failed)
+    op = Operator(2, OperatorConfig(), 0.01)
+    scene = PegInHole(2, op, np.array([0.3, 0.0, 0.5]), np.eye(3), cfg)
+    scene.reset(np.arange(2), [np.random.default_rng(k) for k in range(2)])
+    scene.phase[:] = PegInHole.INSERT
+    hole = np.array([*cfg.hole_center, cfg.hole_top])
+    z6, press = np.zeros((2, 6)), np.zeros((2, 6))
+    press[:, 2] = 5.0
+    for t, depth in ((1.0, 0.0), (1.5, cfg.success_depth), (2.5, cfg.success_depth)):
+        pos = np.stack([hole - [0.0, 0.0, depth], hole + [0.0, 0.0, 0.0001]])
+        scene.update(SceneInput(t=np.full(2, t), pos=pos, rot=np.tile(np.eye(3), (2, 1, 1)), f_env=press, f_ope=z6,
+                                f_d=z6, handle_pos=pos))
+    m = scene.metrics()
+    assert m["success"][:, 0].tolist() == [True, False]
+    assert scene.phase[0] == PegInHole.DISENGAGE and op.active[0] and not scene.done[0]
+    pulled = disengage_failed or cycles > 1
+    assert scene.phase[1] == (PegInHole.DISENGAGE if pulled else PegInHole.DONE)
+    assert bool(op.active[1]) == pulled and bool(scene.done[1]) != pulled
 
 
 def test_the_time_cost_is_paid_from_the_first_contact_until_the_insertion_ends() -> None:
