@@ -1007,8 +1007,10 @@ class PandaEnvConfig:
     4 mm/s while the peg sits on the hole's rim, so z's IK half (w1 = 0.5 in contact) presses harder and harder
     (9 to 22 N; the scripted IK + FC presses 10 N) and friction holds the peg off the axis. 20 mm on the peg
     (configs/panda_peg_in_hole.yaml) caps that press: the median insertion 0.2 s sooner (docs/panda.md, "A bound on
-    the tool axis's IK error"). Arms whose weights `PandaEnv.hold_weights` sets (the scripted baselines) keep the
-    scene's reference."""
+    the tool axis's IK error"). With a bound, a tool in contact (|f_env| > the controller's contact threshold) whose
+    scene reference advanced along the axis in its last update gets a reference not behind it either: a schedule
+    that lags the peg down the bore does not pull it back (docs/panda.md, "An IK reference that does not lag the
+    peg"). Arms whose weights `PandaEnv.hold_weights` sets (the scripted baselines) keep the scene's reference."""
     policy: str | None = None
     """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
     folder, relative to the working directory (None: --policy is needed for the learned controller)."""

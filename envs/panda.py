@@ -169,6 +169,7 @@ class PandaEnv(EnvBase):
         (x_d' = x + s (x_d − x) in L): lets a variable-impedance baseline run on the same controller."""
         self._override: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._scripted = np.zeros(n, dtype=bool)  # arms whose weights `hold_weights` set this step (not the policy)
+        self._ref_step = np.zeros((n, 3))  # how far the scene's reference moved in its last update [m], world frame
         self._noise: dict[str, np.ndarray] = {}
         self._ft_bias = np.zeros((n, 6))
         self._tau_bias = np.zeros((n, 7))
@@ -285,7 +286,10 @@ class PandaEnv(EnvBase):
         self.scene.reset(idx, rngs)
         self._measure()
         self.f_env_obs[idx], self.f_ope_obs[idx] = self.f_env[idx], self.f_ope[idx]
+        step = self._ref_step.copy()
         self._update_scene()
+        # a fresh reference has not moved yet; the other arms' step is that of their last update, not this re-read
+        self._ref_step[:] = np.where(np.isin(np.arange(self.num_envs), idx)[:, None], 0.0, step)
 
     # ------------------------------------------------------------------ control
     def hold_weights(self, mask: np.ndarray, weights: np.ndarray, f_d: np.ndarray) -> None:
@@ -385,16 +389,23 @@ class PandaEnv(EnvBase):
         return self._output(done=truncated | self.diverged, terminated=self.diverged.copy(), reward=True)
 
     def _controller_reference(self, scale: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The scene's reference, at most `ik_bound_tool_axis` from the tool along its axis (the policy's arms), moved
-        toward the tool by `stiffness_scale` (times `scale` [N, 6]) where it is not 1 (arm frame)."""
+        """The scene's reference, along the tool axis within `ik_bound_tool_axis` of the tool and, in contact while
+        the scene's reference advances along the axis, not behind it (the policy's arms), moved toward the tool by
+        `stiffness_scale` (times `scale` [N, 6]) where it is not 1 (arm frame)."""
         pos_d, rot_d = self.scene.pos_d.copy(), self.scene.rot_d.copy()
         bound = self.pcfg.ik_bound_tool_axis
         if bound is not None:
             axis = self.rot[:, :, 2]  # local z in the arm frame
             ez = np.einsum("nk,nk->n", pos_d - self.pos, axis)
-            over = (np.abs(ez) > bound) & ~self._scripted
-            if over.any():
-                pos_d[over] -= (ez[over] - np.copysign(bound, ez[over]))[:, None] * axis[over]
+            # a reference that lags a peg sliding down the bore would pull it back out against the FC half: the
+            # point mass's wall targets never lie on the free side of the tool (the return home moves it back: kept)
+            thr = self.ctrl.options.contact_force_threshold
+            ahead = (np.einsum("nk,nk->n", self.f_env[:, :3], self.f_env[:, :3]) > thr * thr) & (
+                np.einsum("nk,nk->n", self._ref_step, axis) > 0.0)
+            target = np.clip(ez, np.where(ahead, 0.0, -bound), bound)
+            moved = (target != ez) & ~self._scripted
+            if moved.any():
+                pos_d[moved] += (target - ez)[moved, None] * axis[moved]
         s = self.stiffness_scale if scale is None else self.stiffness_scale * scale
         if np.any(s != 1.0):
             e_loc = to_local(self.rot, pose_error(pos_d, rot_d, self.pos, self.rot)) * s
@@ -567,8 +578,10 @@ class PandaEnv(EnvBase):
                           handle_pos=self.handle_pos)
 
     def _update_scene(self) -> None:
+        before = self.scene.pos_d.copy()
         self.operator.update(self.t, self.handle_pos, self.rot)
         self.scene.update(self._scene_input())
+        np.subtract(self.scene.pos_d, before, out=self._ref_step)
 
     def local_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(e^L, f_env^L, f_ope^L) [N, 6] each: the pose error to the current reference and the observed wrenches

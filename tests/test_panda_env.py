@@ -605,6 +605,39 @@ def test_the_tool_axis_bound_moves_only_the_policy_arms_reference_along_the_tool
             _cfg({"panda": {"ik_bound_tool_axis": bad}})
 
 
+def test_in_contact_an_advancing_reference_is_not_left_behind_the_tool() -> None:
+    """With the bound, a reference 5 mm (arms 0-3) or 50 mm (arm 4) behind the tool along its axis moves to the tool
+    only for an arm in contact whose scene reference advanced along the axis (arms 0 and 4); not for one whose
+    reference went back (arm 1, the return home), one without contact (arm 2) or one a script holds (arm 3)."""
+    env = PandaEnv(5, _cfg({"panda": {"ik_bound_tool_axis": 0.02}}), seed=0)
+    env.reset()
+    np.testing.assert_array_equal(env._ref_step, 0.0)  # a fresh reference has not moved
+    axis = env.rot[:, :, 2]
+    along = np.array([-0.005, -0.005, -0.005, -0.005, -0.05])
+    env.scene.pos_d[:] = env.pos + along[:, None] * axis + 0.003 * np.cross(axis, [1.0, 0.0, 0.0])
+    env._ref_step[:] = np.array([1.0, -1.0, 1.0, 1.0, 1.0])[:, None] * 0.004 * axis
+    env.f_env[:] = 0.0
+    env.f_env[[0, 1, 3, 4], :3] = -5.0 * axis[[0, 1, 3, 4]]  # the block pushes the tool back along its axis
+    env._scripted = np.array([False, False, False, True, False])
+    e = env._controller_reference()[0].numpy() - env.pos
+    np.testing.assert_allclose(np.einsum("nk,nk->n", e, axis), [0.0, -0.005, -0.005, -0.005, 0.0], atol=1e-12)
+    env.scene.pos_d[:] = env.pos + 0.05 * axis  # ahead: the bound as before
+    e = env._controller_reference()[0].numpy() - env.pos
+    np.testing.assert_allclose(np.einsum("nk,nk->n", e, axis), [0.02, 0.02, 0.02, 0.05, 0.02], atol=1e-12)
+
+
+def test_the_reference_step_is_the_scenes_last_move_along_the_procedure() -> None:
+    """`_ref_step` follows the scene's reference from one agent step to the next (peg: the approach moves it)."""
+    env = PandaEnv(2, _cfg({"panda": {"ik_bound_tool_axis": 0.02}}), seed=0)
+    td = env.reset()
+    for _ in range(80):  # past the settle time, into the approach
+        before = env.scene.pos_d.copy()
+        td["action"] = _ik_action(2)
+        td = env.step(td)["next"]
+        np.testing.assert_allclose(env._ref_step, env.scene.pos_d - before, atol=0.0)
+    assert np.linalg.norm(env._ref_step, axis=1).min() > 0.0
+
+
 def test_the_arms_a_script_holds_this_step_are_the_ones_left_unbounded() -> None:
     env = PandaEnv(2, _cfg({"panda": {"ik_bound_tool_axis": 0.02}}), seed=0)
     td = env.reset()
