@@ -193,12 +193,13 @@ class PandaEnv(EnvBase):
         """Control periods in which the controller's QP fell back to braking, per arm, this episode."""
         self.joint_limit_excess = np.full(n, -np.inf)
         """Per arm, this episode: the largest excess of a joint past its datasheet position limit [rad] over the 1 kHz
-        control periods (negative: the closest approach, inside the limits), until the arm is parked or diverges."""
+        control periods (negative: the closest approach, inside the limits), until its episode ends, it is parked or it
+        diverges."""
         self.joint_limit_joint = np.full(n, -1, dtype=np.int64)
         """Per arm, this episode: the joint (0-6) of `joint_limit_excess` (-1 before the first control period)."""
         self.joint_speed_ratio = np.zeros(n)
         """Per arm, this episode: the largest |q̇_j| / q̇_max,j (datasheet) over the joints and the 1 kHz control periods
-        (> 1: a joint ran faster than its limit), until the arm is parked or diverges."""
+        (> 1: a joint ran faster than its limit), until its episode ends, it is parked or it diverges."""
         self.signal_keys = tuple(self.scene.signals(self._scene_input()).keys())
         """Names of the scene's per-step signals in the output (e.g. the peg's misalignment and depth)."""
         self._make_specs()
@@ -442,7 +443,7 @@ class PandaEnv(EnvBase):
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin,
                              leak_extra=None if self._idle_leak is None else torch.from_numpy(self._idle_leak),
                              f_ext_limits=held, active=torch.from_numpy(~self.parked) if self.parked.any() else None)
-        self.fallbacks += out.fallback.numpy()
+        self.fallbacks += out.fallback.numpy() & self._in_episode()
         tau = out.tau.numpy()
         self.tau[:] = tau
         # the operator's hand at the handle (above the F/T sensor: read by the joint torques only)
@@ -538,7 +539,7 @@ class PandaEnv(EnvBase):
         """`joint_limit_excess` and `joint_speed_ratio` with this control period's joint positions and speeds (arms in
         their episode only)."""
         per_joint = np.maximum(self._q_lo - self.q, self.q - self._q_hi)
-        live = ~self.parked & ~self.diverged
+        live = self._in_episode()
         with np.errstate(invalid="ignore"):  # a diverging arm's NaN: the comparison is False, the values before stay
             over = per_joint.max(1)
             new = (over > self.joint_limit_excess) & live
@@ -549,6 +550,12 @@ class PandaEnv(EnvBase):
             self.joint_limit_joint[new] = per_joint[new].argmax(1)
         if faster.any():
             self.joint_speed_ratio[faster] = fast[faster]
+
+    def _in_episode(self) -> np.ndarray:
+        """Arms [N] whose episode is under way: not over (scene done, time up), not parked, not diverged. An arm
+        left unparked after its episode (`a3cqp evaluate --no-park`) adds nothing to its episode's counts."""
+        over = self.scene.done | (self.t >= self.pcfg.max_episode_time - 1e-9)
+        return ~over & ~self.parked & ~self.diverged
 
     def park(self, idx: np.ndarray) -> None:
         """Set aside arms `idx` whose episode is over while the batch runs on (until their reset): their collisions

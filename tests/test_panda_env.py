@@ -638,6 +638,23 @@ def test_the_reference_step_is_the_scenes_last_move_along_the_procedure() -> Non
     assert np.linalg.norm(env._ref_step, axis=1).min() > 0.0
 
 
+def test_an_arm_left_unparked_after_its_episode_adds_nothing_to_its_counts() -> None:
+    """Arm 0's scene is done (its episode over, the arm not parked): its joint-limit and joint-speed records and its
+    fallback count stay as they were, while arm 1's go on."""
+    env = PandaEnv(2, _cfg(), seed=0)
+    td = env.reset()
+    env.scene.done[0] = True
+    env.joint_limit_excess[:], env.joint_speed_ratio[:] = -np.inf, 0.0
+    for _ in range(3):
+        td["action"] = _ik_action(2)
+        td = env.step(td)["next"]
+    assert env.joint_limit_excess[0] == -np.inf and env.joint_speed_ratio[0] == 0.0
+    assert np.isfinite(env.joint_limit_excess[1]) and env.joint_speed_ratio[1] > 0.0
+    np.testing.assert_array_equal(env._in_episode(), [False, True])
+    env.park(np.array([1]))
+    np.testing.assert_array_equal(env._in_episode(), [False, False])
+
+
 def test_the_arms_a_script_holds_this_step_are_the_ones_left_unbounded() -> None:
     env = PandaEnv(2, _cfg({"panda": {"ik_bound_tool_axis": 0.02}}), seed=0)
     td = env.reset()
