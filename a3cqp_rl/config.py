@@ -769,8 +769,9 @@ class PegInHoleConfig:
     below the rim (the inserted pose); success when the peg tip is `success_depth` below the rim, inside the bore,
     within `time_limit` of the first contact. Insertion time = first contact to success. Then the operator
     disengages the peg (pulls the handle `disengage_lift` up; the reference stays, as in Fig. 7; a peg not inserted
-    within the time limit only with cycles > 1 or `disengage_failed`) and, if cycles remain, the reference returns home over `return_time` and the next cycle starts (with
-    `restart_needs_extraction`, only if the peg has left the bore by then).
+    within the time limit only with cycles > 1 or `disengage_failed`) and, if cycles remain, the reference returns
+    home over `return_time` and the next cycle starts (with `restart_needs_extraction`, only if the peg has left the
+    bore by then).
     """
 
     hole_center: tuple[float, ...] = (0.45, 0.0)

@@ -437,13 +437,14 @@ class PandaEnv(EnvBase):
             self._f_sum[0] += self.f_env
             self._f_sum[1] += self.f_ope
         bad = self._check_divergence()
-        self._track_joint_limits()
+        live = self._in_episode()
+        self._track_joint_limits(live)
         held = torch.from_numpy(self.operator.active) if self.pcfg.joint_limits_f_ext == "operator" else None
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin,
                              leak_extra=None if self._idle_leak is None else torch.from_numpy(self._idle_leak),
                              f_ext_limits=held, active=torch.from_numpy(~self.parked) if self.parked.any() else None)
-        self.fallbacks += out.fallback.numpy() & self._in_episode()
+        self.fallbacks += out.fallback.numpy() & live
         tau = out.tau.numpy()
         self.tau[:] = tau
         # the operator's hand at the handle (above the F/T sensor: read by the joint torques only)
@@ -535,11 +536,10 @@ class PandaEnv(EnvBase):
             logger.warning("panda env: robot %d diverged at t = %.3f s (%s); its episode ends", i, self.t[i], why)
         return bad
 
-    def _track_joint_limits(self) -> None:
-        """`joint_limit_excess` and `joint_speed_ratio` with this control period's joint positions and speeds (arms in
-        their episode only)."""
+    def _track_joint_limits(self, live: np.ndarray) -> None:
+        """`joint_limit_excess` and `joint_speed_ratio` with this control period's joint positions and speeds (arms
+        `live` [N] only: those in their episode)."""
         per_joint = np.maximum(self._q_lo - self.q, self.q - self._q_hi)
-        live = self._in_episode()
         with np.errstate(invalid="ignore"):  # a diverging arm's NaN: the comparison is False, the values before stay
             over = per_joint.max(1)
             new = (over > self.joint_limit_excess) & live
