@@ -169,7 +169,7 @@ class PandaEnv(EnvBase):
         (x_d' = x + s (x_d − x) in L): lets a variable-impedance baseline run on the same controller."""
         self._override: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._scripted = np.zeros(n, dtype=bool)  # arms whose weights `hold_weights` set this step (not the policy)
-        self._ref_step = np.zeros((n, 3))  # how far the scene's reference moved in its last update [m], world frame
+        self._ref_step = np.zeros((n, 3))  # how far the scene's reference moved in the last agent step [m], world
         self._noise: dict[str, np.ndarray] = {}
         self._ft_bias = np.zeros((n, 6))
         self._tau_bias = np.zeros((n, 7))
@@ -287,10 +287,8 @@ class PandaEnv(EnvBase):
         self.scene.reset(idx, rngs)
         self._measure()
         self.f_env_obs[idx], self.f_ope_obs[idx] = self.f_env[idx], self.f_ope[idx]
-        step = self._ref_step.copy()
         self._update_scene()
-        # a fresh reference has not moved yet; the other arms' step is that of their last update, not this re-read
-        self._ref_step[:] = np.where(np.isin(np.arange(self.num_envs), idx)[:, None], 0.0, step)
+        self._ref_step[idx] = 0.0  # a fresh reference has not moved yet
 
     # ------------------------------------------------------------------ control
     def hold_weights(self, mask: np.ndarray, weights: np.ndarray, f_d: np.ndarray) -> None:
@@ -385,7 +383,9 @@ class PandaEnv(EnvBase):
         if mean:
             self.f_env_obs, self.f_ope_obs = self._f_sum / self.substeps
         self.t += self.adapt.dt
+        before = self.scene.pos_d.copy()
         self._update_scene()
+        np.subtract(self.scene.pos_d, before, out=self._ref_step)
         truncated = self.scene.done | (self.t >= self.pcfg.max_episode_time - 1e-9)
         return self._output(done=truncated | self.diverged, terminated=self.diverged.copy(), reward=True)
 
@@ -585,10 +585,8 @@ class PandaEnv(EnvBase):
                           handle_pos=self.handle_pos)
 
     def _update_scene(self) -> None:
-        before = self.scene.pos_d.copy()
         self.operator.update(self.t, self.handle_pos, self.rot)
         self.scene.update(self._scene_input())
-        np.subtract(self.scene.pos_d, before, out=self._ref_step)
 
     def local_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(e^L, f_env^L, f_ope^L) [N, 6] each: the pose error to the current reference and the observed wrenches
