@@ -1336,29 +1336,49 @@ def config_from_dict(data: dict | None, source: str = "<dict>") -> ExperimentCon
 
 
 def load_config(path: str | Path | None = None, overrides: dict | None = None) -> ExperimentConfig:
-    """Load `path` (YAML, safe_load) over the paper defaults; `overrides` is a nested dict applied last."""
+    """Load `path` (YAML, safe_load) over the paper defaults; `overrides` is a nested dict applied last.
+
+    A top-level `base: OTHER.yaml` (relative to the file) reads that file first and applies this one over it, key by
+    key, so that a training config can share every setting of the evaluation config it is judged with."""
     data: dict = {}
     source = "<defaults>"
     if path is not None:
-        path = Path(path)
         source = str(path)
-        if not path.is_file():
-            raise ConfigError(f"{source}: config file not found")
-        try:
-            loaded = yaml.safe_load(path.read_bytes().decode("utf-8"))
-        except UnicodeDecodeError as exc:
-            raise ConfigError(f"{source}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset {exc.start}); "
-                              "expected a YAML file") from None
-        except OSError as exc:
-            raise ConfigError(f"{source}: cannot read: {exc.strerror or exc}") from None
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{source}: not valid YAML: {' '.join(str(exc).split())}") from None
-        if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigError(f"{source}: top level must be a mapping, got {type(loaded).__name__}")
-        data = loaded or {}
+        data = _read_with_base(Path(path), ())
     if overrides:
         data = _merge(data, overrides)
     return config_from_dict(data, source)
+
+
+def _read_with_base(path: Path, chain: tuple[Path, ...]) -> dict:
+    """The mapping of the YAML file `path`, merged over its `base` file's (recursively); `chain`: the files that
+    named it as their base, to report a loop."""
+    source = str(path)
+    if not path.is_file():
+        where = f" (the base of {chain[-1]})" if chain else ""
+        raise ConfigError(f"{source}: config file not found{where}")
+    try:
+        loaded = yaml.safe_load(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{source}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset {exc.start}); "
+                          "expected a YAML file") from None
+    except OSError as exc:
+        raise ConfigError(f"{source}: cannot read: {exc.strerror or exc}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{source}: not valid YAML: {' '.join(str(exc).split())}") from None
+    if loaded is not None and not isinstance(loaded, dict):
+        raise ConfigError(f"{source}: top level must be a mapping, got {type(loaded).__name__}")
+    data = dict(loaded or {})
+    if "base" not in data:
+        return data
+    base = data.pop("base")
+    if not isinstance(base, str) or not base.strip():
+        raise ConfigError(f"{source}: base: expected the path of another config file, got {base!r}")
+    base_path = path.parent / base
+    if base_path.resolve() in [p.resolve() for p in (*chain, path)]:
+        names = " -> ".join(str(p) for p in (*chain, path, base_path))
+        raise ConfigError(f"{source}: base: the files name each other as base ({names})")
+    return _merge(_read_with_base(base_path, (*chain, path)), data)
 
 
 def _merge(base: dict, over: dict) -> dict:

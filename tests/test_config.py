@@ -220,3 +220,44 @@ def test_the_imperfect_sensing_peg_config_is_the_peg_config_plus_its_sensing():
     for d in (plain, noisy):
         del d["panda"]["sensors"], d["panda"]["observation_filter"]
     assert plain == noisy
+
+
+def test_a_base_file_is_read_first_and_the_config_applies_over_it_key_by_key(tmp_path):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "eval.yaml").write_text("env: panda\npanda:\n  fd_axes: [z]\n  peg_in_hole:\n"
+                                                 "    time_limit: 15.0\n    friction: 0.4\nadaptation:\n  f_d_max: 10.0\n")
+    (tmp_path / "train.yaml").write_text("base: sub/eval.yaml\nseed: 3\npanda:\n  peg_in_hole:\n    time_limit: 12.0\n")
+    cfg = load_config(tmp_path / "train.yaml")
+    assert (cfg.seed, cfg.env, cfg.panda.fd_axes, cfg.adaptation.f_d_max) == (3, "panda", ("z",), 10.0)
+    assert (cfg.panda.peg_in_hole.time_limit, cfg.panda.peg_in_hole.friction) == (12.0, 0.4)
+    # a chain of bases, the nearest file winning
+    (tmp_path / "top.yaml").write_text("base: train.yaml\nadaptation:\n  f_d_max: 5.0\n")
+    top = load_config(tmp_path / "top.yaml")
+    assert (top.seed, top.adaptation.f_d_max, top.panda.peg_in_hole.time_limit) == (3, 5.0, 12.0)
+
+
+def test_a_missing_looping_or_malformed_base_is_a_config_error(tmp_path):
+    (tmp_path / "a.yaml").write_text("base: nowhere.yaml\n")
+    with pytest.raises(ConfigError, match=r"nowhere.yaml: config file not found \(the base of .*a.yaml\)"):
+        load_config(tmp_path / "a.yaml")
+    (tmp_path / "b.yaml").write_text("base: c.yaml\n")
+    (tmp_path / "c.yaml").write_text("base: b.yaml\n")
+    with pytest.raises(ConfigError, match="the files name each other as base"):
+        load_config(tmp_path / "b.yaml")
+    (tmp_path / "d.yaml").write_text("base: 3\n")
+    with pytest.raises(ConfigError, match="base: expected the path of another config file, got 3"):
+        load_config(tmp_path / "d.yaml")
+
+
+def test_the_panda_fine_tuning_trains_in_the_env_its_evaluation_judges():
+    """configs/panda_a2c_finetune.yaml: every panda and adaptation setting of the peg-in-hole evaluation config but
+    the training episode's time limit (docs/panda.md, "Fine-tuning in the evaluation's env")."""
+    from a3cqp_rl.config import config_to_dict
+
+    root = Path(__file__).resolve().parents[1] / "configs"
+    ft, ev = (config_to_dict(load_config(root / f)) for f in ("panda_a2c_finetune.yaml", "panda_peg_in_hole.yaml"))
+    assert ft["adaptation"] == ev["adaptation"]
+    assert ft["panda"]["peg_in_hole"].pop("time_limit") == 12.0
+    ev["panda"]["peg_in_hole"].pop("time_limit")
+    assert ft["panda"] == ev["panda"]
+    assert ft["panda"]["ik_bound_tool_axis"] == 0.02 and ft["adaptation"]["f_d_max"] == 10.0
