@@ -400,8 +400,7 @@ class PandaEnv(EnvBase):
             ez = np.einsum("nk,nk->n", pos_d - self.pos, axis)
             # a reference that lags a peg sliding down the bore would pull it back out against the FC half: the
             # point mass's wall targets never lie on the free side of the tool (the return home moves it back: kept)
-            thr = self.ctrl.options.contact_force_threshold
-            ahead = (np.einsum("nk,nk->n", self.f_env[:, :3], self.f_env[:, :3]) > thr * thr) & (
+            ahead = self.ctrl.contact_from(torch.from_numpy(self.f_env)).numpy() & (
                 np.einsum("nk,nk->n", self._ref_step, axis) > 0.0)
             target = np.clip(ez, np.where(ahead, 0.0, -bound), bound)
             moved = (target != ez) & ~self._scripted

@@ -732,7 +732,7 @@ class A3CQPController:
             ("rot_d", rot_d, (n, 3, 3)),
             ("f_ext", q.new_zeros(n, 6) if f_ext is None else f_ext, (n, 6)))}
         if in_contact is None:
-            in_contact = self._contact_from(f_env)
+            in_contact = self.contact_from(f_env)
         on_cpu = all(v.device.type == "cpu" for v in t.values())
         if on_cpu:  # (numpy for the finiteness check in any case: ~1 µs per op instead of ~5)
             flat = np.concatenate([_np(v).reshape(n, -1) for v in t.values()], axis=1)
@@ -764,8 +764,8 @@ class A3CQPController:
             raise InvalidGainError(f"leak_extra must be ≥ 0 (1/s) on every axis, got {float(a.min()):.6g}")
         return _np(t.cpu()) if isinstance(like, np.ndarray) else t.to(like.device)
 
-    def _contact_from(self, f_env: torch.Tensor | None) -> torch.Tensor:
-        """in_contact [N] from the measured F/T force: |f| > ControllerOptions.contact_force_threshold."""
+    def contact_from(self, f_env: torch.Tensor | None) -> torch.Tensor:
+        """in_contact [N] from the F/T wrench f_env [N, 6]: |force| > ControllerOptions.contact_force_threshold."""
         thr = self.options.contact_force_threshold
         if f_env is None:
             return torch.zeros(self.n, dtype=torch.bool)
