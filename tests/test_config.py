@@ -249,15 +249,16 @@ def test_a_missing_looping_or_malformed_base_is_a_config_error(tmp_path):
         load_config(tmp_path / "d.yaml")
 
 
-def test_the_panda_fine_tuning_trains_in_the_env_its_evaluation_judges():
-    """configs/panda_a2c_finetune.yaml: every panda and adaptation setting of the peg-in-hole evaluation config but
-    the training episode's time limit (docs/panda.md, "Fine-tuning in the evaluation's env")."""
+@pytest.mark.parametrize("name", ["panda_a2c.yaml", "panda_a2c_finetune.yaml"])
+def test_the_panda_trainings_train_in_the_env_their_evaluation_judges(name):
+    """The Panda training configs: every panda and adaptation setting of the peg-in-hole evaluation config but the
+    training episode's time limit (docs/panda.md, "Fine-tuning in the evaluation's env")."""
     from a3cqp_rl.config import config_to_dict
 
     root = Path(__file__).resolve().parents[1] / "configs"
-    ft, ev = (config_to_dict(load_config(root / f)) for f in ("panda_a2c_finetune.yaml", "panda_peg_in_hole.yaml"))
-    assert ft["adaptation"] == ev["adaptation"]
-    assert ft["panda"]["peg_in_hole"].pop("time_limit") == 12.0
+    tr, ev = (config_to_dict(load_config(root / f)) for f in (name, "panda_peg_in_hole.yaml"))
+    assert tr["env"] == "panda" and tr["adaptation"] == ev["adaptation"]
+    assert tr["panda"]["peg_in_hole"].pop("time_limit") == 12.0
     ev["panda"]["peg_in_hole"].pop("time_limit")
-    assert ft["panda"] == ev["panda"]
-    assert ft["panda"]["ik_bound_tool_axis"] == 0.02 and ft["adaptation"]["f_d_max"] == 10.0
+    assert tr["panda"] == ev["panda"]
+    assert tr["panda"]["ik_bound_tool_axis"] == 0.02 and tr["adaptation"]["f_d_max"] == 10.0
