@@ -386,8 +386,7 @@ class PandaEnv(EnvBase):
         before = self.scene.pos_d.copy()
         self._update_scene()
         np.subtract(self.scene.pos_d, before, out=self._ref_step)
-        truncated = self.scene.done | (self.t >= self.pcfg.max_episode_time - 1e-9)
-        return self._output(done=truncated | self.diverged, terminated=self.diverged.copy(), reward=True)
+        return self._output(done=self._episode_over() | self.diverged, terminated=self.diverged.copy(), reward=True)
 
     def _controller_reference(self, scale: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The scene's reference, along the tool axis within `ik_bound_tool_axis` of the tool and, in contact while
@@ -550,11 +549,14 @@ class PandaEnv(EnvBase):
         if faster.any():
             self.joint_speed_ratio[faster] = fast[faster]
 
+    def _episode_over(self) -> np.ndarray:
+        """Arms [N] whose episode is over by its scene or its time (`max_episode_time`), divergence aside."""
+        return self.scene.done | (self.t >= self.pcfg.max_episode_time - 1e-9)
+
     def _in_episode(self) -> np.ndarray:
         """Arms [N] whose episode is under way: not over (scene done, time up), not parked, not diverged. An arm
         left unparked after its episode (`a3cqp evaluate --no-park`) adds nothing to its episode's counts."""
-        over = self.scene.done | (self.t >= self.pcfg.max_episode_time - 1e-9)
-        return ~over & ~self.parked & ~self.diverged
+        return ~self._episode_over() & ~self.parked & ~self.diverged
 
     def park(self, idx: np.ndarray) -> None:
         """Set aside arms `idx` whose episode is over while the batch runs on (until their reset): their collisions
