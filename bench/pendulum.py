@@ -41,10 +41,13 @@ def run_sb3(cfg, steps: int) -> float:
     """SB3 A2C steps/s of `learn(steps)` on Pendulum-v1 with the config's settings."""
     from stable_baselines3 import A2C
     from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.logger import Logger
 
     env = make_vec_env("Pendulum-v1", n_envs=cfg.a2c.num_envs, seed=cfg.seed)
     try:
         model = A2C("MlpPolicy", env, **sb3_kwargs(cfg))
+        # no folder: SB3's default logger makes an empty <tempdir>/SB3-<date> folder at every learn()
+        model.set_logger(Logger(None, []))
         t0 = time.perf_counter()
         model.learn(total_timesteps=steps)
         return model.num_timesteps / (time.perf_counter() - t0)

@@ -107,11 +107,14 @@ def run_sb3(cfg, steps: int) -> tuple[float, float]:
     """Train SB3 A2C for `steps` agent steps; returns (steps/s of learn(), learn() seconds)."""
     from stable_baselines3 import A2C
     from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.logger import Logger
 
     PointMassGym = _import_gym_env()
     vec_env = make_vec_env(PointMassGym, n_envs=SB3_N_ENVS, seed=SB3_KWARGS["seed"], env_kwargs={"config": cfg})
     try:
         model = A2C("MlpPolicy", vec_env, **SB3_KWARGS)
+        # no folder: SB3's default logger makes an empty <tempdir>/SB3-<date> folder at every learn()
+        model.set_logger(Logger(None, []))
         t0 = time.perf_counter()
         model.learn(total_timesteps=steps)
         elapsed = time.perf_counter() - t0

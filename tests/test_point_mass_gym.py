@@ -200,8 +200,12 @@ def test_train_speed_without_sb3_prints_how_to_install_and_exits_0(monkeypatch, 
     assert "stable-baselines3 is not installed" in out and "pip install" in out
 
 
-def test_sb3_trains_on_the_gym_env():
-    """Smoke: the baseline's exact SB3 construction runs on PointMassGym (skipped without the bench extra)."""
+def test_sb3_trains_on_the_gym_env(monkeypatch, tmp_path):
+    """Smoke: the baseline's exact SB3 construction runs on PointMassGym and leaves no log folder behind (skipped
+    without the bench extra)."""
     pytest.importorskip("stable_baselines3")
+    logdir = tmp_path / "sb3_logs"
+    monkeypatch.setenv("SB3_LOGDIR", str(logdir))  # where SB3's default logger would make its folder
     rate, seconds = _train_speed().run_sb3(load_config(CONFIG), 64)
     assert rate > 0 and seconds > 0
+    assert not logdir.exists()
