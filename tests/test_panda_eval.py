@@ -235,6 +235,26 @@ def test_paired_compares_the_insertions_both_controllers_made() -> None:
     assert paired(res, primary="vic") == {} and format_paired(res, primary="vic") == ""
 
 
+def test_paired_over_pooled_seeds_shows_each_seeds_mean_difference() -> None:
+    nan = float("nan")
+    # seeds 7 and 9, three trials each: seed 7 learned faster (−0.5 s), seed 9 slower on the pair both made
+    # (+1.0 s) but its mean over its own insertions (6.0 s) still at most ik_fc's (6.0 s over one insertion)
+    metrics = {"learned": _peg_metrics([True, True, True, True, True, False], [6.0, 6.0, 6.0, 7.0, 5.0, nan]),
+               "ik_fc": _peg_metrics([True, True, True, True, False, False], [6.5, 6.5, 6.5, 6.0, nan, nan])}
+    res = EvalResult.from_metrics("peg_in_hole", metrics, {}, 1.0, 10.0, (7, 9))
+    ps = paired(res)["ik_fc"]["per_seed"]
+    assert ps["seeds"] == [7, 9]
+    assert ps["time_difference_mean_s"] == pytest.approx([-0.5, 1.0])
+    assert ps["time_at_most"] == 2
+    assert "per seed: 7 -0.50, 9 +1.00 s; mean insertion time at most ik_fc's on 2 of 2 seeds" in format_paired(res)
+    # a seed where the learned arms insert nothing: no difference, and not at most
+    metrics["learned"] = _peg_metrics([True] * 3 + [False] * 3, [6.0] * 3 + [nan] * 3)
+    ps = paired(EvalResult.from_metrics("peg_in_hole", metrics, {}, 1.0, 10.0, (7, 9)))["ik_fc"]["per_seed"]
+    assert ps["time_difference_mean_s"][1] is None and ps["time_at_most"] == 1
+    # one seed: nothing per seed
+    assert "per_seed" not in paired(EvalResult.from_metrics("peg_in_hole", metrics, {}, 1.0, 10.0, (7,)))["ik_fc"]
+
+
 def test_targets_say_which_of_table_vi_and_the_baselines_the_learned_policy_meets() -> None:
     nan = float("nan")
     metrics = {"learned": _peg_metrics([True] * 9 + [False], [6.0] * 9 + [nan]),  # 90 %, 6.0 s
