@@ -251,6 +251,9 @@ def paired(res: EvalResult, primary: str = "learned") -> dict:
     def inserted(m: dict) -> np.ndarray:
         return m["success"] & ~m["diverged"][:, None]
 
+    def own_mean(m: dict, ok: np.ndarray, sl: slice) -> float | None:
+        return float(m["insertion_time"][sl][ok[sl]].mean()) if ok[sl].any() else None
+
     a = res.metrics[primary]
     out = {}
     for c, b in res.metrics.items():
@@ -272,10 +275,6 @@ def paired(res: EvalResult, primary: str = "learned") -> dict:
         if k > 1 and len(ok_a) % k == 0:
             # seeds pooled: a single seed's 26 trials is what one `--seed S` run judges, so show how they spread
             per = [slice(i * (len(ok_a) // k), (i + 1) * (len(ok_a) // k)) for i in range(k)]
-
-            def own_mean(m: dict, ok: np.ndarray, sl: slice) -> float | None:
-                return float(m["insertion_time"][sl][ok[sl]].mean()) if ok[sl].any() else None
-
             both = ok_a & ok_b
             out[c]["per_seed"] = {
                 "seeds": list(res.seeds),
