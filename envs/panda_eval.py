@@ -260,7 +260,8 @@ def paired(res: EvalResult, primary: str = "learned") -> dict:
         if c == primary:
             continue
         ok_a, ok_b = inserted(a), inserted(b)
-        d = (a["insertion_time"] - b["insertion_time"])[ok_a & ok_b]
+        both, diff = ok_a & ok_b, a["insertion_time"] - b["insertion_time"]
+        d = diff[both]
         n = int(d.size)
         out[c] = {"insertions_both": n, "insertions_only_" + primary: int((ok_a & ~ok_b).sum()),
                   "insertions_only_baseline": int((ok_b & ~ok_a).sum()),
@@ -275,11 +276,10 @@ def paired(res: EvalResult, primary: str = "learned") -> dict:
         if k > 1 and len(ok_a) % k == 0:
             # seeds pooled: a single seed's 26 trials is what one `--seed S` run judges, so show how they spread
             per = [slice(i * (len(ok_a) // k), (i + 1) * (len(ok_a) // k)) for i in range(k)]
-            both = ok_a & ok_b
             out[c]["per_seed"] = {
                 "seeds": list(res.seeds),
-                "time_difference_mean_s": [float((a["insertion_time"] - b["insertion_time"])[sl][both[sl]].mean())
-                                           if both[sl].any() else None for sl in per],
+                "time_difference_mean_s": [float(diff[sl][both[sl]].mean()) if both[sl].any() else None
+                                           for sl in per],
                 "time_at_most": int(sum(_time_at_most(own_mean(a, ok_a, sl), own_mean(b, ok_b, sl)) for sl in per))}
     return out
 
