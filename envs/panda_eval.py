@@ -937,6 +937,11 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_config(cfg_path)
         controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
         fixed = [load_fixed_controller(f) for f in args.controller_config]
+        for i, f in enumerate(fixed):  # `--pick K` names every run's pick K `pareto_K`: two runs' picks can clash
+            same = [args.controller_config[j] for j in range(i) if fixed[j].name == f.name]
+            if same:
+                raise ValueError(f"{args.controller_config[i]} names its controller {f.name!r}, as does {same[0]}: "
+                                 "set fixed_controller.name in one of them to tell them apart in the tables")
         paths = args.policy if args.policy is not None else [cfg.panda.policy]  # the CLI's paths win
         if "learned" not in controllers:
             paths = [None]  # no policy is read: a configured one need not exist

@@ -111,3 +111,15 @@ def test_objective_runs_on_the_other_scenes(scene: str) -> None:
     res = evaluate_fixed(fixed, _cfg(scenes=[scene]))
     assert res.objectives.shape == (1, 3) and np.all(np.isfinite(res.objectives)) and np.all(res.objectives >= 0)
     assert set(res.per_trial) == {scene} and res.per_trial[scene]["episode_s"][0, 0] == pytest.approx(0.3, abs=0.02)
+
+
+def test_evaluate_cli_names_the_files_whose_controllers_share_a_name(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """Two runs' `--pick 1` files both name their controller pareto_1: the error says which files and what to set."""
+    for run in ("small", "large"):
+        (tmp_path / run).mkdir()
+        (tmp_path / run / "pick_1.yaml").write_text("fixed_controller:\n  name: pareto_1\n")
+    files = [str(tmp_path / "small" / "pick_1.yaml"), str(tmp_path / "large" / "pick_1.yaml")]
+    assert main(["--scene", "peg_in_hole", "--controllers", "ik", "--quiet", "--controller-config", *files]) == 2
+    err = capsys.readouterr().err
+    assert "large/pick_1.yaml names its controller 'pareto_1', as does" in err and "small/pick_1.yaml" in err
+    assert "fixed_controller.name" in err
