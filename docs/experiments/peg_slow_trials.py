@@ -4,7 +4,7 @@
 
 Runs trials `--pick` of `a3cqp evaluate --scene peg_in_hole --trials N --seed S` (the same trial seeds) for the
 learned controller and IK + FC in one batch, and prints, every 0.5 s from first contact to success: the tip's
-lateral distance to the hole axis, its depth below the rim, the tool's tilt, f_env along and across the tool axis,
+lateral distance to the hole axis and the x-y reference's, its depth below the rim, the tool's tilt, f_env along and across the tool axis,
 the policy's weights (w1, w2, w3) and f_d on z of L, and w1 across. `--out` also writes one run folder per trial
 (episode_learned.npz, episode_ik_fc.npz) for `a3cqp plot episode`.
 """
@@ -45,7 +45,7 @@ def main() -> None:
     n = env.num_envs
     latched, since = np.zeros(n, dtype=bool), np.zeros(n)
     keys = RECORD_KEYS + env.signal_keys
-    rec = {key: [] for key in keys + ("tilt_deg", "xy_off_mm", "q")}
+    rec = {key: [] for key in keys + ("tilt_deg", "xy_off_mm", "ref_off_mm", "q")}
     td = env.reset()
     finished = np.zeros(n, dtype=bool)
     hole = np.array(cfg.panda.peg_in_hole.hole_center)
@@ -63,6 +63,7 @@ def main() -> None:
         pos, rot = env.pos, env.rot
         rec["q"].append(env.q.copy())
         rec["xy_off_mm"].append(1e3 * np.linalg.norm(pos[:, :2] - hole, axis=1))
+        rec["ref_off_mm"].append(1e3 * np.linalg.norm(env.scene.pos_d[:, :2] - hole, axis=1))
         rec["tilt_deg"].append(np.degrees(np.arccos(np.clip(-rot[:, 2, 2], -1.0, 1.0))))
         finished |= td["done"].reshape(n).numpy()
     R = {key: np.stack(v, 0) for key, v in rec.items()}  # [T, n, ...]
@@ -74,7 +75,7 @@ def main() -> None:
             t0 = m["contact_time"][arm, 0]
             print(f"--- {c}: success {bool(m['success'][arm, 0])}, insertion time {m['insertion_time'][arm, 0]:.2f} s, "
                   f"extracted {bool(m['extracted'][arm, 0])}")
-            print("  t-t0   xy[mm] depth[mm] tilt  fz_env |fxy_env|  w_z(w1,w2,w3)    fd_z  w1_x  w1_y  phase")
+            print("  t-t0   xy[mm] ref[mm] depth[mm] tilt  fz_env |fxy_env|  w_z(w1,w2,w3)    fd_z  w1_x  w1_y  phase")
             t = R["time"][:, arm]
             for tt in np.arange(0.0, 16.0, 0.5):
                 i = np.searchsorted(t, t0 + tt)
@@ -82,7 +83,7 @@ def main() -> None:
                     break
                 fe = R["f_env_local"][i, arm]
                 w = R["weights"][i, arm]
-                print(f"  {tt:4.1f} {R['xy_off_mm'][i, arm]:7.2f} {1e3 * R['depth'][i, arm]:8.2f} "
+                print(f"  {tt:4.1f} {R['xy_off_mm'][i, arm]:7.2f} {R['ref_off_mm'][i, arm]:7.2f} {1e3 * R['depth'][i, arm]:8.2f} "
                       f"{R['tilt_deg'][i, arm]:5.2f} {fe[2]:7.2f} {np.hypot(fe[0], fe[1]):7.2f}  "
                       f"({w[2, 0]:.2f},{w[2, 1]:.2f},{w[2, 2]:.2f}) {R['f_d'][i, arm, 2]:6.2f} "
                       f"{w[0, 0]:.2f}  {w[1, 0]:.2f}  {int(R['phase'][i, arm])}")
