@@ -1012,6 +1012,16 @@ class PandaEnvConfig:
     scene reference advanced along the axis in its last update gets a reference not behind it either: a schedule
     that lags the peg down the bore does not pull it back (docs/panda.md, "An IK reference that does not lag the
     peg"). Arms whose weights `PandaEnv.hold_weights` sets (the scripted baselines) keep the scene's reference."""
+    ik_bound_blocked: float | None = None
+    """With `ik_bound_tool_axis`: how far [m] that reference may run ahead of a blocked tool along the tool axis, a
+    tool pressed back along its axis by more than `blocked_force` (f_env) that moves along it slower than
+    `blocked_speed`; None: the bound alone. 0 on the peg (configs/panda_peg_in_hole.yaml): a peg on the rim is
+    pressed by z's force-control half alone, and the reference does not wind up behind the block (anti-windup), so
+    the peg is not pressed flat onto the rim (docs/panda.md, "The IK reference held at a blocked tool")."""
+    blocked_force: float = 5.0
+    """f_env along the tool axis, pushing the tool back [N], above which a still tool is blocked (`ik_bound_blocked`)."""
+    blocked_speed: float = 0.005
+    """Speed along the tool axis [m/s] below which a pressed tool is blocked (`ik_bound_blocked`)."""
     policy: str | None = None
     """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
     folder, relative to the working directory (None: --policy is needed for the learned controller)."""
@@ -1041,6 +1051,16 @@ class PandaEnvConfig:
             err.positive(self, name)
         if self.ik_bound_tool_axis is not None and not self.ik_bound_tool_axis > 0:
             err.add("ik_bound_tool_axis", f"must be a distance > 0 [m] or null, got {self.ik_bound_tool_axis}")
+        if self.ik_bound_blocked is not None:
+            if self.ik_bound_tool_axis is None:
+                err.add("ik_bound_blocked", "needs ik_bound_tool_axis (the bound it tightens while the tool is blocked)")
+            elif not 0.0 <= self.ik_bound_blocked <= self.ik_bound_tool_axis:
+                err.add("ik_bound_blocked", f"must be a distance in [0, ik_bound_tool_axis = {self.ik_bound_tool_axis}] "
+                        f"[m] or null, got {self.ik_bound_blocked}")
+        if not self.blocked_force > 0:
+            err.add("blocked_force", f"must be a force > 0 [N], got {self.blocked_force}")
+        if not self.blocked_speed > 0:
+            err.add("blocked_speed", f"must be a speed > 0 [m/s], got {self.blocked_speed}")
         if self.policy is not None and not self.policy.strip():
             err.add("policy", "must be a path to a policy.pt or a run folder, or null")
         bad = [a for a in self.fd_axes if a not in ("x", "y", "z")]

@@ -389,8 +389,9 @@ class PandaEnv(EnvBase):
         return self._output(done=self._episode_over() | self.diverged, terminated=self.diverged.copy(), reward=True)
 
     def _controller_reference(self, scale: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """The scene's reference, along the tool axis within `ik_bound_tool_axis` of the tool and, in contact while
-        the scene's reference advances along the axis, not behind it (the policy's arms), moved toward the tool by
+        """The scene's reference, along the tool axis within `ik_bound_tool_axis` of the tool (`ik_bound_blocked`
+        ahead of a blocked tool) and, in contact while the scene's reference advances along the axis, not behind it
+        (the policy's arms), moved toward the tool by
         `stiffness_scale` (times `scale` [N, 6]) where it is not 1 (arm frame)."""
         pos_d, rot_d = self.scene.pos_d.copy(), self.scene.rot_d.copy()
         bound = self.pcfg.ik_bound_tool_axis
@@ -401,7 +402,15 @@ class PandaEnv(EnvBase):
             # point mass's wall targets never lie on the free side of the tool (the return home moves it back: kept)
             ahead = self.ctrl.contact_from(torch.from_numpy(self.f_env)).numpy() & (
                 np.einsum("nk,nk->n", self._ref_step, axis) > 0.0)
-            target = np.clip(ez, np.where(ahead, 0.0, -bound), bound)
+            ahead_max = np.full(self.num_envs, bound)
+            if self.pcfg.ik_bound_blocked is not None:
+                # anti-windup: a reference running on ahead of a tool the block holds only presses it harder (eq. 35's
+                # IK half on top of the FC half's f_d), flat onto the rim; the point mass's walls never taught that
+                v_axis = np.einsum("nk,nk->n", (self._jac[:, :3] @ self.qd[..., None])[..., 0], axis)
+                pressed = np.einsum("nk,nk->n", self.f_env[:, :3], axis) < -self.pcfg.blocked_force
+                blocked = pressed & (np.abs(v_axis) < self.pcfg.blocked_speed)
+                ahead_max[blocked] = self.pcfg.ik_bound_blocked
+            target = np.clip(ez, np.where(ahead, 0.0, -bound), ahead_max)
             moved = (target != ez) & ~self._scripted
             if moved.any():
                 pos_d[moved] += (target - ez)[moved, None] * axis[moved]

@@ -12,6 +12,7 @@ from torchrl.envs.utils import check_env_specs
 
 from a3cqp_rl.checkpoint import save_atomic
 from a3cqp_rl.config import OperatorConfig, config_from_dict
+from a3cqp_rl.exceptions import ConfigError
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS
 from algorithms.a2c import load_policy
 from algorithms.networks import ParamLayout
@@ -666,3 +667,30 @@ def test_the_arms_a_script_holds_this_step_are_the_ones_left_unbounded() -> None
     td["action"] = _ik_action(2)
     env.step(td)  # the hold lasted one step
     np.testing.assert_array_equal(env._scripted, [False, False])
+
+
+def test_a_blocked_tool_keeps_its_ik_reference_at_the_tool() -> None:
+    """With `ik_bound_blocked` 0, a reference 15 mm ahead along the tool axis moves to the tool for a policy arm
+    pressed back by more than `blocked_force` and still along its axis (arm 0); not for one pressed more lightly
+    (arm 1), one moving along the axis (arm 2) or one a script holds (arm 3); the 20-mm bound holds arm 4 (50 mm)."""
+    env = PandaEnv(5, _cfg({"panda": {"ik_bound_tool_axis": 0.02, "ik_bound_blocked": 0.0}}), seed=0)
+    env.reset()
+    axis = env.rot[:, :, 2]
+    env.scene.pos_d[:] = env.pos + np.array([0.015, 0.015, 0.015, 0.015, 0.05])[:, None] * axis
+    env._ref_step[:] = 0.0
+    env.f_env[:] = 0.0
+    env.f_env[:, :3] = -np.array([8.0, 3.0, 8.0, 8.0, 8.0])[:, None] * axis
+    env.qd[:] = 0.0
+    env.qd[2] = np.linalg.lstsq(env._jac[2, :3], 0.01 * axis[2], rcond=None)[0]  # 10 mm/s along the axis
+    env._scripted = np.array([False, False, False, True, False])
+    e = env._controller_reference()[0].numpy() - env.pos
+    np.testing.assert_allclose(np.einsum("nk,nk->n", e, axis), [0.0, 0.015, 0.015, 0.015, 0.0], atol=1e-12)
+
+
+def test_the_blocked_bound_needs_the_tool_axis_bound_and_lies_within_it() -> None:
+    with pytest.raises(ConfigError, match="ik_bound_blocked.*needs ik_bound_tool_axis"):
+        _cfg({"panda": {"ik_bound_blocked": 0.0}})
+    with pytest.raises(ConfigError, match="ik_bound_blocked"):
+        _cfg({"panda": {"ik_bound_tool_axis": 0.02, "ik_bound_blocked": 0.03}})
+    with pytest.raises(ConfigError, match="blocked_speed"):
+        _cfg({"panda": {"blocked_speed": 0.0}})
