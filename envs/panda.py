@@ -406,7 +406,7 @@ class PandaEnv(EnvBase):
             if self.pcfg.ik_bound_blocked is not None:
                 # anti-windup: a reference running on ahead of a tool the block holds only presses it harder (eq. 35's
                 # IK half on top of the FC half's f_d), flat onto the rim; the point mass's walls never taught that
-                v_axis = np.einsum("nk,nk->n", (self._jac[:, :3] @ self.qd[..., None])[..., 0], axis)
+                v_axis = np.einsum("nk,nk->n", self._twist[:, :3], axis)
                 pressed = np.einsum("nk,nk->n", self.f_env[:, :3], axis) < -self.pcfg.blocked_force
                 blocked = pressed & (np.abs(v_axis) < self.pcfg.blocked_speed)
                 ahead_max[blocked] = self.pcfg.ik_bound_blocked
@@ -455,7 +455,7 @@ class PandaEnv(EnvBase):
         tau = out.tau.numpy()
         self.tau[:] = tau
         # the operator's hand at the handle (above the F/T sensor: read by the joint torques only)
-        v, w = s.kin.twist.numpy()[:, :3], s.kin.twist.numpy()[:, 3:]
+        v, w = self._twist[:, :3], self._twist[:, 3:]
         r = (self.rot @ self._o_handle)
         hand = self._noise.get("hand")
         force, torque = self.operator.wrench(self.t + k * self.dt, self.pos + r, v + cross3(w, r), self.rot, w,
@@ -476,7 +476,7 @@ class PandaEnv(EnvBase):
         noise = self._noise if k is not None else {}
         self.q, self.qd = s.q.numpy(), s.qd.numpy()
         self.pos, self.rot = s.kin.pos.numpy().copy(), s.kin.rot.numpy().copy()
-        self._jac = s.kin.jac.numpy()
+        self._twist = s.kin.twist.numpy()  # the tool tip's [N, 6], m/s and rad/s (world)
         tau = s.tau_ext
         tare = sen.tare_time > 0
         if "tau" in noise or sen.joint_torque_bias > 0 or tare:
