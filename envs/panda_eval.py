@@ -937,11 +937,12 @@ def main(argv: list[str] | None = None) -> int:
         cfg = load_config(cfg_path)
         controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
         fixed = [load_fixed_controller(f) for f in args.controller_config]
-        for i, f in enumerate(fixed):  # `--pick K` names every run's pick K `pareto_K`: two runs' picks can clash
-            same = [args.controller_config[j] for j in range(i) if fixed[j].name == f.name]
-            if same:
-                raise ValueError(f"{args.controller_config[i]} names its controller {f.name!r}, as does {same[0]}: "
-                                 "set fixed_controller.name in one of them to tell them apart in the tables")
+        named = {}  # `--pick K` names every run's pick K `pareto_K`: two runs' picks can clash
+        for path, f in zip(args.controller_config, fixed):
+            if f.name in named:
+                raise ValueError(f"{path} names its controller {f.name!r}, as does {named[f.name]}: set "
+                                 "fixed_controller.name in one of them to tell them apart in the tables")
+            named[f.name] = path
         paths = args.policy if args.policy is not None else [cfg.panda.policy]  # the CLI's paths win
         if "learned" not in controllers:
             paths = [None]  # no policy is read: a configured one need not exist
