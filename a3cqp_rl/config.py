@@ -1367,7 +1367,30 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
         data = _read_with_base(Path(path), ())
     if overrides:
         data = _merge(data, overrides)
+        source += " with overrides"  # a bad override is not the file's fault
     return config_from_dict(data, source)
+
+
+def parse_overrides(items: list[str] | tuple[str, ...]) -> dict:
+    """The nested dict of command-line overrides `KEY=VALUE` (KEY dotted, e.g. panda.blocked_force; VALUE read as
+    YAML: 1.0, [z], null, true), for `load_config(path, overrides)`; a key given twice keeps the last value."""
+    out: dict = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        parts = key.strip().split(".")
+        if not sep or not all(p.strip() for p in parts):
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE with a dotted KEY, e.g. panda.blocked_force=2.0")
+        try:
+            value = yaml.safe_load(text) if text.strip() else None
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"--set {item!r}: the value is not valid YAML: {' '.join(str(exc).split())}") from None
+        node = out
+        for p in parts[:-1]:
+            if not isinstance(node.get(p.strip()), dict):
+                node[p.strip()] = {}
+            node = node[p.strip()]
+        node[parts[-1].strip()] = value
+    return out
 
 
 def _read_with_base(path: Path, chain: tuple[Path, ...]) -> dict:

@@ -52,6 +52,9 @@ def _parser() -> argparse.ArgumentParser:
                                                     "on other envs)")
     p.add_argument("--env", default=None, help="environment: point_mass or a gymnasium id, e.g. Pendulum-v1 "
                                                "(default: the config's env)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
+                   help="override one config value, e.g. --set a2c.learning_rate=1e-4 (VALUE read as YAML; "
+                        "repeatable; the run folder's config.yaml keeps the result)")
     p.add_argument("--steps", type=int, default=None, help="total agent steps (default: a2c.total_steps)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--seed", type=int, default=None, help="random seed (default: the config's)")
@@ -92,13 +95,14 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     import torch
 
-    from a3cqp_rl.config import load_config
+    from a3cqp_rl.config import load_config, parse_overrides
     from algorithms.a2c import train
 
     torch.set_num_threads(1)  # tiny networks: threads cost more than they give
-    overrides: dict = {}
+    overrides: dict = parse_overrides(args.overrides)
     if args.no_compile:
-        overrides["a2c"] = {"compile": False}
+        a2c = overrides.get("a2c")
+        overrides["a2c"] = {**(a2c if isinstance(a2c, dict) else {}), "compile": False}
     if args.env:
         overrides["env"] = args.env
     # the default config trains the point mass; another env without --config starts from the paper's settings

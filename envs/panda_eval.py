@@ -833,7 +833,9 @@ def _report(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalResu
     """Print one evaluation (header, table, paired differences, targets) and return its JSON document."""
     which = f"seed {args.seed}" if args.seeds is None else f"seeds {','.join(map(str, args.seeds))} pooled"
     used = min(args.workers, args.trials)  # the trials split into at most this many groups
-    print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller, {which}, config {cfg_path or 'defaults'}; "
+    given = f" with {', '.join(args.overrides)}" if args.overrides else ""
+    print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller, {which}, config {cfg_path or 'defaults'}"
+          f"{given}; "
           f"{res.sim_seconds:.0f} s simulated in {res.seconds:.1f} s ({res.sim_seconds / res.seconds:.1f}x real time, "
           f"{used} worker{'s' if used > 1 else ''})")
     if policy is not None:
@@ -845,6 +847,7 @@ def _report(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalResu
             print(lines)
     doc = to_json(res)
     doc["workers"] = used
+    doc["config"], doc["overrides"] = None if cfg_path is None else str(cfg_path), list(args.overrides)
     if policy is not None:
         doc["policy"], doc["policy_fingerprint"] = str(policy), prints
     return doc
@@ -895,6 +898,9 @@ def main(argv: list[str] | None = None) -> int:
     seeds.add_argument("--seeds", type=_seed_list, default=None, metavar="LIST",
                        help="several seeds, e.g. 0,3-10: each seed's trials as --seed runs them, pooled")
     p.add_argument("--config", default=None, help="YAML config (default: configs/panda_<scene>.yaml if present)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
+                   help="override one config value over --config, e.g. --set panda.blocked_force=2.0 (VALUE read as "
+                        "YAML; repeatable; kept in the JSON)")
     p.add_argument("--controllers", default=",".join(CONTROLLERS), help="comma-separated subset of "
                    + ",".join(CONTROLLERS))
     p.add_argument("--cycles", type=int, default=None, help="peg-in-hole insertions per episode (Fig. 7: 3)")
@@ -920,7 +926,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     try:
-        from a3cqp_rl.config import load_config
+        from a3cqp_rl.config import load_config, parse_overrides
 
         if args.trials < 1:
             raise ValueError(f"--trials must be >= 1, got {args.trials}")
@@ -934,7 +940,7 @@ def main(argv: list[str] | None = None) -> int:
         default = Path("configs") / f"panda_{args.scene}.yaml"
         if cfg_path is None and default.is_file():
             cfg_path = default
-        cfg = load_config(cfg_path)
+        cfg = load_config(cfg_path, parse_overrides(args.overrides))
         controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
         fixed = [load_fixed_controller(f) for f in args.controller_config]
         named = {}  # `--pick K` names every run's pick K `pareto_K`: two runs' picks can clash

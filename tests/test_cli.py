@@ -129,3 +129,21 @@ def test_the_point_mass_help_names_every_panda_scene(capsys):
         main(["evaluate", "--help"])
     out = capsys.readouterr().out
     assert "{" + ",".join(SCENES) + "}" in out
+
+
+def test_train_set_overrides_reach_the_run_folders_config(tmp_path, capsys):
+    """`a3cqp train --set KEY=VALUE` trains with the value and the run's config.yaml keeps it; a bad key is one line."""
+    import yaml
+
+    from algorithms.train import main as train_main
+
+    out = tmp_path / "run"
+    assert train_main(["--set", "seed=5", "--set", "a2c.n_steps=4", "--set", "a2c.learning_rate=3e-4", "--steps",
+                       "400", "--out", str(out), "--no-compile", "--no-plots", "--no-eval", "--quiet"]) == 0
+    kept = yaml.safe_load((out / "config.yaml").read_text())
+    assert kept["seed"] == 5 and kept["a2c"]["n_steps"] == 4 and kept["a2c"]["learning_rate"] == 3e-4
+    assert not kept["a2c"]["compile"]  # --no-compile merges with the --set a2c values
+    capsys.readouterr()
+    assert train_main(["--set", "a2c.n_step=4", "--out", str(tmp_path / "bad"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "with overrides: unknown key(s) a2c.n_step" in err and "Traceback" not in err

@@ -262,3 +262,19 @@ def test_the_panda_trainings_train_in_the_env_their_evaluation_judges(name):
     ev["panda"]["peg_in_hole"].pop("time_limit")
     assert tr["panda"] == ev["panda"]
     assert tr["panda"]["ik_bound_tool_axis"] == 0.02 and tr["adaptation"]["f_d_max"] == 10.0
+
+
+def test_set_overrides_parse_dotted_keys_with_yaml_values_and_name_bad_items():
+    from a3cqp_rl.config import parse_overrides
+
+    got = parse_overrides(["panda.blocked_force=2", "panda.fd_axes=[x, z]", "panda.ik_bound_blocked=null",
+                           "a2c.learning_rate=1e-4", "seed=3", "seed=4"])
+    assert got == {"panda": {"blocked_force": 2, "fd_axes": ["x", "z"], "ik_bound_blocked": None},
+                   "a2c": {"learning_rate": "1e-4"}, "seed": 4}  # YAML 1.1 reads 1e-4 as text; the config converts it
+    cfg = load_config(None, parse_overrides(["a2c.n_steps=7", "a2c.learning_rate=1e-4"]))
+    assert cfg.a2c.n_steps == 7 and cfg.a2c.learning_rate == 1e-4
+    for bad in ("seed", "=3", "a..b=1", "a2c.gamma=[1"):
+        with pytest.raises(ConfigError, match="--set"):
+            parse_overrides([bad])
+    with pytest.raises(ConfigError, match=r"<defaults> with overrides: unknown key\(s\) a2c.gama"):
+        load_config(None, parse_overrides(["a2c.gama=0.9"]))

@@ -202,6 +202,29 @@ def test_main_takes_the_learned_policy_from_the_config(tmp_path, capsys) -> None
     assert "panda.policy" in err and "no.pt" in err and "Traceback" not in err
 
 
+def test_main_applies_set_overrides_over_the_config_and_keeps_them(tmp_path, capsys) -> None:  # noqa: ANN001
+    """`--set panda.policy=...` replaces the config's missing policy; the header and the JSON name the overrides; a
+    bad key or value is one line naming it."""
+    path = tmp_path / "pol" / "policy.pt"
+    layout = ParamLayout(3, 4, (64, 64), "separate")
+    save_atomic({"format": 1, "flat": layout.init(torch.Generator().manual_seed(0), 0.0),
+                 "layout": [3, 4, [64, 64], "separate", 3]}, path)
+    cfg = tmp_path / "peg.yaml"
+    cfg.write_text(yaml.safe_dump({"env": "panda", "panda": {**FAST["panda"], "policy": str(tmp_path / "no.pt")}}))
+    out = tmp_path / "res.json"
+    sets = [f"panda.policy={path}", "panda.blocked_force=2.5"]
+    assert main(["--scene", "peg_in_hole", "--config", str(cfg), "--controllers", "learned", "--trials", "1",
+                 "--quiet", "--json", str(out), *[a for s in sets for a in ("--set", s)]]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["policy"] == str(path) and doc["overrides"] == sets and doc["config"] == str(cfg)
+    assert f"config {cfg} with {sets[0]}, {sets[1]};" in capsys.readouterr().out
+    for bad, says in (("panda.blocked_forse=2", "unknown key(s) panda.blocked_forse"),
+                      ("panda.blocked_force=-1", "panda.blocked_force"), ("blocked_force", "expected KEY=VALUE")):
+        assert main(["--scene", "peg_in_hole", "--config", str(cfg), "--trials", "1", "--set", bad]) == 2
+        err = capsys.readouterr().err
+        assert says in err and ("--set" in err or "with overrides" in err) and "Traceback" not in err
+
+
 def _peg_metrics(success: list[bool], times: list[float], diverged: list[bool] | None = None,
                  time_limit: float | None = None) -> dict:
     n = len(success)
