@@ -1377,8 +1377,8 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict:
     out: dict = {}
     for item in items:
         key, sep, text = item.partition("=")
-        parts = key.strip().split(".")
-        if not sep or not all(p.strip() for p in parts):
+        parts = [p.strip() for p in key.split(".")]
+        if not sep or not all(parts):
             raise ConfigError(f"--set {item!r}: expected KEY=VALUE with a dotted KEY, e.g. panda.blocked_force=2.0")
         try:
             value = yaml.safe_load(text) if text.strip() else None
@@ -1386,10 +1386,10 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict:
             raise ConfigError(f"--set {item!r}: the value is not valid YAML: {' '.join(str(exc).split())}") from None
         node = out
         for p in parts[:-1]:
-            if not isinstance(node.get(p.strip()), dict):
-                node[p.strip()] = {}
-            node = node[p.strip()]
-        node[parts[-1].strip()] = value
+            if not isinstance(node.get(p), dict):
+                node[p] = {}
+            node = node[p]
+        node[parts[-1]] = value
     return out
 
 

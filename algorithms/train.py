@@ -99,10 +99,7 @@ def _run(args: argparse.Namespace) -> int:
     from algorithms.a2c import train
 
     torch.set_num_threads(1)  # tiny networks: threads cost more than they give
-    overrides: dict = parse_overrides(args.overrides)
-    if args.no_compile:
-        a2c = overrides.get("a2c")
-        overrides["a2c"] = {**(a2c if isinstance(a2c, dict) else {}), "compile": False}
+    overrides: dict = parse_overrides([*args.overrides, *(["a2c.compile=false"] if args.no_compile else [])])
     if args.env:
         overrides["env"] = args.env
     # the default config trains the point mass; another env without --config starts from the paper's settings

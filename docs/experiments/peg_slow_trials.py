@@ -4,8 +4,8 @@
 
 Runs trials `--pick` of `a3cqp evaluate --scene peg_in_hole --trials N --seed S` (the same trial seeds) for the
 learned controller and IK + FC in one batch, and prints, every 0.5 s from first contact to success: the tip's
-lateral distance to the hole axis and the x-y reference's, its depth below the rim, the tool's tilt, f_env along and across the tool axis,
-the policy's weights (w1, w2, w3) and f_d on z of L, and w1 across. `--out` also writes one run folder per trial
+lateral distance to the hole axis and the x-y reference's, its depth below the rim, the tool's tilt, f_env along
+and across the tool axis, the policy's weights (w1, w2, w3) and f_d on z of L, and w1 across. `--out` also writes one run folder per trial
 (episode_learned.npz, episode_ik_fc.npz) for `a3cqp plot episode`.
 """
 from __future__ import annotations
@@ -83,7 +83,8 @@ def main() -> None:
                     break
                 fe = R["f_env_local"][i, arm]
                 w = R["weights"][i, arm]
-                print(f"  {tt:4.1f} {R['xy_off_mm'][i, arm]:7.2f} {R['ref_off_mm'][i, arm]:7.2f} {1e3 * R['depth'][i, arm]:8.2f} "
+                print(f"  {tt:4.1f} {R['xy_off_mm'][i, arm]:7.2f} {R['ref_off_mm'][i, arm]:7.2f} "
+                      f"{1e3 * R['depth'][i, arm]:8.2f} "
                       f"{R['tilt_deg'][i, arm]:5.2f} {fe[2]:7.2f} {np.hypot(fe[0], fe[1]):7.2f}  "
                       f"({w[2, 0]:.2f},{w[2, 1]:.2f},{w[2, 2]:.2f}) {R['f_d'][i, arm, 2]:6.2f} "
                       f"{w[0, 0]:.2f}  {w[1, 0]:.2f}  {int(R['phase'][i, arm])}")
