@@ -1018,6 +1018,15 @@ class PandaEnvConfig:
     `blocked_speed`; None: the bound alone. 0 on the peg (configs/panda_peg_in_hole.yaml): a peg on the rim is
     pressed by z's force-control half alone, and the reference does not wind up behind the block (anti-windup), so
     the peg is not pressed flat onto the rim (docs/panda.md, "The IK reference held at a blocked tool")."""
+    ik_lead_sliding: float = 0.0
+    """With `ik_bound_tool_axis`: how far [m] at least that reference is ahead of a tool in contact that slides
+    forward along its axis faster than `sliding_speed` while its scene reference advances (`ik_bound_blocked` wins
+    for a blocked tool); 0 (default): at the tool. 20 mm on the peg (configs/panda_peg_in_hole.yaml): a peg that
+    enters the bore ahead of the procedure's z schedule goes down at its own pace (docs/panda.md, "A reference that
+    leads a sliding peg")."""
+    sliding_speed: float = 0.001
+    """Speed forward along the tool axis [m/s] above which a tool in contact slides (`ik_lead_sliding`): above the
+    jitter of a peg on the rim, below a peg's pace down the bore."""
     blocked_force: float = 5.0
     """f_env along the tool axis, pushing the tool back [N], above which a still tool is blocked (`ik_bound_blocked`)."""
     blocked_speed: float = 0.005
@@ -1057,6 +1066,12 @@ class PandaEnvConfig:
             elif not 0.0 <= self.ik_bound_blocked <= self.ik_bound_tool_axis:
                 err.add("ik_bound_blocked", f"must be a distance in [0, ik_bound_tool_axis = {self.ik_bound_tool_axis}] "
                         f"[m] or null, got {self.ik_bound_blocked}")
+        if self.ik_lead_sliding != 0.0 and (self.ik_bound_tool_axis is None
+                                             or not 0.0 <= self.ik_lead_sliding <= self.ik_bound_tool_axis):
+            err.add("ik_lead_sliding", "needs ik_bound_tool_axis and must be a distance in [0, ik_bound_tool_axis] "
+                    f"[m], got {self.ik_lead_sliding}")
+        if not self.sliding_speed >= 0:
+            err.add("sliding_speed", f"must be a speed >= 0 [m/s], got {self.sliding_speed}")
         if not self.blocked_force > 0:
             err.add("blocked_force", f"must be a force > 0 [N], got {self.blocked_force}")
         if not self.blocked_speed > 0:

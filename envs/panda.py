@@ -391,7 +391,7 @@ class PandaEnv(EnvBase):
     def _controller_reference(self, scale: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The scene's reference, along the tool axis within `ik_bound_tool_axis` of the tool (`ik_bound_blocked`
         ahead of a blocked tool) and, in contact while the scene's reference advances along the axis, not behind it
-        (the policy's arms), moved toward the tool by `stiffness_scale` (times `scale` [N, 6]) where it is not 1
+        (`ik_lead_sliding` ahead of a tool sliding forward; the policy's arms), moved toward the tool by `stiffness_scale` (times `scale` [N, 6]) where it is not 1
         (arm frame)."""
         pos_d, rot_d = self.scene.pos_d.copy(), self.scene.rot_d.copy()
         bound = self.pcfg.ik_bound_tool_axis
@@ -403,14 +403,19 @@ class PandaEnv(EnvBase):
             ahead = self.ctrl.contact_from(torch.from_numpy(self.f_env)).numpy() & (
                 np.einsum("nk,nk->n", self._ref_step, axis) > 0.0)
             ahead_max = np.full(self.num_envs, bound)
+            v_axis = np.einsum("nk,nk->n", self._twist[:, :3], axis)
+            lead = np.zeros(self.num_envs)
+            # a peg sliding down the bore behind a shallow schedule would follow the schedule's pace (w1 ~ 0.9 there,
+            # f_d ~ 0 against the wall's friction); a reference ahead lets eq. 35's IK half carry it down
+            lead[v_axis > self.pcfg.sliding_speed] = self.pcfg.ik_lead_sliding
             if self.pcfg.ik_bound_blocked is not None:
                 # anti-windup: a reference running on ahead of a tool the block holds only presses it harder (eq. 35's
                 # IK half on top of the FC half's f_d), flat onto the rim; the point mass's walls never taught that
-                v_axis = np.einsum("nk,nk->n", self._twist[:, :3], axis)
                 pressed = np.einsum("nk,nk->n", self.f_env[:, :3], axis) < -self.pcfg.blocked_force
                 blocked = pressed & (np.abs(v_axis) < self.pcfg.blocked_speed)
                 ahead_max[blocked] = self.pcfg.ik_bound_blocked
-            target = np.clip(ez, np.where(ahead, 0.0, -bound), ahead_max)
+            # the blocked bound wins over the lead: np.clip is min(max(ez, lo), hi)
+            target = np.clip(ez, np.where(ahead, lead, -bound), ahead_max)
             moved = (target != ez) & ~self._scripted
             if moved.any():
                 pos_d[moved] += (target - ez)[moved, None] * axis[moved]

@@ -687,6 +687,34 @@ def test_a_blocked_tool_keeps_its_ik_reference_at_the_tool() -> None:
     np.testing.assert_allclose(np.einsum("nk,nk->n", e, axis), [0.0, 0.015, 0.015, 0.015, 0.0], atol=1e-12)
 
 
+def test_a_sliding_tool_gets_its_reference_ahead_unless_it_is_blocked() -> None:
+    """With `ik_lead_sliding` 10 mm, an arm in contact that slides forward along the tool axis (2 mm/s) while its scene
+    reference advances gets a reference at least 10 mm ahead (arms 0, 1: 2 mm ahead, 5 mm behind), or farther where
+    the scene's is (arm 5: 15 mm); not a pressed one within `blocked_speed` (arm 2: at the tool, blocked), one a
+    script holds (arm 3), one without contact (arm 4) or one that does not slide (arm 6: 0.5 mm/s)."""
+    cfg = {"panda": {"ik_bound_tool_axis": 0.02, "ik_bound_blocked": 0.0, "ik_lead_sliding": 0.01}}
+    env = PandaEnv(7, _cfg(cfg), seed=0)
+    env.reset()
+    axis = env.rot[:, :, 2]
+    along = np.array([0.002, -0.005, 0.002, 0.002, -0.005, 0.015, 0.002])
+    env.scene.pos_d[:] = env.pos + along[:, None] * axis
+    env._ref_step[:] = 0.004 * axis
+    env.f_env[:] = 0.0
+    env.f_env[:, :3] = -np.array([3.0, 3.0, 8.0, 3.0, 0.0, 3.0, 3.0])[:, None] * axis
+    env._twist[:] = 0.0
+    env._twist[:, :3] = np.array([2.0, 2.0, 2.0, 2.0, 2.0, 2.0, 0.5])[:, None] * 1e-3 * axis
+    env._scripted = np.array([False, False, False, True, False, False, False])
+    e = env._controller_reference()[0].numpy() - env.pos
+    np.testing.assert_allclose(np.einsum("nk,nk->n", e, axis), [0.01, 0.01, 0.0, 0.002, -0.005, 0.015, 0.002],
+                               atol=1e-12)
+    for bad in ({"ik_lead_sliding": 0.01}, {"ik_bound_tool_axis": 0.02, "ik_lead_sliding": 0.03},
+                {"ik_bound_tool_axis": 0.02, "ik_lead_sliding": -0.001}):
+        with pytest.raises(ConfigError, match="ik_lead_sliding"):
+            _cfg({"panda": bad})
+    with pytest.raises(ConfigError, match="sliding_speed"):
+        _cfg({"panda": {"sliding_speed": -1.0}})
+
+
 def test_the_blocked_bound_needs_the_tool_axis_bound_and_lies_within_it() -> None:
     with pytest.raises(ConfigError, match="ik_bound_blocked.*needs ik_bound_tool_axis"):
         _cfg({"panda": {"ik_bound_blocked": 0.0}})

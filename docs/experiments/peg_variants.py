@@ -1,6 +1,7 @@
 """The learned policy and IK + FC on peg-in-hole scenes the configs were never tuned on.
 
     python docs/experiments/peg_variants.py [--seed 40] [--trials 26] [--variants moved,misaligned,tight,low,...]
+        [--set panda.KEY=VALUE ...]
 
 Each variant is configs/panda_peg_in_hole.yaml with its changes to `panda.peg_in_hole` (below); the two controllers
 run on the same trials (`a3cqp evaluate --scene peg_in_hole --config VARIANT --controllers learned,ik_fc`). Prints
@@ -18,7 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))  # this checkout's a3cqp_rl/envs/algorithms
 
-from a3cqp_rl.config import load_config
+from a3cqp_rl.config import load_config, parse_overrides
 from envs.panda_eval import evaluate, paired
 
 VARIANTS = {
@@ -32,6 +33,7 @@ VARIANTS = {
     # default's 4 mm/s does for 8 s (35 mm / 8 s = 4.4 mm/s)
     "fast_align": {"align_time": 4.0, "insert_speed": 0.00875},
     "fast_align_xy": {"align_time": 4.0},  # x-y alone twice as fast: z still descends at 4 mm/s
+    "slow_align_xy": {"align_time": 12.0},  # x-y alone 1.5 times as slow: z at the inserted pose 3 s before x-y
 }
 
 
@@ -40,10 +42,14 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=40)
     ap.add_argument("--trials", type=int, default=26)
     ap.add_argument("--variants", default=",".join(VARIANTS), help=f"comma-separated, of {', '.join(VARIANTS)}")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="an override of every variant's config, as a3cqp evaluate's --set (repeatable)")
     args = ap.parse_args()
     logging.getLogger("a3cqp_rl.control.controller").setLevel(logging.ERROR)
     for name in args.variants.split(","):
-        cfg = load_config(ROOT / "configs" / "panda_peg_in_hole.yaml", {"panda": {"peg_in_hole": VARIANTS[name]}})
+        overrides = parse_overrides(args.set)
+        overrides.setdefault("panda", {}).setdefault("peg_in_hole", {}).update(VARIANTS[name])
+        cfg = load_config(ROOT / "configs" / "panda_peg_in_hole.yaml", overrides)
         t0 = time.perf_counter()
         res = evaluate("peg_in_hole", ROOT / cfg.panda.policy, args.trials, args.seed, config=cfg,
                        controllers=("learned", "ik_fc"), progress=False, workers=2)
