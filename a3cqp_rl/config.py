@@ -993,7 +993,9 @@ class PandaEnvConfig:
     period's ten samples (anti-aliasing before the 100 Hz adaptation, as a real sensor chain filters before it
     decimates). In contact, MuJoCo loses a pressed peg's contact for single 1 ms steps in 4-9 % of the pressing
     periods (the peg separates from the rim by less than a µm), so about one "last" sample in twenty reads no
-    contact (docs/panda.md, "Contact dropouts"). The scene's metrics use the samples as before."""
+    contact (docs/panda.md, "Contact dropouts"). The tool-axis rules (`ik_bound_tool_axis`, `ik_bound_blocked`,
+    `ik_lead_sliding`) test contact and press on the same observed wrench. The scene's metrics use the samples as
+    before."""
     joint_limits_f_ext: Literal["off", "operator", "always"] = "off"
     """Where the controller's joint-limit rows count the measured external wrench f_ext, so that an external force
     cannot carry a joint past its limit: "always" (ControllerOptions.joint_limits_include_f_ext: under random weights

@@ -400,7 +400,10 @@ class PandaEnv(EnvBase):
             ez = np.einsum("nk,nk->n", pos_d - self.pos, axis)
             # a reference that lags a peg sliding down the bore would pull it back out against the FC half: the
             # point mass's wall targets never lie on the free side of the tool (the return home moves it back: kept)
-            ahead = self.ctrl.contact_from(torch.from_numpy(self.f_env)).numpy() & (
+            # the wrench the agents observe: one noisy 1-kHz sample above the contact threshold in free motion would
+            # otherwise set a lead there
+            f_env = self.f_env_obs if self.pcfg.observation_filter == "mean" else self.f_env
+            ahead = self.ctrl.contact_from(torch.from_numpy(f_env)).numpy() & (
                 np.einsum("nk,nk->n", self._ref_step, axis) > 0.0)
             ahead_max = np.full(self.num_envs, bound)
             v_axis = np.einsum("nk,nk->n", self._twist[:, :3], axis)
@@ -411,7 +414,7 @@ class PandaEnv(EnvBase):
             if self.pcfg.ik_bound_blocked is not None:
                 # anti-windup: a reference running on ahead of a tool the block holds only presses it harder (eq. 35's
                 # IK half on top of the FC half's f_d), flat onto the rim; the point mass's walls never taught that
-                pressed = np.einsum("nk,nk->n", self.f_env[:, :3], axis) < -self.pcfg.blocked_force
+                pressed = np.einsum("nk,nk->n", f_env[:, :3], axis) < -self.pcfg.blocked_force
                 blocked = pressed & (np.abs(v_axis) < self.pcfg.blocked_speed)
                 ahead_max[blocked] = self.pcfg.ik_bound_blocked
             # the blocked bound wins over the lead: np.clip is min(max(ez, lo), hi)

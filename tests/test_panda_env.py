@@ -715,6 +715,27 @@ def test_a_sliding_tool_gets_its_reference_ahead_unless_it_is_blocked() -> None:
         _cfg({"panda": {"sliding_speed": -1.0}})
 
 
+def test_with_the_mean_filter_the_reference_rules_read_the_observed_wrench() -> None:
+    """With `observation_filter: mean` the contact and the press that the tool-axis rules test are the period's mean
+    wrench, which the agents observe: a last 1-kHz sample in contact over a free mean sets no lead (arm 0), a free
+    last sample under a pressed mean leaves the tool blocked (arm 1)."""
+    cfg = {"panda": {"ik_bound_tool_axis": 0.02, "ik_bound_blocked": 0.0, "ik_lead_sliding": 0.01,
+                     "observation_filter": "mean"}}
+    env = PandaEnv(2, _cfg(cfg), seed=0)
+    env.reset()
+    axis = env.rot[:, :, 2]
+    env.scene.pos_d[:] = env.pos + 0.002 * axis
+    env._ref_step[:] = 0.004 * axis
+    env._twist[:] = 0.0
+    env._twist[0, :3] = 0.002 * axis[0]
+    env.f_env, env.f_env_obs = np.zeros((2, 6)), np.zeros((2, 6))
+    env.f_env[0, :3] = -3.0 * axis[0]
+    env.f_env_obs[1, :3] = -8.0 * axis[1]
+    env._scripted = np.array([False, False])
+    e = env._controller_reference()[0].numpy() - env.pos
+    np.testing.assert_allclose(np.einsum("nk,nk->n", e, axis), [0.002, 0.0], atol=1e-12)
+
+
 def test_the_blocked_bound_needs_the_tool_axis_bound_and_lies_within_it() -> None:
     with pytest.raises(ConfigError, match="ik_bound_blocked.*needs ik_bound_tool_axis"):
         _cfg({"panda": {"ik_bound_blocked": 0.0}})
