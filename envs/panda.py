@@ -391,8 +391,8 @@ class PandaEnv(EnvBase):
     def _controller_reference(self, scale: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The scene's reference, along the tool axis within `ik_bound_tool_axis` of the tool (`ik_bound_blocked`
         ahead of a blocked tool) and, in contact while the scene's reference advances along the axis, not behind it
-        (`ik_lead_sliding` ahead of a tool sliding forward; the policy's arms), moved toward the tool by `stiffness_scale` (times `scale` [N, 6]) where it is not 1
-        (arm frame)."""
+        (`ik_lead_sliding` ahead of a tool sliding forward; the policy's arms), moved toward the tool by
+        `stiffness_scale` (times `scale` [N, 6]) where it is not 1 (arm frame)."""
         pos_d, rot_d = self.scene.pos_d.copy(), self.scene.rot_d.copy()
         bound = self.pcfg.ik_bound_tool_axis
         if bound is not None:
