@@ -402,15 +402,14 @@ class PandaEnv(EnvBase):
             # point mass's wall targets never lie on the free side of the tool (the return home moves it back: kept)
             # the wrench the agents observe: one noisy 1-kHz sample above the contact threshold in free motion would
             # otherwise set a lead there
-            f_env = self.f_env_obs if self.pcfg.observation_filter == "mean" else self.f_env
+            f_env = self.observed_wrenches()[0]
             ahead = self.ctrl.contact_from(torch.from_numpy(f_env)).numpy() & (
                 np.einsum("nk,nk->n", self._ref_step, axis) > 0.0)
             ahead_max = np.full(self.num_envs, bound)
             v_axis = np.einsum("nk,nk->n", self._twist[:, :3], axis)
-            lead = np.zeros(self.num_envs)
             # a peg sliding down the bore behind a shallow schedule would follow the schedule's pace (w1 ~ 0.9 there,
             # f_d ~ 0 against the wall's friction); a reference ahead lets eq. 35's IK half carry it down
-            lead[v_axis > self.pcfg.sliding_speed] = self.pcfg.ik_lead_sliding
+            lead = np.where(v_axis > self.pcfg.sliding_speed, self.pcfg.ik_lead_sliding, 0.0)
             if self.pcfg.ik_bound_blocked is not None:
                 # anti-windup: a reference running on ahead of a tool the block holds only presses it harder (eq. 35's
                 # IK half on top of the FC half's f_d), flat onto the rim; the point mass's walls never taught that
@@ -610,8 +609,15 @@ class PandaEnv(EnvBase):
         """(e^L, f_env^L, f_ope^L) [N, 6] each: the pose error to the current reference and the observed wrenches
         (`observation_filter`) in L."""
         e = pose_error(self.scene.pos_d, self.scene.rot_d, self.pos, self.rot)
-        fe, fo = (self.f_env_obs, self.f_ope_obs) if self.pcfg.observation_filter == "mean" else (self.f_env, self.f_ope)
+        fe, fo = self.observed_wrenches()
         return to_local(self.rot, e), to_local(self.rot, fe), to_local(self.rot, fo)
+
+    def observed_wrenches(self) -> tuple[np.ndarray, np.ndarray]:
+        """(f_env, f_ope) [N, 6] as the agents observe them (`observation_filter`: the period's mean or its last
+        sample), N and N m in the arm frame."""
+        if self.pcfg.observation_filter == "mean":
+            return self.f_env_obs, self.f_ope_obs
+        return self.f_env, self.f_ope
 
     def _observation(self, e: torch.Tensor, fe: torch.Tensor, fo: torch.Tensor) -> torch.Tensor:
         a, p = self.adapt, self.pcfg
