@@ -462,10 +462,9 @@ class PandaEnv(EnvBase):
         tau = out.tau.numpy()
         self.tau[:] = tau
         # the operator's hand at the handle (above the F/T sensor: read by the joint torques only)
-        v, w = self._twist[:, :3], self._twist[:, 3:]
-        r = (self.rot @ self._o_handle)
+        v, w, r = self._twist[:, :3], self._twist[:, 3:], self._r_handle
         hand = self._noise.get("hand")
-        force, torque = self.operator.wrench(self.t + k * self.dt, self.pos + r, v + cross3(w, r), self.rot, w,
+        force, torque = self.operator.wrench(self.t + k * self.dt, self.handle_pos, v + cross3(w, r), self.rot, w,
                                              None if hand is None else hand[:, k])
         self.handle_force[:] = force
         if np.any(force) or np.any(torque):
@@ -506,7 +505,8 @@ class PandaEnv(EnvBase):
         self.f_env = ft
         self.f_env_true = true
         self.f_ope = self.f_ext - self.f_env
-        self.handle_pos = self.pos + self.rot @ self._o_handle
+        self._r_handle = self.rot @ self._o_handle  # the handle from the tool tip [N, 3] (world)
+        self.handle_pos = self.pos + self._r_handle
         return s
 
     def _tare(self, k: int | None, tau: torch.Tensor, ft: np.ndarray) -> tuple[torch.Tensor, np.ndarray]:
@@ -538,27 +538,27 @@ class PandaEnv(EnvBase):
         """Arms newly diverged: non-finite state, joint speed > factor × limit, or a too deep contact."""
         p = self.pcfg
         finite = np.isfinite(self.q).all(1) & np.isfinite(self.qd).all(1)
-        with np.errstate(invalid="ignore"):
-            fast = (np.abs(self.qd) > p.divergence_speed_factor * self._dq_max).any(1)
+        self._abs_qd = np.abs(self.qd)  # (NaN compares False without a warning: a diverging arm is `finite`'s case)
+        fast = (self._abs_qd > p.divergence_speed_factor * self._dq_max).any(1)
         pen = self.sim.max_penetration()
         np.maximum(self.max_penetration, pen, out=self.max_penetration)
-        deep = pen > p.divergence_penetration
-        bad = (~finite | fast | deep) & ~self.diverged & ~self.parked
-        for i in np.flatnonzero(bad):
-            why = "non-finite state" if not finite[i] else ("joint speed beyond limit" if fast[i] else
-                                                           f"contact penetration {1e3 * self.max_penetration[i]:.1f} mm")
-            logger.warning("panda env: robot %d diverged at t = %.3f s (%s); its episode ends", i, self.t[i], why)
+        bad = (~finite | fast | (pen > p.divergence_penetration)) & ~(self.diverged | self.parked)
+        if bad.any():
+            for i in np.flatnonzero(bad):
+                why = "non-finite state" if not finite[i] else ("joint speed beyond limit" if fast[i] else
+                                                               f"contact penetration {1e3 * self.max_penetration[i]:.1f} mm")
+                logger.warning("panda env: robot %d diverged at t = %.3f s (%s); its episode ends", i, self.t[i], why)
         return bad
 
     def _track_joint_limits(self, live: np.ndarray) -> None:
         """`joint_limit_excess` and `joint_speed_ratio` with this control period's joint positions and speeds (arms
-        `live` [N] only: those in their episode)."""
+        `live` [N] only: those in their episode; after `_check_divergence`, whose |q̇| it reuses)."""
         per_joint = np.maximum(self._q_lo - self.q, self.q - self._q_hi)
-        with np.errstate(invalid="ignore"):  # a diverging arm's NaN: the comparison is False, the values before stay
-            over = per_joint.max(1)
-            new = (over > self.joint_limit_excess) & live
-            fast = (np.abs(self.qd) / self._dq_max).max(1)
-            faster = (fast > self.joint_speed_ratio) & live
+        # a diverging arm's NaN: the comparisons are False, the values before stay
+        over = per_joint.max(1)
+        new = (over > self.joint_limit_excess) & live
+        fast = (self._abs_qd / self._dq_max).max(1)
+        faster = (fast > self.joint_speed_ratio) & live
         if new.any():
             self.joint_limit_excess[new] = over[new]
             self.joint_limit_joint[new] = per_joint[new].argmax(1)

@@ -117,7 +117,7 @@ class Operator:
         start = self.start[arms]
         path = self.goal[arms] - start
         length = np.linalg.norm(path, axis=1)
-        s = np.clip((t - self.t_grasp[arms]) * self.cfg.speed / np.maximum(length, 1e-9), 0.0, 1.0)
+        s = ((t - self.t_grasp[arms]) * self.cfg.speed / np.maximum(length, 1e-9)).clip(0.0, 1.0)
         return start + s[:, None] * path
 
     def update(self, t: np.ndarray, handle_pos: np.ndarray, handle_rot: np.ndarray) -> None:
@@ -142,22 +142,23 @@ class Operator:
         its present velocity (the intrinsic damping); `noise` [N, 3]: standard normal draws for the tremor (scaled by
         `noise` of the config)."""
         c, k = self.cfg, self._k
-        now = np.concatenate([pos, vel, rot.reshape(-1, 9), omega], axis=1)
-        fresh = ~self._primed  # no history yet: the hand sees the present
-        if fresh.any():
-            self._hist[:, fresh] = now[fresh]
+        if not self._primed.all():  # no history yet: the hand sees the present
+            fresh = ~self._primed
+            self._hist[:, fresh] = np.concatenate([pos, vel, rot.reshape(-1, 9), omega], axis=1)[fresh]
             self._primed[fresh] = True
-        old = self._hist[k].copy()
-        self._hist[k] = now
+        on = np.flatnonzero(self.state != self.IDLE)  # only the hands on a handle (a few arms of a batch at a time)
+        old = self._hist[k, on]  # (a copy: read before the slot takes the present)
+        slot = self._hist[k]
+        slot[:, :3], slot[:, 3:6], slot[:, 6:15], slot[:, 15:] = pos, vel, rot.reshape(-1, 9), omega
         self._k = (k + 1) % self._lag
         force, torque = np.zeros((self.n, 3)), np.zeros((self.n, 3))
-        on = np.flatnonzero(self.state != self.IDLE)  # only the hands on a handle (a few arms of a batch at a time)
         if not len(on):
             return force, torque
-        old, t = old[on], t[on]
+        t = t[on]
         p, v, R, w = old[:, :3], old[:, 3:6], old[:, 6:15].reshape(-1, 3, 3), old[:, 15:]
-        grip = np.where(self.state[on] == self.HOLD, np.clip((t - self.t_grasp[on]) / c.grip_time, 0.0, 1.0),
-                        np.clip(1.0 - (t - self.t_release[on]) / c.grip_time, 0.0, 1.0))[:, None]
+        # (the .clip methods: np.clip's overhead is ~3 µs more)
+        grip = np.where(self.state[on] == self.HOLD, ((t - self.t_grasp[on]) / c.grip_time).clip(0.0, 1.0),
+                        (1.0 - (t - self.t_release[on]) / c.grip_time).clip(0.0, 1.0))[:, None]
         s = self.force_scale[on, None]
         f = s * (c.stiffness * (self._attractor(t, on) - p) - c.damping * v)
         if c.intrinsic_damping > 0:  # the muscles' damping acts on the present velocity

@@ -197,6 +197,12 @@ class _StepInputs:
     """Bool [N]: the robots whose joint-limit rows count the measured f_ext, or None (`A3CQPController.step`)."""
 
 
+_INPUT_NAMES = ("q", "qd", "mass", "bias", "weights", "f_d", "pos_d", "rot_d", "f_ext")
+"""`A3CQPController.step`'s array inputs checked by `_prepare`, in `_StepInputs`' field order."""
+_INPUT_SHAPES = ((7,), (7,), (7, 7), (7,), (6, 3), (6,), (3,), (3, 3), (6,))
+"""Their per-robot shapes."""
+
+
 def _f_ext_limits(mask: Array | None, n: int) -> np.ndarray:
     """The C input `f_ext_limits` [N] (1.0 where the robot's joint-limit rows count f_ext) from step's mask."""
     return np.zeros(n) if mask is None else np.asarray(mask, dtype=np.float64)
@@ -351,6 +357,7 @@ class A3CQPController:
         self._const: dict[tuple, dict[str, Array]] = {}
         # numpy steps need every task and limit to accept numpy contexts (a user's torch-only one keeps torch)
         self._numpy_ok = all(getattr(p, "numpy_capable", False) for p in [*self.tasks, *self.limits])
+        self._input_shapes = tuple((n, *shape) for shape in _INPUT_SHAPES)
         self.residuals: dict[str, Residual] = {}
         """Task residuals of the last step, by task name (their b are the references f_adm, f_ctc, ...); numpy arrays
         when the step ran on the CPU path (see arrays.py); empty after a native step (ControlOutput has f_adm, f_ctc)."""
@@ -420,7 +427,7 @@ class A3CQPController:
 
     # ------------------------------------------------------------------ pieces
     def _check(self, name: str, t: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
-        if tuple(t.shape) != shape:
+        if t.shape != shape:
             raise ControlShapeError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
         return t if t.dtype == torch.float64 else t.to(dtype=torch.float64)
 
@@ -585,7 +592,7 @@ class A3CQPController:
         """solve_qp warm-started from the last step: (x [N, 13], status [N], iterations [N]); never raises. `rows`:
         the QPs are those of these robots only (the others' warm starts are kept)."""
         n = self.n
-        warm = self._warm if self._warm is not None and self._warm.z.shape == (n, G.shape[1]) else None
+        warm = self._warm if self._warm is not None and self._warm.z_shape == (n, G.shape[1]) else None
         try:
             sol = solve_qp(P, c, G=G, h=h, warm_start=warm if rows is None or warm is None else warm.take(rows),
                            max_iter=self.options.qp_max_iter, hand_on=self.options.qp_hand_on)
@@ -726,27 +733,28 @@ class A3CQPController:
                  kin) -> _StepInputs:  # noqa: ANN001
         """Stage 1: shapes, float64, contact flag, per-robot finiteness, first-call references, numpy views on CPU."""
         n = self.n
-        t = {name: self._check(name, v, shape) for name, v, shape in (
-            ("q", q, (n, 7)), ("qd", qd, (n, 7)), ("mass", mass, (n, 7, 7)), ("bias", bias, (n, 7)),
-            ("weights", weights, (n, 6, 3)), ("f_d", f_d, (n, 6)), ("pos_d", pos_d, (n, 3)),
-            ("rot_d", rot_d, (n, 3, 3)),
-            ("f_ext", q.new_zeros(n, 6) if f_ext is None else f_ext, (n, 6)))}
-        if in_contact is None:
-            in_contact = self.contact_from(f_env)
-        on_cpu = all(v.device.type == "cpu" for v in t.values())
+        t = [self._check(name, v, shape) for name, v, shape in zip(_INPUT_NAMES, (
+            q, qd, mass, bias, weights, f_d, pos_d, rot_d, q.new_zeros(n, 6) if f_ext is None else f_ext),
+            self._input_shapes)]
+        on_cpu = all(v.is_cpu for v in t)
         if on_cpu:  # (numpy for the finiteness check in any case: ~1 µs per op instead of ~5)
-            flat = np.concatenate([_np(v).reshape(n, -1) for v in t.values()], axis=1)
-            valid = np.isfinite(flat).all(axis=1)
+            arrays = [_np(v) for v in t]
+            valid = np.isfinite(np.concatenate([a.reshape(n, -1) for a in arrays], axis=1)).all(axis=1)
         else:
-            valid = torch.isfinite(torch.cat([v.reshape(n, -1) for v in t.values()], dim=1)).all(-1)
+            valid = torch.isfinite(torch.cat([v.reshape(n, -1) for v in t], dim=1)).all(-1)
         if self.q_des is None:  # first call: q*, q̇* from the measured state, a harmless stand-in where not finite
             ok = torch.as_tensor(valid)[:, None]
-            self.reset(torch.where(ok, t["q"], self._q_center.to(t["q"])), torch.where(ok, t["qd"], 0.0))
+            self.reset(torch.where(ok, t[0], self._q_center.to(t[0])), torch.where(ok, t[1], 0.0))
         if on_cpu and self._numpy_ok:  # the objects on numpy views: ~3x less overhead per op (arrays.py)
-            arrays = {k: _np(v) for k, v in t.items()}
-            return _StepInputs(**arrays, in_contact=_np(in_contact), kin=None if kin is None else _kin_numpy(kin),
+            if in_contact is None:
+                in_contact = self._contact_np(f_env)
+            elif isinstance(in_contact, torch.Tensor):
+                in_contact = _np(in_contact)
+            return _StepInputs(*arrays, in_contact=in_contact, kin=None if kin is None else _kin_numpy(kin),
                                valid=valid, all_valid=bool(valid.all()), xp=np)
-        return _StepInputs(**t, in_contact=in_contact, kin=kin, valid=torch.as_tensor(valid),
+        if in_contact is None:
+            in_contact = self.contact_from(f_env)
+        return _StepInputs(*t, in_contact=in_contact, kin=kin, valid=torch.as_tensor(valid),
                            all_valid=bool(valid.all()), xp=torch)
 
     def _check_leak_extra(self, leak_extra: torch.Tensor, like: Array) -> Array:
@@ -766,12 +774,16 @@ class A3CQPController:
 
     def contact_from(self, f_env: torch.Tensor | None) -> torch.Tensor:
         """in_contact [N] from the F/T wrench f_env [N, 6]: |force| > ControllerOptions.contact_force_threshold."""
-        thr = self.options.contact_force_threshold
+        if f_env is None or f_env.device.type == "cpu":
+            return torch.from_numpy(self._contact_np(f_env))
+        return f_env[:, :3].norm(dim=-1) > self.options.contact_force_threshold
+
+    def _contact_np(self, f_env: torch.Tensor | None) -> np.ndarray:
+        """`contact_from` of a CPU wrench as a numpy bool array [N]."""
         if f_env is None:
-            return torch.zeros(self.n, dtype=torch.bool)
-        if f_env.device.type == "cpu":  # |f| > thr as a squared norm in numpy (two µs instead of ~20)
-            return torch.from_numpy(np.square(_np(f_env)[:, :3]).sum(axis=1) > thr * thr)
-        return f_env[:, :3].norm(dim=-1) > thr
+            return np.zeros(self.n, dtype=bool)
+        thr = self.options.contact_force_threshold  # |f| > thr as a squared norm in numpy (two µs instead of ~20)
+        return np.square(_np(f_env)[:, :3]).sum(axis=1) > thr * thr
 
     def _stand_ins(self, inp: _StepInputs) -> _StepInputs:
         """Stage 2: robots with non-finite inputs computed on a harmless stand-in (replaced by the fallback later).

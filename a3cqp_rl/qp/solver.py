@@ -139,6 +139,13 @@ class QPSolution:
     iterations = _Field("KKT factorisations (active-set steps + interior-point iterations) per instance [B] (int64).")
 
     @property
+    def z_shape(self) -> tuple[int, int]:
+        """Shape (B, m) of `z` (without making the tensor on the C route)."""
+        if self._buf is not None:
+            return self._dims[0], self._dims[3]
+        return tuple(self._z.shape)
+
+    @property
     def solved(self) -> Tensor:
         """Boolean mask [B] of instances with status SOLVED."""
         return self.status == QPStatus.SOLVED
