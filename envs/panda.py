@@ -545,8 +545,8 @@ class PandaEnv(EnvBase):
         bad = (~finite | fast | (pen > p.divergence_penetration)) & ~(self.diverged | self.parked)
         if bad.any():
             for i in np.flatnonzero(bad):
-                why = "non-finite state" if not finite[i] else ("joint speed beyond limit" if fast[i] else
-                                                               f"contact penetration {1e3 * self.max_penetration[i]:.1f} mm")
+                deep = f"contact penetration {1e3 * self.max_penetration[i]:.1f} mm"
+                why = "non-finite state" if not finite[i] else ("joint speed beyond limit" if fast[i] else deep)
                 logger.warning("panda env: robot %d diverged at t = %.3f s (%s); its episode ends", i, self.t[i], why)
         return bad
 
