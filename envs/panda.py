@@ -450,9 +450,10 @@ class PandaEnv(EnvBase):
         if self._f_sum is not None:
             self._f_sum[0] += self.f_env
             self._f_sum[1] += self.f_ope
-        bad = self._check_divergence()
+        abs_qd = np.abs(self.qd)  # (NaN compares False without a warning: a diverging arm is the finiteness test's)
+        bad = self._check_divergence(abs_qd)
         live = self._in_episode()
-        self._track_joint_limits(live)
+        self._track_joint_limits(live, abs_qd)
         held = torch.from_numpy(self.operator.active) if self.pcfg.joint_limits_f_ext == "operator" else None
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin,
@@ -534,12 +535,12 @@ class PandaEnv(EnvBase):
         tau[waiting], ft[waiting] = 0.0, 0.0
         return torch.from_numpy(tau), ft
 
-    def _check_divergence(self) -> np.ndarray:
-        """Arms newly diverged: non-finite state, joint speed > factor × limit, or a too deep contact."""
+    def _check_divergence(self, abs_qd: np.ndarray) -> np.ndarray:
+        """Arms newly diverged: non-finite state, joint speed (`abs_qd` = |q̇| [N, 7], rad/s) > factor × limit, or a
+        too deep contact."""
         p = self.pcfg
         finite = np.isfinite(self.q).all(1) & np.isfinite(self.qd).all(1)
-        self._abs_qd = np.abs(self.qd)  # (NaN compares False without a warning: a diverging arm is `finite`'s case)
-        fast = (self._abs_qd > p.divergence_speed_factor * self._dq_max).any(1)
+        fast = (abs_qd > p.divergence_speed_factor * self._dq_max).any(1)
         pen = self.sim.max_penetration()
         np.maximum(self.max_penetration, pen, out=self.max_penetration)
         bad = (~finite | fast | (pen > p.divergence_penetration)) & ~(self.diverged | self.parked)
@@ -550,14 +551,14 @@ class PandaEnv(EnvBase):
                 logger.warning("panda env: robot %d diverged at t = %.3f s (%s); its episode ends", i, self.t[i], why)
         return bad
 
-    def _track_joint_limits(self, live: np.ndarray) -> None:
-        """`joint_limit_excess` and `joint_speed_ratio` with this control period's joint positions and speeds (arms
-        `live` [N] only: those in their episode; after `_check_divergence`, whose |q̇| it reuses)."""
+    def _track_joint_limits(self, live: np.ndarray, abs_qd: np.ndarray) -> None:
+        """`joint_limit_excess` and `joint_speed_ratio` with this control period's joint positions and speeds
+        (`abs_qd` = |q̇| [N, 7], rad/s; arms `live` [N] only: those in their episode)."""
         per_joint = np.maximum(self._q_lo - self.q, self.q - self._q_hi)
         # a diverging arm's NaN: the comparisons are False, the values before stay
         over = per_joint.max(1)
         new = (over > self.joint_limit_excess) & live
-        fast = (self._abs_qd / self._dq_max).max(1)
+        fast = (abs_qd / self._dq_max).max(1)
         faster = (fast > self.joint_speed_ratio) & live
         if new.any():
             self.joint_limit_excess[new] = over[new]
