@@ -996,6 +996,13 @@ class PandaEnvConfig:
     contact (docs/panda.md, "Contact dropouts"). The tool-axis rules (`ik_bound_tool_axis`, `ik_bound_blocked`,
     `ik_lead_sliding`) test contact and press on the same observed wrench. The scene's metrics use the samples as
     before."""
+    observe_f_env_pull: bool = True
+    """Whether the agents observe f_env on the `fd_axes` where it pulls the tool toward the surface (against f_d's
+    push side). The surrogate's wall only pushes back (eq. 35: f_env ≤ 0 along the axis f_d pushes on), and eq. 26
+    observes |f_env|, so a pull reads to the policy as a wall pressed hard. False: such a pull reads 0, as no wall
+    (e.g. the bore's friction holding a peg the operator pulls out, where the point-mass policy would otherwise
+    raise f_d toward f̄_d against the operator; docs/panda.md, "A peg held in the bore"). The reward, the tool-axis
+    rules and the recorded signals keep the sensed wrench."""
     joint_limits_f_ext: Literal["off", "operator", "always"] = "off"
     """Where the controller's joint-limit rows count the measured external wrench f_ext, so that an external force
     cannot carry a joint past its limit: "always" (ControllerOptions.joint_limits_include_f_ext: under random weights

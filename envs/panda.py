@@ -622,6 +622,8 @@ class PandaEnv(EnvBase):
 
     def _observation(self, e: torch.Tensor, fe: torch.Tensor, fo: torch.Tensor) -> torch.Tensor:
         a, p = self.adapt, self.pcfg
+        if not p.observe_f_env_pull:  # the surrogate's wall never pulls: a pull on an f_d axis reads as no wall
+            fe = torch.where(torch.from_numpy(self._fd_mask) & (fe > 0.0), 0.0, fe)
         tr = observe(e[:, :3], fe[:, :3], fo[:, :3], a.e_max, a.f_env_max, a.f_ope_max, check=False)
         rt = observe(e[:, 3:], fe[:, 3:], fo[:, 3:], p.e_max_rot, p.f_env_max_rot, p.f_ope_max_rot, check=False)
         return torch.cat([tr, rt], dim=1)  # eq. 26 per axis [N, 6, 3]

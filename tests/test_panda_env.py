@@ -85,6 +85,25 @@ def test_fd_axes_restricts_the_desired_force() -> None:
     assert env.f_d[0, 2] > 0 and (env.f_d[0, [0, 1, 3, 4, 5]] == 0).all()
 
 
+def test_a_pull_on_an_fd_axis_reads_as_no_wall_unless_observed() -> None:
+    """eq. 26 observes |f_env|; the surrogate's wall only pushes back (f_env^L ≤ 0 along the axis f_d pushes on), so with
+    `observe_f_env_pull: false` a pull there reads 0; a push, the other axes and the recorded wrench are unchanged."""
+    e, fo = torch.zeros(1, 6, dtype=torch.float64), torch.zeros(1, 6, dtype=torch.float64)
+    fe = torch.tensor([[6.0, -6.0, 7.0, 0.3, 0.0, 0.0]], dtype=torch.float64)  # x and z pull, y pushes
+    masked = PandaEnv(1, _cfg({"panda": {"fd_axes": ["y", "z"], "observe_f_env_pull": False}}), seed=0)
+    kept = PandaEnv(1, _cfg({"panda": {"fd_axes": ["y", "z"]}}), seed=0)
+    assert kept.pcfg.observe_f_env_pull  # the dataclass default: the sensed wrench as it is
+    obs_m, obs_k = masked._observation(e, fe, fo), kept._observation(e, fe, fo)
+    assert obs_m[0, 2, 1] == 0.0 and obs_k[0, 2, 1] == pytest.approx(7.0 / 30.0)  # z: an f_d axis, pulled
+    assert obs_m[0, 0, 1] == obs_k[0, 0, 1] > 0.0  # x: no f_d, so no wall side: kept
+    assert obs_m[0, 1, 1] == obs_k[0, 1, 1] > 0.0  # y: pushed back, as by a wall
+    assert obs_m[0, 3, 1] == obs_k[0, 3, 1] > 0.0  # a torque: kept
+    assert fe[0, 2] == 7.0  # the caller's wrench is not written to
+    pushed = fe.clone()
+    pushed[0, 2] = -7.0
+    assert masked._observation(e, pushed, fo)[0, 2, 1] == pytest.approx(7.0 / 30.0)
+
+
 def test_the_solver_warm_start_is_off_unless_the_config_asks_for_it() -> None:
     import mujoco
 
