@@ -99,7 +99,7 @@ def test_the_operator_pulls_out_a_peg_the_bore_holds_once_a_pull_reads_as_no_wal
     """Trial 21 of seed 0 (the learned policy, ~20 s each): the bore's friction holds the inserted peg against the
     operator's pull. Read as |f_env| of a wall pressed hard, the pull makes the point-mass policy raise f_d and the peg
     stays in under the hand's full 15 N; read as no wall (`observe_f_env_pull: false`, the peg config) the operator
-    pulls it out. The insertion is the same either way."""
+    pulls it out. The insertion is the same either way (6.57 s on the machine of 2026-11-30)."""
     from a3cqp_rl.config import load_config
     from envs.panda_eval import _run, trial_seeds
 
@@ -109,7 +109,7 @@ def test_the_operator_pulls_out_a_peg_the_bore_holds_once_a_pull_reads_as_no_wal
     out = _run("peg_in_hole", str(root / cfg.panda.policy), [trial_seeds(0, 26)[21]], cfg, ("learned",), (), 1, False,
                None, True)
     m = out["metrics"]["learned"]
-    assert bool(m["success"].ravel()[0]) and m["insertion_time"].ravel()[0] == pytest.approx(6.57, abs=0.05)
+    assert bool(m["success"].ravel()[0]) and m["insertion_time"].ravel()[0] < 8.21  # (6.57 s here either way)
     assert bool(m["extracted"].ravel()[0]) != observe_pull
     assert (m["disengage_force"].ravel()[0] > 14.0) == observe_pull  # the hand at its bound: the peg held
 
