@@ -13,6 +13,8 @@ NATIVE_SOURCES = {
     "a3cqp_rl/robot/native/sense.c": (),
     "algorithms/native/a2c_iteration.c": ("-fopenmp-simd", "-fno-math-errno", "-ffp-contract=off"),
     "envs/native/point_mass.c": ("-fno-math-errno",),
+    "envs/native/hand.c": (),
+    "envs/native/period.c": (),
 }
 """Every C source (path from the project root) and its extra flags; each builds into `dir/_stem<ext suffix>`."""
 

@@ -40,6 +40,8 @@ from a3cqp_rl.control import A3CQPController, ControllerOptions, wrench_from_joi
 from a3cqp_rl.control.frames import pose_error
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaModel, PandaSim
 from a3cqp_rl.robot.sim import ShardedPandaSim, cross3, grid_origins
+from envs.native.hand import native_hand
+from envs.native.period import WHY, native_period
 from envs.scenarios import Operator, Scene, SceneInput, make_scene, rotvec_to_matrix
 
 __all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS", "TASK_BLENDS"]
@@ -185,6 +187,14 @@ class PandaEnv(EnvBase):
         """With `panda.observation_filter: mean`, the agent period's mean sensed wrenches (world, at the tool tip)."""
         self.tau, self.q, self.qd = np.zeros((n, 7)), np.zeros((n, 7)), np.zeros((n, 7))
         self.handle_pos, self.handle_force = np.zeros((n, 3)), np.zeros((n, 3))
+        self._handle_torque = np.zeros((n, 3))
+        self._hand = native_hand(self.operator, self.sim if isinstance(self.sim, PandaSim) else None)
+        """The operator's hand and its push in C (None: the numpy Operator.wrench and PandaSim.push)."""
+        self._period = native_period(n, dq_max=self._dq_max, q_lo=self._q_lo, q_hi=self._q_hi,
+                                     speed_factor=self.pcfg.divergence_speed_factor,
+                                     penetration=self.pcfg.divergence_penetration, o_ft=self._o_ft,
+                                     o_handle=self._o_handle)
+        """The period's arithmetic around the read-out in C (None: the numpy `_measure` tail and checks)."""
         self.max_penetration = np.zeros(n)
         """Deepest contact penetration of each arm in the last agent period [m]."""
         self.parked = np.zeros(n, dtype=bool)
@@ -450,10 +460,13 @@ class PandaEnv(EnvBase):
         if self._f_sum is not None:
             self._f_sum[0] += self.f_env
             self._f_sum[1] += self.f_ope
-        abs_qd = np.abs(self.qd)  # (NaN compares False without a warning: a diverging arm is the finiteness test's)
-        bad = self._check_divergence(abs_qd)
         live = self._in_episode()
-        self._track_joint_limits(live, abs_qd)
+        if self._period is not None:
+            bad = self._native_checks(live)
+        else:
+            abs_qd = np.abs(self.qd)  # (NaN compares False without a warning: a diverging arm is the finiteness test's)
+            bad = self._check_divergence(abs_qd)
+            self._track_joint_limits(live, abs_qd)
         held = torch.from_numpy(self.operator.active) if self.pcfg.joint_limits_f_ext == "operator" else None
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin,
@@ -463,13 +476,18 @@ class PandaEnv(EnvBase):
         tau = out.tau.numpy()
         self.tau[:] = tau
         # the operator's hand at the handle (above the F/T sensor: read by the joint torques only)
-        v, w, r = self._twist[:, :3], self._twist[:, 3:], self._r_handle
         hand = self._noise.get("hand")
-        force, torque = self.operator.wrench(self.t + k * self.dt, self.handle_pos, v + cross3(w, r), self.rot, w,
-                                             None if hand is None else hand[:, k])
-        self.handle_force[:] = force
-        if np.any(force) or np.any(torque):
-            self.sim.push(force, site="handle", torque_world=torque)
+        if self._hand is not None:  # the same in C (envs/native/hand.py)
+            if self._hand(self.t, k * self.dt, self.handle_pos, self._twist, self._r_handle, self.rot, hand, k,
+                          self.handle_force, self._handle_torque) and not self._hand.pushes:
+                self.sim.push(self.handle_force, site="handle", torque_world=self._handle_torque)
+        else:
+            v, w, r = self._twist[:, :3], self._twist[:, 3:], self._r_handle
+            force, torque = self.operator.wrench(self.t + k * self.dt, self.handle_pos, v + cross3(w, r), self.rot, w,
+                                                 None if hand is None else hand[:, k])
+            self.handle_force[:] = force
+            if np.any(force) or np.any(torque):
+                self.sim.push(force, site="handle", torque_world=torque)
         self.sim.step(tau)
         if bad.any():
             self._end_diverged(bad)
@@ -498,6 +516,10 @@ class PandaEnv(EnvBase):
         if tare and not self._tared.all():
             tau, ft = self._tare(k, tau, ft)
         self.f_ext = wrench_from_joint_torques(tau, s.kin.jac, s.mass).numpy()
+        if self._period is not None:  # the same in C (envs/native/period.py)
+            self.f_ope, self._r_handle, self.handle_pos = self._period.measure(self.pos, self.rot, ft, true, self.f_ext)
+            self.f_env, self.f_env_true = ft, true
+            return s
         # moment about the tool tip: τ_tip = τ_site + (p_site − p_tip) × F
         lever = self.rot @ self._o_ft
         ft[:, 3:] += cross3(lever, ft[:, :3])
@@ -545,11 +567,28 @@ class PandaEnv(EnvBase):
         np.maximum(self.max_penetration, pen, out=self.max_penetration)
         bad = (~finite | fast | (pen > p.divergence_penetration)) & ~(self.diverged | self.parked)
         if bad.any():
-            for i in np.flatnonzero(bad):
-                deep = f"contact penetration {1e3 * self.max_penetration[i]:.1f} mm"
-                why = "non-finite state" if not finite[i] else ("joint speed beyond limit" if fast[i] else deep)
-                logger.warning("panda env: robot %d diverged at t = %.3f s (%s); its episode ends", i, self.t[i], why)
+            self._log_diverged(bad, ["non-finite state" if not finite[i] else
+                                     ("joint speed beyond limit" if fast[i] else "contact penetration")
+                                     for i in range(self.num_envs)])
         return bad
+
+    def _native_checks(self, live: np.ndarray) -> np.ndarray:
+        """`_check_divergence` and `_track_joint_limits` (arms `live` [N]) in C (envs/native/period.py): the arms
+        newly diverged [N]."""
+        codes = self._period.checks(self.q, self.qd, self.sim.max_penetration(), self.max_penetration,
+                                    self.diverged | self.parked, live, self.joint_limit_excess,
+                                    self.joint_limit_joint, self.joint_speed_ratio)
+        if codes is None:
+            return np.zeros(self.num_envs, dtype=bool)
+        bad = codes > 0
+        self._log_diverged(bad, [WHY[c] for c in codes.tolist()])
+        return bad
+
+    def _log_diverged(self, bad: np.ndarray, why: list[str]) -> None:
+        """One warning per arm newly diverged (`bad` [N]) saying why (`why` [N])."""
+        for i in np.flatnonzero(bad):
+            reason = why[i] + (f" {1e3 * self.max_penetration[i]:.1f} mm" if why[i] == "contact penetration" else "")
+            logger.warning("panda env: robot %d diverged at t = %.3f s (%s); its episode ends", i, self.t[i], reason)
 
     def _track_joint_limits(self, live: np.ndarray, abs_qd: np.ndarray) -> None:
         """`joint_limit_excess` and `joint_speed_ratio` with this control period's joint positions and speeds

@@ -537,6 +537,7 @@ def _yield_to_push(relax: bool) -> float:
     env._measure()
     start = env.pos[0, 1]
     env.operator.wrench = lambda *args: (np.array([[0.0, 10.0, 0.0]]), np.zeros((1, 3)))
+    env._hand = None  # (the C hand would not call the stand-in)
     for _ in _steps_held(env, 100):
         pass
     return float(env.pos[0, 1] - start)
