@@ -132,6 +132,21 @@ def test_a_copied_sim_reads_its_own_data() -> None:
     np.testing.assert_allclose(sim.observe().q.numpy(), q_now, atol=1e-12)
 
 
+def test_observe_returns_one_state_whose_tensors_follow_the_sim() -> None:
+    """SimState is made once per sim (its tensors share the arrays the read-out writes in place): the next
+    observe() returns it with the new step's numbers; a copy of the sim makes its own."""
+    sim = PandaSim(2, tool="peg")
+    s = sim.observe()
+    q0 = s.q.clone()
+    sim.step(s.bias.numpy() + 3.0)
+    s2 = sim.observe()
+    assert s2 is s and not torch.equal(s2.q, q0)
+    np.testing.assert_array_equal(s2.q.numpy(), sim.data.qpos[sim._qadr])
+    twin = copy.deepcopy(sim)
+    t = twin.observe()
+    assert t is not s and np.shares_memory(t.q.numpy(), twin._q) and not np.shares_memory(t.q.numpy(), sim._q)
+
+
 @needs_library
 def test_without_a_control_site_the_read_out_still_matches() -> None:
     sim = PandaSim(2, tool="peg", control_site=None)
