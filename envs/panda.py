@@ -567,9 +567,7 @@ class PandaEnv(EnvBase):
         np.maximum(self.max_penetration, pen, out=self.max_penetration)
         bad = (~finite | fast | (pen > p.divergence_penetration)) & ~(self.diverged | self.parked)
         if bad.any():
-            self._log_diverged(bad, ["non-finite state" if not finite[i] else
-                                     ("joint speed beyond limit" if fast[i] else "contact penetration")
-                                     for i in range(self.num_envs)])
+            self._log_diverged(np.where(bad, np.where(~finite, 1, np.where(fast, 2, 3)), 0))
         return bad
 
     def _native_checks(self, live: np.ndarray) -> np.ndarray:
@@ -580,14 +578,13 @@ class PandaEnv(EnvBase):
                                     self.joint_limit_joint, self.joint_speed_ratio)
         if codes is None:
             return np.zeros(self.num_envs, dtype=bool)
-        bad = codes > 0
-        self._log_diverged(bad, [WHY[c] for c in codes.tolist()])
-        return bad
+        self._log_diverged(codes)
+        return codes > 0
 
-    def _log_diverged(self, bad: np.ndarray, why: list[str]) -> None:
-        """One warning per arm newly diverged (`bad` [N]) saying why (`why` [N])."""
-        for i in np.flatnonzero(bad):
-            reason = why[i] + (f" {1e3 * self.max_penetration[i]:.1f} mm" if why[i] == "contact penetration" else "")
+    def _log_diverged(self, codes: np.ndarray) -> None:
+        """One warning per arm newly diverged saying why (`codes` [N]: envs.native.period.WHY's, 0 for the others)."""
+        for i in np.flatnonzero(codes):
+            reason = WHY[int(codes[i])] + (f" {1e3 * self.max_penetration[i]:.1f} mm" if codes[i] == 3 else "")
             logger.warning("panda env: robot %d diverged at t = %.3f s (%s); its episode ends", i, self.t[i], reason)
 
     def _track_joint_limits(self, live: np.ndarray, abs_qd: np.ndarray) -> None:

@@ -23,18 +23,16 @@ needs_library = pytest.mark.skipif(hand_mod._library.get() is None, reason="the 
 def _operators(n: int, cfg: OperatorConfig, seed: int) -> tuple[Operator, Operator]:
     """Two operators in the same random state: hands idle, holding (mid-grip) and releasing, random goals."""
     gen = np.random.default_rng(seed)
-    ops = [Operator(n, cfg, 1e-3) for _ in range(2)]
     state = gen.integers(0, 3, n)
     state[:3] = (0, 1, 2)
+    draws = dict(state=state, t_grasp=gen.uniform(0.0, 0.3, n), t_release=gen.uniform(0.0, 0.3, n),
+                 start=gen.normal(0.0, 0.3, (n, 3)), goal=gen.normal(0.0, 0.3, (n, 3)),
+                 rot_grasp=rotvec_to_matrix(gen.normal(0.0, 0.5, (n, 3))), force_scale=gen.uniform(0.7, 1.3, n))
+    ops = (Operator(n, cfg, 1e-3), Operator(n, cfg, 1e-3))
     for op in ops:
-        op.state[:] = state
-        op.t_grasp[:] = gen.uniform(0.0, 0.3, n) if op is ops[0] else ops[0].t_grasp
-        op.t_release[:] = ops[0].t_release if op is ops[1] else gen.uniform(0.0, 0.3, n)
-        op.start[:] = ops[0].start if op is ops[1] else gen.normal(0.0, 0.3, (n, 3))
-        op.goal[:] = ops[0].goal if op is ops[1] else gen.normal(0.0, 0.3, (n, 3))
-        op.rot_grasp[:] = ops[0].rot_grasp if op is ops[1] else rotvec_to_matrix(gen.normal(0.0, 0.5, (n, 3)))
-        op.force_scale[:] = ops[0].force_scale if op is ops[1] else gen.uniform(0.7, 1.3, n)
-    return ops[0], ops[1]
+        for name, value in draws.items():
+            getattr(op, name)[:] = value
+    return ops
 
 
 def _handle_states(n: int, steps: int, seed: int) -> list[tuple[np.ndarray, ...]]:

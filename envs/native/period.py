@@ -23,8 +23,8 @@ from a3cqp_rl.native_build import LazyLibrary, address
 __all__ = ["NativePeriod", "native_period", "numpy_period", "SOURCE", "WHY"]
 
 SOURCE = Path(__file__).with_name("period.c")
-WHY = {0: "", 1: "non-finite state", 2: "joint speed beyond limit", 3: "contact penetration"}
-"""`period_checks`' codes of a newly diverged arm."""
+WHY = {1: "non-finite state", 2: "joint speed beyond limit", 3: "contact penetration"}
+"""Why an arm newly diverged, by `period_checks`' code (0: it did not); the numpy checks log with the same codes."""
 
 _log = logging.getLogger(__name__)
 _p = ctypes.c_void_p
