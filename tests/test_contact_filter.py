@@ -166,3 +166,53 @@ def test_two_models_stepped_in_two_threads_each_filtered_compute_what_one_unfilt
         two.step(tau)
     assert one.ncon > 0
     assert all(p.contact_filter_counts()[0] > 0 for p in two.parts)
+
+
+def test_every_pair_the_filter_drops_is_farther_apart_than_its_slack_and_the_slab_bound_drops_more() -> None:
+    """Random poses of the peg's prism about the bore's rim (its tip up to 12 mm off the axis and within 2 mm of the
+    rim's height, tilted up to 5 degrees; overlapping poses too): for every peg-box pair the filter drops, MuJoCo's
+    own distance (mj_geomDistance, GJK on the same meshes) is above the slack. The bound through a box's slab drops
+    more than a tenth of the pairs that the planes normal to the box's axes keep (a tilted peg's end reaching a
+    box's slab with a part above the box's top)."""
+    import ctypes
+
+    xml = f"""<mujoco><asset><mesh name="p" vertex="{_prism()}"/></asset>
+      <worldbody>{hole_block_xml(GEOM)}
+        <body name="peg"><freejoint/><geom name="peg" type="mesh" mesh="p" mass="1" contype="2" conaffinity="1"/>
+        </body></worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    boxes = np.flatnonzero((m.geom_type == int(mujoco.mjtGeom.mjGEOM_BOX)) & (m.geom_contype > 0))  # not the stand
+    peg = m.geom("peg").id
+    reg = contact_filter.attach(m, d, [peg], boxes)
+    assert reg is not None
+    lib = contact_filter._library.get()
+    drop = lib.cf_filter
+    drop.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int, ctypes.c_int]
+    drop.restype = ctypes.c_int
+    rng = np.random.default_rng(0)
+    fromto = np.zeros(6)
+    dropped = kept = 0
+    try:
+        for _ in range(300):
+            tilt, heading = np.deg2rad(rng.uniform(0.0, 5.0)), rng.uniform(0.0, 2 * np.pi)
+            off, towards = rng.uniform(0.0, 0.012), rng.uniform(0.0, 2 * np.pi)
+            axis = np.array([np.cos(heading), np.sin(heading), 0.0])
+            quat = np.zeros(4)
+            mujoco.mju_axisAngle2Quat(quat, axis, tilt)
+            tip = np.array([off * np.cos(towards), off * np.sin(towards), GEOM.top + rng.uniform(-0.002, 0.002)])
+            up = np.zeros(3)
+            mujoco.mju_rotVecQuat(up, np.array([0.0, 0.0, 1.0]), quat)
+            d.qpos[:3], d.qpos[3:] = tip + 0.05 * up, quat  # the prism's centre 50 mm up its axis
+            mujoco.mj_kinematics(m, d)
+            for b in boxes:
+                if drop(m._address, d._address, peg, int(b)):
+                    dropped += 1
+                    assert mujoco.mj_geomDistance(m, d, peg, int(b), 0.01, fromto) > contact_filter.SLACK - 1e-6
+                else:
+                    kept += 1
+        seen, out, by_slab = reg.counts_by_test()
+    finally:
+        reg.detach()
+    assert dropped > 0.3 * (dropped + kept) and kept > 0
+    assert (seen, out) == (dropped + kept, dropped) and by_slab > 0.1 * (kept + by_slab)

@@ -2,10 +2,12 @@
 
 Why: in the peg-in-hole scene MuJoCo's collision pass is most of a control period in contact. The peg (a 32-sided
 prism) sits in a bore made of 32 boxes, and MuJoCo's midphase, whose bounding boxes of a round peg reach past its
-circle, passes most of them to the narrow phase (GJK) at every step. `contact_filter.c` drops a tool-box pair when a
-plane normal to one of the box's axes keeps the tool, bounded by a cylinder, farther than the pair's margin and
-gaps plus 10 µm from the box. MuJoCo makes no contact of such a pair, so every contact and every number after it
-stays as it was (tests/test_contact_filter.py: bit for bit).
+circle, passes most of them to the narrow phase (GJK) at every step. `contact_filter.c` drops a tool-box pair when the
+tool, bounded by a cylinder, lies farther than the pair's margin and gaps plus 10 µm from the box: by a plane normal
+to one of the box's axes, or, for the part of the cylinder inside one of the box's slabs, by a bound along another
+of its axes (a tilted peg whose end reaches a box's slab above the box's top). MuJoCo makes no contact of such a
+pair, so every contact and every number after it stays as it was (tests/test_contact_filter.py: bit for bit, and
+MuJoCo's own distance of every pair dropped above the slack).
 
 MuJoCo has one contact filter per process, which replaces its contype/conaffinity test for every model; the C
 callback applies that test first, so unregistered models collide as without it. `attach` installs the callback on
@@ -44,7 +46,7 @@ class _Entry(ctypes.Structure):
     """cf_entry of contact_filter.c."""
 
     _fields_ = [*((name, ctypes.c_void_p) for name in _FIELDS), ("slack", ctypes.c_double),
-                ("tested", ctypes.c_int64), ("dropped", ctypes.c_int64)]
+                ("tested", ctypes.c_int64), ("dropped", ctypes.c_int64), ("dropped_slab", ctypes.c_int64)]
 
 
 def _bind(path: Path) -> ctypes.CDLL:
@@ -149,7 +151,7 @@ def attach(m: mujoco.MjModel, d: mujoco.MjData, tools: np.ndarray, boxes: np.nda
         role[tools] = 1
         cylinder[tools] = [bounding_cylinder(m, g) for g in tools]
         arrays = (m.geom_size, m.geom_margin, m.geom_gap, d.geom_xpos, d.geom_xmat, role, cylinder)
-        entry = _Entry(m._address, d._address, *(_addr(a) for a in arrays), SLACK, 0, 0)
+        entry = _Entry(m._address, d._address, *(_addr(a) for a in arrays), SLACK, 0, 0, 0)
         slot = int(lib.cf_register(ctypes.byref(entry)))
     if slot < 0:
         _log.warning("contact pre-filter: every registration slot is taken; this simulation runs without it")
@@ -162,12 +164,16 @@ class Registration:
 
     def __init__(self, lib: ctypes.CDLL, slot: int, arrays: tuple[np.ndarray, ...]) -> None:
         self._lib, self._slot, self._arrays = lib, slot, arrays  # the slot reads `arrays` until detach()
-        self._out = np.zeros(2, dtype=np.int64)
+        self._out = np.zeros(3, dtype=np.int64)
 
     def counts(self) -> tuple[int, int]:
         """(tool-box pairs seen, pairs dropped) so far."""
+        return self.counts_by_test()[:2]
+
+    def counts_by_test(self) -> tuple[int, int, int]:
+        """(tool-box pairs seen, pairs dropped, of those the ones the bound through a box's slab dropped) so far."""
         self._lib.cf_counts(self._slot, self._out.ctypes.data)
-        return int(self._out[0]), int(self._out[1])
+        return int(self._out[0]), int(self._out[1]), int(self._out[2])
 
     def detach(self) -> None:
         """Unregister (once); the filter then leaves this model's pairs to MuJoCo."""

@@ -10,7 +10,14 @@
    separated by more than its margin, so every contact, and every number after it, stays as it was.
 
    No MuJoCo headers: the callback reads mjModel's geom_contype and geom_conaffinity through their offsets in the
-   struct, which the Python side finds once per process from the arrays the bindings expose. */
+   struct, which the Python side finds once per process from the arrays the bindings expose.
+
+   A pair the box's axes do not separate is tested once more, through the box's slabs: for each pair of box axes
+   (w, u) the part of the cylinder inside the slab |x_w| <= e_w + gap is bounded along u by the cylinder's support
+   along e_u + lam e_w (any lam gives a valid bound; the best one per smooth piece is the root of a quadratic). A
+   peg tilted in a bore reaches a box's radial slab only with its upper part, above the box's top, where the
+   clipping above takes the whole end disc into the slab (docs/panda.md, "The collision pass's floor under an exact
+   pre-filter"). */
 #include <math.h>
 #include <stddef.h>
 #include <stdint.h>
@@ -27,6 +34,7 @@ typedef struct {
   const double* cylinder;     /* per geom [axis, h, rho] (tools) */
   double slack;               /* m */
   int64_t tested, dropped;    /* counters: tool-box pairs seen, pairs dropped */
+  int64_t dropped_slab;       /* of the dropped: by the bound through a slab (slab_separated) */
 } cf_entry;
 
 #define CF_SLOTS 256
@@ -47,7 +55,7 @@ int64_t cf_register(const cf_entry* e) {
     const void* m = e->m;
     slots[i] = *e;
     slots[i].m = NULL;
-    slots[i].tested = slots[i].dropped = 0;
+    slots[i].tested = slots[i].dropped = slots[i].dropped_slab = 0;
     __sync_synchronize();
     slots[i].m = m;
     if (i >= used) used = i + 1;
@@ -60,14 +68,60 @@ void cf_unregister(int64_t slot) {
   if (slot >= 0 && slot < CF_SLOTS) slots[slot].m = NULL;
 }
 
-/* Pairs seen and dropped by registration `slot` ([2] int64). */
+/* Pairs seen, dropped, and dropped by the bound through a slab of registration `slot` ([3] int64). */
 void cf_counts(int64_t slot, int64_t* out) {
   out[0] = slots[slot].tested;
   out[1] = slots[slot].dropped;
+  out[2] = slots[slot].dropped_slab;
 }
 
-/* 1 when a plane normal to one of the box's axes (columns of R; centre b, half-sizes e) keeps the cylinder (centre
-   c, unit axis a, half-length h, radius rho) farther than `gap` from the box. */
+/* A lower bound on n . x over the cylinder's points x with |x_w| <= L, for n = e_u + lam e_w (box frame; the
+   cylinder's centre has coordinates cu, cw and its axis au, aw along e_u, e_w): the cylinder's support along -n,
+   plus lam x_w >= -|lam| L. Any lam gives a valid bound (weak duality). */
+static double slab_bound(double cu, double cw, double au, double aw, double h, double rho, double L, double lam) {
+  double na = au + lam * aw, q = 1.0 + lam * lam - na * na;
+  return cu + lam * cw - h * fabs(na) - rho * sqrt(q > 0.0 ? q : 0.0) - fabs(lam) * L;
+}
+
+/* 1 when the bound of slab_bound exceeds `target` for some lam: the best lam of each piece where the two absolute
+   values keep their signs (the root of a quadratic; pieces split at lam = 0 and au + lam aw = 0), and the breaks. */
+static int slab_separated(double cu, double cw, double au, double aw, double h, double rho, double L, double target) {
+  const double BIG = 1e6;  /* stands in for an unbounded piece's end (any lam is valid) */
+  double A = 1.0 - aw * aw, B = -2.0 * au * aw, D = 4.0 * (1.0 - au * au - aw * aw);
+  double brk[4] = {-BIG, 0.0, 0.0, BIG};
+  int nb = 3;
+  if (fabs(aw) > 1e-12) {
+    double z = -au / aw;
+    if (z > -BIG && z < BIG) {
+      brk[2] = z;
+      brk[3] = BIG;
+      nb = 4;
+      if (brk[1] > brk[2]) { double t = brk[1]; brk[1] = brk[2]; brk[2] = t; }
+    }
+  }
+  if (nb == 3) brk[2] = BIG;
+  if (D < 0.0) D = 0.0;
+  for (int i = 0; i + 1 < nb; i++) {
+    double lo = brk[i], hi = brk[i + 1];
+    if (slab_bound(cu, cw, au, aw, h, rho, L, hi) > target) return 1;
+    if (!(hi > lo)) continue;
+    double mid = lo > -BIG ? (hi < BIG ? 0.5 * (lo + hi) : lo + 1.0) : hi - 1.0;
+    double s1 = mid > 0.0 ? 1.0 : -1.0, s2 = au + mid * aw > 0.0 ? 1.0 : -1.0;
+    double k = (cw - s1 * L - s2 * h * aw) / rho, lam;
+    if (A > 1e-12 && k * k < A) {
+      lam = (k * sqrt(D / (A - k * k)) - B) / (2.0 * A);
+    } else {
+      lam = k > 0.0 ? hi : lo;
+    }
+    lam = lam < lo ? lo : (lam > hi ? hi : lam);
+    if (slab_bound(cu, cw, au, aw, h, rho, L, lam) > target) return 1;
+  }
+  return slab_bound(cu, cw, au, aw, h, rho, L, brk[0]) > target;
+}
+
+/* Nonzero when the cylinder (centre c, unit axis a, half-length h, radius rho) lies farther than `gap` from the box
+   (columns of R its axes; centre b, half-sizes e): 1 when a plane normal to one of the box's axes keeps them apart,
+   2 when the bound through one of the box's slabs does (slab_separated). */
 static int separated(const double* c, const double* a, double h, double rho, const double* b, const double* R,
                      const double* e, double gap) {
   double ac[3], dc[3], s[3];
@@ -94,6 +148,27 @@ static int separated(const double* c, const double* a, double h, double rho, con
       if (bottom - e[u] > gap || -e[u] - top > gap) return 1;
     }
   }
+  /* the part of the cylinder in the slab along w, bounded along u through the slab (slab_separated): a tilted peg's
+     end reaches a box's slab with a thin sliver only, where the test above takes the whole end disc */
+  for (int w = 0; w < 3; w++) {
+    double L = e[w] + gap;
+    for (int u = 0; u < 3; u++) {
+      if (u == w) continue;
+      double sg = dc[u] >= 0.0 ? 1.0 : -1.0;  /* the side of the box the cylinder's centre is on */
+      double target = e[u] + gap;
+      /* a point of the axis inside the slab and not beyond the face: no bound can exceed it */
+      if (fabs(ac[w]) > 1e-12) {
+        double t0 = (-L - dc[w]) / ac[w], t1 = (L - dc[w]) / ac[w];
+        if (t0 > t1) { double t = t0; t0 = t1; t1 = t; }
+        if (t0 < -h) t0 = -h;
+        if (t1 > h) t1 = h;
+        if (t0 <= t1 && (sg * (dc[u] + t0 * ac[u]) <= target || sg * (dc[u] + t1 * ac[u]) <= target)) continue;
+      } else if (fabs(dc[w]) <= L && sg * dc[u] - h * fabs(ac[u]) <= target) {
+        continue;
+      }
+      if (slab_separated(sg * dc[u], dc[w], sg * ac[u], ac[w], h, rho, L, target)) return 2;
+    }
+  }
   return 0;
 }
 
@@ -113,11 +188,12 @@ int cf_filter(const void* m, void* d, int g1, int g2) {
     double a[3] = {R[k], R[3 + k], R[6 + k]};
     /* MuJoCo's margin and gap of a geom pair are the sums of the geoms' (engine_collision_driver.c, getMargin) */
     double gap = e->margin[tool] + e->margin[box] + e->gap[tool] + e->gap[box] + e->slack;
-    int drop = separated(e->xpos + 3 * tool, a, e->cylinder[3 * tool + 1], e->cylinder[3 * tool + 2],
-                         e->xpos + 3 * box, e->xmat + 9 * box, e->size + 3 * box, gap);
+    int how = separated(e->xpos + 3 * tool, a, e->cylinder[3 * tool + 1], e->cylinder[3 * tool + 2],
+                        e->xpos + 3 * box, e->xmat + 9 * box, e->size + 3 * box, gap);
     e->tested++;  /* (a registration's data is stepped by one thread at a time) */
-    e->dropped += drop;
-    return drop;
+    e->dropped += how != 0;
+    e->dropped_slab += how == 2;
+    return how != 0;
   }
   return 0;
 }
