@@ -88,23 +88,15 @@ static double slab_bound(double cu, double cw, double au, double aw, double h, d
 static int slab_separated(double cu, double cw, double au, double aw, double h, double rho, double L, double target) {
   const double BIG = 1e6;  /* stands in for an unbounded piece's end (any lam is valid) */
   double A = 1.0 - aw * aw, B = -2.0 * au * aw, D = 4.0 * (1.0 - au * au - aw * aw);
-  double brk[4] = {-BIG, 0.0, 0.0, BIG};
-  int nb = 3;
-  if (fabs(aw) > 1e-12) {
-    double z = -au / aw;
-    if (z > -BIG && z < BIG) {
-      brk[2] = z;
-      brk[3] = BIG;
-      nb = 4;
-      if (brk[1] > brk[2]) { double t = brk[1]; brk[1] = brk[2]; brk[2] = t; }
-    }
-  }
-  if (nb == 3) brk[2] = BIG;
+  double z = fabs(aw) > 1e-12 ? -au / aw : 0.0;
+  if (!(z > -BIG && z < BIG)) z = 0.0;
+  double brk[4] = {-BIG, z < 0.0 ? z : 0.0, z < 0.0 ? 0.0 : z, BIG};  /* (z = 0: an empty middle piece) */
   if (D < 0.0) D = 0.0;
-  for (int i = 0; i + 1 < nb; i++) {
+  if (slab_bound(cu, cw, au, aw, h, rho, L, brk[0]) > target) return 1;
+  for (int i = 0; i < 3; i++) {
     double lo = brk[i], hi = brk[i + 1];
-    if (slab_bound(cu, cw, au, aw, h, rho, L, hi) > target) return 1;
     if (!(hi > lo)) continue;
+    if (slab_bound(cu, cw, au, aw, h, rho, L, hi) > target) return 1;
     double mid = lo > -BIG ? (hi < BIG ? 0.5 * (lo + hi) : lo + 1.0) : hi - 1.0;
     double s1 = mid > 0.0 ? 1.0 : -1.0, s2 = au + mid * aw > 0.0 ? 1.0 : -1.0;
     double k = (cw - s1 * L - s2 * h * aw) / rho, lam;
@@ -116,7 +108,7 @@ static int slab_separated(double cu, double cw, double au, double aw, double h, 
     lam = lam < lo ? lo : (lam > hi ? hi : lam);
     if (slab_bound(cu, cw, au, aw, h, rho, L, lam) > target) return 1;
   }
-  return slab_bound(cu, cw, au, aw, h, rho, L, brk[0]) > target;
+  return 0;
 }
 
 /* Nonzero when the cylinder (centre c, unit axis a, half-length h, radius rho) lies farther than `gap` from the box
