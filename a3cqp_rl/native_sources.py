@@ -15,6 +15,7 @@ NATIVE_SOURCES = {
     "envs/native/point_mass.c": ("-fno-math-errno",),
     "envs/native/hand.c": (),
     "envs/native/period.c": (),
+    "envs/native/tick.c": (),
 }
 """Every C source (path from the project root) and its extra flags; each builds into `dir/_stem<ext suffix>`."""
 

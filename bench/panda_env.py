@@ -11,9 +11,11 @@ controller + MuJoCo + sensing + operator/scene at 100 Hz). Reported per N (media
              `x 2 thr` = its RTF / RTF (the one-thread env is its peer)
   no filter  RTF of the same env without the exact contact pre-filter (`panda.contact_prefilter: false`: every
              tool-box pair MuJoCo's broad phase passes goes to its narrow phase), N >= 8; `x filter` = RTF / its RTF
-  numpy sns  RTF of the same env with the sensing in numpy (`sense.numpy_sensing()`, as `A3CQP_NATIVE_SENSE=0`:
-             PandaSim's read-out after mj_step1 and f_ext = J^T+ tau_ext, a3cqp_rl/robot/sense.py); `x sense` = RTF /
-             its RTF
+  py period  RTF of the same env with its control period in Python (`tick.numpy_tick()`, as `A3CQP_NATIVE_TICK=0`:
+             the same C pieces called one by one, envs/native/tick.py); `x tick` = RTF / its RTF
+  numpy sns  RTF of that Python period with the sensing in numpy (`sense.numpy_sensing()`, as `A3CQP_NATIVE_SENSE=0`:
+             PandaSim's read-out after mj_step1 and f_ext = J^T+ tau_ext, a3cqp_rl/robot/sense.py); `x sense` = the
+             Python period's RTF / its RTF
   bare RTF   the same arms, the same number of control periods, run as the bare loop of bench/controller.py (PandaSim
              + A3CQPController, free motion, no env): `env cost` = bare RTF / RTF
 Then what a finished (parked) arm costs per control period while its batch runs on, against a live arm in free
@@ -42,6 +44,7 @@ from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.control import A3CQPController
 from a3cqp_rl.control.controller import SUBSET_MIN_IDLE
 from a3cqp_rl.robot import PandaSim, sense
+from envs.native import tick
 from envs.panda import PandaEnv
 
 
@@ -143,13 +146,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"PandaEnv benchmark (peg-in-hole, contacts on): {steps} timed agent steps (x10 control periods), "
           f"median of {repeats}")
     print(f"{'N':>4} {'steps/s':>9} {'RTF':>8} {'contacts/arm':>13} {'2 threads':>10} {'x 2 thr':>8} "
-          f"{'no filter':>10} {'x filter':>9} {'numpy sns':>10} {'x sense':>8} {'bare RTF':>9} {'env cost':>9} "
+          f"{'no filter':>10} {'x filter':>9} {'py period':>10} {'x tick':>7} {'numpy sns':>10} {'x sense':>8} "
+          f"{'bare RTF':>9} {'env cost':>9} "
           f"{'target':>18}")
     for n in args.sizes:
-        one, two, unfiltered, numpy_rtf = [], [], [], []
+        one, two, unfiltered, python_rtf, numpy_rtf = [], [], [], [], []
         for _ in range(repeats):  # interleaved, so that all see the same load
             one.append(run_env(n, steps, threads=1))
-            with sense.numpy_sensing():
+            with tick.numpy_tick():
+                python_rtf.append(run_env(n, steps, threads=1)["rtf"])
+            with sense.numpy_sensing():  # (no C read-out: the Python period)
                 numpy_rtf.append(run_env(n, steps, threads=1)["rtf"])
             if n >= 8:
                 two.append(run_env(n, steps, threads=2)["rtf"])
@@ -159,8 +165,8 @@ def main(argv: list[str] | None = None) -> int:
                 else f"{'-':>10} {'-':>8}")
         plain = statistics.median(unfiltered) if unfiltered else None  # the peer: MuJoCo's own pairs
         nofilter = f"{plain:>9.2f}x {r['rtf'] / plain:>8.2f}x" if plain else f"{'-':>10} {'-':>9}"
-        slow = statistics.median(numpy_rtf)
-        sensing = f"{slow:>9.2f}x {r['rtf'] / slow:>7.2f}x"
+        py, slow = statistics.median(python_rtf), statistics.median(numpy_rtf)
+        sensing = f"{py:>9.2f}x {r['rtf'] / py:>6.2f}x {slow:>9.2f}x {py / slow:>7.2f}x"
         bare = statistics.median(run_bare(n, steps * 10) for _ in range(repeats))
         target = f">=10x RT: {'met' if r['rtf'] >= 10 else 'NOT met'}" if n == 32 else "-"
         print(f"{n:>4} {r['steps_s']:>9.1f} {r['rtf']:>7.2f}x {r['contacts']:>13.1f} {rtf2} {nofilter} {sensing} "

@@ -39,9 +39,11 @@ from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.control import A3CQPController, ControllerOptions, wrench_from_joint_torques
 from a3cqp_rl.control.frames import pose_error
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaModel, PandaSim
-from a3cqp_rl.robot.sim import ShardedPandaSim, cross3, grid_origins
+from a3cqp_rl.robot.sim import ShardedPandaSim, _sim_state, cross3, grid_origins
 from envs.native.hand import native_hand
 from envs.native.period import WHY, native_period
+from envs.native.tick import DONE as NATIVE_DONE
+from envs.native.tick import native_tick
 from envs.scenarios import Operator, Scene, SceneInput, make_scene, rotvec_to_matrix
 
 __all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS", "TASK_BLENDS"]
@@ -213,6 +215,8 @@ class PandaEnv(EnvBase):
         self.signal_keys = tuple(self.scene.signals(self._scene_input()).keys())
         """Names of the scene's per-step signals in the output (e.g. the peg's misalignment and depth)."""
         self._make_specs()
+        self._native_tick = native_tick(self)
+        """The control period in one C call where every piece is native (None: `_tick`'s Python route)."""
         self._reset_arms(np.arange(n))
 
     def __setattr__(self, name: str, value) -> None:  # noqa: ANN001
@@ -388,6 +392,8 @@ class PandaEnv(EnvBase):
         self._draw_noise()
         mean = self.pcfg.observation_filter == "mean"
         self._f_sum = np.zeros((2, self.num_envs, 6)) if mean else None
+        if self._native_tick is not None:
+            self._native_tick.prepare(weights, f_d, pos_d, rot_d)
         for k in range(self.substeps):
             self._tick(k, weights, f_d, pos_d, rot_d)
         if mean:
@@ -456,6 +462,23 @@ class PandaEnv(EnvBase):
     def _tick(self, k: int, weights: torch.Tensor, f_d: torch.Tensor, pos_d: torch.Tensor,
               rot_d: torch.Tensor) -> np.ndarray:
         """One 1 kHz control period (the k-th of the agent period) for all arms; returns the arms that diverged."""
+        fast = self._native_tick
+        if fast is not None and fast.ready:  # the same in one C call (envs/native/tick.py)
+            result = fast.run(k)
+            if result >= 0:
+                bad = np.zeros(self.num_envs, dtype=bool)
+                if fast.diverged:
+                    codes = fast.bad_codes()
+                    self._log_diverged(codes)
+                    bad = codes > 0
+                if result == NATIVE_DONE:
+                    if bad.any():
+                        self._end_diverged(bad)
+                        fast.masks()
+                    return bad
+                # the rest of the period in Python
+                return self._control(k, _sim_state(self.sim, kin=True), self._in_episode(), bad, weights, f_d, pos_d,
+                                     rot_d)
         s = self._measure(k)
         if self._f_sum is not None:
             self._f_sum[0] += self.f_env
@@ -467,6 +490,12 @@ class PandaEnv(EnvBase):
             abs_qd = np.abs(self.qd)  # (NaN compares False without a warning: a diverging arm is the finiteness test's)
             bad = self._check_divergence(abs_qd)
             self._track_joint_limits(live, abs_qd)
+        return self._control(k, s, live, bad, weights, f_d, pos_d, rot_d)
+
+    def _control(self, k: int, s, live: np.ndarray, bad: np.ndarray, weights: torch.Tensor,  # noqa: ANN001
+                 f_d: torch.Tensor, pos_d: torch.Tensor, rot_d: torch.Tensor) -> np.ndarray:
+        """The rest of control period k after the sensing (`s`, the SimState) and the checks (`bad` [N]): the
+        controller, the operator's hand and mj_step2; returns `bad`."""
         held = torch.from_numpy(self.operator.active) if self.pcfg.joint_limits_f_ext == "operator" else None
         out = self.ctrl.step(s.q, s.qd, s.mass, s.bias, weights, f_d, pos_d, rot_d,
                              f_ext=torch.from_numpy(self.f_ext), f_env=torch.from_numpy(self.f_env), kin=s.kin,

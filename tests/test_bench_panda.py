@@ -29,3 +29,13 @@ def test_the_benchmark_times_parked_and_live_arms() -> None:
     assert run_parked(3, 2, 1) > 0.0
     parked, live = parked_cost(4, 2, 2, 1)
     assert math.isfinite(parked) and math.isfinite(live)
+
+
+def test_the_benchmarks_python_period_peer_runs_the_python_period() -> None:
+    from envs.native import tick
+    from envs.panda import PandaEnv
+
+    native = tick._library.get() is not None
+    with tick.numpy_tick():
+        assert PandaEnv(1)._native_tick is None
+    assert (PandaEnv(1)._native_tick is not None) == native
