@@ -11,6 +11,9 @@ It runs where every piece is native and the period is the common one: a `PandaSi
 route within a period (a non-finite input, a QP not solved cleanly), the C call stops before the controller and the
 rest of that period runs in Python. `A3CQP_NATIVE_TICK=0` switches it off; a library not built at install time logs
 one warning and the Python period runs.
+
+MuJoCo is called here without the bindings: an engine error inside a step (e.g. its stack exhausted by a model's
+`<size memory>` too small) prints MuJoCo's message and ends the process, where the bindings raise `FatalError`.
 """
 
 from __future__ import annotations
@@ -328,7 +331,7 @@ class NativeTick:
         env, ctrl, a = self.env, self.env.ctrl, self.args
         if ctrl.q_des is not self._q_des_t or ctrl.qd_des is not self._qd_des_t:
             if ctrl.q_des is None:
-                return self._stop_early(k)
+                return self._stop_early()
             np.copyto(self._q_des, ctrl.q_des.numpy())
             np.copyto(self._qd_des, ctrl.qd_des.numpy())
             ctrl.q_des, ctrl.qd_des = self._q_des_t, self._qd_des_t
@@ -340,7 +343,7 @@ class NativeTick:
                 np.copyto(self._warm_buf, warm._buf)
                 a.cold = 0
             else:
-                return self._stop_early(k)
+                return self._stop_early()
         else:
             a.cold = 0
         sim, op = env.sim, env.operator
@@ -360,7 +363,7 @@ class NativeTick:
         self.diverged = bool(flags & 1)
         return result
 
-    def _stop_early(self, k: int) -> int:  # noqa: ARG002
+    def _stop_early(self) -> int:
         """Not this period in C: nothing ran (the caller runs the whole period in Python)."""
         self.diverged = False
         self.periods["python"] += 1
