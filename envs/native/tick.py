@@ -235,7 +235,7 @@ class NativeTick:
         self._flags_ref = ctypes.byref(self._flags)
         self._agent: list = []
         # the objects whose addresses the call holds: kept alive, and the C route only while the env still has them
-        self._pieces = (sim, ctrl, step, env._hand, env._period, sim._native_observe)
+        self._pieces = (sim, ctrl, step, env._hand, env._period, sim._native_observe, sim.model, sim.data)
         self.ready = False
         self.diverged = False
         self.periods = {"whole": 0, "python_controller": 0, "python": 0}
@@ -304,11 +304,14 @@ class NativeTick:
         return True
 
     def _same_pieces(self) -> bool:
-        """Whether the env still has the sim, controller, hand, period and read-out this call was built on, and
-        none of the methods it stands for is replaced on the instance (a caller's hook then sees its calls)."""
+        """Whether the env still has the sim (and its MuJoCo model and data), controller, hand, period and read-out
+        this call was built on, and none of the methods it stands for is replaced on the instance (a caller's hook
+        then sees its calls)."""
         env = self.env
-        sim, ctrl, step, hand, period, observe = self._pieces
+        sim, ctrl, step, hand, period, observe, model, data = self._pieces
         if env.sim is not sim or env.ctrl is not ctrl or ctrl._native is not step or env._hand is not hand:
+            return False
+        if sim.model is not model or sim.data is not data:
             return False
         if (env._period is not period or sim._native_observe is not observe
                 or controller_module.solve_qp is not solve_qp):
