@@ -474,11 +474,12 @@ class PandaEnv(EnvBase):
                 if result == NATIVE_DONE:
                     if bad.any():
                         self._end_diverged(bad)
-                        fast.masks()
-                    return bad
-                # the rest of the period in Python
-                return self._control(k, _sim_state(self.sim, kin=True), self._in_episode(), bad, weights, f_d, pos_d,
-                                     rot_d)
+                else:  # the rest of the period in Python
+                    self._control(k, _sim_state(self.sim, kin=True), self._in_episode(), bad, weights, f_d, pos_d,
+                                  rot_d)
+                if bad.any():  # (the diverged arms leave the checks and the live arms of the periods after)
+                    fast.masks()
+                return bad
         s = self._measure(k)
         if self._f_sum is not None:
             self._f_sum[0] += self.f_env

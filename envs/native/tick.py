@@ -29,6 +29,7 @@ import torch
 
 from a3cqp_rl.control import controller as controller_module
 from a3cqp_rl.control import native as control_native
+from a3cqp_rl.control.context import N_VARS
 from a3cqp_rl.control.controller import SUBSET_MIN_IDLE, A3CQPController
 from a3cqp_rl.control.population import PopulationController
 from a3cqp_rl.native_build import LazyLibrary, address, library_path
@@ -215,7 +216,7 @@ class NativeTick:
         a.in_offsets, a.in_size = address(self._in_offsets), start
         self._packed = np.zeros((n, start))
         self._asm = np.zeros(n * sum(step._out_widths))
-        nq = 13
+        nq = N_VARS  # the QP's variables (q̈*, f)
         self._warm_buf, self._qp_out = np.zeros(n * (3 * nq + m + 2)), np.zeros(n * (3 * nq + m + 2))
         self._tout, self._ok = np.zeros(n * 42), np.ones(n, dtype=np.uint8)
         self._z0_sub, self._leak_sub = np.zeros(n * (m + 2 * nq)), np.zeros(n * 6)
