@@ -122,3 +122,70 @@ def test_the_c_period_is_the_python_period_bit_for_bit_with_the_operators_hand()
         _same(c, py, step)
         pushed += int(c.operator.active.any() and np.abs(c.handle_force).sum() > 0)
     assert pushed > 50 and c._native_tick.periods["whole"] == 2500
+
+
+def _compile_engine_stop(tmp_path) -> "ctypes.CDLL":  # noqa: ANN001, F821
+    """A MuJoCo control callback in C that calls mju_error (an engine error inside mj_step1, without Python)."""
+    import ctypes
+    import shlex
+    import subprocess
+    import sysconfig
+
+    src = tmp_path / "stop.c"
+    src.write_text('typedef void (*err_fn)(const char*, ...);\nstatic err_fn err;\n'
+                   'void stop_set(err_fn f) { err = f; }\n'
+                   'void stop_control(const void* m, void* d) { (void)m; (void)d; err("stopped by %s", "the test"); }\n')
+    out = tmp_path / "stop.so"
+    cc = shlex.split(sysconfig.get_config_var("CC") or "cc")
+    subprocess.run([*cc, "-shared", "-fPIC", str(src), "-o", str(out)], check=True)
+    lib = ctypes.CDLL(str(out))
+    lib.stop_set(ctypes.cast(tick_mod._mujoco_library().mju_error, ctypes.c_void_p))
+    return lib
+
+
+@needs_library
+@pytest.mark.parametrize("callback", ["python", "native"])
+def test_an_engine_error_inside_the_c_period_raises_as_the_bindings_raise_it(callback, tmp_path) -> None:  # noqa: ANN001
+    import ctypes
+
+    import mujoco
+
+    c, py = _pair(2)
+    tds = [c.reset(), py.reset()]
+    for i, env in enumerate((c, py)):
+        tds[i]["action"] = torch.zeros(2, 6, 4)
+        tds[i] = env.step(tds[i])["next"]
+    calls = []
+
+    def raising(m, d) -> None:  # noqa: ANN001
+        calls.append(d.time)
+        raise ValueError("the control callback failed")
+
+    if callback == "python":
+        expected, hook = (ValueError, "the control callback failed"), raising
+    else:
+        lib = _compile_engine_stop(tmp_path)
+        expected = (mujoco.FatalError, "stopped by the test")
+        hook = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p)(("stop_control", lib))
+    raised = []
+    mujoco.set_mjcb_control(hook)
+    try:
+        for i, env in enumerate((c, py)):
+            tds[i]["action"] = torch.zeros(2, 6, 4)
+            with pytest.raises(expected[0]) as info:
+                env.step(tds[i])
+            raised.append(str(info.value))
+    finally:
+        mujoco.set_mjcb_control(None)
+    assert raised == [expected[1], expected[1]]
+    assert callback == "native" or len(calls) == 2  # (the first mj_step1 of each env's agent period)
+    assert c._native_tick.periods["whole"] == 10
+    # the call put MuJoCo's error routing back as it found it (none on this thread)
+    mj = tick_mod._mujoco_library()
+    mj._mjPRIVATE_setTlsLogHandler.restype = ctypes.c_void_p
+    assert mj._mjPRIVATE_setTlsLogHandler(None) is None
+    # and the next agent period runs
+    for i, env in enumerate((c, py)):
+        tds[i]["action"] = torch.zeros(2, 6, 4)
+        env.step(tds[i])
+    assert np.isfinite(c.q).all() and c._native_tick.periods["whole"] == 20

@@ -16,8 +16,15 @@
    runs the rest of the period in Python, which solves the same QP from the same warm start.
 
    No MuJoCo headers: mj_step1 and mj_step2 come as pointers from the loaded libmujoco, and the few mjData fields read
-   here (ncon, the contact array) by offsets tick.py finds once per process. */
+   here (ncon, the contact array) by offsets tick.py finds once per process.
+
+   An engine error inside the call (mju_error: MuJoCo's stack exhausted, a user's mjcb_* callback that raised) comes
+   back as TICK_ENGINE_ERROR, as the bindings do it (python/mujoco/errors.h): a thread-local error handler installed
+   for the call longjmps back here. tick.py then raises mujoco.FatalError with MuJoCo's message, or the callback's
+   own Python exception. Without it MuJoCo's default handler prints the message and exits the process. */
 #include <math.h>
+#include <setjmp.h>
+#include <stdio.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -43,7 +50,20 @@ typedef void (*hand_fn)(const void* a, int64_t k, const double* t, double t_add,
                         int64_t noise_stride, double* force, double* torque);
 typedef int64_t (*push_fn)(const void* a, const double* force, const double* torque);
 
-enum { TICK_DONE = 0, TICK_BEFORE_CONTROLLER = 1 };
+/* MuJoCo's error routing (private entry points the bindings use): from 4.0 a thread-local log handler that gets an
+   mjLogMessage, before 4.0 a thread-local error function that gets the text */
+typedef struct {
+  int level, topic; /* mjtLogLevel (3: mjLOG_ERROR), mjtLogTopic */
+  char subject[1024];
+  const char *body, *func;
+} log_message; /* the head of mjLogMessage (mjtype.h) */
+typedef void (*log_fn)(const log_message* msg);
+typedef log_fn (*set_log_fn)(log_fn handler);
+typedef log_fn (*get_log_fn)(void);
+typedef void (*error_fn)(const char* msg);
+typedef void (*set_error_fn)(error_fn handler);
+
+enum { TICK_DONE = 0, TICK_BEFORE_CONTROLLER = 1, TICK_ENGINE_ERROR = 2 };
 enum { IN_FIELDS = 18 };
 
 typedef struct {
@@ -106,9 +126,38 @@ typedef struct {
   const int64_t* sub;
   int64_t nsub;
   double *z0_sub, *leak_sub;
+  /* MuJoCo's error routing: the log-handler setter and the global handler's getter (4.0 on), or the error-function
+     setter (before 4.0); NULL where absent */
+  set_log_fn set_log;
+  get_log_fn global_log;
+  set_error_fn set_error;
 } tick_args;
 
 int64_t tick_args_size(void) { return (int64_t)sizeof(tick_args); }
+
+static _Thread_local jmp_buf engine_jump;
+static _Thread_local char engine_message[2048];
+static _Thread_local log_fn engine_forward; /* where warnings and info go on (the handler in place before the call) */
+
+/* The message of the last TICK_ENGINE_ERROR on this thread ("function: text", as the bindings word it). */
+const char* tick_error_message(void) { return engine_message; }
+
+static void on_log(const log_message* msg) {
+  if (msg->level != 3) {
+    if (engine_forward) engine_forward(msg);
+    return;
+  }
+  if (msg->func)
+    snprintf(engine_message, sizeof engine_message, "%s: %s", msg->func, msg->subject);
+  else
+    snprintf(engine_message, sizeof engine_message, "%s", msg->subject);
+  longjmp(engine_jump, 1);
+}
+
+static void on_error(const char* msg) {
+  snprintf(engine_message, sizeof engine_message, "%s", msg);
+  longjmp(engine_jump, 1);
+}
 
 /* PandaSim.max_penetration: the deepest penetration of each arm's contacts (m, 0 without), numpy's maximum (NaN wins) */
 static void max_penetration(const tick_args* a) {
@@ -236,11 +285,7 @@ static int control(const tick_args* a) {
   return 1;
 }
 
-/* One control period of every arm (the k-th of the agent period; `hand_k`: the operator's history slot; `pushed`:
-   whether the last period pushed). Returns TICK_DONE, or TICK_BEFORE_CONTROLLER where the rest of the period is
-   Python's (the sensing and the checks done, the controller's state unchanged). `*flags`: bit 0 some arm newly
-   diverged (`bad`), bit 1 the hand pushes this period. */
-int64_t tick_run(const tick_args* a, int64_t k, int64_t hand_k, int64_t pushed, int64_t* flags) {
+static int64_t period(const tick_args* a, int64_t k, int64_t hand_k, int64_t pushed, int64_t* flags) {
   const int64_t n = a->n;
   *flags = 0;
   /* PandaSim._observe_arrays: a push lasts one step */
@@ -281,4 +326,29 @@ int64_t tick_run(const tick_args* a, int64_t k, int64_t hand_k, int64_t pushed, 
   if (push)
     for (int64_t j = 0; j < 7 * n; j++) a->tau_ext[j] += a->tau_push[j];
   return TICK_DONE;
+}
+
+/* One control period of every arm (the k-th of the agent period; `hand_k`: the operator's history slot; `pushed`:
+   whether the last period pushed). Returns TICK_DONE, TICK_BEFORE_CONTROLLER where the rest of the period is
+   Python's (the sensing and the checks done, the controller's state unchanged), or TICK_ENGINE_ERROR (MuJoCo's
+   message in tick_error_message; the period left where the error stopped it, as after the bindings' FatalError).
+   `*flags`: bit 0 some arm newly diverged (`bad`), bit 1 the hand pushes this period. */
+int64_t tick_run(const tick_args* a, int64_t k, int64_t hand_k, int64_t pushed, int64_t* flags) {
+  log_fn previous = NULL;
+  if (a->set_log) {
+    previous = a->set_log(on_log);
+    engine_forward = previous ? previous : a->global_log();
+  } else if (a->set_error) {
+    a->set_error(on_error);
+  }
+  int64_t result;
+  if (setjmp(engine_jump) == 0)
+    result = period(a, k, hand_k, pushed, flags);
+  else
+    result = TICK_ENGINE_ERROR;
+  if (a->set_log)
+    a->set_log(previous);
+  else if (a->set_error)
+    a->set_error(NULL);
+  return result;
 }

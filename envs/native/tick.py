@@ -12,8 +12,9 @@ route within a period (a non-finite input, a QP not solved cleanly), the C call 
 rest of that period runs in Python. `A3CQP_NATIVE_TICK=0` switches it off; a library not built at install time logs
 one warning and the Python period runs.
 
-MuJoCo is called here without the bindings: an engine error inside a step (e.g. its stack exhausted by a model's
-`<size memory>` too small) prints MuJoCo's message and ends the process, where the bindings raise `FatalError`.
+MuJoCo is called here without the bindings, so the call routes MuJoCo's errors as they do: an engine error inside a
+step (e.g. its stack exhausted by a model's `<size memory>` too small) raises `mujoco.FatalError`, and a user's
+`mjcb_*` callback that raised re-raises its own exception.
 """
 
 from __future__ import annotations
@@ -46,8 +47,9 @@ if TYPE_CHECKING:
 __all__ = ["NativeTick", "native_tick", "numpy_tick", "SOURCE", "DONE", "BEFORE_CONTROLLER"]
 
 SOURCE = Path(__file__).with_name("tick.c")
-DONE, BEFORE_CONTROLLER = 0, 1
-"""`tick_run`'s results: the period ran whole; it stopped before the controller (the rest is Python's)."""
+DONE, BEFORE_CONTROLLER, _ENGINE_ERROR = 0, 1, 2
+"""`tick_run`'s results: the period ran whole; it stopped before the controller (the rest is Python's); MuJoCo
+raised an error (raised here as the bindings raise it)."""
 
 _log = logging.getLogger(__name__)
 _p, _i, _d = ctypes.c_void_p, ctypes.c_int64, ctypes.c_double
@@ -70,6 +72,7 @@ _FIELDS = [
     *((f, _p) for f in ("idle", "saturated", "ok", "t", "noise")),
     ("noise_stride", _i), ("handle_force", _p), ("handle_torque", _p), ("dt", _d),
     ("sub", _p), ("nsub", _i), ("z0_sub", _p), ("leak_sub", _p),
+    ("set_log", _p), ("global_log", _p), ("set_error", _p),
 ]
 
 
@@ -129,19 +132,35 @@ def _data_layout() -> dict[str, int]:
             "dist_offset": 0, "geom_offset": geom1}
 
 
+def _error_routing(mj: ctypes.CDLL) -> dict[str, int]:
+    """MuJoCo's thread-local error routing that the bindings use (private entry points): the log-handler setter and
+    the global handler's getter from MuJoCo 4.0, the error-function setter before."""
+    names = {"set_log": "_mjPRIVATE_setTlsLogHandler", "global_log": "_mjPRIVATE_getGlobalLogHandler",
+             "set_error": "_mjPRIVATE__set_tls_error_fn"}
+    found = {key: _fn(mj, name) for key, name in names.items() if hasattr(mj, name)}
+    if "set_log" in found and "global_log" in found:
+        return {"set_log": found["set_log"], "global_log": found["global_log"]}
+    if "set_error" in found:
+        return {"set_error": found["set_error"]}
+    raise RuntimeError("MuJoCo's error routing (the entry points its Python bindings use) is not in this libmujoco")
+
+
 def _bind(path: Path) -> dict:
     """The tick library, MuJoCo's step halves, the other pieces' entry points and mjData's layout."""
-    lib = ctypes.CDLL(str(path))
+    # PyDLL: the call keeps the GIL and raises an exception a Python callback of MuJoCo's left set (an mjcb_* that
+    # raised), as the bindings re-raise it
+    lib = ctypes.PyDLL(str(path))
     lib.tick_args_size.restype = ctypes.c_int64
     if lib.tick_args_size() != ctypes.sizeof(_Args):
         raise RuntimeError("tick_args in tick.c and envs.native.tick differ")
     lib.tick_run.argtypes = [_p, _i, _i, _i, _p]
     lib.tick_run.restype = _i
+    lib.tick_error_message.restype = ctypes.c_char_p
     mj = _mujoco_library()
     qp_path = library_path(qp_native.SOURCE)
     if qp_path is None:
         raise RuntimeError("the QP library was not built")
-    return {"lib": lib, "mj": mj, "qp": ctypes.CDLL(str(qp_path)), "layout": _data_layout()}
+    return {"lib": lib, "mj": mj, "qp": ctypes.CDLL(str(qp_path)), "layout": {**_data_layout(), **_error_routing(mj)}}
 
 
 _library = LazyLibrary(SOURCE, "A3CQP_NATIVE_TICK", _bind, _log, "envs: the control period in one C call",
@@ -354,6 +373,8 @@ class NativeTick:
         hk = op._k
         op._k = (hk + 1) % op._lag
         result = self._lib.tick_run(self._ref, k, hk, sim._pushed, self._flags_ref)
+        if result == _ENGINE_ERROR:
+            raise mujoco.FatalError(self._lib.tick_error_message().decode(errors="replace"))
         flags = self._flags.value
         self.publish()
         self.periods["whole" if result == DONE else "python_controller"] += 1
