@@ -1042,7 +1042,8 @@ class PandaEnvConfig:
     """Speed along the tool axis [m/s] below which a pressed tool is blocked (`ik_bound_blocked`)."""
     policy: str | None = None
     """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
-    folder, relative to the working directory (None: --policy is needed for the learned controller)."""
+    folder, relative to the working directory, else to the checkout's root (None: --policy is needed for the learned
+    controller)."""
     divergence_speed_factor: float = 3.0
     """A robot whose joint speed exceeds this multiple of its datasheet limit counts as diverged."""
     divergence_penetration: float = 0.01

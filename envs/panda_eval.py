@@ -813,12 +813,27 @@ def _write_json(path: Path, doc: dict) -> None:
     write_text_atomic(path, json.dumps(doc, indent=2))
 
 
+_ROOT = Path(__file__).resolve().parents[1]
+"""The checkout's root: its configs/ and policies/ serve a command run from another folder."""
+
+
+def _default_config(scene: str) -> Path | None:
+    """configs/panda_<scene>.yaml of the working directory, else of this checkout; None where neither exists."""
+    for base in (Path("configs"), _ROOT / "configs"):
+        if (base / f"panda_{scene}.yaml").is_file():
+            return base / f"panda_{scene}.yaml"
+    return None
+
+
 def _policy_file(path: str | Path | None, from_cli: bool, cfg_path: str | Path | None) -> Path | None:
     """The policy.pt that `--policy PATH` (a file or a run folder) or the config's panda.policy names; raises
-    FileNotFoundError naming where the path came from."""
+    FileNotFoundError naming where the path came from. A relative panda.policy is looked for in the working directory,
+    then in this checkout (as the config itself: the shipped policy from any folder)."""
     if path is None:
         return None
     path = Path(path)
+    if not from_cli and not path.is_absolute() and not path.exists() and (_ROOT / path).exists():
+        path = _ROOT / path
     if path.is_dir():
         path = path / "policy.pt"
     if not path.is_file():
@@ -897,7 +912,8 @@ def main(argv: list[str] | None = None) -> int:
     seeds.add_argument("--seed", type=int, default=0, help="seed of the trials (default: 0)")
     seeds.add_argument("--seeds", type=_seed_list, default=None, metavar="LIST",
                        help="several seeds, e.g. 0,3-10: each seed's trials as --seed runs them, pooled")
-    p.add_argument("--config", default=None, help="YAML config (default: configs/panda_<scene>.yaml if present)")
+    p.add_argument("--config", default=None, help="YAML config (default: configs/panda_<scene>.yaml of the working "
+                   "directory, else of this checkout)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
                    help="override one config value over --config, e.g. --set panda.blocked_force=2.0 (VALUE read as "
                         "YAML; repeatable; kept in the JSON)")
@@ -936,10 +952,7 @@ def main(argv: list[str] | None = None) -> int:
             args.workers = default_workers()
         if args.workers < 1:
             raise ValueError(f"--workers must be >= 1, got {args.workers}")
-        cfg_path = args.config
-        default = Path("configs") / f"panda_{args.scene}.yaml"
-        if cfg_path is None and default.is_file():
-            cfg_path = default
+        cfg_path = args.config if args.config is not None else _default_config(args.scene)
         cfg = load_config(cfg_path, parse_overrides(args.overrides))
         controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
         fixed = [load_fixed_controller(f) for f in args.controller_config]

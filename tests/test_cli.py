@@ -5,6 +5,7 @@ from pathlib import Path
 import pytest
 
 from a3cqp_rl.cli import main
+from a3cqp_rl.config import load_config
 
 CONFIG = str(Path(__file__).parents[1] / "configs" / "point_mass_a2c.yaml")
 
@@ -57,6 +58,27 @@ def test_default_config_works_from_any_directory(tmp_path, monkeypatch, capsys):
     assert main(["train", "--steps", "512", "--no-compile", "--quiet", "--no-plots", "--timings"]) == 0
     assert (tmp_path / "runs" / "point_mass_a2c_default" / "policy.pt").is_file()
     assert "timings: start-up " in capsys.readouterr().out  # what the train bench reads
+
+
+def test_panda_evaluation_and_tuners_find_the_checkouts_configs_and_policy_from_any_directory(tmp_path, monkeypatch):
+    from algorithms.tuning.runner import cli_config
+    from envs import panda_eval
+
+    monkeypatch.chdir(tmp_path)
+    root = Path(__file__).resolve().parents[1]
+    cfg_path = panda_eval._default_config("peg_in_hole")
+    assert cfg_path == root / "configs" / "panda_peg_in_hole.yaml"
+    policy = load_config(cfg_path).panda.policy
+    assert not Path(policy).is_absolute()
+    assert panda_eval._policy_file(policy, False, cfg_path) == root / policy
+    with pytest.raises(FileNotFoundError):  # a --policy path is the user's: relative to the working directory only
+        panda_eval._policy_file(policy, True, cfg_path)
+    cfg, out = cli_config(None, None, False, "configs/ga_point_mass.yaml", "tune", "ga", {})
+    assert cfg == load_config(root / "configs" / "ga_point_mass.yaml") and out == Path("runs/tune_ga_point_mass")
+    # the working directory's own configs/ comes first
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs" / "panda_peg_in_hole.yaml").write_text("panda: {policy: null}\n")
+    assert panda_eval._default_config("peg_in_hole") == Path("configs") / "panda_peg_in_hole.yaml"
 
 
 def test_file_errors_are_one_line_naming_the_file(tmp_path, capsys, monkeypatch):
