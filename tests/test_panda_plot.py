@@ -38,6 +38,11 @@ def test_plot_episode_command_reads_a_run_folder(tmp_path, capsys) -> None:  # n
     assert set(load_episode(tmp_path)) >= {"time", "weights", "q"}
     assert plot_main(["episode", str(tmp_path / "missing")]) == 2
     assert "episode file not found" in capsys.readouterr().err
+    # a run without the learned controller's episode names the ones it has
+    (tmp_path / "episode_learned.npz").rename(tmp_path / "episode_ik_fc.npz")
+    assert plot_main(["episode", str(tmp_path)]) == 2
+    assert "this run has ik_fc: pick one with --controller" in capsys.readouterr().err
+    assert plot_main(["episode", str(tmp_path), "--controller", "ik_fc"]) == 0
 
 
 def test_render_strip_draws_the_scene_or_says_why_not(tmp_path) -> None:  # noqa: ANN001

@@ -26,7 +26,10 @@ def load_episode(path: str | Path) -> dict[str, np.ndarray]:
     if path.is_dir():
         path = path / "episode_learned.npz"
     if not path.is_file():
-        raise FileNotFoundError(f"episode file not found: {path} (write one with `a3cqp evaluate --scene ... --out`)")
+        others = sorted(p.stem.removeprefix("episode_") for p in path.parent.glob("episode_*.npz"))
+        hint = (f"this run has {', '.join(others)}: pick one with --controller" if others
+                else "write one with `a3cqp evaluate --scene ... --out`")
+        raise FileNotFoundError(f"episode file not found: {path} ({hint})")
     with np.load(path, allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
 
