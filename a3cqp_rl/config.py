@@ -40,6 +40,7 @@ __all__ = [
     "PandaEnvConfig",
     "ExperimentConfig",
     "load_config",
+    "project_path",
     "config_from_dict",
     "config_to_dict",
     "ENV_FACTORIES",
@@ -696,6 +697,11 @@ class SensorConfig:
     and the means are subtracted from then on; until then the sensed wrenches read zero (nothing is fed to the
     controller or the agents before the sensors are zeroed). 0: no taring. Must not exceed the scene's rest at home
     (peg-in-hole `settle_time`, polishing `rest_time`, guidance `pause`)."""
+
+    @property
+    def ideal(self) -> bool:
+        """No noise, bias or taring: the simulator's wrenches are what is sensed."""
+        return all(getattr(self, f.name) == 0 for f in dataclasses.fields(self))
 
     def _check(self, err: _Errors) -> None:
         for f in dataclasses.fields(self):
@@ -1378,6 +1384,19 @@ def config_from_dict(data: dict | None, source: str = "<dict>") -> ExperimentCon
     cfg = _build(ExperimentConfig, data or {}, "", source)
     _validate(cfg, "", source)
     return cfg
+
+
+CHECKOUT = Path(__file__).resolve().parents[1]
+"""The project's checkout (its configs/ and policies/)."""
+
+
+def project_path(path: str | Path) -> Path:
+    """`path` where it exists (relative to the working directory), else the same relative path in this checkout where
+    that exists (a command run from another folder finds the shipped configs and policies), else `path` unchanged."""
+    path = Path(path)
+    if path.is_absolute() or path.exists() or not (CHECKOUT / path).exists():
+        return path
+    return CHECKOUT / path
 
 
 def load_config(path: str | Path | None = None, overrides: dict | None = None) -> ExperimentConfig:

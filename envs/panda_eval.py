@@ -813,27 +813,23 @@ def _write_json(path: Path, doc: dict) -> None:
     write_text_atomic(path, json.dumps(doc, indent=2))
 
 
-_ROOT = Path(__file__).resolve().parents[1]
-"""The checkout's root: its configs/ and policies/ serve a command run from another folder."""
-
-
 def _default_config(scene: str) -> Path | None:
     """configs/panda_<scene>.yaml of the working directory, else of this checkout; None where neither exists."""
-    for base in (Path("configs"), _ROOT / "configs"):
-        if (base / f"panda_{scene}.yaml").is_file():
-            return base / f"panda_{scene}.yaml"
-    return None
+    from a3cqp_rl.config import project_path
+
+    path = project_path(Path("configs") / f"panda_{scene}.yaml")
+    return path if path.is_file() else None
 
 
 def _policy_file(path: str | Path | None, from_cli: bool, cfg_path: str | Path | None) -> Path | None:
     """The policy.pt that `--policy PATH` (a file or a run folder) or the config's panda.policy names; raises
     FileNotFoundError naming where the path came from. A relative panda.policy is looked for in the working directory,
     then in this checkout (as the config itself: the shipped policy from any folder)."""
+    from a3cqp_rl.config import project_path
+
     if path is None:
         return None
-    path = Path(path)
-    if not from_cli and not path.is_absolute() and not path.exists() and (_ROOT / path).exists():
-        path = _ROOT / path
+    path = Path(path) if from_cli else project_path(path)
     if path.is_dir():
         path = path / "policy.pt"
     if not path.is_file():

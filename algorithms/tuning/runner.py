@@ -42,8 +42,6 @@ from .pygad_ga import GA
 
 __all__ = ["Problem", "RunResult", "run", "build_ga", "read_evaluations", "read_state", "STATE_FORMAT"]
 
-_ROOT = Path(__file__).resolve().parents[2]  # the checkout (its configs/)
-
 Evaluate = Callable[[list[dict], ExperimentConfig], np.ndarray]
 """A batch of decoded genomes and the experiment config -> values [B, M] (float64, finite)."""
 
@@ -146,13 +144,12 @@ def run(problem: Problem, cfg: ExperimentConfig, out: str | Path, *, workers: in
 def cli_config(config: str | None, out: str | None, resume: bool, default: str, prefix: str,
                section: str, overrides: dict) -> tuple[ExperimentConfig, Path]:
     """The config and output folder of a tuner's CLI run: `config`, else OUT/config.yaml on --resume, else `default`
-    (relative to the working directory, else to this checkout); OUT defaults to runs/<prefix>_<config name>; `overrides` (None values dropped) go into `section`."""
-    from a3cqp_rl.config import load_config
+    (relative to the working directory, else to this checkout); OUT defaults to runs/<prefix>_<config name>;
+    `overrides` (None values dropped) go into `section`."""
+    from a3cqp_rl.config import load_config, project_path
 
-    if config is None and not (resume and out) and not Path(default).is_file() and (_ROOT / default).is_file():
-        default = str(_ROOT / default)  # run from another folder: this checkout's config
     if config is None:
-        config = str(Path(out) / "config.yaml") if resume and out else default
+        config = str(Path(out) / "config.yaml") if resume and out else str(project_path(default))
     given = {k: v for k, v in overrides.items() if v is not None}
     return load_config(config, {section: given}), Path(out or Path("runs") / f"{prefix}_{Path(config).stem}")
 
