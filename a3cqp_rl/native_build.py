@@ -22,7 +22,7 @@ from typing import Callable, Generic, TypeVar
 
 import numpy as np
 
-__all__ = ["library_path", "enabled", "address", "LazyLibrary", "REBUILD_HINT"]
+__all__ = ["library_path", "enabled", "address", "contiguous", "LazyLibrary", "REBUILD_HINT"]
 
 T = TypeVar("T")
 
@@ -42,6 +42,11 @@ def library_path(source: Path) -> Path | None:
 def enabled(var: str) -> bool:
     """False when the environment variable `var` switches the native code off (0, false, no, off)."""
     return os.environ.get(var, "1").strip().lower() not in ("0", "false", "no", "off")
+
+
+def contiguous(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+    """`a` as a C-contiguous array of `dtype` (itself where it is one already), for a C argument."""
+    return np.ascontiguousarray(a, dtype=dtype)
 
 
 def address(a: np.ndarray) -> int:

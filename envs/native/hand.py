@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from a3cqp_rl.native_build import LazyLibrary, address
+from a3cqp_rl.native_build import LazyLibrary, address, contiguous
 
 if TYPE_CHECKING:
     from a3cqp_rl.robot.sim import PandaSim
@@ -72,10 +72,6 @@ def numpy_hand() -> AbstractContextManager[None]:
     return _library.off()
 
 
-def _i64(a: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=np.int64)
-
-
 class NativeHand:
     """Operator.wrench and PandaSim.push in C for one operator and its sim (addresses taken once: the operator's
     and MjData's arrays are written in place for their lives)."""
@@ -98,8 +94,8 @@ class NativeHand:
             body = sim.model.site_bodyid[sid]
             mask = sim._ancestor_mask(int(body[0]))
             d = sim.data
-            self._keep = (d, _i64(sid), _i64(body), _i64(sim.model.body_rootid[body]), _i64(sim._dadr),
-                          None if mask is None else np.ascontiguousarray(mask, dtype=np.float64))
+            self._keep = (d, *(contiguous(a, np.int64) for a in (sid, body, sim.model.body_rootid[body], sim._dadr)),
+                          None if mask is None else contiguous(mask))
             _, s, b, r, dadr, m = self._keep
             self._sim = sim
             self._push = _PushArgs(n=sim.n, site_xpos=address(d.site_xpos), xipos=address(d.xipos),

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from a3cqp_rl.native_build import LazyLibrary, address
+from a3cqp_rl.native_build import LazyLibrary, address, contiguous
 
 __all__ = ["NativePeriod", "native_period", "numpy_period", "SOURCE", "WHY"]
 
@@ -58,10 +58,6 @@ def numpy_period() -> AbstractContextManager[None]:
     return _library.off()
 
 
-def _f64(a: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=np.float64)
-
-
 class NativePeriod:
     """`period_measure` and `period_checks` of one env's constants: the datasheet's joint limits (rad, rad/s), the
     divergence bounds, and the F/T site and the handle from the tool tip (tool frame, m)."""
@@ -69,7 +65,7 @@ class NativePeriod:
     def __init__(self, lib: ctypes.CDLL, n: int, dq_max: np.ndarray, q_lo: np.ndarray, q_hi: np.ndarray,
                  speed_factor: float, penetration: float, o_ft: np.ndarray, o_handle: np.ndarray) -> None:
         self._lib, self.n = lib, n
-        self._keep = tuple(_f64(a) for a in (dq_max, q_lo, q_hi, o_ft, o_handle))
+        self._keep = tuple(contiguous(a) for a in (dq_max, q_lo, q_hi, o_ft, o_handle))
         self._args = _Args(n, float(speed_factor), float(penetration), *(address(a) for a in self._keep))
         self._ref = ctypes.byref(self._args)
         self._bad = np.zeros(n, dtype=np.uint8)

@@ -33,7 +33,7 @@ from a3cqp_rl.control import native as control_native
 from a3cqp_rl.control.context import N_VARS
 from a3cqp_rl.control.controller import SUBSET_MIN_IDLE, A3CQPController
 from a3cqp_rl.control.population import PopulationController
-from a3cqp_rl.native_build import LazyLibrary, address, library_path
+from a3cqp_rl.native_build import LazyLibrary, address, contiguous, library_path
 from a3cqp_rl.qp import native as qp_native
 from a3cqp_rl.qp.solver import MAX_STEPS, QPSolution, solve_qp
 from a3cqp_rl.robot import sense
@@ -172,10 +172,6 @@ def numpy_tick():  # noqa: ANN201
     return _library.off()
 
 
-def _c(a: np.ndarray, dtype=np.float64) -> np.ndarray:  # noqa: ANN001
-    return np.ascontiguousarray(a, dtype=dtype)
-
-
 class NativeTick:
     """One PandaEnv's control period in C: `prepare` once per agent period (its inputs and masks), `run` per control
     period (which sets the env's measurement attributes as `_measure` does: new arrays each period)."""
@@ -201,7 +197,7 @@ class NativeTick:
         a.period_args = ctypes.addressof(env._period._args)
         a.params = step._p
         a.hand_args, a.push_args = ctypes.addressof(env._hand._args), ctypes.addressof(env._hand._push)
-        idx = {"act": _c(sim._act, np.int64), "dadr": _c(sim._dadr, np.int64), "geom_arm": _c(sim._geom_arm, np.int64)}
+        idx = {name: contiguous(getattr(sim, "_" + name), np.int64) for name in ("act", "dadr", "geom_arm")}
         self._keep = [idx]
         for name, arr in idx.items():
             setattr(a, name, address(arr))
@@ -242,7 +238,7 @@ class NativeTick:
         a.z0_sub, a.leak_sub = address(self._z0_sub), address(self._leak_sub)
         self._strides = np.array([nq * nq, nq, 0, 0, m * nq, m, nq, nq, m + 2 * nq], dtype=np.int64)
         self._q_des, self._qd_des = np.zeros((n, 7)), np.zeros((n, 7))
-        self._tau_max = _c(ctrl._tau_max_np)
+        self._tau_max = contiguous(ctrl._tau_max_np)
         for name, arr in (("packed", self._packed), ("asm_out", self._asm), ("warm", self._warm_buf),
                           ("qp_out", self._qp_out), ("tout", self._tout), ("ok", self._ok), ("strides", self._strides),
                           ("q_des", self._q_des), ("qd_des", self._qd_des), ("tau_max", self._tau_max)):
@@ -279,19 +275,19 @@ class NativeTick:
             return False
         idle = env.parked
         w = weights * ctrl._weight_on if population else weights
-        keep = [_c(w.numpy()), _c(f_d.numpy()), _c(pos_d.numpy()), _c(rot_d.numpy())]
+        keep = [contiguous(t.numpy()) for t in (w, f_d, pos_d, rot_d)]
         for name, arr in zip(("weights", "f_d", "pos_d", "rot_d"), keep):
             setattr(a, name, address(arr))
         held = env.operator.active if env.pcfg.joint_limits_f_ext == "operator" else np.zeros(n, dtype=bool)
         keep.append(held.astype(np.float64))
         a.f_ext_limits = address(keep[-1])
         if population:
-            keep.append(_c(ctrl._robot_rows[0]))
+            keep.append(contiguous(ctrl._robot_rows[0]))
             a.robot_rows = address(keep[-1])
         else:
             a.robot_rows = None
         if env._idle_leak is not None:
-            keep.append(_c(ctrl._check_leak_extra(torch.from_numpy(env._idle_leak), env.q)))
+            keep.append(contiguous(ctrl._check_leak_extra(torch.from_numpy(env._idle_leak), env.q)))
             a.leak_extra = address(keep[-1])
         else:
             a.leak_extra = None
@@ -312,7 +308,7 @@ class NativeTick:
             setattr(a, name, address(arr))
         hand = env._noise.get("hand")
         if hand is not None:
-            keep.append(_c(hand))
+            keep.append(contiguous(hand))
             a.noise, a.noise_stride = address(keep[-1]), 3 * hand.shape[1]
         else:
             a.noise, a.noise_stride = None, 0
@@ -414,9 +410,7 @@ def native_tick(env: PandaEnv) -> NativeTick | None:
     sim, sensor errors, a piece in numpy, a controller the C step does not translate)."""
     if not isinstance(env.sim, PandaSim) or env._hand is None or not env._hand.pushes or env._period is None:
         return None
-    sen = env.pcfg.sensors
-    if (sen.ft_force_noise > 0 or sen.ft_torque_noise > 0 or sen.joint_torque_noise > 0 or sen.joint_torque_bias > 0
-            or sen.ft_force_bias > 0 or sen.ft_torque_bias > 0 or sen.tare_time > 0):
+    if not env.pcfg.sensors.ideal:
         return None
     if env.sim._native_observe is None or env.sim._cs is None or env.ctrl._native is None:
         return None
