@@ -154,6 +154,7 @@ class EnvLayout:
     agents: tuple[int, ...] = ()
     low: tuple[float, ...] | None = None
     high: tuple[float, ...] | None = None
+    _bounds: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def samples(self) -> int:
@@ -164,8 +165,15 @@ class EnvLayout:
         """Normalised raw actions [..., act] -> the env's units: clipped to [-1, 1], then mid + half·a (bounded)."""
         if self.low is None:
             return raw
-        lo, hi = torch.tensor(self.low, dtype=raw.dtype), torch.tensor(self.high, dtype=raw.dtype)
-        return (hi + lo) / 2 + (hi - lo) / 2 * raw.clamp(-1.0, 1.0)
+        mid, half = self._mid_half(raw.dtype)
+        return mid + half * raw.clamp(-1.0, 1.0)
+
+    def _mid_half(self, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+        """(hi + lo) / 2 and (hi - lo) / 2 in `dtype` (made once per dtype: `to_env` runs every env step)."""
+        if dtype not in self._bounds:
+            lo, hi = torch.tensor(self.low, dtype=dtype), torch.tensor(self.high, dtype=dtype)
+            self._bounds[dtype] = ((hi + lo) / 2, (hi - lo) / 2)
+        return self._bounds[dtype]
 
     def unit_bounds(self) -> bool:
         """Whether the action bounds are [-1, 1] in every dim (the fused path's, and the point mass's)."""
@@ -244,10 +252,13 @@ class HeldNoise:
         self.t, self.current = int(d["t"]), d["current"].clone()
 
 
-def _sample_action(layout: ParamLayout, flat: Tensor, obs: Tensor, noise: Tensor) -> tuple[Tensor, list[Tensor]]:
-    """Unclipped Gaussian action mean + σ·noise [B, act], and the policy's activations at `obs`."""
-    mu, acts = policy_forward(layout, flat, obs)
-    return mu + torch.exp(layout.views(flat)["log_std"]) * noise, acts
+def _sample_action(layout: ParamLayout, flat: Tensor, obs: Tensor, noise: Tensor,
+                   params: dict[str, Tensor] | None = None) -> tuple[Tensor, list[Tensor]]:
+    """Unclipped Gaussian action mean + σ·noise [B, act], and the policy's activations at `obs` (`params`: as in
+    `policy_forward`)."""
+    p = layout.views(flat) if params is None else params
+    mu, acts = policy_forward(layout, flat, obs, p)
+    return mu + torch.exp(p["log_std"]) * noise, acts
 
 
 def rollout_step(layout: ParamLayout, env_step, flat: Tensor, state: dict, pending: dict, schedule: Tensor,
@@ -451,12 +462,13 @@ def _sampling_policy_class() -> type:
             super().__init__()
             self.in_keys, self.out_keys = ["observation"], ["action", "action_raw"]
             self.layout, self.flat, self.env_layout, self.noise, self.dtype = layout, flat, spec, noise, dtype
+            self.params = layout.views(flat)  # views into `flat`, which the rollout updates in place
 
         def forward(self, td):
             obs = td.get("observation")
             noise = self.noise.draw(1)[0].reshape(obs.shape[:-1] + (self.layout.act_dim,))
             raw, _ = _sample_action(self.layout, self.flat, obs.reshape(-1, obs.shape[-1]).float(),
-                                    noise.reshape(-1, self.layout.act_dim))
+                                    noise.reshape(-1, self.layout.act_dim), self.params)
             raw = raw.reshape(noise.shape)
             td.set("action", self.env_layout.to_env(raw).to(self.dtype))
             td.set("action_raw", raw)

@@ -2,9 +2,9 @@
 
 Registered names are listed in `a3cqp_rl.config.ENV_FACTORIES` as "module:function" strings; each function takes
 (cfg, num_envs, seed) and returns a seeded TorchRL EnvBase with batch_size [num_envs]. Any other name must be a
-gymnasium id: it runs as ONE batched env, gymnasium's synchronous vector env of `num_envs` copies wrapped by TorchRL's
-`GymWrapper` (in-process, ~19k steps/s for Pendulum-v1 with 8 copies here; TorchRL's `GymEnv(num_envs=...)` starts
-one process per copy, slower on small machines).
+gymnasium id: it runs as ONE batched env, gymnasium's synchronous vector env of `num_envs` copies in-process (TorchRL's
+`GymEnv(num_envs=...)` starts one process per copy, slower on small machines), as `envs.gym_vector.GymVectorEnv`
+where its spaces are flat Boxes (the A2C's case) and through TorchRL's `GymWrapper` otherwise.
 """
 
 from __future__ import annotations
@@ -36,21 +36,27 @@ def point_mass(cfg: ExperimentConfig, num_envs: int, seed: int):
 
 
 def gym_env(env_id: str, num_envs: int, seed: int):
-    """gymnasium `env_id` × num_envs as one TorchRL env, batch_size [num_envs], seeded."""
+    """gymnasium `env_id` × num_envs as one TorchRL env, batch_size [num_envs], seeded: `envs.gym_vector.GymVectorEnv`
+    for 1-D float Box observations and actions, TorchRL's `GymWrapper` for any other spaces."""
     import logging
 
     import gymnasium as gym
     from torchrl.envs import GymWrapper
 
-    # TorchRL reads the final observation of an episode (for bootstrapping at truncation) only in SAME_STEP mode
+    from envs.gym_vector import GymVectorEnv, supported
+
+    # the final observation of an episode (for bootstrapping at truncation) comes with the step only in SAME_STEP mode
     vec = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="sync",
                        vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
-    log = logging.getLogger("torchrl")
-    level = log.level
-    log.setLevel(logging.WARNING)  # GymWrapper logs its spec probing at INFO on every construction
-    try:
-        env = GymWrapper(vec)
-    finally:
-        log.setLevel(level)
+    if supported(vec):
+        env = GymVectorEnv(vec)
+    else:
+        log = logging.getLogger("torchrl")
+        level = log.level
+        log.setLevel(logging.WARNING)  # GymWrapper logs its spec probing at INFO on every construction
+        try:
+            env = GymWrapper(vec)
+        finally:
+            log.setLevel(level)
     env.set_seed(seed)
     return env

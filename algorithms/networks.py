@@ -131,9 +131,12 @@ def forward(
     return mu, p["log_std"], values, cache
 
 
-def policy_forward(layout: ParamLayout, flat: Tensor, obs: Tensor) -> tuple[Tensor, list[Tensor]]:
-    """Policy mean [B, act] and the policy stack's activations (for `forward`); reads the first obs_dim columns of `obs`."""
-    p = layout.views(flat)
+def policy_forward(layout: ParamLayout, flat: Tensor, obs: Tensor,
+                   params: dict[str, Tensor] | None = None) -> tuple[Tensor, list[Tensor]]:
+    """Policy mean [B, act] and the policy stack's activations (for `forward`); reads the first obs_dim columns of `obs`.
+
+    `params`: `layout.views(flat)`, where the caller keeps them (building the views costs more than a small forward)."""
+    p = layout.views(flat) if params is None else params
     stack = "pi" if layout.network == "separate" else "trunk"
     acts = _stack_forward(p, stack, len(layout.hidden), obs[:, : layout.obs_dim])
     return torch.addmm(p["pi.out.b"], acts[-1], p["pi.out.w"].T), acts
