@@ -5,7 +5,9 @@ RMSProp, GAE 0.9, γ 0.9, advantages normalised, [64, 64] tanh MLPs), `torch.set
 the two alternate R times and medians are reported. Only SB3's `learn()` is timed (construction excluded); ours is
 `algorithms.a2c.train(cfg, None, total_steps=N)`'s steps/s (compile time excluded, shown separately).
   - SB3: `A2C("MlpPolicy", make_vec_env("Pendulum-v1", n_envs), ...)`: a DummyVecEnv, actions clipped to [-2, 2].
-  - ours: gymnasium's synchronous vector env in TorchRL's GymWrapper, a TorchRL Collector, the hand-derived update.
+  - ours: gymnasium's synchronous vector env as `envs.gym_vector.GymVectorEnv`, a TorchRL Collector, the
+    hand-derived update; and the same trainer on TorchRL's `GymWrapper` around the same vector env (what
+    `algorithms.make_env.gym_env` used before GymVectorEnv), the baseline of the env's cost.
 Learning (`--learn`): trains the config for its 1e6 steps on each seed and evaluates the final policy
 deterministically (the mean action) on 20 fresh episodes per seed (seeds 1000 + s): a random policy scores about
 −1200 per episode, the config's target is −400 or better.
@@ -55,12 +57,28 @@ def run_sb3(cfg, steps: int) -> float:
         env.close()
 
 
-def run_ours(cfg, steps: int) -> tuple[float, float, dict]:
-    """Our steps/s (compile excluded), compile seconds and the loop's timing blocks."""
+def run_ours(cfg, steps: int, wrapper: bool = False) -> tuple[float, float, dict]:
+    """Our steps/s (compile excluded), compile seconds and the loop's timing blocks; `wrapper`: on TorchRL's
+    GymWrapper instead of GymVectorEnv."""
     from algorithms.a2c import train
 
-    res = train(cfg, None, total_steps=steps)
+    res = train(cfg, None, total_steps=steps, env=gym_wrapper_env(cfg) if wrapper else None)
     return res.steps_per_second, res.compile_seconds, res.timings
+
+
+def gym_wrapper_env(cfg):  # noqa: ANN201
+    """Pendulum-v1 × a2c.num_envs in TorchRL's GymWrapper (SAME_STEP auto-reset), seeded with the config's seed."""
+    import logging
+
+    import gymnasium as gym
+    from torchrl.envs import GymWrapper
+
+    vec = gym.make_vec("Pendulum-v1", num_envs=cfg.a2c.num_envs, vectorization_mode="sync",
+                       vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # GymWrapper logs its spec probing at INFO
+    env = GymWrapper(vec)
+    env.set_seed(cfg.seed)
+    return env
 
 
 def evaluate(policy_path: Path, seed: int, episodes: int = 20) -> float:
@@ -119,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"Pendulum-v1, {a.num_envs} envs x n={a.n_steps} per update, {steps:,} steps per run, {repeats} run(s) "
           f"each (median); torch threads 1, {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}; "
           f"stable-baselines3 {sb3_version}, torch {torch.__version__}, python {sys.version.split()[0]}")
-    sb3, ours, compile_s, blocks = [], [], [], {}
+    sb3, ours, wrapped, compile_s, blocks = [], [], [], [], {}
     for i in range(repeats):
         if sb3_version:
             sb3.append(run_sb3(cfg, steps))
@@ -129,12 +147,16 @@ def main(argv: list[str] | None = None) -> int:
         compile_s.append(comp)
         print(f"  run {i + 1}: ours {rate:>8,.0f} steps/s (+ {comp:.1f} s compiling; "
               + ", ".join(f"{k} {v:.2f} s" for k, v in blocks.items()) + ")", flush=True)
+        wrapped.append(run_ours(cfg, steps, wrapper=True)[0])
+        print(f"  run {i + 1}: ours on GymWrapper {wrapped[-1]:>8,.0f} steps/s", flush=True)
     print(f"{'trainer':<44} {'steps/s':>9} {'1e6 steps':>10}")
-    for name, rates in (("SB3 A2C (MlpPolicy, DummyVecEnv)", sb3), ("ours (algorithms.a2c.train, Collector)", ours)):
+    for name, rates in (("SB3 A2C (MlpPolicy, DummyVecEnv)", sb3), ("ours (algorithms.a2c.train, Collector)", ours),
+                        ("ours on TorchRL's GymWrapper", wrapped)):
         if rates:
             print(f"{name:<44} {statistics.median(rates):>9,.0f} {1e6 / statistics.median(rates) / 60:>8.1f} min")
     if sb3:
         print(f"ratio ours/SB3 (median steps/s): {statistics.median(ours) / statistics.median(sb3):.2f}x")
+    print(f"ratio GymVectorEnv/GymWrapper (median steps/s): {statistics.median(ours) / statistics.median(wrapped):.2f}x")
     if args.learn:
         learn(Path(args.config), [int(s) for s in args.seeds.split(",")], Path(args.out))
     return 0
