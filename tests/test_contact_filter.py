@@ -94,6 +94,23 @@ def test_callback_keeps_mujocos_contype_conaffinity_test_for_any_model() -> None
     assert with_ours == without == {("a", "c")}  # b overlaps a, but 2 & 1 = 0 both ways
 
 
+def test_a_registration_dropped_without_detach_frees_its_slot_and_holds_its_model_until_then() -> None:
+    """The filter finds a registration by its model's and data's addresses: one left registered after they were
+    freed would be matched by a model and data allocated there later. Registrations hold both, and free their slot
+    when collected: 300 attach-and-drop rounds (the registry has 256 slots) all register."""
+    m = _peg_in_bore(0.0)
+    peg, box = [m.geom("peg").id], [m.geom("hole_block_seg0").id]
+    for _ in range(300):
+        assert contact_filter.attach(m, mujoco.MjData(m), peg, box) is not None  # dropped at once
+    other = _peg_in_bore(0.0)
+    reg = contact_filter.attach(other, mujoco.MjData(other), peg, box)  # the data: held by the registration only
+    held_m, held_d = reg._arrays[:2]
+    assert held_m is other and isinstance(held_d, mujoco.MjData) and held_d.model is other
+    reg.detach()
+    reg.detach()  # once
+    assert reg._arrays is None
+
+
 def test_another_contact_filter_is_left_alone(monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
                                               ) -> None:
     before = mujoco.get_mjcb_contactfilter()

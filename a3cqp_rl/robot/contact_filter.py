@@ -22,6 +22,7 @@ from __future__ import annotations
 import ctypes
 import logging
 import threading
+import weakref
 from pathlib import Path
 
 import mujoco
@@ -124,8 +125,9 @@ def bounding_cylinder(m: mujoco.MjModel, geom: int) -> tuple[int, float, float]:
 def attach(m: mujoco.MjModel, d: mujoco.MjData, tools: np.ndarray, boxes: np.ndarray) -> Registration | None:
     """Register (m, d) with the pre-filter for the pairs of the mesh geoms `tools` and the box geoms `boxes`.
 
-    Returns the Registration (detach it before m or d is freed; PandaSim does at its collection), or None when
-    nothing is filtered (no library, another filter, MuJoCo's contact override, or every registration slot taken)."""
+    Returns the Registration (it holds m and d until detached or collected; PandaSim detaches it at its own
+    collection), or None when nothing is filtered (no library, another filter, MuJoCo's contact override, or every
+    registration slot taken)."""
     lib = _library.get()
     tools, boxes = np.asarray(tools, dtype=np.intp), np.asarray(boxes, dtype=np.intp)
     if lib is None or not len(tools) or not len(boxes):
@@ -156,15 +158,20 @@ def attach(m: mujoco.MjModel, d: mujoco.MjData, tools: np.ndarray, boxes: np.nda
     if slot < 0:
         _log.warning("contact pre-filter: every registration slot is taken; this simulation runs without it")
         return None
-    return Registration(lib, slot, (role, cylinder))
+    return Registration(lib, slot, (m, d, role, cylinder))
 
 
 class Registration:
-    """One (model, data) registered with the pre-filter: its counts, and `detach()` (before m or d is freed)."""
+    """One (model, data) registered with the pre-filter: its counts, and `detach()`.
 
-    def __init__(self, lib: ctypes.CDLL, slot: int, arrays: tuple[np.ndarray, ...]) -> None:
-        self._lib, self._slot, self._arrays = lib, slot, arrays  # the slot reads `arrays` until detach()
+    The filter finds a registration by the addresses of its model and data, so it holds both: a registration
+    dropped without `detach()` while they were freed would match a model and data allocated later at the same
+    addresses, and be read with the old one's arrays. It detaches itself when collected."""
+
+    def __init__(self, lib: ctypes.CDLL, slot: int, keep: tuple) -> None:
+        self._lib, self._slot, self._arrays = lib, slot, keep  # the slot reads these until detach()
         self._out = np.zeros(3, dtype=np.int64)
+        self._unregister = weakref.finalize(self, lib.cf_unregister, slot)
 
     def counts(self) -> tuple[int, int]:
         """(tool-box pairs seen, pairs dropped) so far."""
@@ -177,6 +184,5 @@ class Registration:
 
     def detach(self) -> None:
         """Unregister (once); the filter then leaves this model's pairs to MuJoCo."""
-        if self._arrays is not None:
-            self._lib.cf_unregister(self._slot)
-            self._arrays = None
+        self._unregister()  # (a finalizer runs once)
+        self._arrays = None
