@@ -103,3 +103,13 @@ def test_other_spaces_go_through_torchrls_gymwrapper_and_the_env_refuses_them():
         GymVectorEnv(vec)
     with pytest.raises(ValueError, match="SAME_STEP"):
         GymVectorEnv(gym.vector.SyncVectorEnv([Countdown] * 2))  # gymnasium's default: NEXT_STEP
+
+
+def test_a_gymnasium_mujoco_task_runs_with_its_float64_observations_and_uneven_episode_ends():
+    env = gym_env("InvertedPendulum-v5", 4, seed=0)  # needs gymnasium[mujoco] (imageio), a project dependency
+    assert isinstance(env, GymVectorEnv) and env.observation_spec["observation"].dtype == torch.float64
+    check_env_specs(env)
+    td = env.rollout(120, break_when_any_done=False)  # random actions: the pole falls within tens of steps
+    ends = td["next", "done"][..., 0]
+    assert ends.any(1).all() and not torch.equal(ends[0], ends[1])  # every env ended, at different steps
+    assert torch.isfinite(td["next", "observation"]).all()
