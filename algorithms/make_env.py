@@ -35,9 +35,10 @@ def point_mass(cfg: ExperimentConfig, num_envs: int, seed: int):
     return env
 
 
-def gym_env(env_id: str, num_envs: int, seed: int):
+def gym_env(env_id: str, num_envs: int, seed: int, torchrl_wrapper: bool = False):
     """gymnasium `env_id` × num_envs as one TorchRL env, batch_size [num_envs], seeded: `envs.gym_vector.GymVectorEnv`
-    for 1-D float Box observations and actions, TorchRL's `GymWrapper` for any other spaces."""
+    for 1-D float Box observations and actions, TorchRL's `GymWrapper` for any other spaces (or for every space with
+    `torchrl_wrapper`: the baseline of `bench/pendulum.py`)."""
     import logging
 
     import gymnasium as gym
@@ -48,7 +49,7 @@ def gym_env(env_id: str, num_envs: int, seed: int):
     # the final observation of an episode (for bootstrapping at truncation) comes with the step only in SAME_STEP mode
     vec = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="sync",
                        vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
-    if supported(vec):
+    if supported(vec) and not torchrl_wrapper:
         env = GymVectorEnv(vec)
     else:
         log = logging.getLogger("torchrl")

@@ -61,24 +61,11 @@ def run_ours(cfg, steps: int, wrapper: bool = False) -> tuple[float, float, dict
     """Our steps/s (compile excluded), compile seconds and the loop's timing blocks; `wrapper`: on TorchRL's
     GymWrapper instead of GymVectorEnv."""
     from algorithms.a2c import train
+    from algorithms.make_env import gym_env
 
-    res = train(cfg, None, total_steps=steps, env=gym_wrapper_env(cfg) if wrapper else None)
+    env = gym_env("Pendulum-v1", cfg.a2c.num_envs, cfg.seed, torchrl_wrapper=True) if wrapper else None
+    res = train(cfg, None, total_steps=steps, env=env)
     return res.steps_per_second, res.compile_seconds, res.timings
-
-
-def gym_wrapper_env(cfg):  # noqa: ANN201
-    """Pendulum-v1 × a2c.num_envs in TorchRL's GymWrapper (SAME_STEP auto-reset), seeded with the config's seed."""
-    import logging
-
-    import gymnasium as gym
-    from torchrl.envs import GymWrapper
-
-    vec = gym.make_vec("Pendulum-v1", num_envs=cfg.a2c.num_envs, vectorization_mode="sync",
-                       vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
-    logging.getLogger("torchrl").setLevel(logging.WARNING)  # GymWrapper logs its spec probing at INFO
-    env = GymWrapper(vec)
-    env.set_seed(cfg.seed)
-    return env
 
 
 def evaluate(policy_path: Path, seed: int, episodes: int = 20) -> float:

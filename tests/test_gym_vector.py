@@ -40,9 +40,8 @@ def test_specs_check_and_a_pendulum_rollout_matches_torchrls_gymwrapper():
     check_env_specs(gym_env("Pendulum-v1", 3, seed=4))
     env = gym_env("Pendulum-v1", 3, seed=4)
     assert isinstance(env, GymVectorEnv)
-    ref = GymWrapper(gym.make_vec("Pendulum-v1", num_envs=3, vectorization_mode="sync",
-                                  vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}))
-    ref.set_seed(4)
+    ref = gym_env("Pendulum-v1", 3, seed=4, torchrl_wrapper=True)
+    assert isinstance(ref.base_env, GymWrapper)
     actions = torch.rand(150, 3, 1, generator=torch.Generator().manual_seed(0)) * 4 - 2
     a, b = env.reset(), ref.reset()
     for act in actions:  # within the first episode (Pendulum truncates at 200 steps)
