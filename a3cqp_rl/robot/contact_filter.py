@@ -125,9 +125,9 @@ def bounding_cylinder(m: mujoco.MjModel, geom: int) -> tuple[int, float, float]:
 def attach(m: mujoco.MjModel, d: mujoco.MjData, tools: np.ndarray, boxes: np.ndarray) -> Registration | None:
     """Register (m, d) with the pre-filter for the pairs of the mesh geoms `tools` and the box geoms `boxes`.
 
-    Returns the Registration (it holds m and d until detached or collected; PandaSim detaches it at its own
-    collection), or None when nothing is filtered (no library, another filter, MuJoCo's contact override, or every
-    registration slot taken)."""
+    Returns the Registration (it holds m and d until detached or collected; PandaSim's goes with the sim), or None
+    when nothing is filtered (no library, another filter, MuJoCo's contact override, or every registration slot
+    taken)."""
     lib = _library.get()
     tools, boxes = np.asarray(tools, dtype=np.intp), np.asarray(boxes, dtype=np.intp)
     if lib is None or not len(tools) or not len(boxes):

@@ -399,10 +399,7 @@ class PandaSim:
                                & (m.geom_type == int(mujoco.mjtGeom.mjGEOM_MESH)))
         boxes = np.flatnonzero(collides & (m.body_weldid[m.geom_bodyid] == 0)
                                & (m.geom_type == int(mujoco.mjtGeom.mjGEOM_BOX)))
-        registration = contact_filter.attach(m, self.data, tools, boxes)
-        if registration is not None:
-            weakref.finalize(self, registration.detach)
-        return registration
+        return contact_filter.attach(m, self.data, tools, boxes)  # detached when collected with this sim
 
     def contact_filter_counts(self) -> tuple[int, int]:
         """(tool-box pairs MuJoCo's broad phase passed, pairs the exact pre-filter dropped) so far; (0, 0) without
