@@ -104,11 +104,11 @@ def test_a_registration_dropped_without_detach_frees_its_slot_and_holds_its_mode
         assert contact_filter.attach(m, mujoco.MjData(m), peg, box) is not None  # dropped at once
     other = _peg_in_bore(0.0)
     reg = contact_filter.attach(other, mujoco.MjData(other), peg, box)  # the data: held by the registration only
-    held_m, held_d = reg._arrays[:2]
+    held_m, held_d = reg._held[:2]
     assert held_m is other and isinstance(held_d, mujoco.MjData) and held_d.model is other
     reg.detach()
     reg.detach()  # once
-    assert reg._arrays is None
+    assert reg._held is None
 
 
 def test_another_contact_filter_is_left_alone(monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture

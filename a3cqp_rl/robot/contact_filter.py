@@ -169,7 +169,7 @@ class Registration:
     addresses, and be read with the old one's arrays. It detaches itself when collected."""
 
     def __init__(self, lib: ctypes.CDLL, slot: int, keep: tuple) -> None:
-        self._lib, self._slot, self._arrays = lib, slot, keep  # the slot reads these until detach()
+        self._lib, self._slot, self._held = lib, slot, keep  # the model, data and arrays the slot reads until detach()
         self._out = np.zeros(3, dtype=np.int64)
         self._unregister = weakref.finalize(self, lib.cf_unregister, slot)
 
@@ -185,4 +185,4 @@ class Registration:
     def detach(self) -> None:
         """Unregister (once); the filter then leaves this model's pairs to MuJoCo."""
         self._unregister()  # (a finalizer runs once)
-        self._arrays = None
+        self._held = None
