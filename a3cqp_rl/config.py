@@ -1026,7 +1026,10 @@ class PandaEnvConfig:
     the tool axis's IK error"). With a bound, a tool in contact (|f_env| > the controller's contact threshold) whose
     scene reference advanced along the axis in its last update gets a reference not behind it either: a schedule
     that lags the peg down the bore does not pull it back (docs/panda.md, "An IK reference that does not lag the
-    peg"). Arms whose weights `PandaEnv.hold_weights` sets (the scripted baselines) keep the scene's reference."""
+    peg"). A scene reference that moved back along the axis in its last update (the return home of `--cycles`) is
+    not held behind the tool: it pulls a peg the bore holds out, as the baselines' does (docs/panda.md, "The return
+    home pulls a held peg out"). Arms whose weights `PandaEnv.hold_weights` sets (the scripted baselines) keep the
+    scene's reference."""
     ik_bound_blocked: float | None = None
     """With `ik_bound_tool_axis`: how far [m] that reference may run ahead of a blocked tool along the tool axis, a
     tool pressed back along its axis by more than `blocked_force` (f_env) that moves along it slower than

@@ -406,8 +406,9 @@ class PandaEnv(EnvBase):
 
     def _controller_reference(self, scale: np.ndarray | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The scene's reference, along the tool axis within `ik_bound_tool_axis` of the tool (`ik_bound_blocked`
-        ahead of a blocked tool) and, in contact while the scene's reference advances along the axis, not behind it
-        (`ik_lead_sliding` ahead of a tool sliding forward; the policy's arms), moved toward the tool by
+        ahead of a blocked tool; not held behind a tool in contact whose scene reference moves back) and, in contact
+        while the scene's reference advances along the axis, not behind it (`ik_lead_sliding` ahead of a tool sliding
+        forward; the policy's arms), moved toward the tool by
         `stiffness_scale` (times `scale` [N, 6]) where it is not 1 (arm frame)."""
         pos_d, rot_d = self.scene.pos_d.copy(), self.scene.rot_d.copy()
         bound = self.pcfg.ik_bound_tool_axis
@@ -419,8 +420,13 @@ class PandaEnv(EnvBase):
             # the wrench the agents observe: one noisy 1-kHz sample above the contact threshold in free motion would
             # otherwise set a lead there
             f_env = self.observed_wrenches()[0]
-            ahead = self.ctrl.contact_from(torch.from_numpy(f_env)).numpy() & (
-                np.einsum("nk,nk->n", self._ref_step, axis) > 0.0)
+            ref_along = np.einsum("nk,nk->n", self._ref_step, axis)
+            contact = self.ctrl.contact_from(torch.from_numpy(f_env)).numpy()
+            ahead = contact & (ref_along > 0.0)
+            # the bound is against a reference that runs on into the block; one the procedure moves back (the return
+            # home of --cycles) from a tool in contact pulls a peg the bore still holds out, as the scripted
+            # baselines' does, and is not held 20 mm behind it (docs/panda.md, "The return home pulls a held peg out")
+            behind = np.where(contact & (ref_along < 0.0), -np.inf, -bound)
             ahead_max = np.full(self.num_envs, bound)
             v_axis = np.einsum("nk,nk->n", self._twist[:, :3], axis)
             # a peg sliding down the bore behind a shallow schedule would follow the schedule's pace (w1 ~ 0.9 there,
@@ -433,7 +439,7 @@ class PandaEnv(EnvBase):
                 blocked = pressed & (np.abs(v_axis) < self.pcfg.blocked_speed)
                 ahead_max[blocked] = self.pcfg.ik_bound_blocked
             # the blocked bound wins over the lead: np.clip is min(max(ez, lo), hi)
-            target = np.clip(ez, np.where(ahead, lead, -bound), ahead_max)
+            target = np.clip(ez, np.where(ahead, lead, behind), ahead_max)
             moved = (target != ez) & ~self._scripted
             if moved.any():
                 pos_d[moved] += (target - ez)[moved, None] * axis[moved]

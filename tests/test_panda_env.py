@@ -648,6 +648,27 @@ def test_in_contact_an_advancing_reference_is_not_left_behind_the_tool() -> None
     np.testing.assert_allclose(np.einsum("nk,nk->n", e, axis), [0.02, 0.02, 0.02, 0.05, 0.02], atol=1e-12)
 
 
+def test_a_reference_that_moves_back_is_not_held_behind_the_tool() -> None:
+    """A reference 50 mm behind the tool along its axis stays there where the tool is in contact and the scene's
+    reference moved back along the axis (arms 0, 1: the return home pulls a peg the bore holds out); it is held 20 mm
+    behind where the reference stood still (arm 2), moved across the axis only (arm 3) or the tool is free (arm 4)."""
+    env = PandaEnv(5, _cfg({"panda": {"ik_bound_tool_axis": 0.02}}), seed=0)
+    env.reset()
+    axis = env.rot[:, :, 2]
+    across = np.cross(axis, np.array([1.0, 0.0, 0.0]))
+    across /= np.linalg.norm(across, axis=1, keepdims=True)
+    env.scene.pos_d[:] = env.pos - 0.05 * axis
+    env._ref_step[:] = 0.0
+    env._ref_step[[0, 1, 4]] = -0.004 * axis[[0, 1, 4]]
+    env._ref_step[3] = 0.004 * across[3]
+    env.f_env[:] = 0.0
+    env.f_env[:4, :3] = 8.0 * across[:4]  # the bore presses the tool sideways
+    env.f_env[1, :3] = 8.0 * axis[1]  # the bore holds the peg: the block pulls the tool along its axis
+    env._scripted = np.zeros(5, dtype=bool)
+    e = env._controller_reference()[0].numpy() - env.pos
+    np.testing.assert_allclose(np.einsum("nk,nk->n", e, axis), [-0.05, -0.05, -0.02, -0.02, -0.02], atol=1e-12)
+
+
 def test_the_reference_step_is_the_scenes_last_move_along_the_procedure() -> None:
     """`_ref_step` follows the scene's reference from one agent step to the next (peg: the approach moves it)."""
     env = PandaEnv(2, _cfg({"panda": {"ik_bound_tool_axis": 0.02}}), seed=0)
