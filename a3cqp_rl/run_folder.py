@@ -19,7 +19,7 @@ from pathlib import Path
 
 from a3cqp_rl.exceptions import A3CQPError
 
-__all__ = ["RunFolder", "RunFolderError", "RUN_FILES", "config_changes"]
+__all__ = ["RunFolder", "RunFolderError", "RUN_FILES", "check_output_path", "config_changes"]
 
 RUN_FILES = ("checkpoint.pt", "policy.pt", "metrics.csv", "config.yaml", "overrides.log")
 """What a run writes, besides the tb/ folder and its plots; `force` removes these."""
@@ -28,6 +28,24 @@ RUN_PLOTS = ("policy_map.png", "policy_map.pdf", "loss_curves.png", "regions.png
 
 class RunFolderError(A3CQPError):
     """A run folder cannot be used as asked (holds a run, is locked, is not a folder, cannot be written)."""
+
+
+def check_output_path(path: str | Path, flag: str, *, folder: bool = False) -> Path:
+    """`path` as given, checked before any work that ends by writing it: a file (`folder` False) or a folder that
+    can be created or written there; RunFolderError naming the command-line `flag` otherwise."""
+    path = Path(path)
+    if folder and path.exists() and not path.is_dir():
+        raise RunFolderError(f"{flag} {path} is a file, expected a folder")
+    if not folder and path.is_dir():
+        raise RunFolderError(f"{flag} {path} is a folder, expected a file name")
+    existing = path if folder else path.parent
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise RunFolderError(f"{flag} {path}: {existing} is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise RunFolderError(f"{flag} {path}: cannot write into {existing}")
+    return path
 
 
 class RunFolder:

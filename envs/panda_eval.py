@@ -57,6 +57,7 @@ from a3cqp_rl import worker_start
 from a3cqp_rl.checkpoint import write_atomic, write_text_atomic
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
+from a3cqp_rl.run_folder import check_output_path
 from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, guided_rates,  # noqa: F401 (re-exported)
                                 raises_ik, yields)
 from a3cqp_rl.worker_start import MAX_DEFAULT_WORKERS, default_workers  # noqa: F401 (re-exported)
@@ -839,11 +840,22 @@ def _policy_file(path: str | Path | None, from_cli: bool, cfg_path: str | Path |
     return path
 
 
-def _report(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalResult, policy: Path | None,
-            prints: str | None) -> dict:
-    """Print one evaluation (header, table, paired differences, targets) and return its JSON document."""
+def _document(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalResult, policy: Path | None,
+              prints: str | None) -> dict:
+    """One evaluation's JSON document: the metrics, the run's settings and the policy."""
+    doc = to_json(res)
+    doc["workers"] = min(args.workers, args.trials)  # the trials split into at most this many groups
+    doc["config"], doc["overrides"] = None if cfg_path is None else str(cfg_path), list(args.overrides)
+    if policy is not None:
+        doc["policy"], doc["policy_fingerprint"] = str(policy), prints
+    return doc
+
+
+def _print_report(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalResult, policy: Path | None,
+                  prints: str | None) -> None:
+    """Print one evaluation: header, table, paired differences, targets."""
     which = f"seed {args.seed}" if args.seeds is None else f"seeds {','.join(map(str, args.seeds))} pooled"
-    used = min(args.workers, args.trials)  # the trials split into at most this many groups
+    used = min(args.workers, args.trials)
     given = f" with {', '.join(args.overrides)}" if args.overrides else ""
     print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller, {which}, config {cfg_path or 'defaults'}"
           f"{given}; "
@@ -856,12 +868,6 @@ def _report(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalResu
     for lines in (format_paired(res, primary), format_targets(res, primary)):
         if lines:
             print(lines)
-    doc = to_json(res)
-    doc["workers"] = used
-    doc["config"], doc["overrides"] = None if cfg_path is None else str(cfg_path), list(args.overrides)
-    if policy is not None:
-        doc["policy"], doc["policy_fingerprint"] = str(policy), prints
-    return doc
 
 
 def _num(v: float | None, fmt: str) -> str:
@@ -948,8 +954,15 @@ def main(argv: list[str] | None = None) -> int:
             args.workers = default_workers()
         if args.workers < 1:
             raise ValueError(f"--workers must be >= 1, got {args.workers}")
+        for flag, path, folder in (("--json", args.json, False), ("--out", args.out, True)):
+            if path is not None:
+                check_output_path(path, flag, folder=folder)  # before the simulation, not after it
         cfg_path = args.config if args.config is not None else _default_config(args.scene)
         cfg = load_config(cfg_path, parse_overrides(args.overrides))
+        if cfg.panda.scene != args.scene:  # the scene's own sections would be the dataclass defaults, unnoticed
+            raise ValueError(f"{cfg_path or 'the default config'} is for the {cfg.panda.scene} scene (panda.scene); "
+                             f"for --scene {args.scene} pass its config (configs/panda_{args.scene}.yaml) or set "
+                             f"panda.scene: {args.scene} in yours")
         controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
         fixed = [load_fixed_controller(f) for f in args.controller_config]
         named = {}  # `--pick K` names every run's pick K `pareto_K`: two runs' picks can clash
@@ -960,6 +973,8 @@ def main(argv: list[str] | None = None) -> int:
             named[f.name] = path
         paths = args.policy if args.policy is not None else [cfg.panda.policy]  # the CLI's paths win
         if "learned" not in controllers:
+            if args.policy is not None:
+                raise ValueError("--policy is for the learned controller, which --controllers leaves out")
             paths = [None]  # no policy is read: a configured one need not exist
         if len(paths) > 1 and args.out:
             raise ValueError("--out records one policy's episodes: give one --policy")
@@ -986,10 +1001,16 @@ def main(argv: list[str] | None = None) -> int:
             log = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
             res = evaluate_seeds(args.scene, policy, args.trials, [args.seed] if args.seeds is None else args.seeds,
                                  cache=args.cache, policy_fingerprint=prints, log=log, **kw)
-            docs.append(_report(args, cfg_path, res, policy, prints))
-            if args.json:  # after each policy: a long sweep stopped midway keeps what ran
+            docs.append(_document(args, cfg_path, res, policy, prints))
+            # written before anything is printed (a closed pipe cannot lose them), after each policy (a long sweep
+            # stopped midway keeps what ran)
+            if args.json:
                 _write_json(Path(args.json), docs[0] if len(policies) == 1 else {"policies": docs})
-    except (A3CQPError, FileNotFoundError, ValueError) as exc:
+            if args.out:  # one policy (checked above)
+                _write_json(Path(args.out) / "results.json", docs[0])
+                write_episodes(Path(args.out), res.episodes)
+            _print_report(args, cfg_path, res, policy, prints)
+    except (A3CQPError, OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
@@ -1003,8 +1024,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"wrote {args.json}")
     if args.out:
         out = Path(args.out)
-        _write_json(out / "results.json", docs[0])
-        write_episodes(out, res.episodes)
         print(f"wrote {out}/results.json and {out}/episode_<controller>.npz (plot: a3cqp plot episode {out})")
     return 0
 

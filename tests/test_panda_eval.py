@@ -129,6 +129,43 @@ def test_main_reports_bad_input_in_one_line(tmp_path, capsys) -> None:  # noqa: 
         main(["--scene", "kitchen"])
 
 
+def test_main_refuses_outputs_it_could_not_write_and_a_config_of_another_scene_before_simulating(
+        tmp_path, capsys, monkeypatch) -> None:  # noqa: ANN001
+    from envs import panda_eval
+
+    monkeypatch.setattr(panda_eval, "evaluate_seeds", lambda *a, **k: pytest.fail("simulated before the checks"))
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    base = ["--scene", "guidance", "--trials", "1", "--controllers", "ik"]
+    for args, says in ((["--json", str(tmp_path)], "is a folder, expected a file name"),
+                       (["--json", str(a_file / "x.json")], "is a file, not a folder"),
+                       (["--out", str(a_file)], "is a file, expected a folder"),
+                       (["--out", str(a_file / "run")], "is a file, not a folder"),
+                       (["--policy", str(tmp_path / "p.pt")], "--policy is for the learned controller")):
+        assert main([*base, *args]) == 2
+        err = capsys.readouterr().err
+        assert says in err and "Traceback" not in err
+    root = Path(__file__).resolve().parents[1]
+    assert main(["--scene", "peg_in_hole", "--config", str(root / "configs/panda_polishing.yaml"), "--trials", "1",
+                 "--controllers", "ik"]) == 2
+    assert "is for the polishing scene" in capsys.readouterr().err
+
+
+def test_results_are_written_before_the_report_is_printed(tmp_path, monkeypatch) -> None:  # noqa: ANN001
+    """A closed standard output (`... | head -1`) cannot lose a finished evaluation."""
+    import builtins
+
+    def closed(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(builtins, "print", closed)
+    with pytest.raises(BrokenPipeError):
+        main(["--scene", "guidance", "--trials", "1", "--controllers", "ik", "--quiet", "--json",
+              str(tmp_path / "r.json"), "--out", str(tmp_path / "run")])
+    assert json.loads((tmp_path / "r.json").read_text())["trials"] == 1
+    assert (tmp_path / "run" / "results.json").is_file() and (tmp_path / "run" / "episode_ik.npz").is_file()
+
+
 def test_several_policies_run_on_the_same_trials_and_end_with_a_line_each(tmp_path, capsys) -> None:  # noqa: ANN001
     layout = ParamLayout(3, 4, (64, 64), "separate")
     paths = []

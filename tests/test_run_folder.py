@@ -133,3 +133,24 @@ def test_make_train_twice_just_works(tmp_path, capsys):
         argv = shlex.split(next(ln for ln in cmd.splitlines() if "a3cqp train" in ln))
         assert main(argv[argv.index("train"):] + ["--no-compile", "--quiet", "--no-plots"]) == 0
     assert "trained 160 steps" in capsys.readouterr().out
+
+
+def test_an_output_path_is_checked_before_the_work_that_writes_it(tmp_path) -> None:  # noqa: ANN001
+    from a3cqp_rl.run_folder import check_output_path
+
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    assert check_output_path(tmp_path / "new" / "deeper" / "r.json", "--json") == tmp_path / "new" / "deeper" / "r.json"
+    assert check_output_path(tmp_path / "run", "--out", folder=True) == tmp_path / "run"
+    assert check_output_path(tmp_path, "--out", folder=True) == tmp_path
+    for path, folder, says in ((tmp_path, False, "--json .* is a folder, expected a file name"),
+                               (a_file, True, "--json .* is a file, expected a folder"),
+                               (a_file / "x.json", False, "is a file, not a folder"),
+                               (a_file / "run" / "x", True, "is a file, not a folder")):
+        with pytest.raises(RunFolderError, match=says):
+            check_output_path(path, "--json", folder=folder)
+    if os.geteuid() != 0:  # root may write anywhere
+        locked = tmp_path / "locked"
+        locked.mkdir(mode=0o500)
+        with pytest.raises(RunFolderError, match="cannot write into"):
+            check_output_path(locked / "x.json", "--json")
