@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from a3cqp_rl.cli import help_summary
+from a3cqp_rl.run_folder import RunFolderError, check_output_path
 
 __all__ = ["main", "controller_demo"]
 
@@ -144,6 +145,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))
     if args.name == "controller":
+        if not args.seconds >= 0.01:  # NaN too
+            p.error(f"--seconds must be at least 0.01 (one step of the plotted record), got {args.seconds}")
+        try:
+            if args.out is not None:
+                check_output_path(args.out, "--out")
+        except RunFolderError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         path = controller_demo(args.seconds, args.out, args.tool)
         print(f"wrote {path}")
     return 0

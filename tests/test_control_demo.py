@@ -17,6 +17,18 @@ def test_demo_controller_writes_a_png(tmp_path: Path, capsys) -> None:  # noqa: 
     assert f"wrote {png}" in capsys.readouterr().out
 
 
+def test_demo_controller_refuses_a_time_too_short_to_plot_and_a_folder_as_its_png(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    import pytest
+
+    for seconds in ("0", "-1", "nan", "0.0005"):
+        with pytest.raises(SystemExit):
+            demo_main(["controller", "--seconds", seconds])
+        assert "--seconds must be at least 0.01" in capsys.readouterr().err
+    assert demo_main(["controller", "--seconds", "0.01", "--out", str(tmp_path)]) == 2
+    assert "is a folder, expected a file name" in capsys.readouterr().err
+    assert demo_main(["controller", "--seconds", "0.01", "--out", str(tmp_path / "short.png")]) == 0
+
+
 def test_bench_controller_quick_runs(capsys) -> None:  # noqa: ANN001
     spec = importlib.util.spec_from_file_location("bench_controller", ROOT / "bench" / "controller.py")
     module = importlib.util.module_from_spec(spec)
