@@ -20,9 +20,12 @@ BENCHES = {"env": "bench.env_throughput", "train": "bench.train_speed", "pendulu
 def main(argv: list[str] | None = None) -> int:
     """Run one benchmark (or all) and return its exit code."""
     argv = list(argv or [])
-    if not argv or argv[0] in ("-h", "--help") or argv[0] not in (*BENCHES, "all"):
+    if not argv or argv[0] in ("-h", "--help"):
         print(__doc__)
-        return 0 if argv and argv[0] in ("-h", "--help") else 2
+        return 0 if argv else 2
+    if argv[0] not in (*BENCHES, "all"):
+        print(f"error: no benchmark named {argv[0]!r}; choose from {', '.join(BENCHES)} or all", file=sys.stderr)
+        return 2
     names = list(BENCHES) if argv[0] == "all" else [argv[0]]
     rest = argv[1:] or (["--quick"] if argv[0] == "all" else [])
     rc = 0
@@ -34,5 +37,9 @@ def main(argv: list[str] | None = None) -> int:
             rc = max(rc, 2)
             continue
         print(f"=== a3cqp bench {name} ({BENCHES[name]} {' '.join(rest)}) ===", flush=True)
-        rc = max(rc, int(module.main(rest) or 0))
+        prog, sys.argv[0] = sys.argv[0], f"a3cqp bench {name}"  # argparse's usage lines name the command typed
+        try:
+            rc = max(rc, int(module.main(rest) or 0))
+        finally:
+            sys.argv[0] = prog
     return rc

@@ -35,6 +35,7 @@ import dataclasses
 import statistics
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -140,6 +141,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--eval", default=None, metavar="POLICY", help="also time the 26-trial learned-policy evaluation")
     p.add_argument("--eval-all", action="store_true", help="with --eval: also the 5-controller evaluation")
     args = p.parse_args(sys.argv[1:] if argv is None else argv)
+    if min(args.sizes) < 1 or args.repeats < 1:
+        p.error(f"--sizes and --repeats must be >= 1, got {args.sizes} and {args.repeats}")
+    if args.eval is not None and not Path(args.eval).exists():  # found now, not after the benchmark
+        p.error(f"--eval {args.eval}: no such policy file or run folder")
+    if args.eval_all and args.eval is None:
+        p.error("--eval-all needs --eval POLICY")
     torch.set_num_threads(1)
     steps = 20 if args.quick else 200
     repeats = 1 if args.quick else args.repeats

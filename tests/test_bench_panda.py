@@ -39,3 +39,20 @@ def test_the_benchmarks_python_period_peer_runs_the_python_period() -> None:
     with tick.numpy_tick():
         assert PandaEnv(1)._native_tick is None
     assert (PandaEnv(1)._native_tick is not None) == native
+
+
+def test_the_bench_command_names_an_unknown_benchmark_and_checks_the_panda_arguments_first(capsys) -> None:  # noqa: ANN001
+    import pytest
+
+    from a3cqp_rl.bench_cli import main as bench_main
+
+    assert bench_main(["nonexistent"]) == 2
+    assert "no benchmark named 'nonexistent'" in capsys.readouterr().err
+    for args, says in ((["--sizes", "0"], "--sizes and --repeats must be >= 1"),
+                       (["--repeats", "0"], "--sizes and --repeats must be >= 1"),
+                       (["--eval", "/nonexistent/policy.pt"], "no such policy file"),
+                       (["--eval-all"], "--eval-all needs --eval")):
+        with pytest.raises(SystemExit):
+            bench_main(["panda", "--quick", *args])
+        err = capsys.readouterr().err
+        assert says in err and "usage: a3cqp bench panda" in err
