@@ -45,6 +45,22 @@ def test_plot_episode_command_reads_a_run_folder(tmp_path, capsys) -> None:  # n
     assert plot_main(["episode", str(tmp_path), "--controller", "ik_fc"]) == 0
 
 
+def test_plot_episode_says_which_file_it_wrote_and_what_is_not_an_episode(tmp_path, capsys) -> None:  # noqa: ANN001
+    np.savez_compressed(tmp_path / "episode_learned.npz", **_episode())
+    assert plot_main(["episode", str(tmp_path), "--out", str(tmp_path / "noext")]) == 0
+    assert (tmp_path / "noext.png").is_file() and f"wrote {tmp_path / 'noext.png'}" in capsys.readouterr().out
+    for out, says in ((["--out", str(tmp_path)], "is a folder: give the image's file name"),
+                      (["--pdf", "--out", str(tmp_path / "x.png")], "--pdf asks for a PDF but --out")):
+        assert plot_main(["episode", str(tmp_path), *out]) == 2
+        assert says in capsys.readouterr().err
+    (tmp_path / "results.json").write_text("{}")
+    np.savez(tmp_path / "other.npz", a=np.zeros(3))
+    for bad in ("results.json", "other.npz"):
+        assert plot_main(["episode", str(tmp_path / bad)]) == 2
+        err = capsys.readouterr().err
+        assert "is not an episode file" in err and "pickle" not in err
+
+
 def test_render_strip_draws_the_scene_or_says_why_not(tmp_path) -> None:  # noqa: ANN001
     try:
         out = render_strip(_episode(), tmp_path / "strip.png", frames=2, size=(120, 160))

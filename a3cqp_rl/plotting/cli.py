@@ -39,6 +39,18 @@ def _plot_parser(sub, name: str, text: str, first: str, help_first: str, **first
     return q
 
 
+def _output_image(out: Path, pdf: bool) -> Path:
+    """`--out` as the file the plot will be: the format's suffix added to a name without one; ValueError for a folder
+    or a suffix that contradicts --pdf."""
+    if out.is_dir():
+        raise ValueError(f"--out {out} is a folder: give the image's file name, e.g. {out / 'plot.png'}")
+    if not out.suffix:
+        return out.with_suffix(".pdf" if pdf else ".png")
+    if pdf and out.suffix.lower() != ".pdf":
+        raise ValueError(f"--pdf asks for a PDF but --out {out} names a {out.suffix} file")
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry for the plot sub-commands; returns an exit code."""
     p = argparse.ArgumentParser(prog="a3cqp plot", description=help_summary(__doc__))
@@ -68,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
         os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen; read when MuJoCo is first imported
     ext = ".pdf" if args.pdf else ".png"
     try:
+        if args.out is not None:
+            args.out = str(_output_image(Path(args.out), args.pdf))
         if args.what == "policy-map":
             from a3cqp_rl.plotting.policy_map import plot_policy_map
 

@@ -30,8 +30,16 @@ def load_episode(path: str | Path) -> dict[str, np.ndarray]:
         hint = (f"this run has {', '.join(others)}: pick one with --controller" if others
                 else "write one with `a3cqp evaluate --scene ... --out`")
         raise FileNotFoundError(f"episode file not found: {path} ({hint})")
-    with np.load(path, allow_pickle=False) as z:
-        return {k: z[k] for k in z.files}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError) as exc:  # numpy's own text would suggest loading pickles
+        raise ValueError(f"{path} is not an episode file of `a3cqp evaluate --scene ... --out` "
+                         f"({type(exc).__name__})") from None
+    missing = [k for k in ("time", "phase", "e_local", "f_env_local", "f_ope_local", "weights") if k not in data]
+    if missing:
+        raise ValueError(f"{path} is not an episode file of `a3cqp evaluate --scene ... --out`: it lacks {missing}")
+    return data
 
 
 PULL_FORCE = 5.0
