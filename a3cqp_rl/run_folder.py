@@ -51,9 +51,9 @@ def check_output_path(path: str | Path, flag: str, *, folder: bool = False) -> P
 class RunFolder:
     """An output folder held by this process (lock taken); `close()` (or the process ending) releases it."""
 
-    def __init__(self, path: Path, lock_fd: int) -> None:
+    def __init__(self, path: Path, lock_fd: int, created: bool = False) -> None:
         """Use `RunFolder.open`."""
-        self.path, self._fd = path, lock_fd
+        self.path, self._fd, self.created = path, lock_fd, created
 
     @classmethod
     def open(cls, path: str | Path, *, resume: bool = False, force: bool = False) -> RunFolder:
@@ -61,12 +61,13 @@ class RunFolder:
         path = Path(path)
         if path.exists() and not path.is_dir():
             raise RunFolderError(f"--out {path} is a file, expected a folder for the run's files")
+        created = not path.exists()
         try:
             path.mkdir(parents=True, exist_ok=True)
             fd = os.open(path / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
         except OSError as exc:
             raise RunFolderError(f"cannot write to {path}: {exc.strerror or exc}") from None
-        folder = cls(path, fd)
+        folder = cls(path, fd, created)
         try:
             folder._lock()
             if not resume and folder.holds_run():
@@ -129,11 +130,18 @@ class RunFolder:
                 f.write(f"{stamp} resume at update {update}: {c}\n")
         return log
 
-    def close(self) -> None:
-        """Release the lock (idempotent)."""
+    def close(self, *, failed: bool = False) -> None:
+        """Release the lock (idempotent). `failed`: the work stopped early; a folder this open created that holds
+        nothing but its lock is removed, so a run that never started leaves no empty folder behind."""
         if self._fd >= 0:
             os.close(self._fd)
             self._fd = -1
+            if failed and self.created and [p.name for p in self.path.iterdir()] == [".lock"]:
+                (self.path / ".lock").unlink(missing_ok=True)
+                try:
+                    self.path.rmdir()
+                except OSError:  # another process wrote into it meanwhile: keep it
+                    pass
 
     def __enter__(self) -> RunFolder:
         return self

@@ -616,11 +616,14 @@ def train(
             raise ValueError("a2c.select_policy: panda writes its candidates into the run folder: give out_dir")
         select_config_path(hp)
     folder = open_run_folder(out_dir, resume=resume, force=force)
+    failed = True
     try:
-        return _train(cfg, folder, total, resume, override, progress, env, callback)
+        result = _train(cfg, folder, total, resume, override, progress, env, callback)
+        failed = False
+        return result
     finally:
         if folder is not None:
-            folder.close()
+            folder.close(failed=failed)
 
 
 def _train(cfg, folder, total, resume, override, progress, env, callback) -> TrainResult:

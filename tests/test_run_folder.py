@@ -154,3 +154,20 @@ def test_an_output_path_is_checked_before_the_work_that_writes_it(tmp_path) -> N
         locked.mkdir(mode=0o500)
         with pytest.raises(RunFolderError, match="cannot write into"):
             check_output_path(locked / "x.json", "--json")
+
+
+def test_a_run_that_fails_before_writing_anything_leaves_no_folder(tmp_path, capsys) -> None:  # noqa: ANN001
+    out = tmp_path / "never"
+    config = Path(__file__).resolve().parents[1] / "configs" / "panda_a2c_finetune.yaml"
+    assert main(["train", "--config", str(config), "--out", str(out), "--set",
+                 f"a2c.init_policy={tmp_path / 'nope.pt'}"]) == 2
+    assert "checkpoint not found" in capsys.readouterr().err and not out.exists()
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    folder = RunFolder.open(kept)
+    folder.close(failed=True)  # a folder that existed before stays
+    assert kept.is_dir()
+    fresh = RunFolder.open(tmp_path / "fresh")
+    (fresh.path / "notes.txt").write_text("x")
+    fresh.close(failed=True)  # one that holds something stays
+    assert (tmp_path / "fresh" / "notes.txt").is_file()
