@@ -680,7 +680,7 @@ def _mean_std(x: np.ndarray, scale: float = 1.0) -> tuple[float | None, float | 
     x = x[np.isfinite(x)] * scale
     if not len(x):
         return None, None
-    return float(x.mean()), float(x.std(ddof=1)) if len(x) > 1 else 0.0
+    return float(x.mean()), float(x.std(ddof=1)) if len(x) > 1 else None  # one sample: no spread
 
 
 def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
@@ -688,6 +688,7 @@ def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
     out: dict = {"trials": int(len(m["diverged"])), "diverged": int(np.sum(m["diverged"]))}
     if scene == "peg_in_hole":
         succ = m["success"] & ~m["diverged"][:, None]
+        out["cycles"] = int(succ.shape[1]) if succ.ndim == 2 else 1  # insertions per trial (--cycles)
         out["insertions"] = int(succ.size)
         out["successes"] = int(succ.sum())
         out["success_rate"] = float(succ.mean())
@@ -730,6 +731,30 @@ def _fmt(v, unit: str = "", scale: float = 1.0, prec: int = 2) -> str:  # noqa: 
     return "-" if v is None else f"{v * scale:.{prec}f}{unit}"
 
 
+def _pm(mean: float | None, std: float | None, scale: float = 1.0, prec: int = 2) -> str:
+    """'mean ± std'; the mean alone where a spread is undefined (one sample); '-' without a mean."""
+    if mean is None:
+        return "-"
+    return _fmt(mean, scale=scale, prec=prec) + ("" if std is None else f" ± {_fmt(std, scale=scale, prec=prec)}")
+
+
+SCENE_ROWS = {
+    "contact_fraction": ("circle in contact [fraction]", 1.0, 2),
+    "contact_force": ("pressing force [N]", 1.0, 1),
+    "force_error": ("|pressing force - own f_d| [N]", 1.0, 1),
+    "tracking_error": ("circle tracking, RMS [mm]", 1e3, 1),
+    "relocation_force": ("|f_ope| relocating [N]", 1.0, 1),
+    "zones_reached": ("relocation goals reached [fraction]", 1.0, 2),
+    "guide_force": ("|f_ope| guiding [N]", 1.0, 1),
+    "guide_force_peak": ("|f_ope| guiding, peak [N]", 1.0, 1),
+    "goal_error": ("hand to goal at release [mm]", 1e3, 0),
+    "reach_time": ("time to reach the goal [s]", 1.0, 2),
+    "drift": ("drift after the release [mm]", 1e3, 1),
+}
+"""Polishing and guidance metrics (JSON keys, SI units) -> the table's label, scale and decimals. A controller
+without a force command (IK only, VIC: f_d = 0) has its pressing force as its |pressing force - own f_d|."""
+
+
 def format_table(res: EvalResult) -> str:
     """Text table of the summary (with the paper's Table VI column for peg-in-hole)."""
     names = list(res.summary)
@@ -743,24 +768,22 @@ def format_table(res: EvalResult) -> str:
         rows.append(("success rate", [f"{100 * p['success_rate']:.0f} %"]
                      + [f"{100 * s[c]['success_rate']:.0f} %" for c in names]))
         rows.append(("insertion time [s]", [f"{p['insertion_time_mean_s']:.2f} ± {p['insertion_time_std_s']:.2f}"]
-                     + [f"{_fmt(s[c]['insertion_time_mean_s'])} ± {_fmt(s[c]['insertion_time_std_s'])}"
-                        for c in names]))
+                     + [_pm(s[c]['insertion_time_mean_s'], s[c]['insertion_time_std_s']) for c in names]))
         if all("to_bore_time_mean_s" in s[c] for c in names):  # the insertion time's two parts
             for key, label in (("to_bore_time", "  contact to 1 mm in bore [s]"),
                                ("bore_descent_time", "  1 mm in bore to success [s]")):
-                rows.append((label, ["-"] + [f"{_fmt(s[c][key + '_mean_s'])} ± {_fmt(s[c][key + '_std_s'])}"
-                                             for c in names]))
+                rows.append((label, ["-"] + [_pm(s[c][key + '_mean_s'], s[c][key + '_std_s']) for c in names]))
         if all("capped_time_mean_s" in s[c] for c in names):
             rows.append(("time, not inserted = limit [s]", ["-"] + [
-                f"{_fmt(s[c]['capped_time_mean_s'])} ± {_fmt(s[c]['capped_time_std_s'])}" for c in names]))
+                _pm(s[c]['capped_time_mean_s'], s[c]['capped_time_std_s']) for c in names]))
         rows.append(("rotation misalignment [deg]",
                      [f"{p['misalignment_rotation_mean_deg']:.2f} ± {p['misalignment_rotation_std_deg']:.2f}"]
-                     + [f"{_fmt(s[c]['misalignment_rotation_mean_deg'])} ± "
-                        f"{_fmt(s[c]['misalignment_rotation_std_deg'])}" for c in names]))
+                     + [_pm(s[c]['misalignment_rotation_mean_deg'], s[c]['misalignment_rotation_std_deg'])
+                        for c in names]))
         rows.append(("translation misalignment [mm]",
                      [f"{p['misalignment_translation_mean_mm']:.2f} ± {p['misalignment_translation_std_mm']:.2f}"]
-                     + [f"{_fmt(s[c]['misalignment_translation_mean_mm'])} ± "
-                        f"{_fmt(s[c]['misalignment_translation_std_mm'])}" for c in names]))
+                     + [_pm(s[c]['misalignment_translation_mean_mm'], s[c]['misalignment_translation_std_mm'])
+                        for c in names]))
         rows.append(("mean |f_ope| disengaging [N]", ["-"] + [_fmt(s[c]["disengage_force_mean_n"], prec=1)
                                                                for c in names]))
         rows.append(("peg pulled out by operator", ["-"] + [_fmt(s[c]["extracted_rate"], " %", 100.0, 0)
@@ -769,7 +792,8 @@ def format_table(res: EvalResult) -> str:
         cols = names
         keys = [k[:-5] for k in s[names[0]] if k.endswith("_mean")]
         for k in keys:
-            rows.append((k, [f"{_fmt(s[c][k + '_mean'], prec=3)} ± {_fmt(s[c][k + '_std'], prec=3)}" for c in names]))
+            label, scale, prec = SCENE_ROWS.get(k, (k, 1.0, 3))
+            rows.append((label, [_pm(s[c][k + '_mean'], s[c][k + '_std'], scale, prec) for c in names]))
     if all("joint_limit_excess_max_mrad" in s[c] for c in names):
         rows.append(("joint-limit excess, worst [mrad]", (["-"] if res.scene == "peg_in_hole" else [])
                      + [_fmt(s[c]["joint_limit_excess_max_mrad"], prec=1) for c in names]))
@@ -822,7 +846,8 @@ def _default_config(scene: str) -> Path | None:
     return path if path.is_file() else None
 
 
-def _policy_file(path: str | Path | None, from_cli: bool, cfg_path: str | Path | None) -> Path | None:
+def _policy_file(path: str | Path | None, from_cli: bool, cfg_path: str | Path | None,
+                 set_on_cli: bool = False) -> Path | None:
     """The policy.pt that `--policy PATH` (a file or a run folder) or the config's panda.policy names; raises
     FileNotFoundError naming where the path came from. A relative panda.policy is looked for in the working directory,
     then in this checkout (as the config itself: the shipped policy from any folder)."""
@@ -834,8 +859,9 @@ def _policy_file(path: str | Path | None, from_cli: bool, cfg_path: str | Path |
     if path.is_dir():
         path = path / "policy.pt"
     if not path.is_file():
-        where = "" if from_cli else (f" (panda.policy of {cfg_path}: the repository ships it; pass --policy PATH, or "
-                                     "leave learned out of --controllers)")
+        where = ("" if from_cli else " (panda.policy of --set)" if set_on_cli else
+                 (f" (panda.policy of {cfg_path}: the repository ships it; pass --policy PATH, or leave learned out "
+                  "of --controllers)"))
         raise FileNotFoundError(f"policy file not found: {path}{where}")
     return path
 
@@ -857,7 +883,10 @@ def _print_report(args: argparse.Namespace, cfg_path: str | Path | None, res: Ev
     which = f"seed {args.seed}" if args.seeds is None else f"seeds {','.join(map(str, args.seeds))} pooled"
     used = min(args.workers, args.trials)
     given = f" with {', '.join(args.overrides)}" if args.overrides else ""
-    print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller, {which}, config {cfg_path or 'defaults'}"
+    cycles = next(iter(res.summary.values())).get("cycles", 1)
+    each = f" of {cycles} insertion cycles each" if cycles > 1 else ""
+    print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller{each}, {which}, config "
+          f"{cfg_path or 'defaults'}"
           f"{given}; "
           f"{res.sim_seconds:.0f} s simulated in {res.seconds:.1f} s ({res.sim_seconds / res.seconds:.1f}x real time, "
           f"{used} worker{'s' if used > 1 else ''})")
@@ -877,7 +906,7 @@ def _num(v: float | None, fmt: str) -> str:
 RANKING_COLUMNS = {
     "peg_in_hole": (("successes", lambda d: f"{d['successes']}/{d['trials']}"),
                     ("insertion time [s]", lambda d: "-" if not d["successes"] else
-                     _num(d["insertion_time_mean_s"], "{:.2f}") + " ± " + _num(d["insertion_time_std_s"], "{:.2f}"))),
+                     _pm(d["insertion_time_mean_s"], d["insertion_time_std_s"]))),
     "polishing": (("zones reached", lambda d: _num(d["zones_reached_mean"], "{:.0%}")),
                   ("force error [N]", lambda d: _num(d["force_error_mean"], "{:.2f}")),
                   ("|f_ope| relocating [N]", lambda d: _num(d["relocation_force_mean"], "{:.2f}"))),
@@ -924,7 +953,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cycles", type=int, default=None, help="peg-in-hole insertions per episode (Fig. 7: 3)")
     p.add_argument("--json", default=None, help="write the metrics to this JSON file")
     p.add_argument("--out", default=None, help="run folder: results.json and the recorded episodes (episode_*.npz, "
-                   "for `a3cqp plot episode`)")
+                   "for `a3cqp plot episode`; with --seeds, the first seed's)")
     p.add_argument("--controller-config", nargs="+", default=[], metavar="FILE",
                    help="YAML file(s) with a fixed_controller section (e.g. a Pareto pick), evaluated as extra "
                         "controllers")
@@ -948,6 +977,8 @@ def main(argv: list[str] | None = None) -> int:
 
         if args.trials < 1:
             raise ValueError(f"--trials must be >= 1, got {args.trials}")
+        if args.seeds is None and args.seed < 0:  # NumPy's SeedSequence takes none below 0
+            raise ValueError(f"--seed must be >= 0, got {args.seed}")
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
         if args.workers is None:
@@ -978,7 +1009,8 @@ def main(argv: list[str] | None = None) -> int:
             paths = [None]  # no policy is read: a configured one need not exist
         if len(paths) > 1 and args.out:
             raise ValueError("--out records one policy's episodes: give one --policy")
-        policies = [_policy_file(path, args.policy is not None, cfg_path) for path in paths]  # all found first
+        set_policy = any(o.split("=", 1)[0].strip() == "panda.policy" for o in args.overrides)
+        policies = [_policy_file(path, args.policy is not None, cfg_path, set_policy) for path in paths]  # found first
         if policies == [None] and "learned" in controllers:
             controllers = tuple(c for c in controllers if c != "learned")
             print("no --policy given: evaluating the baselines only", file=sys.stderr)

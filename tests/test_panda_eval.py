@@ -166,6 +166,32 @@ def test_results_are_written_before_the_report_is_printed(tmp_path, monkeypatch)
     assert (tmp_path / "run" / "results.json").is_file() and (tmp_path / "run" / "episode_ik.npz").is_file()
 
 
+def test_the_tables_name_units_and_give_no_spread_for_one_sample() -> None:
+    from envs.panda_eval import EvalResult, format_table
+
+    nan = float("nan")
+    guided = {"guide_force": np.array([6.3, 6.5]), "goal_error": np.array([[0.012, 0.014], [0.013, nan]]),
+              "drift": np.array([[0.002, 0.003], [0.001, 0.002]]), "diverged": np.zeros(2, dtype=bool)}
+    table = format_table(EvalResult.from_metrics("guidance", {"learned": guided}, {}, 1.0, 1.0, (0,)))
+    assert "hand to goal at release [mm]" in table and "13 ± 1" in table and "goal_error" not in table
+    assert "drift after the release [mm]" in table and "|f_ope| guiding [N]" in table
+    one = {"success": np.array([[True], [False]]), "insertion_time": np.array([[6.5], [nan]]),
+           "diverged": np.zeros(2, dtype=bool), "misalign_rotation": np.array([[0.06], [0.07]]),
+           "misalign_translation": np.array([[0.012], [0.010]]), "disengage_force": np.array([[9.0], [nan]]),
+           "extracted": np.array([[True], [False]])}
+    res = EvalResult.from_metrics("peg_in_hole", {"learned": one}, {}, 1.0, 1.0, (0,))
+    assert res.summary["learned"]["insertion_time_std_s"] is None and res.summary["learned"]["cycles"] == 1
+    row = next(line for line in format_table(res).splitlines() if line.startswith("insertion time"))
+    assert row.split("|")[-1].strip() == "6.50"  # the mean alone, no "± 0.00"
+
+
+def test_main_names_where_a_missing_policy_and_a_bad_seed_came_from(capsys) -> None:  # noqa: ANN001
+    assert main(["--scene", "guidance", "--trials", "1", "--set", "panda.policy=/nonexistent/p.pt"]) == 2
+    assert "(panda.policy of --set)" in capsys.readouterr().err
+    assert main(["--scene", "guidance", "--trials", "1", "--seed", "-5", "--controllers", "ik"]) == 2
+    assert "--seed must be >= 0, got -5" in capsys.readouterr().err
+
+
 def test_several_policies_run_on_the_same_trials_and_end_with_a_line_each(tmp_path, capsys) -> None:  # noqa: ANN001
     layout = ParamLayout(3, 4, (64, 64), "separate")
     paths = []
