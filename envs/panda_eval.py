@@ -786,8 +786,10 @@ def format_table(res: EvalResult) -> str:
                         for c in names]))
         rows.append(("mean |f_ope| disengaging [N]", ["-"] + [_fmt(s[c]["disengage_force_mean_n"], prec=1)
                                                                for c in names]))
-        rows.append(("peg pulled out by operator", ["-"] + [_fmt(s[c]["extracted_rate"], " %", 100.0, 0)
-                                                             for c in names]))
+        # with --cycles the return home may pull out a peg the operator's hand left in the bore
+        out_label = ("peg pulled out by operator" if max(s[c].get("cycles", 1) for c in names) == 1
+                     else "peg out (operator, return home)")
+        rows.append((out_label, ["-"] + [_fmt(s[c]["extracted_rate"], " %", 100.0, 0) for c in names]))
     else:
         cols = names
         keys = [k[:-5] for k in s[names[0]] if k.endswith("_mean")]

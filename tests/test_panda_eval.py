@@ -183,6 +183,11 @@ def test_the_tables_name_units_and_give_no_spread_for_one_sample() -> None:
     assert res.summary["learned"]["insertion_time_std_s"] is None and res.summary["learned"]["cycles"] == 1
     row = next(line for line in format_table(res).splitlines() if line.startswith("insertion time"))
     assert row.split("|")[-1].strip() == "6.50"  # the mean alone, no "± 0.00"
+    assert "peg pulled out by operator" in format_table(res)
+    two = {k: np.concatenate([v, v], axis=1) if v.ndim == 2 else v for k, v in one.items()}
+    res = EvalResult.from_metrics("peg_in_hole", {"learned": two}, {}, 1.0, 1.0, (0,))
+    assert res.summary["learned"]["cycles"] == 2 and res.summary["learned"]["insertions"] == 4
+    assert "peg out (operator, return home)" in format_table(res)
 
 
 def test_main_names_where_a_missing_policy_and_a_bad_seed_came_from(capsys) -> None:  # noqa: ANN001
