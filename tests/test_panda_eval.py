@@ -505,7 +505,7 @@ def test_pulled_out_rate_counts_the_cycles_the_operator_disengaged() -> None:
     m["disengage_force"] = np.full((2, 3), nan)
     res = EvalResult.from_metrics("peg_in_hole", {"ik_fc": m}, {}, 1.0, 10.0, (0,))
     assert res.summary["ik_fc"]["extracted_rate"] is None  # no disengagement (operator_disengage off): unknown
-    assert re.search(r"peg pulled out by operator +\| +- +\| +- *$", format_table(res), re.M)
+    assert re.search(r"peg out \(operator, return home\) +\| +- +\| +- *$", format_table(res), re.M)
 
 
 def test_the_sensing_warning_names_untared_bias_and_unfiltered_noise() -> None:
