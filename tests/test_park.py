@@ -95,8 +95,9 @@ def test_an_evaluation_gives_the_same_results_parked_or_not_and_in_two_worker_pr
         assert a.keys() == b.keys()
         assert a["success"] == b["success"] and a["extracted"] == b["extracted"]
         for key in a:  # parking changes no arm's motion: every per-trial value to float round-off (the metrics'
-            # running sums over arm subsets may add in another order), no contact chaos grown from it
-            np.testing.assert_allclose(np.array(b[key], float), np.array(a[key], float), rtol=1e-12, atol=1e-12,
+            # running sums over arm subsets may add in another order, and the controller's subset of live arms is a
+            # batch of another size: 3e-12 of the operator's mean force here), no contact chaos grown from it
+            np.testing.assert_allclose(np.array(b[key], float), np.array(a[key], float), rtol=1e-10, atol=1e-12,
                                        err_msg=f"{c} {key}")
         b = split.per_trial[c]
         assert a["success"] == b["success"] and a["extracted"] == b["extracted"]
