@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))  # this checkout's a3cqp_rl/envs/algorithms
 
 from a3cqp_rl.config import load_config, parse_overrides
-from envs.panda_eval import evaluate, paired
+from envs.panda_eval import _pm, evaluate, paired  # the table cell of a3cqp evaluate
 
 VARIANTS = {
     "moved": {"hole_center": [0.55, 0.15]},  # 0.18 m from the configured hole: another arm posture
@@ -54,8 +54,8 @@ def main() -> None:
         res = evaluate("peg_in_hole", ROOT / cfg.panda.policy, args.trials, args.seed, config=cfg,
                        controllers=("learned", "ik_fc"), progress=False, workers=2)
         s, p = res.summary, paired(res)["ik_fc"]
-        row = [f"{c} {s[c]['successes']}/{s[c]['trials']}, {s[c]['insertion_time_mean_s']:.2f} ± "
-               f"{s[c]['insertion_time_std_s']:.2f} s" for c in ("learned", "ik_fc")]
+        row = [f"{c} {s[c]['successes']}/{s[c]['trials']}, "
+               f"{_pm(s[c]['insertion_time_mean_s'], s[c]['insertion_time_std_s'])} s" for c in ("learned", "ik_fc")]
         print(f"{name:>10}: {'; '.join(row)}; paired {p['time_difference_mean_s']:+.2f} ± "
               f"{p['time_difference_se_s']:.2f} s (median {p['time_difference_median_s']:+.2f}) "
               f"({time.perf_counter() - t0:.0f} s)", flush=True)
