@@ -880,10 +880,9 @@ def _document(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalRe
 
 
 def _print_report(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalResult, policy: Path | None,
-                  prints: str | None) -> None:
-    """Print one evaluation: header, table, paired differences, targets."""
+                  prints: str | None, used: int) -> None:
+    """Print one evaluation (`used` worker processes): header, table, paired differences, targets."""
     which = f"seed {args.seed}" if args.seeds is None else f"seeds {','.join(map(str, args.seeds))} pooled"
-    used = min(args.workers, args.trials)
     given = f" with {', '.join(args.overrides)}" if args.overrides else ""
     cycles = next(iter(res.summary.values())).get("cycles", 1)
     each = f" of {cycles} insertion cycles each" if cycles > 1 else ""
@@ -1043,7 +1042,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.out:  # one policy (checked above)
                 _write_json(Path(args.out) / "results.json", docs[0])
                 write_episodes(Path(args.out), res.episodes)
-            _print_report(args, cfg_path, res, policy, prints)
+            _print_report(args, cfg_path, res, policy, prints, docs[-1]["workers"])
     except (A3CQPError, OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
