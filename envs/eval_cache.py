@@ -93,8 +93,10 @@ def load(path: Path, key: dict, seed: int):  # noqa: ANN201
                     if group == "e" and v.dtype.kind == "U" and v.ndim == 0:
                         v = str(v)  # the scene's name, tool and MJCF text were strings
                     (metrics if group == "m" else episodes).setdefault(c, {})[k] = v
-            return EvalResult.from_metrics(str(z["scene"]), metrics, episodes, float(z["seconds"]),
-                                           float(z["sim_seconds"]), (int(seed),))
+            res = EvalResult.from_metrics(str(z["scene"]), metrics, episodes, float(z["seconds"]),
+                                          float(z["sim_seconds"]), (int(seed),))
+            res.read_back = (int(seed),)
+            return res
     except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
         logger.warning("evaluation cache: %s cannot be read (%s); measuring again", path, exc)
         return None

@@ -104,6 +104,8 @@ class EvalResult:
     """Controller -> metric name -> array over trials (and cycles), as the scene reports them."""
     seeds: tuple[int, ...] = ()
     """The trial seeds' parent seeds (one per pooled `evaluate` run)."""
+    read_back: tuple[int, ...] = ()
+    """The seeds whose results an evaluation cache gave back (`seconds` holds the wall time measured then)."""
 
     @classmethod
     def from_metrics(cls, scene: str, metrics: dict, episodes: dict, seconds: float, sim_seconds: float,
@@ -230,8 +232,10 @@ def evaluate_seeds(scene: str, policy_path: str | Path | None, trials: int, seed
             for s in seeds]
     metrics = {c: {k: np.concatenate([r.metrics[c][k] for r in runs]) for k in runs[0].metrics[c]}
                for c in runs[0].metrics}
-    return EvalResult.from_metrics(runs[0].scene, metrics, runs[0].episodes, sum(r.seconds for r in runs),
-                                   sum(r.sim_seconds for r in runs), tuple(int(s) for s in seeds))
+    res = EvalResult.from_metrics(runs[0].scene, metrics, runs[0].episodes, sum(r.seconds for r in runs),
+                                  sum(r.sim_seconds for r in runs), tuple(int(s) for s in seeds))
+    res.read_back = tuple(s for r in runs for s in r.read_back)
+    return res
 
 
 def capped_time(m: dict) -> np.ndarray:
@@ -821,7 +825,7 @@ def to_json(res: EvalResult, primary: str = "learned") -> dict:
     doc = {"scene": res.scene, "controller": main_name, **res.summary[main_name],
            "baselines": {c: v for c, v in res.summary.items() if c != main_name},
            "per_trial": res.per_trial, "wall_seconds": res.seconds, "simulated_seconds": res.sim_seconds,
-           "seeds": list(res.seeds)}
+           "seeds": list(res.seeds), "read_back_seeds": list(res.read_back)}
     if res.scene == "peg_in_hole":
         doc["paper"] = PAPER_TABLE_VI
         doc["paired"] = paired(res, main_name)
@@ -886,11 +890,16 @@ def _print_report(args: argparse.Namespace, cfg_path: str | Path | None, res: Ev
     given = f" with {', '.join(args.overrides)}" if args.overrides else ""
     cycles = next(iter(res.summary.values())).get("cycles", 1)
     each = f" of {cycles} insertion cycles each" if cycles > 1 else ""
+    # a seed read back from --cache costs nothing now: its wall time is the one measured when it was simulated
+    back = len(res.read_back)
+    then = ("" if not back else
+            f"; {'every seed' if back == len(res.seeds) else f'{back} of {len(res.seeds)} seeds'} read back from "
+            f"{args.cache}, the wall time as measured then")
     print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller{each}, {which}, config "
           f"{cfg_path or 'defaults'}"
           f"{given}; "
           f"{res.sim_seconds:.0f} s simulated in {res.seconds:.1f} s ({res.sim_seconds / res.seconds:.1f}x real time, "
-          f"{used} worker{'s' if used > 1 else ''})")
+          f"{used} worker{'s' if used > 1 else ''}{then})")
     if policy is not None:
         print(f"learned: {policy} (parameters {prints})")
     print(format_table(res))

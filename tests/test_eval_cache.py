@@ -81,12 +81,16 @@ def test_main_resumes_a_sweep_with_cache(tmp_path, capsys, monkeypatch) -> None:
             str(cfg_path), "--workers", "1", "--quiet", "--cache", str(tmp_path / "c"), "--json", str(tmp_path / "r.json")]
     assert main(args) == 0
     first = json.loads((tmp_path / "r.json").read_text())
+    assert first["read_back_seeds"] == [] and "read back" not in capsys.readouterr().out
     monkeypatch.setattr(panda_eval, "evaluate", lambda *a, **k: pytest.fail("simulated again"))
     assert main(args) == 0
-    err = capsys.readouterr().err
-    assert err.count("read back from") == 2
+    captured = capsys.readouterr()
+    assert captured.err.count("read back from") == 2
+    # the header says its wall time is the one measured when the seeds were simulated, not this run's
+    assert f"every seed read back from {tmp_path / 'c'}, the wall time as measured then" in captured.out
     again = json.loads((tmp_path / "r.json").read_text())
     assert again["per_trial"] == first["per_trial"] and again["seeds"] == [0, 1]
+    assert again["read_back_seeds"] == [0, 1] and again["wall_seconds"] == first["wall_seconds"]
 
 
 def test_a_result_that_needs_pickle_is_not_kept(tmp_path, caplog) -> None:  # noqa: ANN001
@@ -122,4 +126,6 @@ def test_main_says_what_an_interrupted_sweep_kept(tmp_path, capsys, monkeypatch)
     assert "interrupted; the seeds that ended are kept in" in err and "Traceback" not in err
     monkeypatch.setattr(panda_eval, "evaluate", real)
     assert main(args) == 0
-    assert capsys.readouterr().err.count("read back from") == 1  # seed 0 from the cache, seed 1 simulated
+    captured = capsys.readouterr()
+    assert captured.err.count("read back from") == 1  # seed 0 from the cache, seed 1 simulated
+    assert "; 1 of 2 seeds read back from" in captured.out
