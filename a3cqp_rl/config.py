@@ -912,13 +912,22 @@ class PolishingConfig:
     """Time the robot holds the taught pose after the operator releases [s]."""
     contact_force: float = 1.0
     """Sensed |f_env| [N] that counts as contact."""
+    plate_top_spread: float = 0.002
+    """Per trial, the plate's top is this standard deviation [m] (clipped at two) off `plate_top`, which is all the
+    procedure's reference knows: what force control is for (0: every trial at `plate_top`)."""
+    zone_spread: float = 0.03
+    """Per trial, the first working zone is drawn uniformly in a disc of this radius [m] about `start_offset`."""
+    relocation_turn_deg: float = 45.0
+    """Per trial, the operator's moves (`relocations`) are turned about the vertical by an angle drawn uniformly
+    within ± this [deg]."""
 
     def _check(self, err: _Errors) -> None:
         for name in ("plate_top", "circle_radius", "circle_period", "approach_time", "polish_time", "contact_force"):
             err.positive(self, name)
-        for name in ("preload", "rest_time", "lift", "hold_time", "friction"):
-            if getattr(self, name) < 0:
-                err.add(name, f"must be >= 0, got {getattr(self, name)}")
+        for name in ("preload", "rest_time", "lift", "hold_time", "friction", "plate_top_spread", "zone_spread",
+                     "relocation_turn_deg"):
+            if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
+                err.add(name, f"must be a finite number >= 0, got {getattr(self, name)}")
         for name in ("plate_center", "plate_half_size", "start_offset"):
             if len(getattr(self, name)) != 2:
                 err.add(name, f"needs 2 values (x, y), got {len(getattr(self, name))}")

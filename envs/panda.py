@@ -299,6 +299,8 @@ class PandaEnv(EnvBase):
         self._tared[idx], self._tare_sum[idx], self._tare_cnt[idx] = s.tare_time == 0, 0.0, 0.0
         self.operator.reset(idx)
         self.scene.reset(idx, rngs)
+        for body, offset in self.scene.body_offsets().items():  # e.g. the polishing plate's height this trial
+            self.sim.move_static_body(body, idx, offset[idx])
         self._measure()
         self.f_env_obs[idx], self.f_ope_obs[idx] = self.f_env[idx], self.f_ope[idx]
         self._update_scene()

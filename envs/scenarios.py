@@ -241,6 +241,11 @@ class Scene:
         """Per-arm metrics of the current trials (arrays [N] or [N, cycles])."""
         return {}
 
+    def body_offsets(self) -> dict[str, np.ndarray]:
+        """Static scene bodies (MJCF name) the trials move, each arm's offset [N, 3] (m, world) from where `mjcf`
+        puts it (PandaSim.move_static_body, at every reset)."""
+        return {}
+
     def signals(self, inp: SceneInput) -> dict[str, np.ndarray]:
         """Scene-specific per-step signals for plots (e.g. the peg's misalignment), arrays [N]."""
         return {}
@@ -523,6 +528,10 @@ class Polishing(Scene):
         self._acc = {k: np.zeros(n) for k in ("n_pol", "n_con", "f_err", "f_con", "trk2", "n_rel", "f_rel", "f_rel_max")}
         self.zone_reached = np.zeros((n, K), dtype=bool)
         """Whether the operator's hand reached each relocation goal."""
+        self.plate_offset = np.zeros((n, 3))
+        """The trial's plate offset from where the MJCF puts it [m] (z: its unknown height)."""
+        self.turn = np.zeros(n)
+        """The trial's turn of the operator's moves about the vertical [rad]."""
 
     def mjcf(self) -> str:
         c = self.cfg
@@ -534,7 +543,15 @@ class Polishing(Scene):
 
     def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
         super().reset(idx, rngs)
-        self.zone[idx] = np.array(self.cfg.plate_center) + np.array(self.cfg.start_offset)
+        c = self.cfg
+        # four draws per trial whatever the spreads (one spread set to 0 leaves the others' trials as they were)
+        u = np.array([(r.standard_normal(), *r.random(3)) for r in rngs]).reshape(len(idx), 4)
+        dz = c.plate_top_spread * np.clip(u[:, 0], -2.0, 2.0)
+        self.plate_offset[idx] = np.stack([np.zeros_like(dz), np.zeros_like(dz), dz], axis=1)
+        rho, phi = c.zone_spread * np.sqrt(u[:, 1]), 2.0 * np.pi * u[:, 2]  # uniform in the disc
+        self.zone[idx] = (np.array(c.plate_center) + np.array(c.start_offset)
+                          + np.stack([rho * np.cos(phi), rho * np.sin(phi)], axis=1))
+        self.turn[idx] = np.deg2rad(c.relocation_turn_deg) * (2.0 * u[:, 3] - 1.0)
         self.period[idx] = 0
         self.from_pos[idx] = self.home_pos
         for v in self._acc.values():
@@ -580,7 +597,8 @@ class Polishing(Scene):
             if len(end):
                 em = np.isin(arms, end)
                 k = self.period[end]
-                d = np.array(c.relocations)[k]
+                d0, ct, st = np.array(c.relocations)[k], np.cos(self.turn[end]), np.sin(self.turn[end])
+                d = np.stack([ct * d0[:, 0] - st * d0[:, 1], st * d0[:, 0] + ct * d0[:, 1]], axis=1)
                 goal = inp.handle_pos[end] + np.concatenate([d, np.full((len(end), 1), c.lift)], axis=1)
                 self._releases[end] = self.operator.releases[end]
                 self.operator.grasp(end, goal, t)
@@ -626,6 +644,9 @@ class Polishing(Scene):
 
     def signals(self, inp: SceneInput) -> dict[str, np.ndarray]:
         return {"x_d": self.pos_d[:, 0].copy(), "y_d": self.pos_d[:, 1].copy()}
+
+    def body_offsets(self) -> dict[str, np.ndarray]:
+        return {"plate": self.plate_offset}
 
 
 class Guidance(Scene):

@@ -307,6 +307,7 @@ class PandaSim:
         self._arm_tree = m.body_treeid[[m.body(p + "link1").id for p in self._prefixes]].astype(np.intp)
         self._body_arm = body_arm
         self._body_contype, self._body_conaffinity = m.body_contype.copy(), m.body_conaffinity.copy()
+        self._body_pos0 = m.body_pos.copy()  # where the MJCF put each body (move_static_body)
         m.opt.enableflags |= int(mujoco.mjtEnableBit.mjENBL_SLEEP)
         m.tree_sleep_policy[:] = int(mujoco.mjtSleepPolicy.mjSLEEP_NEVER)
         self._native_observe = sense.observer(self)  # None: the numpy read-out below
@@ -558,6 +559,27 @@ class PandaSim:
         """Number of MuJoCo contacts (all arms) found by the last mj_step1."""
         return int(self.data.ncon)
 
+    def move_static_body(self, name: str, idx: list[int] | np.ndarray, offset: np.ndarray) -> None:
+        """Place arms `idx`' copies of the scene's static body `name` at `offset` [len(idx), 3] (m, world) from
+        where the MJCF put it (zeros: back there), e.g. a trial's plate at a height the controller does not know.
+        The next step's kinematics and collision see it; nothing else of the model changes."""
+        m = self.model
+        arms = np.asarray(idx, dtype=np.intp).reshape(-1)
+        offset = np.asarray(offset, dtype=np.float64).reshape(len(arms), 3)
+        ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, self._prefixes[i] + name) for i in arms],
+                       dtype=np.intp)
+        if (ids < 0).any() or (m.body_weldid[ids] != 0).any() or (m.body_mocapid[ids] >= 0).any():
+            raise ValueError(f"move_static_body: the scene has no static body {name!r} (one welded to the world)")
+        m.body_pos[ids] = self._body_pos0[ids] + offset
+        # with sleeping on, MuJoCo's kinematics computes static bodies once and skips them after: one pass with it
+        # off places them (the other bodies get the same values again: qpos has not changed since the last pass)
+        flags = m.opt.enableflags
+        m.opt.enableflags = flags & ~int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+        try:
+            mujoco.mj_kinematics(m, self.data)
+        finally:
+            m.opt.enableflags = flags
+
     def max_penetration(self) -> np.ndarray:
         """Deepest penetration [N] (m, 0 without contact) of each arm's contacts found by the last mj_step1."""
         d, out = self.data, np.zeros(self.n)
@@ -711,6 +733,15 @@ class ShardedPandaSim:
     def contact_force(self, geom: str) -> np.ndarray:
         """World-frame force [N, 3] (N) that all contacts involving `geom` exert on `geom`."""
         return np.concatenate([p.contact_force(geom) for p in self.parts])
+
+    def move_static_body(self, name: str, idx: list[int] | np.ndarray, offset: np.ndarray) -> None:
+        """PandaSim.move_static_body of the arms `idx` on the parts that hold them."""
+        arms = np.asarray(idx, dtype=np.intp).reshape(-1)
+        offset = np.asarray(offset, dtype=np.float64).reshape(len(arms), 3)
+        for p, (a, b) in zip(self.parts, self._ranges):
+            mine = (arms >= a) & (arms < b)
+            if mine.any():
+                p.move_static_body(name, arms[mine] - a, offset[mine])
 
     def max_penetration(self) -> np.ndarray:
         """Deepest penetration [N] (m, 0 without contact) of each arm's contacts found by the last mj_step1."""
