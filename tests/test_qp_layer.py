@@ -147,3 +147,23 @@ def test_infeasible_parameters_raise_by_default_or_give_nan_and_status() -> None
     lp = cp.Problem(cp.Minimize(c @ x), [x[0] >= 0])
     with pytest.raises(QPInfeasibleError, match="DUAL_INFEASIBLE"):
         QPLayer(lp, [c], [x])(torch.tensor([1.0, 1.0], dtype=DT))
+
+
+def test_requested_multipliers_warn_that_they_carry_no_gradient() -> None:
+    import warnings
+
+    import cvxpy as cp
+
+    from a3cqp_rl.qp import QPLayer
+
+    x, c = cp.Variable(2), cp.Parameter(2)
+    con = x >= 0
+    layer = QPLayer(cp.Problem(cp.Minimize(cp.sum_squares(x) + c @ x), [con]), parameters=[c],
+                    variables=[x, con.dual_variables[0]])
+    cv = torch.tensor([1.0, -1.0], dtype=torch.float64, requires_grad=True)
+    with pytest.warns(UserWarning, match="multipliers without gradient"):
+        xv, yv = layer(cv)
+    assert xv.requires_grad and not yv.requires_grad
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # once per layer
+        layer(cv)

@@ -360,3 +360,32 @@ def test_interior_point_batch_mixing_infeasible_and_hard_feasible_instances() ->
     assert sol.status[2] == QPStatus.PRIMAL_INFEASIBLE
     assert (sol.status[others] == QPStatus.SOLVED).all() and (sol.iterations[others] > 1).any()
     assert (sol.x[others] - ref.x[others]).abs().max() < 1e-8
+
+
+def test_float32_psd_hessians_of_low_rank_are_convex() -> None:
+    """JᵀJ of a 6x7 J (the IK Hessian, rank 6) rounded to float32 has λ_min ~ −1e-8 max|λ|: SOLVED, not NON_CONVEX
+    (25 of 40 were NON_CONVEX before); a truly indefinite float32 P still is."""
+    statuses = []
+    for seed in range(40):
+        g = torch.Generator().manual_seed(seed)
+        J = torch.randn(6, 7, generator=g)
+        sol = solve_qp(J.T @ J, torch.randn(7, generator=g), lb=-torch.ones(7), ub=torch.ones(7))
+        statuses.append(int(sol.status[0]))
+    assert statuses == [int(QPStatus.SOLVED)] * 40
+    P = torch.diag(torch.tensor([1.0, -1e-3]))
+    assert int(solve_qp(P, torch.zeros(2), lb=-torch.ones(2), ub=torch.ones(2)).status[0]) == int(QPStatus.NON_CONVEX)
+
+
+@pytest.mark.parametrize("kw,match", [(dict(tol=-1.0), "tol must be"), (dict(tol=float("nan")), "tol must be"),
+                                      (dict(max_iter=-5), "max_iter must be"), (dict(max_iter="a"), "max_iter must be"),
+                                      (dict(active_set_iter=-1), "active_set_iter must be")])
+def test_solver_settings_are_checked(kw: dict, match: str) -> None:
+    P = torch.eye(2, dtype=torch.float64).expand(1, 2, 2)
+    with pytest.raises(QPShapeError, match=match):
+        solve_qp(P, torch.ones(1, 2, dtype=torch.float64), **kw)
+
+
+def test_a_batch_mismatch_names_every_argument_and_its_batch() -> None:
+    P = torch.eye(2, dtype=torch.float64).expand(3, 2, 2).contiguous()
+    with pytest.raises(QPShapeError, match=r"batch sizes differ \(P, q: 3; ub: 4\)"):
+        solve_qp(P, torch.zeros(3, 2, dtype=torch.float64), ub=torch.ones(4, 2, dtype=torch.float64))

@@ -187,3 +187,38 @@ def test_fields_changed_in_place_are_refused() -> None:
     del sol  # the node falls back on its own view of the buffer
     x.sum().backward()
     assert q.grad is not None and bool(torch.isfinite(q.grad).all())
+
+
+def test_x_changed_in_place_refuses_the_backward_even_without_the_solution_object() -> None:
+    """`x = solve_qp(...).x; x.add_(10)`: the adjoint reads x's buffer, so autograd's version check must refuse (it
+    computed a wrong P.grad before, without a word)."""
+    P0 = torch.tensor([[[2.0, 0.5], [0.5, 1.0]]], dtype=torch.float64)
+    P = P0.clone().requires_grad_()
+    q = torch.tensor([[-1.0, -3.0]], dtype=torch.float64, requires_grad=True)
+    x = solve_qp(P, q).x
+    x.add_(10.0)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        x.sum().backward()
+
+
+@pytest.mark.parametrize("backend", ["auto", "c", "torch"])
+def test_second_derivatives_are_right_or_refused(backend: str) -> None:
+    """d/dq of (∂/∂q Σ x³ + |q|²) for an unconstrained QP, x = −P⁻¹q: the torch route's double backward matches the
+    closed form; the C route's adjoint is not differentiable and says so instead of returning the |q|² part only."""
+    P = torch.tensor([[[2.0, 0.5], [0.5, 1.0]]], dtype=torch.float64)
+    q = torch.tensor([[-1.0, -3.0]], dtype=torch.float64, requires_grad=True)
+    Pinv = torch.linalg.inv(P[0])
+
+    def closed(qv: torch.Tensor) -> torch.Tensor:
+        xv = -(Pinv @ qv)
+        return (-(Pinv.T @ (3.0 * xv**2))).sum() + (qv**2).sum()
+
+    want = torch.autograd.functional.jacobian(closed, q[0].detach())
+    x = solve_qp(P, q, backend=backend).x
+    if backend == "torch":
+        g, = torch.autograd.grad((x**3).sum(), q, create_graph=True)
+        got, = torch.autograd.grad(g.sum() + (q**2).sum(), q)
+        torch.testing.assert_close(got[0], want, rtol=1e-8, atol=1e-10)
+    else:
+        with pytest.raises(QPGradientError, match="first derivatives only"):
+            torch.autograd.grad((x**3).sum(), q, create_graph=True)

@@ -9,7 +9,8 @@ with constraints A_cone x + b_cone ∈ {0}^p × R₊^m.  We keep the three maps 
 matrices; a batch of parameter tensors then costs three sparse-dense products to build
 (P, q, A, b, G, h) = (P, q, A_0, −b_0, −A_+, b_+), one `solve_qp`, and a column gather to return the
 requested variables.  Gradients flow back through the same products, so the layer is
-differentiable with respect to every parameter.
+differentiable with respect to every parameter (through the primal variables; requested multipliers are
+returned as values without gradient).
 
 As cvxpylayers' `CvxpyLayer`: variables with attributes (nonneg, bounds=...) are supported (cvxpy
 lowers them to fresh variables and constraints; the maps of the canonicalisation chain say where
@@ -21,6 +22,7 @@ built with `on_failure="nan"`, which returns NaN for those instances and the sta
 
 from __future__ import annotations
 
+import warnings
 from typing import Sequence
 
 import numpy as np
@@ -65,7 +67,8 @@ class QPLayer(torch.nn.Module):
         parameters: the problem's `cvxpy.Parameter`s, in the order their tensors are passed.
         variables: the `cvxpy.Variable`s whose values the layer returns, in that order; a constraint's
             dual variable (`con.dual_variables[0]`) returns that constraint's multipliers (≥ 0 for
-            inequalities, cvxpy's sign convention).
+            inequalities, cvxpy's sign convention). Multipliers are values only: gradients flow through the
+            primal variables, never through a multiplier (a warning says so when parameters require grad).
         dtype: dtype of the extracted maps (float64 by default); inputs are cast to it.
         solver_args: default `solve_qp` keywords (tol / eps, max_iter / max_iters, active_set_iter,
             backend, warm_start); a call's own solver_args override them.
@@ -229,6 +232,12 @@ class QPLayer(torch.nn.Module):
         Raises QPInfeasibleError for an instance that is not SOLVED, unless the layer was built with
         on_failure="nan" (then those values are NaN and the status tensor [B] (or []) comes last)."""
         outs, sol, any_batched = self._solve(params, solver_args, {})
+        if (not getattr(self, "_dual_warned", False) and torch.is_grad_enabled()
+                and any(kind == "dual" for kind, *_ in self.var_slices)
+                and any(isinstance(t, Tensor) and t.requires_grad for t in params)):
+            self._dual_warned = True
+            warnings.warn("QPLayer returns constraints' multipliers without gradient: a loss that uses them gets "
+                          "no gradient through them (the primal variables carry it)", stacklevel=2)
         status = sol.status
         bad = status != QPStatus.SOLVED
         if bool(bad.any()):

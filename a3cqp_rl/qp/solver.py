@@ -490,7 +490,7 @@ def _backward_torch(P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Te
     mask = torch.cat([torch.ones_like(y, dtype=torch.bool), active], 1) if p else active
     # Adjoint: [[P, C_Wᵀ], [C_W, 0]] [wx; wν] = [gx; 0], i.e. min ½wᵀPw − gxᵀw s.t. C_W w = 0.
     zr = torch.zeros_like(C[..., 0])
-    tol_w = 1e-12 * (1.0 + float(gx.abs().amax())) if gx.numel() else 1e-12
+    tol_w = 1e-12 * (1.0 + float(gx.detach().abs().amax())) if gx.numel() else 1e-12
     wx = wnu = res = None
     if gx.shape[0] <= LU_MAX_BATCH:
         wx, wnu, res = kkt_lu(Ps, -gx, C, zr, mask)
@@ -560,7 +560,9 @@ class _QPFunction(torch.autograd.Function):
         need = ctx.needs_input_grad[1:7]
         # Gradients only flow through x of solved instances (duals are outputs for information and warm starts).
         grads = None
-        if ctx.lib is not None:  # the C route certified every instance: its range-space adjoint
+        # the C route certified every instance: its range-space adjoint (not differentiable itself: with
+        # create_graph the torch adjoint below, whose operations autograd records)
+        if ctx.lib is not None and not torch.is_grad_enabled():
             grads = _backward_c(ctx.lib, ctx.c_run, x.shape[0], x.shape[1], A.shape[1], G.shape[1], gx, need)
         if grads is None:
             ok = status == QPStatus.SOLVED
@@ -618,6 +620,16 @@ def solve_qp(
     through x (implicit differentiation of the KKT system).  Returns a `QPSolution` whose `status`
     says per instance whether x is an answer (never raises on a bad instance; see `status.py`).
     """
+    if tol is not None and not (type(tol) in (float, int) and 0 < tol < 1):  # (NaN fails too)
+        if not (isinstance(tol, (float, int, np.floating, np.integer)) and 0 < float(tol) < 1):
+            raise QPShapeError(f"tol must be a number in (0, 1) (or None: the dtype's default), got {tol!r}")
+    if type(max_iter) is not int or max_iter < 1:
+        if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
+            raise QPShapeError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+        max_iter = int(max_iter)
+    if active_set_iter is not None and (isinstance(active_set_iter, bool) or not isinstance(active_set_iter, (int, np.integer))
+                                        or active_set_iter < 0):
+        raise QPShapeError(f"active_set_iter must be an integer >= 0 (or None: the default), got {active_set_iter!r}")
     if type(q) is not Tensor:
         q = _as_tensor(q, "q")
     if q.dtype is _F64 and backend == "auto" and q.is_cpu:
@@ -788,8 +800,15 @@ def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_s
                    hand_on: bool = True) -> QPSolution:
     """Every other call: shape checks with messages, float64 working precision, autograd, the torch route."""
     device = q.device
-    lead = [t.shape[0] for t, k in ((P, 3), (q, 2), (A, 3), (b, 2), (G, 3), (h, 2), (lb, 2), (ub, 2)) if t is not None and t.dim() == k]
-    B = max(lead) if lead else 1
+    lead = [(t.shape[0], nm) for t, k, nm in ((P, 3, "P"), (q, 2, "q"), (A, 3, "A"), (b, 2, "b"), (G, 3, "G"),
+                                               (h, 2, "h"), (lb, 2, "lb"), (ub, 2, "ub"))
+            if t is not None and t.dim() == k]
+    sizes = sorted({size for size, _ in lead if size != 1})
+    if len(sizes) > 1:
+        said = "; ".join(f"{', '.join(nm for size, nm in lead if size == k)}: {k}" for k in sizes)
+        raise QPShapeError(f"the arguments' batch sizes differ ({said}); each is [B, ...] with one B, or shared "
+                           "(unbatched or of batch 1)")
+    B = max(size for size, _ in lead) if lead else 1
     P = _batched(P, "P", 3, B, dtype, device)
     q = _batched(q, "q", 2, B, dtype, device)
     n = q.shape[1]
@@ -812,6 +831,7 @@ def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_s
     if low:  # solved in float64, a margin below the tolerance the rounded answer must meet
         tol = tol * 1e-3
         P, q, A, b, G, h, lb, ub = (None if t is None else t.to(_F64) for t in (P, q, A, b, G, h, lb, ub))
+        P = _lift_rounded_psd(P, dtype)
     m = G.shape[1] if G is not None else 0
     if A is None:
         A, b = _no_equalities(B, n, q)
@@ -834,6 +854,23 @@ def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_s
         z_r = torch.cat([z] + ([z_lb] if has_lb else []) + ([z_ub] if has_ub else []), 1)
         status = _recheck_rounded(status, P, q, A, b, G_all, h_all, x, y, z_r, user_tol, dtype)
     return QPSolution(x, y, z, z_lb, z_ub, status, iters)
+
+
+def _lift_rounded_psd(P: Tensor, dtype: torch.dtype) -> Tensor:
+    """float64 copy of a `dtype` P whose only negative eigenvalue is rounding (λ_min ≥ −64 eps(dtype) max|λ|)
+    with λ_min lifted to 0; others as they are. Why: a PSD product such as JᵀJ of rank < n, rounded to float32, has
+    λ_min ~ −1e-8 max|λ|, below the float64 convexity test's −1e-9 (NON_CONVEX on most such instances otherwise);
+    the lift is within the data's own rounding."""
+    S = 0.5 * (P + P.mT)
+    _, info = torch.linalg.cholesky_ex(S.detach())
+    bad = (info != 0).nonzero().squeeze(-1)
+    if not bad.numel():
+        return P
+    lam = torch.linalg.eigvalsh(S.detach().index_select(0, bad))
+    low = lam[:, 0]
+    lift = torch.where((low < 0) & (low >= -64.0 * torch.finfo(dtype).eps * lam.abs().amax(-1)), -low, 0.0)
+    eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
+    return P.index_add(0, bad, lift[:, None, None] * eye)
 
 
 def _recheck_rounded(status: Tensor, P: Tensor, q: Tensor, A: Tensor, b: Tensor, G_all: Tensor, h_all: Tensor,

@@ -126,10 +126,19 @@ class _SolvedX(torch.autograd.Function):
     @staticmethod
     def forward(ctx, sol, inner, *args):  # type: ignore[override]
         ctx.sol, ctx.inner = weakref.ref(sol), inner
-        return torch.from_numpy(inner._np("_x"))
+        x = torch.from_numpy(inner._np("_x"))
+        # saved so that autograd's version check refuses a backward after x was changed in place (x.add_(...)): the
+        # adjoint reads x's buffer, and the solution object that would catch it is often gone by then
+        ctx.save_for_backward(x)
+        return x
 
     @staticmethod
     def backward(ctx, gx):  # type: ignore[override]
+        ctx.saved_tensors  # noqa: B018 (raises if x was changed in place)
+        if torch.is_grad_enabled():
+            raise QPGradientError("solve_qp's C route gives first derivatives only (its adjoint is not itself "
+                                  "differentiable): for create_graph=True or second derivatives solve with "
+                                  "backend='torch'")
         need = ctx.needs_input_grad
         wrt = _WRT.get(need)
         if wrt is None:
