@@ -605,6 +605,9 @@ def train(
     """Train a Gaussian policy with A2C on `env` (default: the env `cfg.env` names, a2c.num_envs copies, seeded);
     write config.yaml, metrics.csv, checkpoint.pt and policy.pt under `out_dir` (see a3cqp_rl.run_folder's rules:
     `force` starts over in a folder holding a run, `override` lets `resume` change the config)."""
+    if not isinstance(cfg, ExperimentConfig):
+        raise TypeError(f"train needs an ExperimentConfig (a3cqp_rl.config.load_config(path)), got "
+                        f"{type(cfg).__name__}" + (f" {cfg!r}" if isinstance(cfg, (str, Path)) else ""))
     hp = cfg.a2c
     total = int(total_steps if total_steps is not None else hp.total_steps)
     if total <= 0:

@@ -44,6 +44,8 @@ class A2CPolicy(nn.Module):
         super().__init__()
         if flat.shape != (layout.size,):
             raise ValueError(f"parameter vector has {flat.shape[0]} entries, layout needs {layout.size}")
+        if not bool(torch.isfinite(flat).all()):  # (a diverged run's parameters: every action would be NaN)
+            raise ValueError(f"{int((~torch.isfinite(flat)).sum())} of its {layout.size} parameters are not finite")
         self.layout, self.bounded = layout, low is not None
         self.flat = nn.Parameter(flat.detach().clone().float(), requires_grad=False)
         lo = torch.tensor(low if low is not None else [-1.0] * layout.act_dim, dtype=torch.float32)
@@ -95,7 +97,10 @@ class _LocScale(nn.Module):
 
 
 def load_policy(path: str | Path) -> A2CPolicy:
-    """OUT/policy.pt (or a checkpoint.pt: the raw, never averaged parameters) as an `A2CPolicy`."""
+    """OUT/policy.pt (or a checkpoint.pt: the raw, never averaged parameters; a run folder: its policy.pt) as an
+    `A2CPolicy`."""
+    path = Path(path)
+    path = path / "policy.pt" if path.is_dir() else path
     data = load_checkpoint(path, ("flat", "layout"))
     obs_dim, act_dim, hidden, network, critic_dim = layout_key(data["layout"])
     layout = ParamLayout(obs_dim, act_dim, hidden, network, critic_dim)

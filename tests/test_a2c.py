@@ -244,6 +244,27 @@ def test_missing_and_corrupt_checkpoints(tmp_path):
         train(cfg, tmp_path / "bad", total_steps=16, resume=True)
     with pytest.raises(CheckpointError, match="not found"):
         load_policy(tmp_path / "nope.pt")
+    with pytest.raises(TypeError, match="needs an ExperimentConfig"):
+        train("configs/point_mass_a2c.yaml", tmp_path / "str", total_steps=16)
+
+
+def test_a_policy_with_non_finite_parameters_is_refused_and_a_run_folder_loads(tmp_path):
+    import shutil
+
+    from pathlib import Path
+
+    from a3cqp_rl.checkpoint import load_checkpoint, save_atomic
+
+    shipped = Path(__file__).resolve().parents[1] / "policies" / "point_mass_fig5_fd_1e6_seed0.pt"
+    (tmp_path / "run").mkdir()
+    shutil.copy(shipped, tmp_path / "run" / "policy.pt")
+    assert load_policy(tmp_path / "run").layout.size == load_policy(shipped).layout.size  # the folder's policy.pt
+    data = load_checkpoint(shipped, ("flat", "layout"))
+    data["flat"] = data["flat"].clone()
+    data["flat"][3] = float("nan")
+    save_atomic(data, tmp_path / "nan.pt")
+    with pytest.raises(CheckpointError, match="1 of its .* parameters are not finite"):
+        load_policy(tmp_path / "nan.pt")
 
 
 def test_torchrl_collector_path_trains_on_a_plain_envbase():

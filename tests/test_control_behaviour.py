@@ -333,3 +333,69 @@ def test_per_axis_leak_keeps_the_integral_action_of_the_axes_ik_still_tracks() -
         err[mode] = np.abs(log.err[-200:, 0, :2]).max()
         assert not log.fallback.any()
     assert err["per_axis"] < 1.5e-3 and err["min_w1"] > 4e-3, err  # measured 0.5 mm vs 7.2 mm
+
+
+def test_a_negative_weight_is_that_robots_invalid_input() -> None:
+    """w < 0 makes the QP non-convex: that robot falls back (INVALID_INPUT), the other computes as before."""
+    n = 2
+    sim, ctrl = PandaSim(n), A3CQPController(n)
+    pos0, rot0 = home_reference(ctrl, n)
+    s = sim.observe()
+    w = task_weights(n, [IK] * 6)
+    ref = A3CQPController(n).step(s.q, s.qd, s.mass, s.bias, w, torch.zeros(n, 6, dtype=F64), pos0, rot0)
+    w[0, 1, 0] = -0.5
+    out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, torch.zeros(n, 6, dtype=F64), pos0, rot0)
+    assert out.status.tolist() == [-1, 0] and out.fallback.tolist() == [True, False]
+    torch.testing.assert_close(out.tau[1], ref.tau[1], rtol=0, atol=1e-12)
+
+
+def test_step_and_reset_inputs_are_checked_with_named_shapes() -> None:
+    from a3cqp_rl.control.exceptions import ControlShapeError
+
+    n = 3
+    sim, ctrl = PandaSim(n), A3CQPController(n)
+    pos0, rot0 = home_reference(ctrl, n)
+    s = sim.observe()
+    q = torch.tensor(np.tile(PANDA_HOME, (n, 1)), dtype=F64)
+    with pytest.raises(ControlShapeError, match=r"reset: q must have shape \(3, 7\)"):
+        ctrl.reset(q.T)  # [7, 3]: was taken as [3, 7] by a reshape
+    with pytest.raises(ControlShapeError, match=r"reset: q must have shape \(3, 7\)"):
+        ctrl.reset(q[:2])
+    ctrl.reset(q)
+    with pytest.raises(ControlShapeError, match=r"reset: q must have shape \(2, 7\)"):
+        ctrl.reset(q, idx=[0, 2])
+    args = (s.qd, s.mass, s.bias, task_weights(n, [IK] * 6), torch.zeros(n, 6, dtype=F64), pos0, rot0)
+    with pytest.raises(ControlShapeError, match="in_contact must be a bool"):
+        ctrl.step(s.q, *args, in_contact=torch.zeros(n))
+    with pytest.raises(ControlShapeError, match=r"f_env must have shape \(3, 6\)"):
+        ctrl.step(s.q, *args, f_env=torch.zeros(n, 3, dtype=F64))
+    out = ctrl.step(s.q.numpy(), *args)  # numpy inputs as tensors
+    assert out.tau.shape == (n, 7)
+    for bad in (0, -1, 2.5):
+        with pytest.raises(ControlShapeError, match="number of robots"):
+            A3CQPController(bad)
+
+
+def test_the_simulation_refuses_bad_torques_and_states_instead_of_touching_other_arms() -> None:
+    """MuJoCo zeroes every arm's controls for one NaN torque and resets the whole model for a NaN qpos: PandaSim
+    raises, naming the arm, and never auto-resets."""
+    import mujoco
+
+    n = 3
+    sim = PandaSim(n)
+    assert sim.model.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
+    sim.observe()
+    tau = np.zeros((n, 7))
+    tau[1, 3] = np.nan
+    with pytest.raises(ValueError, match=r"tau is not finite for arms \(rows\) \[1\]"):
+        sim.step(tau)
+    with pytest.raises(ValueError, match=r"tau must have shape \(3, 7\)"):
+        sim.step(np.ones(7))
+    q = np.tile(PANDA_HOME, (n, 1))
+    with pytest.raises(ValueError, match=r"q must have shape \(3, 7\)"):
+        sim.reset(q.T.copy())
+    q[2, 0] = np.nan
+    with pytest.raises(ValueError, match=r"q is not finite for arms \(rows\) \[2\]"):
+        sim.reset(q)
+    with pytest.raises(ValueError, match="number of arms"):
+        PandaSim(0)

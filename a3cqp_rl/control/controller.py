@@ -316,7 +316,9 @@ class A3CQPController:
                  options: ControllerOptions | None = None, limits: PandaLimits = PANDA_LIMITS,
                  tasks: list[Task] | None = None, extra_limits: list[Limit] | None = None,
                  levels: Mapping[str, int | None] | Sequence[int | None] | None = None) -> None:
-        self.n = n
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ControlShapeError(f"n (the number of robots) must be an integer >= 1, got {n!r}")
+        self.n = int(n)
         self.model = model or PandaModel()
         self.config = config or ControllerConfig()
         self.options = options or ControllerOptions()
@@ -419,6 +421,11 @@ class A3CQPController:
         """Set the integrated references q*, q̇* to the measured state (all robots, or rows `idx`)."""
         q = torch.as_tensor(q, dtype=torch.float64)
         qd = torch.zeros_like(q) if qd is None else torch.as_tensor(qd, dtype=torch.float64)
+        rows = self.n if self.q_des is None or idx is None else len(torch.as_tensor(idx).reshape(-1))
+        for name, v in (("q", q), ("qd", qd)):
+            if tuple(v.shape) != (rows, N_QDD) and not (rows == 1 and tuple(v.shape) == (N_QDD,)):
+                raise ControlShapeError(f"reset: {name} must have shape ({rows}, {N_QDD}) (rad{'' if name == 'q' else '/s'}),"
+                                        f" got {tuple(v.shape)}")
         if self.q_des is None or idx is None:
             self.q_des, self.qd_des = q.clone().reshape(self.n, N_QDD), qd.clone().reshape(self.n, N_QDD)
             self._warm, self._warm_levels = None, ()
@@ -427,6 +434,8 @@ class A3CQPController:
 
     # ------------------------------------------------------------------ pieces
     def _check(self, name: str, t: torch.Tensor, shape: tuple[int, ...]) -> torch.Tensor:
+        if not isinstance(t, torch.Tensor):
+            t = torch.as_tensor(t)
         if t.shape != shape:
             raise ControlShapeError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
         return t if t.dtype == torch.float64 else t.to(dtype=torch.float64)
@@ -733,6 +742,8 @@ class A3CQPController:
                  kin) -> _StepInputs:  # noqa: ANN001
         """Stage 1: shapes, float64, contact flag, per-robot finiteness, first-call references, numpy views on CPU."""
         n = self.n
+        if not isinstance(q, torch.Tensor):  # numpy arrays as tensors (the other inputs: `_check`)
+            q = torch.as_tensor(q)
         t = [self._check(name, v, shape) for name, v, shape in zip(_INPUT_NAMES, (
             q, qd, mass, bias, weights, f_d, pos_d, rot_d, q.new_zeros(n, 6) if f_ext is None else f_ext),
             self._input_shapes)]
@@ -742,6 +753,15 @@ class A3CQPController:
             valid = np.isfinite(np.concatenate([a.reshape(n, -1) for a in arrays], axis=1)).all(axis=1)
         else:
             valid = torch.isfinite(torch.cat([v.reshape(n, -1) for v in t], dim=1)).all(-1)
+        # a negative weight makes the QP non-convex: that robot's input is invalid (the fallback), as a NaN's
+        valid = valid & ((arrays[4] >= 0.0).reshape(n, -1).all(axis=1) if on_cpu else (t[4] >= 0.0).reshape(n, -1).all(-1))
+        if in_contact is not None:
+            c = in_contact if isinstance(in_contact, (torch.Tensor, np.ndarray)) else np.asarray(in_contact)
+            if tuple(c.shape) != (n,) or c.dtype not in (torch.bool, np.bool_):
+                raise ControlShapeError(f"in_contact must be a bool tensor of shape ({n},), got {c.dtype} "
+                                        f"{tuple(c.shape)}")
+        if f_env is not None and tuple(f_env.shape) != (n, 6):
+            raise ControlShapeError(f"f_env must have shape ({n}, 6) (N, N m, world), got {tuple(f_env.shape)}")
         if self.q_des is None:  # first call: q*, q̇* from the measured state, a harmless stand-in where not finite
             ok = torch.as_tensor(valid)[:, None]
             self.reset(torch.where(ok, t[0], self._q_center.to(t[0])), torch.where(ok, t[1], 0.0))

@@ -94,6 +94,19 @@ def grid_origins(tool: str, scene: str, n: int) -> np.ndarray:
     return _grid(compose_mjcf(tool, scene), n)
 
 
+def _arm_rows(a: np.ndarray | torch.Tensor, rows: int, name: str, unit: str) -> np.ndarray:
+    """`a` as float64 [rows, 7] (one arm may give [7]); a wrong shape or a non-finite value raises ValueError naming
+    the arms. Why: MuJoCo zeroes every arm's controls for one bad one, and resets the whole model for a bad qpos."""
+    a = a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a, dtype=np.float64)
+    if a.shape != (rows, 7) and not (rows == 1 and a.shape == (7,)):
+        raise ValueError(f"{name} must have shape ({rows}, 7) ({unit}), got {a.shape}")
+    a = a.reshape(rows, 7)
+    ok = np.isfinite(a).all(axis=1)
+    if not ok.all():
+        raise ValueError(f"{name} is not finite for arms (rows) {np.flatnonzero(~ok)[:10].tolist()}")
+    return a.astype(np.float64, copy=False)
+
+
 def _replicate(text: str, n: int, origins: np.ndarray | None = None) -> tuple[mujoco.MjModel, list[str], np.ndarray]:
     """One model holding n copies of the MJCF `text` (arm, tool and scene), prefixed "arm{i}/" and placed at
     `origins` [n, 3] (default `_grid(text, n)`) (returns the model, the prefixes and the copies' origins)."""
@@ -220,6 +233,8 @@ class PandaSim:
                  timestep: float | None = None, control_site: str = "tcp", origins: np.ndarray | None = None,
                  buffers: dict[str, np.ndarray] | None = None, warmstart: bool = False,
                  contact_prefilter: bool = True) -> None:
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+            raise ValueError(f"n (the number of arms) must be an integer >= 1, got {n!r}")
         text = compose_mjcf(tool, scene)
         m1 = mujoco.MjModel.from_xml_string(text)
         # positions of arm i are reported in its own copy's frame: composite world minus self._origin[i]
@@ -227,6 +242,8 @@ class PandaSim:
                                                     else _replicate(text, n, origins))
         if timestep is not None:
             self.model.opt.timestep = timestep
+        # one arm's bad state must not make MuJoCo reset every arm of the model (its default on a bad qpos or qacc)
+        self.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
         if not warmstart:
             self.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
         # MuJoCo's default picks the dense Jacobian below 60 dofs (fewer than 9 arms), and its dense solver does not
@@ -354,8 +371,8 @@ class PandaSim:
         """Set joint positions [N or len(idx), 7] (rad) and velocities (rad/s, default 0) and clear forces."""
         m, d = self.model, self.data
         arms = np.arange(self.n) if idx is None else np.asarray(list(idx), dtype=np.intp).reshape(-1)
-        q = np.asarray(q, dtype=np.float64).reshape(len(arms), 7)
-        qd = np.zeros_like(q) if qd is None else np.asarray(qd, dtype=np.float64).reshape(len(arms), 7)
+        q = _arm_rows(q, len(arms), "q", "rad")
+        qd = np.zeros_like(q) if qd is None else _arm_rows(qd, len(arms), "qd", "rad/s")
         g = np.flatnonzero(np.isin(self._geom_arm, arms))  # a parked arm collides again
         m.geom_contype[g], m.geom_conaffinity[g] = self._contype[g], self._conaffinity[g]
         b = np.flatnonzero(np.isin(self._body_arm, arms))
@@ -541,7 +558,7 @@ class PandaSim:
 
     def step(self, tau: torch.Tensor | np.ndarray) -> None:
         """Apply joint torques [N, 7] (N m, clipped by the motors' ranges) and run mj_step2 (all arms)."""
-        tau = tau.detach().cpu().numpy() if isinstance(tau, torch.Tensor) else np.asarray(tau, dtype=np.float64)
+        tau = _arm_rows(tau, self.n, "tau", "N m")
         d = self.data
         d.ctrl[self._act] = tau
         mujoco.mj_step2(self.model, d)
@@ -693,15 +710,15 @@ class ShardedPandaSim:
 
     def step(self, tau: torch.Tensor | np.ndarray) -> None:
         """Apply joint torques [N, 7] (N m) and run mj_step2 of every part (in parallel)."""
-        tau = tau.detach().cpu().numpy() if isinstance(tau, torch.Tensor) else np.asarray(tau, dtype=np.float64)
+        tau = _arm_rows(tau, self.n, "tau", "N m")
         self._each("step", [(tau[a:b],) for a, b in self._ranges])
 
     def reset(self, q: np.ndarray | torch.Tensor, qd: np.ndarray | torch.Tensor | None = None,
               idx: list[int] | None = None) -> None:
         """Set joint positions [N or len(idx), 7] (rad) and velocities (rad/s, default 0) and clear forces."""
         arms = np.arange(self.n) if idx is None else np.asarray(list(idx), dtype=np.intp).reshape(-1)
-        q = np.asarray(q, dtype=np.float64).reshape(len(arms), 7)
-        qd = np.zeros_like(q) if qd is None else np.asarray(qd, dtype=np.float64).reshape(len(arms), 7)
+        q = _arm_rows(q, len(arms), "q", "rad")
+        qd = np.zeros_like(q) if qd is None else _arm_rows(qd, len(arms), "qd", "rad/s")
         for p, (a, b) in zip(self.parts, self._ranges):
             mine = (arms >= a) & (arms < b)
             if mine.any():
