@@ -657,7 +657,10 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     selection = TransferSelection(layout, spec, num_updates, hp)
     ckpt = Checkpoints(folder, cfg, layout, spec, flat, square_avg, gen, runner, average, selection)
     start = ckpt.begin(resume, override)
-    log = RunLog(folder.path if folder else None, start, per_update, hp.log_every)
+    if start > num_updates:  # the averaged policy and the logs would be cut back to a shorter run
+        raise ValueError(f"the run already trained {start * per_update:,} steps, more than the {total:,} asked for: "
+                         f"resume with --steps {start * per_update} or more, or train into a new --out")
+    log = RunLog(folder.path if folder else None, start, per_update, hp.log_every, finished=start == num_updates)
     regions = RegionChecks(layout, flat, average, num_updates, hp) if _fig5_applies(env) else None
     bar = _ProgressBar(num_updates * per_update, start * per_update, progress, runner.compiles and start < num_updates)
     timer, compile_s, startup_s, last = Timer(), 0.0, float("nan"), {}

@@ -31,13 +31,15 @@ the running average once it has begun); NaN on rows without a Fig. 5 check (poin
 class RunLog:
     """Appends metric rows to OUT/metrics.csv and OUT/tb; `out` None logs nowhere (rows are still returned)."""
 
-    def __init__(self, out: Path | None, start_update: int, per_update: int, log_every: int) -> None:
-        """Open the log of a run that starts (or resumes) after update `start_update`."""
+    def __init__(self, out: Path | None, start_update: int, per_update: int, log_every: int,
+                 finished: bool = False) -> None:
+        """Open the log of a run that starts (or resumes) after update `start_update` (`finished`: the run ended
+        there, and its final row stays)."""
         self.path = out / "metrics.csv" if out is not None else None
         self.tb = None
         self._tb_args = (out, start_update * per_update + 1)  # the writer is made on the first row: start-up stays short
         if out is not None:
-            truncate_csv(self.path, keep_until_update=start_update, log_every=log_every)
+            truncate_csv(self.path, keep_until_update=start_update, log_every=log_every, keep_last=finished)
 
     def write(self, row: dict[str, float]) -> None:
         """Append `row` (CSV_COLUMNS) to metrics.csv and its finite values to TensorBoard under a2c/."""
@@ -65,14 +67,17 @@ class RunLog:
             self.tb.close()
 
 
-def truncate_csv(path: Path, keep_until_update: int, log_every: int) -> None:
-    """Drop metric rows past the checkpoint we resume from (and its partial final row): no step logged twice."""
+def truncate_csv(path: Path, keep_until_update: int, log_every: int, keep_last: bool = False) -> None:
+    """Drop metric rows past the checkpoint we resume from (and its partial final row, which the run logs again
+    whole as it goes on): no step logged twice. `keep_last`: the run ended at that checkpoint and goes on no
+    further, so its final row stays."""
     if not path.exists():
         return
     try:
         with path.open(newline="") as f:
             rows = list(csv.DictReader(f))
-        keep = [r for r in rows if int(r["update"]) <= keep_until_update and int(r["update"]) % log_every == 0]
+        keep = [r for r in rows if int(r["update"]) <= keep_until_update
+                and (int(r["update"]) % log_every == 0 or (keep_last and int(r["update"]) == keep_until_update))]
     except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError) as exc:
         raise RunFolderError(f"{path} is not a metrics file a3cqp train wrote (an integer 'update' column on every "
                              f"row): {type(exc).__name__}: {exc}") from None

@@ -83,7 +83,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _run(args)
     except KeyboardInterrupt as exc:
-        print(f"\n{exc or 'interrupted'}", file=sys.stderr)
+        said = str(exc) or "interrupted"
+        if args.steps is not None and said.endswith("continue with --resume"):  # the length is not in config.yaml
+            said += f" --steps {args.steps}"
+        print(f"\n{said}", file=sys.stderr)
         return 130
     except (A3CQPError, OSError, ValueError) as exc:
         if args.debug:
@@ -112,8 +115,11 @@ def _run(args: argparse.Namespace) -> int:
     seeds = args.seeds if sweep else [cfg.seed if args.seed is None else args.seed]
     run_dirs, results, passed = [], [], []
     for seed in seeds:
-        run_cfg = load_config(config, {**overrides, "seed": seed})
         run_dir = out / f"seed_{seed}" if sweep else out
+        # a resume without --config continues with the config the run recorded (OUT/config.yaml), not the default
+        saved = run_dir / "config.yaml"
+        run_config = saved if args.resume and args.config is None and saved.is_file() else config
+        run_cfg = load_config(run_config, {**overrides, "seed": seed})
         # a sweep resumes seed by seed: seeds that never started (no checkpoint) start now
         resume = args.resume and (not sweep or (run_dir / "checkpoint.pt").is_file())
         if len(seeds) > 1:

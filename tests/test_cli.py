@@ -169,3 +169,24 @@ def test_train_set_overrides_reach_the_run_folders_config(tmp_path, capsys):
     assert train_main(["--set", "a2c.n_step=4", "--out", str(tmp_path / "bad"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert "with overrides: unknown key(s) a2c.n_step" in err and "Traceback" not in err
+
+
+def test_a_finished_run_resumed_keeps_its_log_a_shorter_one_is_refused_and_resume_reads_its_config(tmp_path, capsys):
+    """`make train` twice resumes a finished run: its last metrics row (a partial logging window) must stay. A resume
+    asking for fewer steps than were trained is refused; one without --config continues with OUT/config.yaml."""
+    from algorithms.policy import load_policy
+
+    out = tmp_path / "run"
+    args = ["train", "--config", CONFIG, "--no-compile", "--quiet", "--no-plots", "--out", str(out),
+            "--set", "a2c.log_every=2"]
+    assert main([*args, "--steps", "464"]) == 0  # 29 updates of 16 steps: the last row is not on a log_every boundary
+    csv0, flat0 = (out / "metrics.csv").read_bytes(), load_policy(out).flat.clone()
+    assert csv0.decode().strip().splitlines()[-1].split(",")[1] == "29"
+    assert main([*args, "--steps", "464", "--resume"]) == 0
+    assert (out / "metrics.csv").read_bytes() == csv0 and bool((load_policy(out).flat == flat0).all())
+    assert main([*args, "--steps", "160", "--resume"]) == 2
+    assert "more than the 160 asked for" in capsys.readouterr().err
+    assert (out / "metrics.csv").read_bytes() == csv0
+    # the README's `a3cqp train --out runs/paper --resume`: the run's own config, not the default one
+    assert main(["train", "--out", str(out), "--resume", "--steps", "640", "--no-compile", "--quiet",
+                 "--no-plots"]) == 0
