@@ -1,7 +1,8 @@
 """`a3cqp bench NAME [args]`: run one benchmark of the installed `bench` package (the repository's bench/ folder).
 
 NAME: env, train, pendulum, qp, controller, hierarchy, population, panda, tuning, eval, a2c, leak, workers, or all
-(each with --quick unless args are given). Each benchmark also runs as a script, `python bench/<file>.py --help`.
+(all: every one with --quick unless args are given; a single NAME runs with its own defaults, pass --quick for the
+short mode). Each benchmark also runs as a script, `python bench/<file>.py --help`.
 """
 
 from __future__ import annotations
