@@ -926,8 +926,9 @@ class PolishingConfig:
             err.positive(self, name)
         for name in ("preload", "rest_time", "lift", "hold_time", "friction", "plate_top_spread", "zone_spread",
                      "relocation_turn_deg"):
-            if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
-                err.add(name, f"must be a finite number >= 0, got {getattr(self, name)}")
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                err.add(name, f"must be a finite number >= 0, got {v}")
         for name in ("plate_center", "plate_half_size", "start_offset"):
             if len(getattr(self, name)) != 2:
                 err.add(name, f"needs 2 values (x, y), got {len(getattr(self, name))}")

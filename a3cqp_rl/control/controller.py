@@ -201,6 +201,7 @@ _INPUT_NAMES = ("q", "qd", "mass", "bias", "weights", "f_d", "pos_d", "rot_d", "
 """`A3CQPController.step`'s array inputs checked by `_prepare`, in `_StepInputs`' field order."""
 _INPUT_SHAPES = ((7,), (7,), (7, 7), (7,), (6, 3), (6,), (3,), (3, 3), (6,))
 """Their per-robot shapes."""
+_WEIGHTS = _INPUT_NAMES.index("weights")
 
 
 def _f_ext_limits(mask: Array | None, n: int) -> np.ndarray:
@@ -754,7 +755,8 @@ class A3CQPController:
         else:
             valid = torch.isfinite(torch.cat([v.reshape(n, -1) for v in t], dim=1)).all(-1)
         # a negative weight makes the QP non-convex: that robot's input is invalid (the fallback), as a NaN's
-        valid = valid & ((arrays[4] >= 0.0).reshape(n, -1).all(axis=1) if on_cpu else (t[4] >= 0.0).reshape(n, -1).all(-1))
+        w = arrays[_WEIGHTS] if on_cpu else t[_WEIGHTS]
+        valid = valid & (w >= 0.0).reshape(n, -1).all(-1)
         if in_contact is not None:
             c = in_contact if isinstance(in_contact, (torch.Tensor, np.ndarray)) else np.asarray(in_contact)
             if tuple(c.shape) != (n,) or c.dtype not in (torch.bool, np.bool_):

@@ -620,16 +620,8 @@ def solve_qp(
     through x (implicit differentiation of the KKT system).  Returns a `QPSolution` whose `status`
     says per instance whether x is an answer (never raises on a bad instance; see `status.py`).
     """
-    if tol is not None and not (type(tol) in (float, int) and 0 < tol < 1):  # (NaN fails too)
-        if not (isinstance(tol, (float, int, np.floating, np.integer)) and 0 < float(tol) < 1):
-            raise QPShapeError(f"tol must be a number in (0, 1) (or None: the dtype's default), got {tol!r}")
-    if type(max_iter) is not int or max_iter < 1:
-        if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 1:
-            raise QPShapeError(f"max_iter must be an integer >= 1, got {max_iter!r}")
-        max_iter = int(max_iter)
-    if active_set_iter is not None and (isinstance(active_set_iter, bool) or not isinstance(active_set_iter, (int, np.integer))
-                                        or active_set_iter < 0):
-        raise QPShapeError(f"active_set_iter must be an integer >= 0 (or None: the default), got {active_set_iter!r}")
+    _check_settings(tol, max_iter, active_set_iter)
+    max_iter = int(max_iter)
     if type(q) is not Tensor:
         q = _as_tensor(q, "q")
     if q.dtype is _F64 and backend == "auto" and q.is_cpu:
@@ -793,6 +785,20 @@ def _keep_c_verdict(sol: QPSolution) -> None:
     sol._np("_x")[left] = 0.0
     sol.forget(np.flatnonzero(left))
     st[left] = int(QPStatus.MAX_ITER)
+
+
+def _check_settings(tol: float | None, max_iter: int, active_set_iter: int | None) -> None:
+    """QPShapeError for a `tol` outside (0, 1) (NaN too), a `max_iter` that is not an integer ≥ 1, or a negative
+    `active_set_iter`."""
+    def integer(v) -> bool:  # noqa: ANN001
+        return isinstance(v, (int, np.integer)) and not isinstance(v, bool)
+
+    if tol is not None and not (isinstance(tol, (float, int, np.floating, np.integer)) and 0 < float(tol) < 1):
+        raise QPShapeError(f"tol must be a number in (0, 1) (or None: the dtype's default), got {tol!r}")
+    if not (integer(max_iter) and max_iter >= 1):
+        raise QPShapeError(f"max_iter must be an integer >= 1, got {max_iter!r}")
+    if active_set_iter is not None and not (integer(active_set_iter) and active_set_iter >= 0):
+        raise QPShapeError(f"active_set_iter must be an integer >= 0 (or None: the default), got {active_set_iter!r}")
 
 
 def _solve_general(lib: native.NativeQP | None, P, q, A, b, G, h, lb, ub, warm_start: QPSolution | None,  # noqa: ANN001

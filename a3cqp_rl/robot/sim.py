@@ -579,7 +579,8 @@ class PandaSim:
     def move_static_body(self, name: str, idx: list[int] | np.ndarray, offset: np.ndarray) -> None:
         """Place arms `idx`' copies of the scene's static body `name` at `offset` [len(idx), 3] (m, world) from
         where the MJCF put it (zeros: back there), e.g. a trial's plate at a height the controller does not know.
-        The next step's kinematics and collision see it; nothing else of the model changes."""
+        The next step's kinematics and collision see it; nothing else of the model changes. Call it where the
+        kinematics are current (after `reset`, as PandaEnv does): it runs one kinematics pass of the whole model."""
         m = self.model
         arms = np.asarray(idx, dtype=np.intp).reshape(-1)
         offset = np.asarray(offset, dtype=np.float64).reshape(len(arms), 3)
@@ -713,16 +714,21 @@ class ShardedPandaSim:
         tau = _arm_rows(tau, self.n, "tau", "N m")
         self._each("step", [(tau[a:b],) for a, b in self._ranges])
 
+    def _by_part(self, arms: np.ndarray):  # noqa: ANN202
+        """(part, mask over `arms` of its arms, their indices in the part) for each part holding some of `arms`."""
+        for p, (a, b) in zip(self.parts, self._ranges):
+            mine = (arms >= a) & (arms < b)
+            if mine.any():
+                yield p, mine, arms[mine] - a
+
     def reset(self, q: np.ndarray | torch.Tensor, qd: np.ndarray | torch.Tensor | None = None,
               idx: list[int] | None = None) -> None:
         """Set joint positions [N or len(idx), 7] (rad) and velocities (rad/s, default 0) and clear forces."""
         arms = np.arange(self.n) if idx is None else np.asarray(list(idx), dtype=np.intp).reshape(-1)
         q = _arm_rows(q, len(arms), "q", "rad")
         qd = np.zeros_like(q) if qd is None else _arm_rows(qd, len(arms), "qd", "rad/s")
-        for p, (a, b) in zip(self.parts, self._ranges):
-            mine = (arms >= a) & (arms < b)
-            if mine.any():
-                p.reset(q[mine], qd[mine], idx=(arms[mine] - a).tolist())
+        for p, mine, local in self._by_part(arms):
+            p.reset(q[mine], qd[mine], idx=local.tolist())
 
     def contact_filter_counts(self) -> tuple[int, int]:
         """PandaSim.contact_filter_counts summed over the parts."""
@@ -737,10 +743,8 @@ class ShardedPandaSim:
     def park(self, idx: list[int] | np.ndarray) -> None:
         """PandaSim.park: set arms `idx` aside (collisions off, asleep once at rest) until their next reset."""
         arms = np.asarray(idx, dtype=np.intp).reshape(-1)
-        for p, (a, b) in zip(self.parts, self._ranges):
-            mine = arms[(arms >= a) & (arms < b)]
-            if len(mine):
-                p.park(mine - a)
+        for p, _, local in self._by_part(arms):
+            p.park(local)
 
     def site_pose(self, site: str = "tcp") -> tuple[np.ndarray, np.ndarray]:
         """World position [N, 3] (m) and rotation [N, 3, 3] of a site after the last step (kinematics of step1)."""
@@ -755,10 +759,8 @@ class ShardedPandaSim:
         """PandaSim.move_static_body of the arms `idx` on the parts that hold them."""
         arms = np.asarray(idx, dtype=np.intp).reshape(-1)
         offset = np.asarray(offset, dtype=np.float64).reshape(len(arms), 3)
-        for p, (a, b) in zip(self.parts, self._ranges):
-            mine = (arms >= a) & (arms < b)
-            if mine.any():
-                p.move_static_body(name, arms[mine] - a, offset[mine])
+        for p, mine, local in self._by_part(arms):
+            p.move_static_body(name, local, offset[mine])
 
     def max_penetration(self) -> np.ndarray:
         """Deepest penetration [N] (m, 0 without contact) of each arm's contacts found by the last mj_step1."""
