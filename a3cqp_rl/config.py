@@ -40,6 +40,7 @@ __all__ = [
     "PandaEnvConfig",
     "ExperimentConfig",
     "load_config",
+    "read_config_file",
     "project_path",
     "config_from_dict",
     "config_to_dict",
@@ -1428,6 +1429,11 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
     return config_from_dict(data, source)
 
 
+def read_config_file(path: str | Path) -> dict:
+    """The mapping a YAML config file gives (merged over its `base` files), before defaults and validation."""
+    return _read_with_base(Path(path), ())
+
+
 def parse_overrides(items: list[str] | tuple[str, ...]) -> dict:
     """The nested dict of command-line overrides `KEY=VALUE` (KEY dotted, e.g. panda.blocked_force; VALUE read as
     YAML: 1.0, [z], null, true), for `load_config(path, overrides)`; a key given twice keeps the last value."""
@@ -1454,6 +1460,8 @@ def _read_with_base(path: Path, chain: tuple[Path, ...]) -> dict:
     """The mapping of the YAML file `path`, merged over its `base` file's (recursively); `chain`: the files that
     named it as their base, to report a loop."""
     source = str(path)
+    if path.is_dir():
+        raise ConfigError(f"{source}: is a folder, expected a YAML config file")
     if not path.is_file():
         where = f" (the base of {chain[-1]})" if chain else ""
         raise ConfigError(f"{source}: config file not found{where}")

@@ -236,6 +236,11 @@ def test_a_base_file_is_read_first_and_the_config_applies_over_it_key_by_key(tmp
     assert (top.seed, top.adaptation.f_d_max, top.panda.peg_in_hole.time_limit) == (3, 5.0, 12.0)
 
 
+def test_a_folder_given_as_config_is_named(tmp_path):
+    with pytest.raises(ConfigError, match="is a folder, expected a YAML config file"):
+        load_config(tmp_path)
+
+
 def test_a_missing_looping_or_malformed_base_is_a_config_error(tmp_path):
     (tmp_path / "a.yaml").write_text("base: nowhere.yaml\n")
     with pytest.raises(ConfigError, match=r"nowhere.yaml: config file not found \(the base of .*a.yaml\)"):

@@ -272,3 +272,39 @@ def test_ray_tasks_give_the_same_result_as_local_workers(tmp_path):
         ray.shutdown()
     assert _rows(tmp_path / "ray") == _rows(tmp_path / "local")
     np.testing.assert_array_equal(remote.values, local.values)
+
+
+def test_a_trial_too_short_for_an_episode_is_refused_before_training(tmp_path, capsys):
+    from a3cqp_rl.cli import main
+
+    out = tmp_path / "o"
+    assert main(["tune", "--steps-per-trial", "100", "--generations", "1", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "ends no training episode" in err and "give at least 2,000" in err and "Traceback" not in err
+    assert not out.exists()  # refused before the run folder was made
+    cfg = load_config(ROOT / "configs" / "ga_point_mass.yaml", {"ga": {"steps_per_trial": 100}})
+    with pytest.raises(ConfigError, match="ends no training episode"):
+        make_problem(cfg)
+    genes = [{"name": "num_envs", "low": 1, "high": 8, "type": "int"}]
+    short = load_config(ROOT / "configs" / "ga_point_mass.yaml", {"ga": {"steps_per_trial": 600, "genes": genes}})
+    make_problem(short)  # one env finishes an episode in 600 steps: a genome can score
+
+
+def _sigint_self(chunk, *args):
+    import os
+    import signal
+
+    os.kill(os.getpid(), signal.SIGINT)
+    return chunk
+
+
+def test_a_worker_hit_by_ctrl_c_stops_without_a_traceback(capfd):
+    from algorithms.tuning.pool import ProcessPool
+
+    pool = ProcessPool(1)
+    try:
+        with pytest.raises(SystemExit):
+            list(pool.imap(_sigint_self, [[1]]))
+    finally:
+        pool.close()
+    assert "KeyboardInterrupt" not in capfd.readouterr().err

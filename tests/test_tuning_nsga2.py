@@ -4,6 +4,7 @@ non-dominated sort against pygad's, hypervolume against pymoo, eq. 4 level selec
 from __future__ import annotations
 
 import csv
+import re
 from pathlib import Path
 
 import numpy as np
@@ -212,3 +213,54 @@ def test_pick_without_a_finished_run_is_an_error(tmp_path):
 
     with pytest.raises(A3CQPError):
         pick(tmp_path, 0)
+
+
+def test_cli_ctrl_c_says_where_to_resume_and_a_second_writer_is_refused(tmp_path, capsys):
+    from a3cqp_rl.cli import main
+    from a3cqp_rl.run_folder import RunFolder
+
+    path = tmp_path / "dies.yaml"
+    path.write_text(yaml.safe_dump({"nsga2": {"objective": "test_tuning_nsga2:zdt1_dies", "population": 12,
+                                              "generations": 8}}))
+    out = tmp_path / "run"
+    STOP["after"] = 24 + 12 * 4 + 5
+    try:
+        assert main(["pareto", "--config", str(path), "--out", str(out), "--quiet"]) == 130
+    finally:
+        STOP["after"] = None
+    err = capsys.readouterr().err
+    assert f"interrupted after generation 4; {out}/state.json holds it, continue with --resume" in err
+    assert "Traceback" not in err
+    with RunFolder.open(out, resume=True):  # another process writing the run
+        assert main(["pareto", "--out", str(out), "--resume", "--quiet"]) == 2
+        assert "being written by another process" in capsys.readouterr().err
+    assert read_state(out)["generation"] == 4  # untouched by the refused writer
+    assert main(["pareto", "--out", str(out), "--resume", "--quiet"]) == 0
+    assert read_state(out)["generation"] == 8
+
+
+@pytest.mark.parametrize("command, config, match", [
+    ("pareto", "configs/ga_point_mass.yaml", "is a GA config .* run it with a3cqp tune"),
+    ("pareto", "configs/point_mass_a2c.yaml", "has no nsga2: section"),
+    ("tune", "configs/nsga2_zdt1.yaml", "is an NSGA-II config .* run it with a3cqp pareto"),
+])
+def test_a_tuner_refuses_the_other_tuners_config(tmp_path, capsys, command, config, match):
+    from a3cqp_rl.cli import main
+
+    out = tmp_path / "o"
+    assert main([command, "--config", str(ROOT / config), "--generations", "1", "--out", str(out), "--quiet"]) == 2
+    assert re.search(match, capsys.readouterr().err)
+    assert not out.exists()
+
+
+def test_tuner_output_paths_are_checked_before_any_work(tmp_path, capsys):
+    from a3cqp_rl.cli import main
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    for out, said in ((afile, "is a file, expected a folder"), (afile / "x", "is a file, not a folder")):
+        assert main(["pareto", "--generations", "1", "--population", "8", "--out", str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err
+    assert main(["pareto", "--config", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    assert "is a folder, expected a YAML config file" in capsys.readouterr().err

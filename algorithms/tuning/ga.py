@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import functools
 import importlib.util
+import math
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -37,7 +38,7 @@ from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, confi
 from a3cqp_rl.exceptions import A3CQPError, ConfigError
 
 from .genome import GenomeSpec
-from .runner import Problem, RunResult, cli_config, run
+from .runner import Problem, RunResult, cli_config, interrupted, run
 
 __all__ = ["FITNESS", "make_problem", "tune", "trial_config", "episode_reward", "behaviour", "write_best", "main"]
 
@@ -131,12 +132,26 @@ def make_problem(cfg: ExperimentConfig, fitness: Callable | None = None) -> Prob
             raise ConfigError("ga.fitness: 'behaviour' needs the closed-loop evaluation envs/point_mass_eval.py, "
                               "which this installation lacks")
         fitness = FITNESS[g.fitness]
+        if g.fitness == "episode_reward":
+            _check_trial_length(cfg)
     ga_kwargs = dict(num_parents_mating=g.num_parents_mating, parent_selection_type=g.parent_selection_type,
                      keep_parents=g.keep_parents, keep_elitism=g.keep_elitism, crossover_type=g.crossover_type,
                      mutation_type=g.mutation_type, mutation_percent_genes=g.mutation_percent_genes)
     return Problem(kind="ga", spec=GenomeSpec(g.genes), evaluate=fitness, objectives=("fitness",), maximize=True,
                    generations=g.num_generations, population=g.sol_per_pop, ga_kwargs=ga_kwargs, chunk_size=1,
                    preload=preload, cost=functools.partial(trial_cost, cfg))
+
+
+def _check_trial_length(cfg: ExperimentConfig) -> None:
+    """Refuse, before any training, a trial too short for any genome's envs to finish an episode (eq. 34 averages
+    the last ones): an env runs ceil(steps / (n_steps · envs)) · n_steps ≤ steps / envs + n_steps steps."""
+    bounds = {g.name.removeprefix("a2c."): g for g in cfg.ga.genes}
+    envs = math.ceil(bounds["num_envs"].low) if "num_envs" in bounds else cfg.a2c.num_envs
+    n_steps = math.floor(bounds["n_steps"].high) if "n_steps" in bounds else cfg.a2c.n_steps
+    episode = cfg.point_mass.episode_steps
+    if cfg.ga.steps_per_trial / envs + n_steps < episode:
+        raise ConfigError(f"ga.steps_per_trial = {cfg.ga.steps_per_trial:,} ends no training episode ({envs} envs, "
+                          f"each needs {episode} steps): eq. 34 needs some; give at least {envs * episode:,}")
 
 
 def trial_cost(cfg: ExperimentConfig, genes: dict) -> float:
@@ -208,6 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
 
+    out = None
     try:
         cfg, out = cli_config(args.config, args.out, args.resume, "configs/ga_point_mass.yaml", "tune", "ga",
                               {"num_generations": args.generations, "steps_per_trial": args.steps_per_trial})
@@ -223,6 +239,9 @@ def main(argv: list[str] | None = None) -> int:
               f"({per_gen:.1f} s per generation); best fitness {row['fitness']:.4g} (generation "
               f"{int(row['generation'])}):\n{_comparison(genes)}")
         print(f"results in {out}/: best.yaml (a3cqp train --config {out}/best.yaml), evaluations.csv, ga.png")
+    except KeyboardInterrupt:
+        print(f"\n{interrupted(out)}", file=sys.stderr)
+        return 130
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

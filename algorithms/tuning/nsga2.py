@@ -35,7 +35,7 @@ from a3cqp_rl.tuning_files import read_rows, read_state
 from .genome import GenomeSpec
 from .objectives import Objective, get_objective
 from .pareto import hypervolume, non_dominated
-from .runner import Problem, RunResult, cli_config, run
+from .runner import Problem, RunResult, cli_config, interrupted, run
 
 __all__ = ["make_problem", "tune_pareto", "crowded_tournament_sbx", "rank_and_crowding", "pareto_front", "read_front",
            "pick", "main"]
@@ -225,6 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
 
+    out = None
     try:
         if args.pick is not None:
             if not args.out:
@@ -243,6 +244,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"NSGA-II: {result.generation} generations, {result.evaluations} evaluations in {result.seconds:.1f} s; "
               f"Pareto front of {len(front)} solutions{hv}")
         print(f"results in {out}/: front.csv (pick one with --pick K), evaluations.csv, pareto.png")
+    except KeyboardInterrupt:
+        print(f"\n{interrupted(out)}", file=sys.stderr)
+        return 130
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import signal
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -34,6 +35,13 @@ def _init_worker(preload: tuple[str, ...] = ()) -> None:
     # one thread per worker: the pool is the parallelism, and small torch ops run slower with more threads
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = "1"
+    # Ctrl-C reaches the whole process group: the parent stops the run and says how to resume, while a worker's
+    # KeyboardInterrupt would add its traceback (SystemExit prints none, and still unwinds a trial's temporary folder)
+    signal.signal(signal.SIGINT, _stop_quietly)
+
+
+def _stop_quietly(signum: int, frame: object) -> None:
+    raise SystemExit(130)
     for module in preload:  # heavy imports (torch, torchrl) once at start, not inside the first task's timing
         importlib.import_module(module)
 

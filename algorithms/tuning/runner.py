@@ -34,6 +34,7 @@ import yaml
 from a3cqp_rl.checkpoint import write_text_atomic
 from a3cqp_rl.config import ExperimentConfig, config_to_dict
 from a3cqp_rl.exceptions import CheckpointError, ConfigError
+from a3cqp_rl.run_folder import RunFolder, check_output_path
 from a3cqp_rl.tuning_files import STATE_FORMAT, read_rows, read_state
 
 from .genome import GenomeSpec
@@ -99,6 +100,18 @@ def run(problem: Problem, cfg: ExperimentConfig, out: str | Path, *, workers: in
         resume: bool = False, progress: bool = True) -> RunResult:
     """Run (or resume) `problem` under `cfg` (its seed drives pygad) and write OUT's files; the last population."""
     out = Path(out)
+    folder = RunFolder.open(out, resume=True)  # one writer at a time, as for a training run
+    try:
+        result = _run_locked(problem, cfg, out, workers, ray, resume, progress)
+    except BaseException:
+        folder.close(failed=True)
+        raise
+    folder.close()
+    return result
+
+
+def _run_locked(problem: Problem, cfg: ExperimentConfig, out: Path, workers: int, ray: str | None, resume: bool,
+                progress: bool) -> RunResult:
     state_path = out / "state.json"
     cfg_dict = config_to_dict(cfg)
     if resume:
@@ -111,7 +124,6 @@ def run(problem: Problem, cfg: ExperimentConfig, out: str | Path, *, workers: in
         if state_path.exists():
             raise CheckpointError(f"{out} already holds a tuning run: add --resume to continue it, or pick another --out")
         state, start_gen = None, None
-    out.mkdir(parents=True, exist_ok=True)
     write_text_atomic(out / "config.yaml", yaml.safe_dump(cfg_dict, sort_keys=False))
 
     columns = ["generation", "individual", *problem.spec.columns, *problem.objectives, "seconds", "new"]
@@ -146,12 +158,42 @@ def cli_config(config: str | None, out: str | None, resume: bool, default: str, 
     """The config and output folder of a tuner's CLI run: `config`, else OUT/config.yaml on --resume, else `default`
     (relative to the working directory, else to this checkout); OUT defaults to runs/<prefix>_<config name>;
     `overrides` (None values dropped) go into `section`."""
-    from a3cqp_rl.config import load_config, project_path
+    from a3cqp_rl.config import load_config, project_path, read_config_file
 
     if config is None:
         config = str(Path(out) / "config.yaml") if resume and out else str(project_path(default))
+    _check_tuner_config(read_config_file(config), config, section)
     given = {k: v for k, v in overrides.items() if v is not None}
-    return load_config(config, {section: given}), Path(out or Path("runs") / f"{prefix}_{Path(config).stem}")
+    out_path = check_output_path(out or Path("runs") / f"{prefix}_{Path(config).stem}", "--out", folder=True)
+    return load_config(config, {section: given}), out_path
+
+
+TUNERS = {"ga": ("a3cqp tune", "a GA"), "nsga2": ("a3cqp pareto", "an NSGA-II")}
+"""Config section -> the command that reads it and what it runs."""
+
+
+def _check_tuner_config(data: dict, path: str, section: str) -> None:
+    """Refuse the other tuner's config (its section would be ignored and the defaults run instead); an NSGA-II run
+    needs its section, which names the objective, while a GA may tune a training config with the Table V genes."""
+    other = next(k for k in TUNERS if k != section)
+    command, what = TUNERS[section]
+    if other in data and section not in data:
+        raise ConfigError(f"{path} is {TUNERS[other][1]} config ({other}: section, no {section}: section); run it with "
+                          f"{TUNERS[other][0]}, or give it a {section}: section for {command}")
+    if section == "nsga2" and section not in data:
+        raise ConfigError(f"{path} has no nsga2: section (objective, genes); {command} runs {what} search, e.g. "
+                          "--config configs/nsga2_peg.yaml")
+
+
+def interrupted(out: str | Path | None) -> str:
+    """The line a tuner prints on Ctrl-C: which generation OUT holds and how to continue."""
+    if out is None:
+        return "interrupted"
+    try:
+        gen = int(read_state(out)["generation"])
+    except CheckpointError:
+        return f"interrupted before the initial population was evaluated; nothing in {out} to resume"
+    return f"interrupted after generation {gen}; {out}/state.json holds it, continue with --resume --out {out}"
 
 
 def build_ga(problem: Problem, cfg: ExperimentConfig, fitness_func: Callable, state: dict | None = None,
