@@ -30,6 +30,19 @@ def help_summary(doc: str | None) -> str:
     return " ".join(line.strip() for line in head.splitlines())
 
 
+def seed_arg(text: str) -> int:
+    """One `--seed`: an integer in [0, 2**63 - 1] (what torch's generators and NumPy's seed sequences take)."""
+    from a3cqp_rl.config import MAX_SEED
+
+    try:
+        seed = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid seed {text!r}: expected an integer") from None
+    if not 0 <= seed <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"seed {seed} is outside [0, 2**63 - 1]")
+    return seed
+
+
 def main(argv: list[str] | None = None) -> int:
     """Dispatch `a3cqp <command> ...` to the command's module; returns the process exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)

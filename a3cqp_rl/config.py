@@ -1187,6 +1187,10 @@ class FixedControllerConfig:
         return [[float(c[a]) for c in cols] for a in range(6)]
 
 
+MAX_SEED = 2**63 - 1
+"""The largest seed a config or a command line takes."""
+
+
 @dataclass
 class ExperimentConfig:
     """One experiment: environment, adaptation law, reward, learner, GA and controller settings."""
@@ -1209,6 +1213,8 @@ class ExperimentConfig:
     """A fixed controller (a Pareto pick): `a3cqp evaluate --controller-config FILE` reads this section."""
 
     def _check(self, err: _Errors) -> None:
+        if not 0 <= self.seed <= MAX_SEED:  # torch's generators take 64-bit seeds; trials add small offsets
+            err.add("seed", f"must be an integer in [0, 2**63 - 1], got {self.seed}")
         if self.env not in ENV_FACTORIES and not _is_gym_id(self.env):
             err.add("env", f"unknown environment {self.env!r}: neither a registered env ({sorted(ENV_FACTORIES)}) "
                            "nor a gymnasium id (e.g. Pendulum-v1)")

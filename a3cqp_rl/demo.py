@@ -149,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"--seconds must be at least 0.01 (one step of the plotted record), got {args.seconds}")
         try:
             if args.out is not None:
+                if not args.out.suffix and not args.out.is_dir():  # matplotlib would add it: say the real name
+                    args.out = args.out.with_suffix(".png")
                 check_output_path(args.out, "--out")
         except RunFolderError as exc:
             print(f"error: {exc}", file=sys.stderr)

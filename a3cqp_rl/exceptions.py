@@ -11,3 +11,7 @@ class ConfigError(A3CQPError, ValueError):
 
 class CheckpointError(A3CQPError, RuntimeError):
     """A checkpoint is missing, truncated or from an incompatible run."""
+
+
+class TrainingDiverged(A3CQPError, FloatingPointError):
+    """Training produced non-finite parameters or losses (names the step and what to lower)."""

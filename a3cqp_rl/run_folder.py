@@ -23,7 +23,8 @@ __all__ = ["RunFolder", "RunFolderError", "RUN_FILES", "check_output_path", "con
 
 RUN_FILES = ("checkpoint.pt", "policy.pt", "metrics.csv", "config.yaml", "overrides.log")
 """What a run writes, besides the tb/ folder and its plots; `force` removes these."""
-RUN_PLOTS = ("policy_map.png", "policy_map.pdf", "loss_curves.png", "regions.png")
+RUN_PLOTS = ("policy_map.png", "policy_map.pdf", "loss_curves.png", "regions.png", "transfer.png", "evaluation.json")
+"""What `a3cqp train` writes after training; `force` removes these too (left, they would describe the old run)."""
 
 
 class RunFolderError(A3CQPError):

@@ -38,6 +38,7 @@ import torch
 from torch import Tensor
 
 from a3cqp_rl.config import A2CConfig, ExperimentConfig
+from a3cqp_rl.exceptions import TrainingDiverged
 from a3cqp_rl.timing import Timer, process_age
 from algorithms.a2c_run import (Checkpoints, ParameterAverage, RegionChecks, SigintCheckpoint, TransferSelection,
                                open_run_folder)
@@ -675,6 +676,8 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
                 runner.iterate_many(k, flat, square_avg, ckpt.metric_sum)
             ckpt.metric_count += k
             u = done = u + k
+            if not bool(torch.isfinite(flat).all()):  # at once: every check after this would only fail on the NaNs
+                raise _diverged(done, per_update, hp, "non-finite parameters")
             average.update(done, flat)
             if done - k == start:  # the first iteration pays for torch.compile
                 startup_s = process_age()
@@ -687,8 +690,9 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
                     row_checks.update(selection(done, flat))
                 with timer("log"):
                     last = _log_row(log, ckpt, done, per_update, runner, t_start, compile_s, start, row_checks)
-                if not math.isfinite(last["value_loss"]) or not bool(torch.isfinite(flat).all()):
-                    raise FloatingPointError(f"training diverged at update {done}: {last}")
+                if not all(math.isfinite(last[k]) for k in ("policy_loss", "value_loss")):
+                    raise _diverged(done, per_update, hp, f"policy loss {last['policy_loss']}, value loss "
+                                                          f"{last['value_loss']}")
                 if callback:
                     callback(done * per_update, last)
                 bar.set_postfix(ep_reward=f"{last['episode_reward']:.2f}", refresh=False)
@@ -725,6 +729,13 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
 
 
 # ------------------------------------------------------------------------------ helpers
+
+
+def _diverged(update: int, per_update: int, hp: A2CConfig, what: str) -> TrainingDiverged:
+    """The error of a run that diverged in `update`: where, what, and the settings that bound the step size."""
+    return TrainingDiverged(f"training diverged at step {update * per_update:,} (update {update:,}): {what}; lower "
+                            f"a2c.learning_rate (now {hp.learning_rate:g}) or a2c.max_grad_norm (now "
+                            f"{hp.max_grad_norm:g})")
 
 
 def _updates_before_python(u: int, start: int, num_updates: int, hp: A2CConfig, average: ParameterAverage,

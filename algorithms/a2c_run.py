@@ -34,9 +34,14 @@ def open_run_folder(out_dir: str | Path | None, *, resume: bool, force: bool) ->
         if resume:
             raise CheckpointError("--resume needs an output directory holding checkpoint.pt")
         return None
-    if resume and not (Path(out_dir) / "checkpoint.pt").is_file():
-        raise CheckpointError(f"checkpoint not found: {Path(out_dir) / 'checkpoint.pt'} (nothing to resume)")
-    return RunFolder.open(out_dir, resume=resume, force=force)
+    missing = CheckpointError(f"checkpoint not found: {Path(out_dir) / 'checkpoint.pt'} (nothing to resume)")
+    if resume and not Path(out_dir).is_dir():
+        raise missing
+    folder = RunFolder.open(out_dir, resume=resume, force=force)
+    if resume and not (Path(out_dir) / "checkpoint.pt").is_file():  # after the lock: a run being written says so
+        folder.close()
+        raise missing
+    return folder
 
 
 class ParameterAverage:
@@ -68,7 +73,7 @@ class ParameterAverage:
         start has passed)."""
         if d and d["first"] == self.first:
             self.count, self.mean = int(d["count"]), d["mean"].clone()
-        elif start >= self.first:
+        elif self.first <= start <= self.num_updates:  # (past the end the run is refused: no warning to add)
             warnings.warn(f"a2c.average_last: the average over updates {self.first}-{self.num_updates} cannot be "
                           f"rebuilt from a checkpoint at update {start}; policy.pt averages {start + 1}-{self.num_updates}")
 

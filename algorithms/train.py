@@ -16,11 +16,12 @@ with --seeds, one row per seed, the seed-robustness table.
 from __future__ import annotations
 
 import argparse
+import collections
 import math
 import sys
 from pathlib import Path
 
-from a3cqp_rl.cli import help_summary
+from a3cqp_rl.cli import help_summary, seed_arg
 from a3cqp_rl.exceptions import A3CQPError
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "point_mass_a2c_default.yaml"
@@ -29,7 +30,7 @@ wheel) the built-in defaults, the paper's settings (configs/point_mass_a2c.yaml)
 
 
 def parse_seeds(text: str) -> list[int]:
-    """'0-19' -> [0..19]; '1,3,5' -> [1, 3, 5]; '7' -> [7]."""
+    """'0-19' -> [0..19]; '1,3,5' -> [1, 3, 5]; '7' -> [7]; each seed once, in [0, 2**63 - 1]."""
     seeds: list[int] = []
     try:
         for part in text.split(","):
@@ -42,6 +43,11 @@ def parse_seeds(text: str) -> list[int]:
                 seeds.append(int(part))
     except ValueError:
         raise argparse.ArgumentTypeError(f"invalid seed list {text!r}; use e.g. 0-19 or 1,3,5") from None
+    twice = sorted(s for s, n in collections.Counter(seeds).items() if n > 1)
+    if twice:
+        raise argparse.ArgumentTypeError(f"seed list {text!r} names seed(s) {twice} more than once")
+    for s in seeds:
+        seed_arg(str(s))
     return seeds
 
 
@@ -57,7 +63,7 @@ def _parser() -> argparse.ArgumentParser:
                         "repeatable; the run folder's config.yaml keeps the result)")
     p.add_argument("--steps", type=int, default=None, help="total agent steps (default: a2c.total_steps)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--seed", type=int, default=None, help="random seed (default: the config's)")
+    g.add_argument("--seed", type=seed_arg, default=None, help="random seed (default: the config's)")
     g.add_argument("--seeds", type=parse_seeds, default=None, help="sweep, e.g. 0-19: one run per seed in OUT/seed_S")
     p.add_argument("--out", default=None, help="output folder (default: runs/<config name>)")
     r = p.add_mutually_exclusive_group()
@@ -148,8 +154,8 @@ def _run(args: argparse.Namespace) -> int:
         print()
         report([d / "policy.pt" for d in run_dirs], config=cfg, json_path=out / "evaluation.json")
     plots = [] if args.no_plots else _plot(run_dirs, out, results, cfg.a2c.region_checks)
-    print(f"results in {out}/: policy.pt (load with algorithms.a2c.load_policy / load_actor), checkpoint.pt, "
-          f"metrics.csv" + (f"; plots {', '.join(plots)}" if plots else ""))
+    print(f"results in {out}/{'seed_*/' if sweep else ''}: policy.pt (load with algorithms.a2c.load_policy / "
+          f"load_actor), checkpoint.pt, metrics.csv" + (f"; plots {', '.join(plots)}" if plots else ""))
     return 0
 
 

@@ -585,6 +585,9 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"  B={B:5d} {kind:17s} vs fastest peer ({label}: {best.solver}, {getattr(best, attr):.1f} µs): {ratio:.2f}x{extra}")
     # Targets against DAQP called from Python (the fastest small dense solver a user would pick):
     # B = 1 forward ≤ 1.5x its time, forward+backward ≤ 3x, B = 1024 forward at least 3x faster.
+    if not any(r.solver == "daqp (loop)" and r.fwd_us for r in rows):
+        print("\nAgainst DAQP and its targets: DAQP did not run (not installed? pip install -e '.[bench]')")
+        return 0
     print("\nAgainst DAQP (loop), same instances, same run (our time / DAQP's; < 1 means we are faster):")
     for B in batches:
         dq = next((r for r in rows if r.batch == B and r.solver == "daqp (loop)" and r.fwd_us), None)

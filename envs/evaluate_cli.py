@@ -14,11 +14,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from a3cqp_rl import worker_start
-from a3cqp_rl.cli import help_summary
+from a3cqp_rl.cli import help_summary, seed_arg
 from a3cqp_rl.exceptions import A3CQPError
 
 PANDA_WORKER_IMPORTS = ("envs.panda_eval", "envs.panda", "envs.panda_fixed", "algorithms.a2c")
@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--env", default="point_mass", choices=["point_mass"], help="environment (default: %(default)s)")
     p.add_argument("--policy", nargs="*", default=[], help="policy.pt, checkpoint.pt or run folder(s); none: baselines only")
     p.add_argument("--episodes", type=int, default=64, help="episodes per scenario (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, help="episode seed (default: %(default)s)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="episode seed (default: %(default)s)")
     p.add_argument("--json", default=None, help="also write the metrics as JSON to this file")
     p.add_argument("--config", default=None,
                    help="YAML whose dynamics, adaptation and reward the evaluation uses (default: the first policy's)")
@@ -78,7 +78,10 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     try:
         from a3cqp_rl.config import load_config
+        from a3cqp_rl.run_folder import check_output_path
 
+        if args.json:
+            check_output_path(args.json, "--json")  # before the evaluation, not after it
         config = load_config(args.config) if args.config else None
         report(args.policy, config=config, episodes=args.episodes, seed=args.seed, json_path=args.json)
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
@@ -92,13 +95,16 @@ def _policy_file(path: str | Path) -> Path:
     return path / "policy.pt" if path.is_dir() else path
 
 
-def _names(paths: Sequence[Path]) -> list[str]:
-    """Row names: the run folder's name (seed_3, ...), made unique."""
+def _names(paths: Sequence[Path], reserved: Iterable[str] = ()) -> list[str]:
+    """Row names: the run folder's name (seed_3, ...), made unique; one that is `reserved` (a baseline's) gets _run."""
     names: list[str] = []
+    reserved = set(reserved)
     for path in paths:
         base = path.parent.name if path.name in ("policy.pt", "checkpoint.pt") else path.stem
-        name, k = base or "policy", 2
-        while name in names:
+        base = base or "policy"
+        base = f"{base}_run" if base in reserved else base
+        name, k = base, 2
+        while name in names or name in reserved:
             name, k = f"{base}_{k}", k + 1
         names.append(name)
     return names
@@ -131,15 +137,12 @@ def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed
 
     out = sys.stdout if out is None else out  # looked up per call: a default bound at import outlives a redirect
     paths = [_policy_file(p) for p in policies]
-    names = _names(paths)
+    baselines = baseline_policies()
+    names = _names(paths, reserved=baselines)
     learned = {n: load_policy(path) for n, path in zip(names, paths)}
     if config is None and paths:
         saved = load_checkpoint(paths[0], ("config",))["config"]
         config = config_from_dict(saved, str(paths[0]))
-    baselines = baseline_policies()
-    clash = set(learned) & set(baselines)
-    if clash:
-        raise ValueError(f"policy name(s) {sorted(clash)} clash with the baselines; rename the run folder")
     result = evaluate({**learned, **baselines}, episodes=episodes, seed=seed, config=config)
     alpha = ", ".join(f"{a:g}" for a in result.alpha)
     print(f"Closed loop, point mass: {episodes} episodes per scenario (seed {seed}), the same for every policy; "

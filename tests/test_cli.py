@@ -33,6 +33,7 @@ def test_seed_sweep_makes_one_folder_per_seed(tmp_path, capsys):
     assert "Fig. 5 regions (literal): all four on" in printed
     assert "| seed_0 |" in printed and "| seed_1 |" in printed and "best_return" in printed  # the robustness table
     assert (out / "evaluation.json").is_file()
+    assert f"results in {out}/seed_*/: policy.pt" in printed  # where a sweep's policies are
 
 
 def test_clear_errors(tmp_path, capsys):
@@ -190,3 +191,44 @@ def test_a_finished_run_resumed_keeps_its_log_a_shorter_one_is_refused_and_resum
     # the README's `a3cqp train --out runs/paper --resume`: the run's own config, not the default one
     assert main(["train", "--out", str(out), "--resume", "--steps", "640", "--no-compile", "--quiet",
                  "--no-plots"]) == 0
+
+
+def test_a_diverging_run_stops_at_once_with_one_line_naming_the_step_and_the_lever(tmp_path, capsys):
+    out = tmp_path / "dv"
+    assert main(["train", "--config", CONFIG, "--steps", "3000000", "--set", "a2c.learning_rate=1e300",
+                 "--no-compile", "--quiet", "--no-plots", "--no-eval", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "training diverged at step 16 (update 1): non-finite parameters; lower a2c.learning_rate (now 1e+300)" \
+        in err
+    assert "Traceback" not in err and not (out / "policy.pt").exists()
+
+
+@pytest.mark.parametrize("args, said", [
+    (["--seed", "99999999999999999999"], "seed 99999999999999999999 is outside [0, 2**63 - 1]"),
+    (["--seed", "-1"], "seed -1 is outside"),
+    (["--seeds", "1,1"], "names seed(s) [1] more than once"),
+    (["--seeds", "0-2,2"], "names seed(s) [2] more than once"),
+])
+def test_bad_seeds_are_named_before_any_work(tmp_path, capsys, args, said):
+    with pytest.raises(SystemExit):
+        main(["train", "--config", CONFIG, "--steps", "160", "--out", str(tmp_path / "o"), *args])
+    assert said in capsys.readouterr().err and not (tmp_path / "o").exists()
+    bad = tmp_path / "seed.yaml"
+    bad.write_text("seed: 99999999999999999999\n")
+    with pytest.raises(Exception, match=r"seed: must be an integer in \[0, 2\*\*63 - 1\]"):
+        load_config(bad)
+
+
+def test_a_run_folder_named_like_a_baseline_gets_its_own_row(tmp_path, capsys):
+    out = tmp_path / "ik_only"
+    assert main(["train", "--config", CONFIG, "--steps", "160", "--no-compile", "--quiet", "--no-plots",
+                 "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "| ik_only_run |" in printed and "| ik_only |" in printed
+    assert (out / "evaluation.json").is_file()
+
+
+def test_evaluate_checks_its_json_path_before_evaluating(tmp_path, capsys):
+    assert main(["evaluate", "--episodes", "2", "--json", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "--json" in err and "is a folder, expected a file name" in err

@@ -27,6 +27,10 @@ def test_demo_controller_refuses_a_time_too_short_to_plot_and_a_folder_as_its_pn
     assert demo_main(["controller", "--seconds", "0.01", "--out", str(tmp_path)]) == 2
     assert "is a folder, expected a file name" in capsys.readouterr().err
     assert demo_main(["controller", "--seconds", "0.01", "--out", str(tmp_path / "short.png")]) == 0
+    capsys.readouterr()
+    assert demo_main(["controller", "--seconds", "0.01", "--out", str(tmp_path / "plain")]) == 0
+    assert f"wrote {tmp_path / 'plain.png'}" in capsys.readouterr().out  # the file's real name
+    assert (tmp_path / "plain.png").is_file() and not (tmp_path / "plain").exists()
 
 
 def test_bench_controller_quick_runs(capsys) -> None:  # noqa: ANN001

@@ -45,8 +45,39 @@ def test_plot_cli(tmp_path):
     assert (tmp_path / "r" / "policy_map.pdf").is_file()
     assert main(["plot", "loss-curves", str(tmp_path / "r"), "--out", str(tmp_path / "l.png")]) == 0
     assert main(["plot", "regions", str(tmp_path / "r"), "--pdf"]) == 0
-    assert (tmp_path / "regions.pdf").read_bytes()[:4] == b"%PDF"
+    assert (tmp_path / "r" / "regions.pdf").read_bytes()[:4] == b"%PDF"  # one run: inside it, as train writes it
     assert main(["plot", "policy-map", str(tmp_path / "missing.pt")]) == 2
+
+
+def test_plot_cli_names_and_paths_that_do_not_collide_or_trace_back(tmp_path, capsys):
+    from a3cqp_rl.cli import main
+
+    for seed in (0, 1):
+        train(config_from_dict({"a2c": {"compile": False, "log_every": 10}, "seed": seed}), tmp_path / f"seed_{seed}",
+              total_steps=16 * 20)
+    runs = [str(tmp_path / "seed_0"), str(tmp_path / "seed_1")]
+    assert main(["plot", "loss-curves", *runs]) == 0  # several runs: beside them (the sweep's folder)
+    assert (tmp_path / "loss_curves.png").is_file()
+    assert main(["plot", "loss-curves", runs[1]]) == 0
+    assert (tmp_path / "seed_1" / "loss_curves.png").is_file()
+    # the last parameters' map does not replace the kept policy's
+    assert main(["plot", "policy-map", runs[0]]) == 0
+    assert main(["plot", "policy-map", f"{runs[0]}/checkpoint.pt"]) == 0
+    assert (tmp_path / "seed_0" / "policy_map.png").is_file()
+    assert (tmp_path / "seed_0" / "policy_map_checkpoint.png").is_file()
+    capsys.readouterr()
+    (tmp_path / "afile").write_text("")
+    for args, said in ((["policy-map", runs[0], "--out", str(tmp_path / "afile" / "m.png")], "is a file, not a folder"),
+                       (["policy-map", runs[0], "--levels", "abc"], "--levels 'abc': expected comma-separated"),
+                       (["policy-map", runs[0], "--levels", "0,2"], "level must be in [0, 1]")):
+        assert main(["plot", *args]) == 2
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err
+
+
+def test_a_policy_map_needs_the_four_a3cqp_actions():
+    with pytest.raises(ValueError, match="gives 1 action.* a policy map draws the A3CQP policy's 4"):
+        policy_grid(lambda obs: obs[..., :1])
 
 
 def _region_csv(path, steps, flags):

@@ -36,14 +36,22 @@ def test_a_finished_run_is_not_overwritten_without_force(tmp_path):
         train(cfg, tmp_path / "run", total_steps=16 * 10)
     assert (tmp_path / "run" / "metrics.csv").read_text() == before
     (tmp_path / "run" / "notes.txt").write_text("mine")
+    for old in ("evaluation.json", "transfer.png", "policy_map.png"):  # what train writes after training
+        (tmp_path / "run" / old).write_text("the old run's")
     train(cfg, tmp_path / "run", total_steps=16 * 10, force=True)  # starts over: 10 updates, 2 rows
     assert len(_rows(tmp_path / "run")) == 2 and (tmp_path / "run" / "notes.txt").read_text() == "mine"
+    assert not any((tmp_path / "run" / old).exists() for old in ("evaluation.json", "transfer.png", "policy_map.png"))
 
 
 def test_one_writer_per_folder(tmp_path):
     with RunFolder.open(tmp_path / "run"):
         with pytest.raises(RunFolderError, match=f"being written by another process \\(pid {os.getpid()}\\)"):
             train(config_from_dict(BASE), tmp_path / "run", total_steps=16)
+        # a resume of a run that has no checkpoint yet says so too, not "nothing to resume"
+        with pytest.raises(RunFolderError, match="being written by another process"):
+            train(config_from_dict(BASE), tmp_path / "run", total_steps=16, resume=True)
+    with pytest.raises(CheckpointError, match="nothing to resume"):
+        train(config_from_dict(BASE), tmp_path / "run", total_steps=16, resume=True)
     train(config_from_dict(BASE), tmp_path / "run", total_steps=16)  # released
 
 

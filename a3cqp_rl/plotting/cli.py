@@ -19,6 +19,7 @@ from pathlib import Path
 
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
+from a3cqp_rl.run_folder import check_output_path
 
 POLICY_LOADER = "algorithms.a2c:load_policy"
 """'module:function' turning a policy file into obs [..., 3] -> action [..., 4] (resolved on use: plotting does not
@@ -44,11 +45,26 @@ def _output_image(out: Path, pdf: bool) -> Path:
     or a suffix that contradicts --pdf."""
     if out.is_dir():
         raise ValueError(f"--out {out} is a folder: give the image's file name, e.g. {out / 'plot.png'}")
+    check_output_path(out, "--out")
     if not out.suffix:
         return out.with_suffix(".pdf" if pdf else ".png")
     if pdf and out.suffix.lower() != ".pdf":
         raise ValueError(f"--pdf asks for a PDF but --out {out} names a {out.suffix} file")
     return out
+
+
+def _beside_runs(runs: list[str], name: str) -> Path:
+    """Where a plot of run folders goes by default: inside the run for one (as `a3cqp train` writes it), in the
+    first run's parent for several (a sweep's folder)."""
+    return Path(runs[0]) / name if len(runs) == 1 else Path(runs[0]).parent / name
+
+
+def _levels(text: str) -> list[float]:
+    """`--levels 0,0.05,0.3` as numbers; ValueError naming the flag."""
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--levels {text!r}: expected comma-separated numbers in [0, 1], e.g. 0,0.05,0.3") from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -88,13 +104,15 @@ def main(argv: list[str] | None = None) -> int:
             src = Path(args.policy)
             if src.is_dir():
                 src = src / "policy.pt"
-            levels = [float(v) for v in args.levels.split(",")]
-            out = Path(args.out) if args.out else src.with_name("policy_map" + ext)
+            levels = _levels(args.levels)
+            # checkpoint.pt holds the last parameters, policy.pt the kept ones: their maps must not replace each other
+            name = "policy_map" if src.name == "policy.pt" else f"policy_map_{src.stem}"
+            out = Path(args.out) if args.out else src.with_name(name + ext)
             plot_policy_map(_load_policy(src), out, args.x, args.y, args.fixed, levels, title=str(src))
         elif args.what == "loss-curves":
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
 
-            out = Path(args.out) if args.out else Path(args.runs[0]).parent / ("loss_curves" + ext)
+            out = Path(args.out) if args.out else _beside_runs(args.runs, "loss_curves" + ext)
             plot_loss_curves(args.runs, out)
         elif args.what == "episode":
             from a3cqp_rl.plotting.episode import load_episode, plot_episode, render_strip
@@ -116,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.what == "transfer":
             from a3cqp_rl.plotting.transfer_history import plot_transfer_history
 
-            out = Path(args.out) if args.out else Path(args.runs[0]).parent / ("transfer" + ext)
+            out = Path(args.out) if args.out else _beside_runs(args.runs, "transfer" + ext)
             plot_transfer_history(args.runs, out)
         elif args.what == "ga":
             from a3cqp_rl.plotting.ga_history import plot_ga_run
@@ -130,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             from a3cqp_rl.plotting.region_history import plot_region_history
 
-            out = Path(args.out) if args.out else Path(args.runs[0]).parent / ("regions" + ext)
+            out = Path(args.out) if args.out else _beside_runs(args.runs, "regions" + ext)
             plot_region_history(args.runs, out)
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

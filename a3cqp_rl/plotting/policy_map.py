@@ -28,7 +28,11 @@ def policy_grid(
     cols = {x: gx, y: gy, fixed: torch.full_like(gx, level)}
     obs = torch.stack([cols[n] for n in STATE_NAMES], dim=-1)  # [R, R, 3] in (e, f_env, f_ope) order
     with torch.no_grad():
-        return lin, lin, policy(obs)
+        act = policy(obs)
+    if act.shape[-1] != len(ACTION_LABELS):
+        raise ValueError(f"the policy gives {act.shape[-1]} action(s) per observation; a policy map draws the A3CQP "
+                         f"policy's {len(ACTION_LABELS)} (ẇ1, ẇ2, ẇ3, ḟd)")
+    return lin, lin, act
 
 
 def plot_policy_map(
