@@ -47,6 +47,7 @@ __all__ = [
     "ENV_FACTORIES",
     "estimate_memory_bytes",
     "check_memory",
+    "check_fits",
 ]
 
 ENV_FACTORIES: dict[str, str] = {
@@ -1240,17 +1241,26 @@ def _is_gym_id(name: str) -> bool:
 
 
 def estimate_memory_bytes(cfg: ExperimentConfig) -> int:
-    """Rough peak memory of training `cfg` [bytes], dominated by per-env state for many envs.
+    """Rough peak memory of training `cfg` [bytes]: the envs' part plus the network's (`_memory_parts`)."""
+    return sum(_memory_parts(cfg).values())
 
-    Per point-mass env: the double-buffered operator schedule (2 × (episode_steps + 1) float64), the state and its
-    pending episode; per sample of a rollout (n_steps × num_envs): observations, actions, rewards, flags and each
-    hidden layer's activations (float32), about three times over (the update's forward, backward and copies).
+
+def _memory_parts(cfg: ExperimentConfig) -> dict[str, int]:
+    """Rough peak memory [bytes] per config key that sets it.
+
+    a2c.num_envs, per point-mass env: the double-buffered operator schedule (2 × (episode_steps + 1) float64), the
+    state and its pending episode; per sample of a rollout (n_steps × num_envs): observations, actions, rewards,
+    flags and each hidden layer's activations (float32), about three times over (the update's forward, backward and
+    copies). a2c.hidden: the actor's and the critic's parameters (float32), held about eight times over (parameters,
+    gradient, RMSProp's square average, the parameter average, the transfer candidates, a checkpoint being written).
     """
     a = cfg.a2c
     obs, act = 16, 8  # generous for the point mass (3 / 4; 3 + privileged critic input) and small gym tasks
     per_env = 2 * (cfg.point_mass.episode_steps + 1) * 8 + 40 * 8 if cfg.env == "point_mass" else 64 * 8
     per_sample = 4 * (2 * obs + act + 4 + 2 * sum(a.hidden)) * 3
-    return int(a.num_envs * (per_env + a.n_steps * per_sample))
+    sizes = [obs, *a.hidden]
+    params = sum((i + 1) * o for i, o in zip(sizes, [*a.hidden, act])) + sum((i + 1) * o for i, o in zip(sizes, [*a.hidden, 1]))
+    return {"a2c.num_envs": int(a.num_envs * (per_env + a.n_steps * per_sample)), "a2c.hidden": 4 * 8 * params}
 
 
 def _available_memory() -> int | None:
@@ -1266,12 +1276,22 @@ def _available_memory() -> int | None:
 
 
 def check_memory(cfg: ExperimentConfig, source: str = "config", available: int | None = None) -> None:
-    """ConfigError naming a2c.num_envs when `estimate_memory_bytes(cfg)` exceeds 80 % of the available memory."""
-    need = estimate_memory_bytes(cfg)
+    """ConfigError naming the key that needs the most (a2c.num_envs or a2c.hidden) when `estimate_memory_bytes(cfg)`
+    exceeds 80 % of the available memory."""
+    parts = _memory_parts(cfg)
+    key = max(parts, key=parts.get)
+    what = f"{cfg.a2c.num_envs} envs" if key == "a2c.num_envs" else f"a network of hidden sizes {list(cfg.a2c.hidden)}"
+    check_fits(sum(parts.values()), f"{source}: {key}: {what}",
+               "fewer envs" if key == "a2c.num_envs" else "smaller layers", available)
+
+
+def check_fits(need: int, what: str, advice: str, available: int | None = None) -> None:
+    """ConfigError "`what` need(s) about X GiB, more than 80 % of the Y GiB available; use `advice`" when `need`
+    [bytes] exceeds 80 % of the available memory (`available`, default: MemAvailable; unknown: no check)."""
     have = _available_memory() if available is None else available
     if have is not None and need > 0.8 * have:
-        raise ConfigError(f"{source}: a2c.num_envs: {cfg.a2c.num_envs} envs need about {need / 2**30:.1f} GiB, "
-                          f"more than 80 % of the {have / 2**30:.1f} GiB available; use fewer envs")
+        raise ConfigError(f"{what} need about {need / 2**30:.1f} GiB, more than 80 % of the {have / 2**30:.1f} GiB "
+                          f"available; use {advice}")
 
 
 # --------------------------------------------------------------------------------------------

@@ -179,6 +179,10 @@ def test_memory_estimate_refuses_a_million_envs_before_allocating():
     with pytest.raises(ConfigError, match="a2c.num_envs: 1000000 envs need about"):
         check_memory(cfg, available=8 * 2**30)
     check_memory(config_from_dict({}), available=8 * 2**30)  # the paper's 4 envs: fine
+    wide = config_from_dict({"a2c": {"hidden": [100_000, 100_000]}})  # 1e10 weights: 40 GB each copy
+    with pytest.raises(ConfigError, match=r"a2c.hidden: a network of hidden sizes \[100000, 100000\] need about"):
+        check_memory(wide, available=64 * 2**30)
+    check_memory(config_from_dict({"a2c": {"hidden": [256, 256]}}), available=8 * 2**30)
     from algorithms.a2c import train
 
     with pytest.raises(ConfigError, match="a2c.num_envs"):  # before any env is built (that would take minutes)

@@ -162,3 +162,14 @@ def test_policies_that_pass_both_panda_rules_are_named_with_the_command_that_che
     printed = capsys.readouterr().out
     assert f"{PANDA_CHECK} --policy {shipped}" in printed.splitlines()
     assert PANDA_HINT not in printed
+
+
+def test_more_episodes_than_the_memory_holds_are_refused_before_allocating(capsys):
+    from a3cqp_rl.cli import main
+    from a3cqp_rl.exceptions import ConfigError
+
+    with pytest.raises(ConfigError, match="100,000,000 episodes per scenario for 5 policies need about .* GiB"):
+        evaluate(baseline_policies(), episodes=100_000_000)
+    assert main(["evaluate", "--episodes", "100000000"]) == 2
+    err = capsys.readouterr().err
+    assert "use fewer episodes" in err and "Traceback" not in err
