@@ -167,3 +167,14 @@ def test_requested_multipliers_warn_that_they_carry_no_gradient() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # once per layer
         layer(cv)
+
+
+def test_an_empty_batch_gives_empty_values_with_a_graph():
+    x, p, M = cp.Variable(2), cp.Parameter(2), cp.Parameter((2, 2))
+    layer = QPLayer(cp.Problem(cp.Minimize(cp.sum_squares(M @ x - p)), [x >= 0, cp.sum(x) == 1]), [M, p], [x])
+    (v,) = layer(torch.zeros(0, 2, 2, dtype=DT), torch.zeros(0, 2, dtype=DT))
+    assert v.shape == (0, 2)
+    q = torch.zeros(0, 2, dtype=DT, requires_grad=True)
+    (v,) = layer(torch.eye(2, dtype=DT), q)  # one fixed M, an empty batch of p
+    v.sum().backward()
+    assert v.shape == (0, 2) and q.grad.shape == (0, 2)

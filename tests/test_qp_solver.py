@@ -389,3 +389,13 @@ def test_a_batch_mismatch_names_every_argument_and_its_batch() -> None:
     P = torch.eye(2, dtype=torch.float64).expand(3, 2, 2).contiguous()
     with pytest.raises(QPShapeError, match=r"batch sizes differ \(P, q: 3; ub: 4\)"):
         solve_qp(P, torch.zeros(3, 2, dtype=torch.float64), ub=torch.ones(4, 2, dtype=torch.float64))
+
+
+def test_no_variables_is_solved_where_the_constraints_hold_at_zero():
+    z = torch.zeros
+    sol = solve_qp(z(3, 0, 0, dtype=DT), z(3, 0, dtype=DT), A=z(3, 1, 0, dtype=DT),
+                   b=torch.tensor([[0.0], [1.0], [0.0]], dtype=DT), G=z(3, 1, 0, dtype=DT),
+                   h=torch.tensor([[1.0], [1.0], [-1.0]], dtype=DT))
+    assert sol.x.shape == (3, 0) and sol.y.shape == (3, 1) and sol.z.shape == (3, 1)
+    assert sol.status.tolist() == [QPStatus.SOLVED, QPStatus.PRIMAL_INFEASIBLE, QPStatus.PRIMAL_INFEASIBLE]
+    assert solve_qp(z(2, 0, 0, dtype=DT), z(2, 0, dtype=DT)).status.tolist() == [QPStatus.SOLVED] * 2

@@ -22,6 +22,7 @@ built with `on_failure="nan"`, which returns NaN for those instances and the sta
 
 from __future__ import annotations
 
+import math
 import warnings
 from typing import Sequence
 
@@ -175,7 +176,8 @@ class QPLayer(torch.nn.Module):
             if not bt:
                 t = t.unsqueeze(0).expand(batch, *shape)
             # cvxpy flattens parameter values in Fortran (column-major) order.
-            flat = t.permute(0, *range(t.dim() - 1, 0, -1)).reshape(batch, -1) if len(shape) > 1 else t.reshape(batch, -1)
+            size = math.prod(shape)  # (not -1: a batch of 0 leaves it ambiguous)
+            flat = t.permute(0, *range(t.dim() - 1, 0, -1)).reshape(batch, size) if len(shape) > 1 else t.reshape(batch, size)
             pieces.append(flat)
             cols.append(torch.arange(col, col + flat.shape[1], device=device))
         cols.append(torch.tensor([self.const_col], device=device))
@@ -197,7 +199,7 @@ class QPLayer(torch.nn.Module):
             P = torch.sparse.mm(self.M_P, thT).mT.reshape(batch, n, n).mT  # column-major vec
         else:
             P = theta.new_zeros(batch, n, n)
-        Ab = torch.sparse.mm(self.M_A, thT).mT.reshape(batch, n1, -1).mT  # (B, rows, n + 1)
+        Ab = torch.sparse.mm(self.M_A, thT).mT.reshape(batch, n1, self.M_A.shape[0] // n1).mT  # (B, rows, n + 1)
         A_cone, b_cone = Ab[..., :n], Ab[..., n]
         data = {"P": P, "q": qd[:, :n], "A": A_cone[:, :p], "b": -b_cone[:, :p], "G": -A_cone[:, p:], "h": b_cone[:, p:]}
         return data, any_batched
