@@ -347,6 +347,13 @@ def test_a_negative_weight_is_that_robots_invalid_input() -> None:
     out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, torch.zeros(n, 6, dtype=F64), pos0, rot0)
     assert out.status.tolist() == [-1, 0] and out.fallback.tolist() == [True, False]
     torch.testing.assert_close(out.tau[1], ref.tau[1], rtol=0, atol=1e-12)
+    # a weight so large that the QP is ill-conditioned likewise (1e12 was reported SOLVED with absurd torques)
+    from a3cqp_rl.control.controller import W_MAX
+
+    w[0, 1, 0] = 1e12
+    w[1, 2, 1] = W_MAX  # the largest taken
+    out = A3CQPController(n).step(s.q, s.qd, s.mass, s.bias, w, torch.zeros(n, 6, dtype=F64), pos0, rot0)
+    assert out.status.tolist() == [-1, 0] and out.fallback.tolist() == [True, False]
 
 
 def test_step_and_reset_inputs_are_checked_with_named_shapes() -> None:

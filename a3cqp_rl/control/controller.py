@@ -202,6 +202,10 @@ _INPUT_NAMES = ("q", "qd", "mass", "bias", "weights", "f_d", "pos_d", "rot_d", "
 _INPUT_SHAPES = ((7,), (7,), (7, 7), (7,), (6, 3), (6,), (3,), (3, 3), (6,))
 """Their per-robot shapes."""
 _WEIGHTS = _INPUT_NAMES.index("weights")
+W_MAX = 1e6
+"""The largest task weight `step` takes. Up to 1e6 the C and Python routes agree to 5e-7 N m on random inputs; at 1e9
+the QP runs out of iterations (a fallback, said so); at 1e12 it reported SOLVED with torques 40 N m apart and
+accelerations of 1e8 rad/s² (2026-12-01). The A3CQP weights lie in [0, 1] (eq. 28)."""
 
 
 def _f_ext_limits(mask: Array | None, n: int) -> np.ndarray:
@@ -663,7 +667,8 @@ class A3CQPController:
         Args:
             q, qd: measured joint positions/velocities [N, 7] (rad, rad/s).
             mass: B(q) [N, 7, 7]; bias: h + g [N, 7] (N m) (MuJoCo qM, qfrc_bias).
-            weights: local per-axis task weights w^𝓛 [N, 6, 3], columns (w1 IK, w2 AC, w3 FC) (eq. 8, 28).
+            weights: local per-axis task weights w^𝓛 [N, 6, 3], columns (w1 IK, w2 AC, w3 FC) (eq. 8, 28), in
+                [0, W_MAX]; a robot with one outside (or NaN) gets the fallback, status INVALID_INPUT.
             f_d: local desired contact wrench f_d^𝓛 [N, 6] (N, N m), clipped to [0, f̄_d] (eq. 21).
             pos_d, rot_d: Cartesian reference of the control site [N, 3] (m), [N, 3, 3].
             f_ext: measured external wrench at the control site [N, 6], world frame (default 0).
@@ -754,9 +759,10 @@ class A3CQPController:
             valid = np.isfinite(np.concatenate([a.reshape(n, -1) for a in arrays], axis=1)).all(axis=1)
         else:
             valid = torch.isfinite(torch.cat([v.reshape(n, -1) for v in t], dim=1)).all(-1)
-        # a negative weight makes the QP non-convex: that robot's input is invalid (the fallback), as a NaN's
+        # a negative weight makes the QP non-convex, and one above W_MAX ill-conditioned: that robot's input is
+        # invalid (the fallback), as a NaN's
         w = arrays[_WEIGHTS] if on_cpu else t[_WEIGHTS]
-        valid = valid & (w >= 0.0).reshape(n, -1).all(-1)
+        valid = valid & ((w >= 0.0) & (w <= W_MAX)).reshape(n, -1).all(-1)
         if in_contact is not None:
             c = in_contact if isinstance(in_contact, (torch.Tensor, np.ndarray)) else np.asarray(in_contact)
             if tuple(c.shape) != (n,) or c.dtype not in (torch.bool, np.bool_):
