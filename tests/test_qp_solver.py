@@ -399,3 +399,16 @@ def test_no_variables_is_solved_where_the_constraints_hold_at_zero():
     assert sol.x.shape == (3, 0) and sol.y.shape == (3, 1) and sol.z.shape == (3, 1)
     assert sol.status.tolist() == [QPStatus.SOLVED, QPStatus.PRIMAL_INFEASIBLE, QPStatus.PRIMAL_INFEASIBLE]
     assert solve_qp(z(2, 0, 0, dtype=DT), z(2, 0, dtype=DT)).status.tolist() == [QPStatus.SOLVED] * 2
+
+
+def test_torch_func_transforms_are_refused_and_the_jacobian_comes_from_autograd():
+    from a3cqp_rl.qp import QPGradientError
+
+    P = 2.0 * torch.eye(3, dtype=DT).expand(2, 3, 3).clone()
+    q = torch.tensor([[1.0, -2.0, 0.5], [0.0, 1.0, 3.0]], dtype=DT)
+    for transform in (torch.func.jacrev(lambda q: solve_qp(P, q).x), torch.func.vmap(lambda q: solve_qp(P[0], q).x)):
+        with pytest.raises(QPGradientError, match="does not run under torch.func transforms"):
+            transform(q)
+    J = torch.autograd.functional.jacobian(lambda q: solve_qp(P, q).x, q)  # x = −q / 2: dx/dq = −I / 2 per instance
+    torch.testing.assert_close(J[0, :, 0], -0.5 * torch.eye(3, dtype=DT))
+    torch.testing.assert_close(J[1, :, 0], torch.zeros(3, 3, dtype=DT))

@@ -49,7 +49,7 @@ from torch import Tensor
 from a3cqp_rl.native_build import address
 from a3cqp_rl.qp import native
 from a3cqp_rl.qp.batched import solve_torch
-from a3cqp_rl.qp.exceptions import QPBackendError, QPShapeError
+from a3cqp_rl.qp.exceptions import QPBackendError, QPGradientError, QPShapeError
 from a3cqp_rl.qp.kkt import LU_MAX_BATCH, eq_solve_alm, kkt_certified, kkt_lu, kkt_schur, mv
 from a3cqp_rl.qp.status import QPStatus
 
@@ -621,6 +621,10 @@ def solve_qp(
     says per instance whether x is an answer (never raises on a bad instance; see `status.py`).
     """
     _check_settings(tol, max_iter, active_set_iter)
+    if torch._C._are_functorch_transforms_active():  # their wrapped tensors have no storage for the C solver to read
+        raise QPGradientError("solve_qp does not run under torch.func transforms (vmap, grad, jacrev, ...): it is "
+                              "batched already (pass the batch as the leading dimension) and differentiable by "
+                              "backward() or torch.autograd.functional.jacobian")
     max_iter = int(max_iter)
     if type(q) is not Tensor:
         q = _as_tensor(q, "q")
