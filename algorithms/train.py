@@ -120,6 +120,11 @@ def _run(args: argparse.Namespace) -> int:
     sweep = args.seeds is not None
     seeds = args.seeds if sweep else [cfg.seed if args.seed is None else args.seed]
     run_dirs, results, passed = [], [], []
+    if sweep and args.force:  # the sweep's own plots and table describe the old runs (each seed's folder: RunFolder)
+        from a3cqp_rl.run_folder import RUN_PLOTS
+
+        for name in RUN_PLOTS:
+            (out / name).unlink(missing_ok=True)
     for seed in seeds:
         run_dir = out / f"seed_{seed}" if sweep else out
         # a resume without --config continues with the config the run recorded (OUT/config.yaml), not the default

@@ -124,6 +124,10 @@ def test_cli_refuses_a_second_run_and_a_sweep_resumes_seed_by_seed(tmp_path, cap
     assert main([*args, "--seed", "0", "--out", str(out / "seed_0"), "--resume", "--override", "--steps", "320"]) == 0
     assert main([*args, "--out", str(out / "x"), "--override"]) == 2
     assert "--override only applies with --resume" in capsys.readouterr().err
+    assert (out / "evaluation.json").is_file()
+    (out / "loss_curves.png").write_text("the old sweep's")
+    assert main([*args, "--seeds", "0-1", "--out", str(out), "--force", "--no-eval"]) == 0
+    assert not (out / "evaluation.json").exists() and not (out / "loss_curves.png").exists()
 
 
 def test_make_train_twice_just_works(tmp_path, capsys):
