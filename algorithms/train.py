@@ -29,8 +29,12 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "point_mass_a
 wheel) the built-in defaults, the paper's settings (configs/point_mass_a2c.yaml), are used."""
 
 
+MAX_SEEDS = 10_000
+"""The most seeds one list may name (a typo such as 0-99999999 would otherwise run for days)."""
+
+
 def parse_seeds(text: str) -> list[int]:
-    """'0-19' -> [0..19]; '1,3,5' -> [1, 3, 5]; '7' -> [7]; each seed once, in [0, 2**63 - 1]."""
+    """'0-19' -> [0..19]; '1,3,5' -> [1, 3, 5]; '7' -> [7]; each seed once, in [0, 2**63 - 1], at most MAX_SEEDS."""
     seeds: list[int] = []
     try:
         for part in text.split(","):
@@ -38,11 +42,15 @@ def parse_seeds(text: str) -> list[int]:
                 a, b = part.split("-")
                 if int(b) < int(a):
                     raise ValueError
+                if len(seeds) + int(b) - int(a) + 1 > MAX_SEEDS:
+                    raise argparse.ArgumentTypeError(f"seed list {text!r} names more than {MAX_SEEDS:,} seeds")
                 seeds += list(range(int(a), int(b) + 1))
             else:
                 seeds.append(int(part))
     except ValueError:
         raise argparse.ArgumentTypeError(f"invalid seed list {text!r}; use e.g. 0-19 or 1,3,5") from None
+    if len(seeds) > MAX_SEEDS:
+        raise argparse.ArgumentTypeError(f"seed list {text!r} names more than {MAX_SEEDS:,} seeds")
     twice = sorted(s for s, n in collections.Counter(seeds).items() if n > 1)
     if twice:
         raise argparse.ArgumentTypeError(f"seed list {text!r} names seed(s) {twice} more than once")

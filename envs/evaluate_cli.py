@@ -58,7 +58,8 @@ def main(argv: list[str] | None = None) -> int:
             print("error: the Panda scenes are not available in this version", file=sys.stderr)
             return 2
         return int(panda.main(argv) or 0)
-    p = argparse.ArgumentParser(prog="a3cqp evaluate", description=help_summary(__doc__))
+    # no abbreviations: `--scen peg_in_hole` would be taken for --scene here and run the point mass instead
+    p = argparse.ArgumentParser(prog="a3cqp evaluate", description=help_summary(__doc__), allow_abbrev=False)
     p.add_argument("--env", default="point_mass", choices=["point_mass"], help="environment (default: %(default)s)")
     p.add_argument("--policy", nargs="*", default=[], help="policy.pt, checkpoint.pt or run folder(s); none: baselines only")
     p.add_argument("--episodes", type=int, default=64, help="episodes per scenario (default: %(default)s)")

@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Callable
+from pathlib import Path
 
 import mujoco
 import numpy as np
@@ -93,13 +94,20 @@ class PandaEnv(EnvBase):
 
     _has_dynamic_specs = False
 
-    def __init__(self, num_envs: int, config: ExperimentConfig | None = None, seed: int | None = None,
+    def __init__(self, num_envs: int, config: ExperimentConfig | str | Path | None = None, seed: int | None = None,
                  scene: str | None = None, controller_options: ControllerOptions | None = None,
                  trial_seeds: list[int] | None = None, device: str | torch.device = "cpu",
                  controller_factory: Callable[..., A3CQPController] | None = None,
                  sim_threads: int = 1, grid: tuple[int, list[int]] | None = None) -> None:
         if not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if isinstance(config, (str, Path)):  # a YAML file, e.g. configs/panda_peg_in_hole.yaml
+            from a3cqp_rl.config import load_config
+
+            config = load_config(config)
+        elif config is not None and not isinstance(config, ExperimentConfig):
+            raise TypeError(f"config must be an ExperimentConfig (a3cqp_rl.config.load_config) or a YAML path, got "
+                            f"{type(config).__name__}")
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         cfg = config or ExperimentConfig()
         self.cfg, self.pcfg, self.adapt, self.rew = cfg, cfg.panda, cfg.adaptation, cfg.reward

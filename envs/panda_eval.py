@@ -68,6 +68,9 @@ __all__ = ["main", "evaluate", "evaluate_seeds", "trial_seeds", "paired", "free_
            "guided_rates", "guided_warning", "sensing_warning", "limit_stress", "LimitStress", "capped_time",
            "CONTROLLERS", "PAPER_TABLE_VI", "TARGET_SUCCESS_RATE", "EvalResult", "load_fixed_controller", "targets"]
 
+ARM_BYTES = 2**20
+"""Memory one simulated arm holds during an evaluation, its record included, rounded up (measured 2026-12-01: 0.6 MB
+per arm of PandaEnv on the peg scene)."""
 CONTROLLERS = ("learned", "ik", "ik_fc", "equal", "vic")
 PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
                   "insertion_time_std_s": 0.24, "misalignment_rotation_mean_deg": 3.66,
@@ -147,6 +150,19 @@ def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, sin
     return W, f_d, scale, ctrl != "learned"
 
 
+def _load_agent_policy(path: Path):  # noqa: ANN202
+    """The policy at `path`, refused (naming the file) unless it maps the per-axis observation [3] to the four
+    actions (ẇ1, ẇ2, ẇ3, ḟd) the Panda's agents take (eq. 26-27)."""
+    from algorithms.policy import load_policy
+
+    loaded = load_policy(path)
+    dims = (loaded.layout.obs_dim, loaded.layout.act_dim)
+    if dims != (3, 4):
+        raise ValueError(f"{path}: a policy of {dims[0]} observations and {dims[1]} actions; the Panda's per-axis "
+                         "agents need 3 -> 4 (|e|, |f_env|, |f_ope| -> ẇ1, ẇ2, ẇ3, ḟd), a point-mass or Panda policy")
+    return loaded
+
+
 def trial_seeds(seed: int, trials: int) -> list[int]:
     """The env seed of each of the `trials` trials of `a3cqp evaluate --seed SEED` (one spawned stream per trial, so
     trial k is the same whatever the number of trials)."""
@@ -190,6 +206,10 @@ def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int 
     if len(by_name) != len(fixed) or set(by_name) & set(CONTROLLERS):
         raise ValueError(f"fixed controllers need distinct names other than {list(CONTROLLERS)}, got "
                          f"{[f.name for f in fixed]}")
+    strong = [f"{f.name} ({f.f_d:g} N)" for f in fixed if f.f_d > cfg.adaptation.f_d_max]
+    if strong:  # its own file was checked against its own bound: this scene's may be lower
+        raise ValueError(f"fixed controller f_d above this evaluation's adaptation.f_d_max ({cfg.adaptation.f_d_max:g} "
+                         f"N), the bound of every other controller's f_d: {', '.join(strong)}")
     names = list(controllers) + list(by_name)
     if not names:
         raise ValueError("no controller to evaluate")
@@ -290,8 +310,9 @@ def paired(res: EvalResult, primary: str = "learned") -> dict:
 
 
 def _time_at_most(t_a: float | None, t_b: float | None) -> bool:
-    """Whether a mean insertion time `t_a` [s] is at most `t_b` (None: no insertion, beaten by any)."""
-    return t_b is None or (t_a is not None and t_a <= t_b)
+    """Whether a mean insertion time `t_a` [s] is at most `t_b` (None: no insertion, beaten by any, beating none:
+    two controllers that both inserted nothing do not meet a time target)."""
+    return t_a is not None and (t_b is None or t_a <= t_b)
 
 
 def format_paired(res: EvalResult, primary: str = "learned") -> str:
@@ -371,7 +392,7 @@ def format_targets(res: EvalResult, primary: str = "learned") -> str:
         lost = [f"{c} {100 * v['success_rate']:.0f} %" for c, v in b.items() if not v["success_met"]]
         # a baseline's mean is over its own insertions, which may be a few easy trials: say how many
         counts = {c: res.summary[c]["successes"] for c in b}
-        slower = [f"{c} {v['insertion_time_mean_s']:.2f} s over {counts[c]} insertion{'' if counts[c] == 1 else 's'}"
+        slower = [f"{c} {_fmt(v['insertion_time_mean_s'])} s over {counts[c]} insertion{'' if counts[c] == 1 else 's'}"
                   for c, v in b.items() if not v["time_met"]]
         lines.append("  success rate at least every baseline's: " + yes[not lost]
                      + (f" ({', '.join(lost)})" if lost else ""))
@@ -833,11 +854,20 @@ def to_json(res: EvalResult, primary: str = "learned") -> dict:
     return doc
 
 
-def write_episodes(out: Path, episodes: dict[str, dict]) -> None:
+def write_episodes(out: Path, episodes: dict[str, dict]) -> list[str]:
     """Each controller's recorded episode to out/episode_<controller>.npz, atomically (a stopped write leaves the
-    previous file, not half of one)."""
+    previous file, not half of one); the episodes of controllers an earlier run in `out` recorded and this one did
+    not are removed with their plots (results.json, replaced, no longer describes them). Returns their names."""
+    out = Path(out)
     for c, ep in episodes.items():
-        write_atomic(Path(out) / f"episode_{c}.npz", lambda f, ep=ep: np.savez_compressed(f, **ep))
+        write_atomic(out / f"episode_{c}.npz", lambda f, ep=ep: np.savez_compressed(f, **ep))
+    stale = sorted(p.stem.removeprefix("episode_") for p in out.glob("episode_*.npz")
+                   if p.stem.removeprefix("episode_") not in episodes)
+    for c in stale:
+        for old in out.glob(f"episode_{c}*"):
+            if old.stem in (f"episode_{c}", f"episode_{c}_strip"):  # not another controller's (ik vs ik_fc)
+                old.unlink(missing_ok=True)
+    return stale
 
 
 def _write_json(path: Path, doc: dict) -> None:
@@ -983,7 +1013,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     try:
-        from a3cqp_rl.config import load_config, parse_overrides
+        from a3cqp_rl.config import check_fits, load_config, parse_overrides, read_config_file
 
         if args.trials < 1:
             raise ValueError(f"--trials must be >= 1, got {args.trials}")
@@ -995,16 +1025,33 @@ def main(argv: list[str] | None = None) -> int:
             args.workers = default_workers()
         if args.workers < 1:
             raise ValueError(f"--workers must be >= 1, got {args.workers}")
-        for flag, path, folder in (("--json", args.json, False), ("--out", args.out, True)):
+        for flag, path, folder in (("--json", args.json, False), ("--out", args.out, True),
+                                   ("--cache", args.cache, True)):
             if path is not None:
                 check_output_path(path, flag, folder=folder)  # before the simulation, not after it
+        if not 0 <= args.record_trial < args.trials:
+            raise ValueError(f"--record-trial: the recorded trial must be one of the trials, 0 .. {args.trials - 1}, "
+                             f"got {args.record_trial}")
+        if args.record_trial and not args.out:
+            raise ValueError("--record-trial picks the trial that --out records: give --out DIR too")
         cfg_path = args.config if args.config is not None else _default_config(args.scene)
-        cfg = load_config(cfg_path, parse_overrides(args.overrides))
+        overrides = parse_overrides(args.overrides)
+        if cfg_path is not None and "panda" not in read_config_file(cfg_path):  # e.g. a point-mass training config
+            raise ValueError(f"{cfg_path} has no panda: section: the Panda scenes' settings would all be defaults; "
+                             f"pass configs/panda_{args.scene}.yaml or a config based on it")
+        cfg = load_config(cfg_path, overrides)
         if cfg.panda.scene != args.scene:  # the scene's own sections would be the dataclass defaults, unnoticed
-            raise ValueError(f"{cfg_path or 'the default config'} is for the {cfg.panda.scene} scene (panda.scene); "
-                             f"for --scene {args.scene} pass its config (configs/panda_{args.scene}.yaml) or set "
-                             f"panda.scene: {args.scene} in yours")
+            source = ("--set panda.scene" if "scene" in overrides.get("panda", {})
+                      else f"{cfg_path or 'the default config'} (panda.scene)")
+            raise ValueError(f"{source} is for the {cfg.panda.scene} scene; for --scene {args.scene} pass its config "
+                             f"(configs/panda_{args.scene}.yaml) or set panda.scene: {args.scene} in yours")
         controllers = tuple(c.strip() for c in args.controllers.split(",") if c.strip())
+        twice = sorted({c for c in controllers if controllers.count(c) > 1})
+        if twice:
+            raise ValueError(f"--controllers names {', '.join(twice)} more than once")
+        check_fits(args.trials * (len(controllers) + len(args.controller_config)) * ARM_BYTES,
+                   f"--trials {args.trials:,}: {args.trials * (len(controllers) + len(args.controller_config)):,} "
+                   "simulated arms", "fewer trials per seed (--seeds pools seeds one after the other)")
         fixed = [load_fixed_controller(f) for f in args.controller_config]
         named = {}  # `--pick K` names every run's pick K `pareto_K`: two runs' picks can clash
         for path, f in zip(args.controller_config, fixed):
@@ -1022,20 +1069,24 @@ def main(argv: list[str] | None = None) -> int:
         set_policy = any(o.split("=", 1)[0].strip() == "panda.policy" for o in args.overrides)
         policies = [_policy_file(path, args.policy is not None, cfg_path, set_policy) for path in paths]  # found first
         if policies == [None] and "learned" in controllers:
+            if args.controllers != ",".join(CONTROLLERS):  # asked for by name: not silently left out
+                raise ValueError(f"--controllers names learned, but neither --policy nor {cfg_path or 'the config'}'s "
+                                 "panda.policy gives a policy")
             controllers = tuple(c for c in controllers if c != "learned")
-            print("no --policy given: evaluating the baselines only", file=sys.stderr)
+            print(f"no --policy given and no panda.policy in {cfg_path or 'the config'}: evaluating the baselines "
+                  "only", file=sys.stderr)
         kw = dict(config=cfg, controllers=controllers, cycles=args.cycles, progress=not args.quiet, fixed=fixed,
                   sim_threads=args.threads, workers=args.workers, park=not args.no_park,
                   record_trial=args.record_trial)
         if policies != [None] and (warning := sensing_warning(cfg.panda)):  # the config's: once for every policy
             print(warning, file=sys.stderr)
+        loaded_all = [None if policy is None else _load_agent_policy(policy) for policy in policies]  # all first
         docs = []
-        for policy in policies:
+        for policy, loaded in zip(policies, loaded_all):
             prints = None
             if policy is not None:
-                from algorithms.policy import fingerprint, load_policy
+                from algorithms.policy import fingerprint
 
-                loaded = load_policy(policy)
                 prints = fingerprint(loaded)
                 for warning in (free_motion_warning(loaded), guided_warning(loaded)):
                     if warning:
@@ -1050,7 +1101,10 @@ def main(argv: list[str] | None = None) -> int:
                 _write_json(Path(args.json), docs[0] if len(policies) == 1 else {"policies": docs})
             if args.out:  # one policy (checked above)
                 _write_json(Path(args.out) / "results.json", docs[0])
-                write_episodes(Path(args.out), res.episodes)
+                stale = write_episodes(Path(args.out), res.episodes)
+                if stale:
+                    print(f"{args.out}: removed the earlier run's episodes of {', '.join(stale)} (results.json now "
+                          "describes this run)", file=sys.stderr)
             _print_report(args, cfg_path, res, policy, prints, docs[-1]["workers"])
     except (A3CQPError, OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

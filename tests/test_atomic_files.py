@@ -94,3 +94,16 @@ def test_a_resumed_runs_metrics_file_is_rewritten_atomically(tmp_path, monkeypat
     rows = list(csv.DictReader(path.open(newline="")))
     assert [r["update"] for r in rows] == ["1", "2"] and [r["policy_loss"] for r in rows] == ["0.5", "0.4"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["metrics.csv"]
+
+
+def test_a_run_folder_written_again_keeps_no_episode_of_the_earlier_run(tmp_path) -> None:
+    import numpy as np
+
+    import envs.panda_eval as panda_eval
+
+    panda_eval.write_episodes(tmp_path, {"ik": {"t": np.zeros(2)}, "ik_fc": {"t": np.zeros(2)},
+                                         "equal": {"t": np.zeros(2)}})
+    for name in ("episode_equal.png", "episode_equal_strip.png", "episode_ik.png", "notes.txt"):
+        (tmp_path / name).write_text("")
+    assert panda_eval.write_episodes(tmp_path, {"ik_fc": {"t": np.ones(3)}}) == ["equal", "ik"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["episode_ik_fc.npz", "notes.txt"]

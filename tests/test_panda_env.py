@@ -784,3 +784,13 @@ def test_the_blocked_bound_needs_the_tool_axis_bound_and_lies_within_it() -> Non
         _cfg({"panda": {"ik_bound_tool_axis": 0.02, "ik_bound_blocked": 0.03}})
     with pytest.raises(ConfigError, match="blocked_speed"):
         _cfg({"panda": {"blocked_speed": 0.0}})
+
+
+def test_the_config_may_be_a_yaml_path_and_nothing_else_but_a_config() -> None:
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "configs" / "panda_polishing.yaml"
+    env = PandaEnv(1, str(path))
+    assert env.pcfg.scene == "polishing"
+    with pytest.raises(TypeError, match="config must be an ExperimentConfig .* or a YAML path, got dict"):
+        PandaEnv(1, {"panda": {}})

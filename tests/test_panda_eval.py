@@ -12,7 +12,7 @@ import torch
 import yaml
 
 from a3cqp_rl.checkpoint import save_atomic
-from a3cqp_rl.config import config_from_dict
+from a3cqp_rl.config import config_from_dict, load_config
 from algorithms.networks import ParamLayout
 from algorithms.policy import fingerprint, load_policy
 from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, PAPER_TABLE_VI, EvalResult, capped_time, evaluate,
@@ -22,6 +22,8 @@ from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, PAPER_TABLE_VI, EvalResu
 
 FAST = {"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "align_time": 2.0, "time_limit": 2.0,
                                   "operator_disengage": False, "return_time": 0.5}}}
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_every_controller_runs_the_same_trials_and_the_json_has_table_vi_keys() -> None:
@@ -197,6 +199,39 @@ def test_main_names_where_a_missing_policy_and_a_bad_seed_came_from(capsys) -> N
     assert "--seed must be >= 0, got -5" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("args, said", [
+    (["--trials", "100000000", "--controllers", "ik"], "--trials 100,000,000: 100,000,000 simulated arms need about"),
+    (["--controllers", "learned,ik", "--set", "panda.policy=null"], "--controllers names learned, but neither"),
+    (["--config", "configs/point_mass_a2c.yaml"], "configs/point_mass_a2c.yaml has no panda: section"),
+    (["--controllers", "ik", "--cache", "README.md"], "--cache README.md is a file, expected a folder"),
+    (["--controllers", "ik", "--set", "panda.scene=polishing"], "--set panda.scene is for the polishing scene"),
+    (["--controllers", "ik,ik"], "--controllers names ik more than once"),
+    (["--controllers", "ik", "--record-trial", "1", "--trials", "2"], "--record-trial picks the trial that --out"),
+    (["--seeds", "0-99999999"], "names more than 10,000 seeds"),
+])
+def test_main_refuses_before_simulating(args, said, capsys, monkeypatch) -> None:  # noqa: ANN001
+    monkeypatch.chdir(ROOT)  # the checkout's configs and README
+    monkeypatch.setattr("envs.panda_eval.evaluate_seeds", lambda *a, **k: pytest.fail("simulated"))
+    try:
+        assert main(["--scene", "peg_in_hole", "--trials", "1", "--quiet", *args]) == 2
+    except SystemExit:  # argparse's own errors
+        pass
+    assert said in capsys.readouterr().err
+
+
+def test_every_policy_is_checked_before_the_first_is_simulated(tmp_path, capsys, monkeypatch) -> None:  # noqa: ANN001
+    from algorithms.a2c import train
+
+    train(config_from_dict({"env": "Pendulum-v1", "a2c": {"compile": False}}), tmp_path / "pend", total_steps=64)
+    monkeypatch.setattr("envs.panda_eval.evaluate_seeds", lambda *a, **k: pytest.fail("simulated"))
+    shipped = load_config(ROOT / "configs" / "panda_peg_in_hole.yaml").panda.policy
+    assert main(["--scene", "peg_in_hole", "--trials", "1", "--quiet", "--controllers", "learned",
+                 "--policy", str(ROOT / shipped), str(tmp_path / "pend")]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / 'pend' / 'policy.pt'}: a policy of 3 observations and 1 actions" in err
+    assert "Traceback" not in err
+
+
 def test_several_policies_run_on_the_same_trials_and_end_with_a_line_each(tmp_path, capsys) -> None:  # noqa: ANN001
     layout = ParamLayout(3, 4, (64, 64), "separate")
     paths = []
@@ -226,13 +261,13 @@ def test_several_policies_run_on_the_same_trials_and_end_with_a_line_each(tmp_pa
     assert "nope.pt" in captured.err and "successes" not in captured.out
     assert main([*base, "--policy", str(paths[0]), str(paths[1]), "--out", str(tmp_path / "r")]) == 2
     assert "--out records one policy" in capsys.readouterr().err
-    # a policy that fails to load midway: one line, and the JSON keeps the policies evaluated before it
+    # a policy that cannot be loaded: one line, before any policy is simulated (every one is loaded first)
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
     out.unlink()
     assert main([*base, "--policy", str(paths[0]), str(bad), "--json", str(out)]) == 2
-    assert "corrupt" in capsys.readouterr().err
-    assert [d["policy"] for d in json.loads(out.read_text())["policies"]] == [str(paths[0])]
+    captured = capsys.readouterr()
+    assert "corrupt" in captured.err and "successes" not in captured.out and not out.exists()
 
 
 def test_the_policy_ranking_lists_each_scene_s_headline_metrics() -> None:
@@ -389,6 +424,11 @@ def test_targets_say_which_of_table_vi_and_the_baselines_the_learned_policy_meet
                                                        "ik": _peg_metrics([True] + [False] * 9, [4.0] + [nan] * 9)},
                                        {}, 1.0, 10.0, (0,))
     assert "NOT met (ik 4.00 s over 1 insertion;" in format_targets(one_fast)
+    # nobody inserts: the time target is not met (it read "met" when neither side had a time)
+    none = EvalResult.from_metrics("peg_in_hole", {"learned": metrics["equal"], "ik": metrics["equal"]}, {}, 1.0,
+                                   10.0, (0,))
+    assert not targets(none)["baselines"]["ik"]["time_met"]
+    assert "at most every baseline's: NOT met" in format_targets(none)
     # below Table VI: 8 of 10, slower than 8.21 s; alone, nothing to compare with
     slow = EvalResult.from_metrics("peg_in_hole", {"learned": _peg_metrics([True] * 8 + [False] * 2,
                                                                            [9.0] * 8 + [nan] * 2)}, {}, 1.0, 10.0, (0,))

@@ -50,6 +50,7 @@ def test_plot_episode_says_which_file_it_wrote_and_what_is_not_an_episode(tmp_pa
     assert plot_main(["episode", str(tmp_path), "--out", str(tmp_path / "noext")]) == 0
     assert (tmp_path / "noext.png").is_file() and f"wrote {tmp_path / 'noext.png'}" in capsys.readouterr().out
     for out, says in ((["--out", str(tmp_path)], "is a folder: give the image's file name"),
+                      (["--out", f"{tmp_path / 'new'}/"], "is a folder: give the image's file name"),
                       (["--pdf", "--out", str(tmp_path / "x.png")], "--pdf asks for a PDF but --out")):
         assert plot_main(["episode", str(tmp_path), *out]) == 2
         assert says in capsys.readouterr().err
@@ -99,3 +100,17 @@ def test_without_any_moment_the_snapshots_are_evenly_spaced() -> None:
     got = snapshot_events(ep, frames=4)
     assert [n for _, n in got] == [""] * 4
     np.testing.assert_allclose([x for x, _ in got], np.linspace(0.0, 2.99, 6)[1:-1])
+
+
+def test_an_episode_file_is_titled_by_its_own_controller(tmp_path, capsys, monkeypatch) -> None:  # noqa: ANN001
+    import a3cqp_rl.plotting.episode as episode_module
+
+    titles = []
+    real = episode_module.plot_episode
+    monkeypatch.setattr(episode_module, "plot_episode", lambda data, out, **kw: titles.append(kw["title"]) or
+                        real(data, out, **kw))
+    np.savez_compressed(tmp_path / "episode_vic.npz", **_episode())
+    assert plot_main(["episode", str(tmp_path / "episode_vic.npz")]) == 0
+    assert titles[-1].startswith("peg_in_hole: vic")  # not the --controller default, learned
+    assert plot_main(["episode", str(tmp_path / "episode_vic.npz"), "--controller", "equal"]) == 2
+    assert "--controller equal: episode_vic.npz is the vic controller's episode" in capsys.readouterr().err

@@ -123,3 +123,11 @@ def test_evaluate_cli_names_the_files_whose_controllers_share_a_name(tmp_path: P
     err = capsys.readouterr().err
     assert "large/pick_1.yaml names its controller 'pareto_1', as does" in err and "small/pick_1.yaml" in err
     assert "fixed_controller.name" in err
+
+
+def test_a_fixed_controller_pressing_above_the_scenes_force_bound_is_refused() -> None:
+    cfg = config_from_dict({"adaptation": {"f_d_max": 10.0}})
+    strong = FixedControllerConfig(name="pick", f_d=15.0)  # within its own file's default bound (20 N)
+    with pytest.raises(ValueError, match=r"adaptation.f_d_max \(10 N\), .*: pick \(15 N\)"):
+        evaluate("peg_in_hole", None, trials=1, seed=0, config=cfg, controllers=("ik",), progress=False,
+                 fixed=[strong])

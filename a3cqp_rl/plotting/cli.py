@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from pathlib import Path
 
@@ -40,10 +41,11 @@ def _plot_parser(sub, name: str, text: str, first: str, help_first: str, **first
     return q
 
 
-def _output_image(out: Path, pdf: bool) -> Path:
+def _output_image(text: str, pdf: bool) -> Path:
     """`--out` as the file the plot will be: the format's suffix added to a name without one; ValueError for a folder
     or a suffix that contradicts --pdf."""
-    if out.is_dir():
+    out = Path(text)
+    if out.is_dir() or text.endswith(("/", os.sep)):  # (Path drops a trailing slash: a folder to be)
         raise ValueError(f"--out {out} is a folder: give the image's file name, e.g. {out / 'plot.png'}")
     check_output_path(out, "--out")
     if not out.suffix:
@@ -57,6 +59,17 @@ def _beside_runs(runs: list[str], name: str) -> Path:
     """Where a plot of run folders goes by default: inside the run for one (as `a3cqp train` writes it), in the
     first run's parent for several (a sweep's folder)."""
     return Path(runs[0]) / name if len(runs) == 1 else Path(runs[0]).parent / name
+
+
+def _episode_controller(src: Path, given: str | None) -> str:
+    """The controller whose episode `plot episode` draws: `given` (default learned) in a run folder; an
+    episode_<controller>.npz's own name, which a different `given` contradicts."""
+    if src.is_dir() or not src.name.startswith("episode_"):
+        return given or "learned"
+    own = src.stem.removeprefix("episode_")
+    if given is not None and given != own:
+        raise ValueError(f"--controller {given}: {src.name} is the {own} controller's episode")
+    return own
 
 
 def _levels(text: str) -> list[float]:
@@ -83,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
         _plot_parser(sub, name, text, "runs", "run folders holding metrics.csv (e.g. runs/sweep/seed_*)", nargs="+")
     ep = _plot_parser(sub, "episode", "paper Fig. 7/8: one Panda episode of `a3cqp evaluate --scene ... --out RUN`",
                       "run", "RUN folder (or an episode_<controller>.npz)")
-    ep.add_argument("--controller", default="learned", help="which controller's episode (default: learned)")
+    ep.add_argument("--controller", default=None, help="which controller's episode in RUN (default: learned; an "
+                                                       "episode_<controller>.npz names its own)")
     ep.add_argument("--axis", default="z", choices=["x", "y", "z", "rx", "ry", "rz"], help="local axis (default z)")
     ep.add_argument("--strip", action="store_true", help="also an image strip of the scene (needs EGL or OSMesa)")
     for name, text in (("ga", "GA run (a3cqp tune): fitness per generation, best and spread, genes"),
@@ -91,13 +105,11 @@ def main(argv: list[str] | None = None) -> int:
         _plot_parser(sub, name, text, "run", "the run's folder (OUT of a3cqp tune / a3cqp pareto)")
     args = p.parse_args(argv)
     if getattr(args, "strip", False):
-        import os
-
         os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen; read when MuJoCo is first imported
     ext = ".pdf" if args.pdf else ".png"
     try:
         if args.out is not None:
-            args.out = str(_output_image(Path(args.out), args.pdf))
+            args.out = str(_output_image(args.out, args.pdf))
         if args.what == "policy-map":
             from a3cqp_rl.plotting.policy_map import plot_policy_map
 
@@ -118,13 +130,14 @@ def main(argv: list[str] | None = None) -> int:
             from a3cqp_rl.plotting.episode import load_episode, plot_episode, render_strip
 
             src = Path(args.run)
-            npz = src / f"episode_{args.controller}.npz" if src.is_dir() else src
+            controller = _episode_controller(src, args.controller)
+            npz = src / f"episode_{controller}.npz" if src.is_dir() else src
             data = load_episode(npz)
-            base = npz.parent / f"episode_{args.controller}" if src.is_dir() else npz.with_suffix("")
+            base = npz.parent / f"episode_{controller}" if src.is_dir() else npz.with_suffix("")
             out = Path(args.out) if args.out else base.with_suffix(ext)
             trial = f", trial {int(data['trial'])}" if "trial" in data else ""  # `evaluate --record-trial`
             plot_episode(data, out, axis=args.axis,
-                         title=f"{data.get('scene', '')}: {args.controller}{trial}, axis {args.axis}")
+                         title=f"{data.get('scene', '')}: {controller}{trial}, axis {args.axis}")
             if args.strip:
                 try:
                     strip = render_strip(data, out.with_name(out.stem + "_strip.png"))
