@@ -308,3 +308,20 @@ def test_a_worker_hit_by_ctrl_c_stops_without_a_traceback(capfd):
     finally:
         pool.close()
     assert "KeyboardInterrupt" not in capfd.readouterr().err
+
+
+def _imported(chunk, *args):
+    import sys
+
+    return [name in sys.modules for name in chunk]
+
+
+def test_local_workers_import_the_preloaded_modules_before_their_first_task():
+    from algorithms.tuning.pool import ProcessPool
+
+    pool = ProcessPool(1, preload=("wave",))  # a module nothing else here imports
+    try:
+        ((_, found, _),) = list(pool.imap(_imported, [["wave", "aifc"]]))
+    finally:
+        pool.close()
+    assert found == [True, False]

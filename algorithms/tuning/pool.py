@@ -38,12 +38,12 @@ def _init_worker(preload: tuple[str, ...] = ()) -> None:
     # Ctrl-C reaches the whole process group: the parent stops the run and says how to resume, while a worker's
     # KeyboardInterrupt would add its traceback (SystemExit prints none, and still unwinds a trial's temporary folder)
     signal.signal(signal.SIGINT, _stop_quietly)
+    for module in preload:  # heavy imports (torch, torchrl) once at start, not inside the first task's timing
+        importlib.import_module(module)
 
 
 def _stop_quietly(signum: int, frame: object) -> None:
     raise SystemExit(130)
-    for module in preload:  # heavy imports (torch, torchrl) once at start, not inside the first task's timing
-        importlib.import_module(module)
 
 
 class SerialPool:
