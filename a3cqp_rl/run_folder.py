@@ -19,12 +19,18 @@ from pathlib import Path
 
 from a3cqp_rl.exceptions import A3CQPError
 
-__all__ = ["RunFolder", "RunFolderError", "RUN_FILES", "check_output_path", "config_changes"]
+__all__ = ["RunFolder", "RunFolderError", "RUN_FILES", "check_output_path", "config_changes", "remove_outputs"]
 
 RUN_FILES = ("checkpoint.pt", "policy.pt", "metrics.csv", "config.yaml", "overrides.log")
 """What a run writes, besides the tb/ folder and its plots; `force` removes these."""
 RUN_PLOTS = ("policy_map.png", "policy_map.pdf", "loss_curves.png", "regions.png", "transfer.png", "evaluation.json")
 """What `a3cqp train` writes after training; `force` removes these too (left, they would describe the old run)."""
+
+
+def remove_outputs(path: Path) -> None:
+    """Remove what `a3cqp train` writes after training (RUN_PLOTS) from `path`: a run's folder or a sweep's."""
+    for name in RUN_PLOTS:
+        (path / name).unlink(missing_ok=True)
 
 
 class RunFolderError(A3CQPError):
@@ -109,8 +115,9 @@ class RunFolder:
         """Remove the previous run's files (RUN_FILES, plots, tb/); nothing else in the folder."""
         import shutil
 
-        for name in (*RUN_FILES, *RUN_PLOTS):
+        for name in RUN_FILES:
             (self.path / name).unlink(missing_ok=True)
+        remove_outputs(self.path)
         shutil.rmtree(self.path / "tb", ignore_errors=True)
 
     def remove_temporary_files(self) -> list[Path]:

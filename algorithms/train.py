@@ -22,6 +22,7 @@ import sys
 from pathlib import Path
 
 from a3cqp_rl.cli import help_summary, seed_arg
+from a3cqp_rl.config import MAX_SEED
 from a3cqp_rl.exceptions import A3CQPError
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "point_mass_a2c_default.yaml"
@@ -54,8 +55,9 @@ def parse_seeds(text: str) -> list[int]:
     twice = sorted(s for s, n in collections.Counter(seeds).items() if n > 1)
     if twice:
         raise argparse.ArgumentTypeError(f"seed list {text!r} names seed(s) {twice} more than once")
-    for s in seeds:
-        seed_arg(str(s))
+    outside = [s for s in seeds if not 0 <= s <= MAX_SEED]
+    if outside:
+        raise argparse.ArgumentTypeError(f"seed list {text!r}: seed(s) {outside[:3]} outside [0, 2**63 - 1]")
     return seeds
 
 
@@ -129,10 +131,9 @@ def _run(args: argparse.Namespace) -> int:
     seeds = args.seeds if sweep else [cfg.seed if args.seed is None else args.seed]
     run_dirs, results, passed = [], [], []
     if sweep and args.force:  # the sweep's own plots and table describe the old runs (each seed's folder: RunFolder)
-        from a3cqp_rl.run_folder import RUN_PLOTS
+        from a3cqp_rl.run_folder import remove_outputs
 
-        for name in RUN_PLOTS:
-            (out / name).unlink(missing_ok=True)
+        remove_outputs(out)
     for seed in seeds:
         run_dir = out / f"seed_{seed}" if sweep else out
         # a resume without --config continues with the config the run recorded (OUT/config.yaml), not the default

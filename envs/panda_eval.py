@@ -1029,10 +1029,7 @@ def main(argv: list[str] | None = None) -> int:
                                    ("--cache", args.cache, True)):
             if path is not None:
                 check_output_path(path, flag, folder=folder)  # before the simulation, not after it
-        if not 0 <= args.record_trial < args.trials:
-            raise ValueError(f"--record-trial: the recorded trial must be one of the trials, 0 .. {args.trials - 1}, "
-                             f"got {args.record_trial}")
-        if args.record_trial and not args.out:
+        if 0 < args.record_trial < args.trials and not args.out:  # (one outside the trials: evaluate's message)
             raise ValueError("--record-trial picks the trial that --out records: give --out DIR too")
         cfg_path = args.config if args.config is not None else _default_config(args.scene)
         overrides = parse_overrides(args.overrides)

@@ -14,7 +14,7 @@ def residual_scales(q: Tensor, b: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
     """Per-instance scales [B] of the primal and dual tolerances: 1 + |(b, h)|∞ and 1 + |q|∞."""
     bh = torch.cat([b, h], -1) if b.shape[-1] else h
     sp = 1.0 + (bh.abs().amax(-1) if bh.shape[-1] else q.new_zeros(q.shape[0]))
-    sd = 1.0 + q.abs().amax(-1)
+    sd = 1.0 + (q.abs().amax(-1) if q.shape[-1] else q.new_zeros(q.shape[0]))
     return sp, sd
 
 

@@ -183,8 +183,8 @@ def solve_torch(
     iters = torch.zeros(B, dtype=torch.long, device=q.device)
     go = status == 0
     if n == 0:  # nothing to choose: x = () is the answer where 0 = b and 0 <= h hold
-        sp = 1.0 + torch.cat([b.abs(), h.abs()], -1).amax(-1, keepdim=True) if b.shape[1] + h.shape[1] else 1.0
-        bad = ((b.abs() > tol * sp).any(-1) | (h < -tol * sp).any(-1))
+        sp = residual_scales(q, b, h)[0].unsqueeze(-1)
+        bad = (b.abs() > tol * sp).any(-1) | (h < -tol * sp).any(-1)
         return x, y, z, torch.where(go & bad, int(QPStatus.PRIMAL_INFEASIBLE), status), iters
     if bool(go.any()):
         go_all = bool(go.all())
