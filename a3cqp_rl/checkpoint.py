@@ -8,6 +8,7 @@ lists and dicts, never pickled code.
 from __future__ import annotations
 
 import os
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any, BinaryIO, Callable
@@ -49,6 +50,19 @@ def save_atomic(obj: Any, path: str | Path) -> Path:
 def write_text_atomic(path: str | Path, text: str) -> Path:
     """Write `text` (UTF-8) to `path` atomically (`write_atomic`)."""
     return write_atomic(path, lambda f: f.write(text.encode("utf-8")))
+
+
+STDOUT = "-"
+"""The output path that means standard output (`--json -`)."""
+
+
+def write_output_text(path: str | Path, text: str) -> Path | None:
+    """Write `text` to standard output where `path` is "-", else to the file `path` atomically; the file's path."""
+    if str(path) == STDOUT:
+        sys.stdout.write(text if text.endswith("\n") else text + "\n")
+        sys.stdout.flush()
+        return None
+    return write_text_atomic(path, text)
 
 
 def load_checkpoint(path: str | Path, required: tuple[str, ...] = ()) -> dict:

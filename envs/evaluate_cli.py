@@ -64,7 +64,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--policy", nargs="*", default=[], help="policy.pt, checkpoint.pt or run folder(s); none: baselines only")
     p.add_argument("--episodes", type=int, default=64, help="episodes per scenario (default: %(default)s)")
     p.add_argument("--seed", type=seed_arg, default=0, help="episode seed (default: %(default)s)")
-    p.add_argument("--json", default=None, help="also write the metrics as JSON to this file")
+    p.add_argument("--json", default=None, help="also write the metrics as JSON to this file (-: to standard output, "
+                   "the tables then to standard error)")
     p.add_argument("--config", default=None,
                    help="YAML whose dynamics, adaptation and reward the evaluation uses (default: the first policy's)")
     # envs.scenarios.SCENES, spelled out: importing it (torch, MuJoCo) would take seconds of every --help
@@ -78,13 +79,15 @@ def main(argv: list[str] | None = None) -> int:
 
     torch.set_num_threads(1)
     try:
+        from a3cqp_rl.checkpoint import STDOUT
         from a3cqp_rl.config import load_config
         from a3cqp_rl.run_folder import check_output_path
 
-        if args.json:
+        if args.json and args.json != STDOUT:
             check_output_path(args.json, "--json")  # before the evaluation, not after it
         config = load_config(args.config) if args.config else None
-        report(args.policy, config=config, episodes=args.episodes, seed=args.seed, json_path=args.json)
+        report(args.policy, config=config, episodes=args.episodes, seed=args.seed, json_path=args.json,
+               out=sys.stderr if args.json == STDOUT else None)  # stdout: the JSON alone, for a pipe
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -129,7 +132,7 @@ def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed
     `config` (an ExperimentConfig) gives the dynamics, adaptation and reward; default: the first policy's training
     config (the paper's without a policy).
     """
-    from a3cqp_rl.checkpoint import load_checkpoint
+    from a3cqp_rl.checkpoint import STDOUT, load_checkpoint
     from a3cqp_rl.config import config_from_dict
     from a3cqp_rl.regions import check_fig5_regions, format_regions
     from algorithms.a2c import load_policy
@@ -196,7 +199,8 @@ def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed
                                       "free_motion_w2_rate": {n: float(r[1]) for n, r in free_rates.items()},
                                       "guided_w2_fd_rates": guided,
                                       "policy_files": {n: str(p) for n, p in zip(names, paths)}})
-        print(f"wrote {json_path}", file=out)
+        if str(json_path) != STDOUT:
+            print(f"wrote {json_path}", file=out)
     return checks
 
 

@@ -7,7 +7,7 @@ outputs eq. 27's four rates; all six share one policy, so a policy trained on th
 action [..., 4]) runs here unchanged:
 
     observation [N, 6, 3] = (|e^L|/ē, |f_env^L|/f̄_env, |f_ope^L|/f̄_ope) per axis   (eq. 25-26)
-    action      [N, 6, 4] = (ẇ1, ẇ2, ẇ3, ḟd) per axis ∈ [−1, 1]                    (eq. 27)
+    action      [N, 6, 4] = (ẇ1, ẇ2, ẇ3, ḟd) per axis ∈ [−1, 1]; beyond: clipped (eq. 27, 29)
     eq. 29 -> local weights w^L [N, 6, 3] (rotated to the world by the controller, eq. 8) and f_d^L [N, 6]
               (one f_d per translational axis in PandaEnvConfig.fd_axes; desired torques are zero)
     reward      [N, 6, 1] = eq. 30 per axis

@@ -41,6 +41,7 @@ keeps each seed's (and policy's) result as it ends; the same command again reads
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -49,13 +50,14 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TextIO
 
 import numpy as np
 import torch
 
 from a3cqp_rl import worker_start
-from a3cqp_rl.checkpoint import write_atomic, write_text_atomic
-from a3cqp_rl.cli import help_summary
+from a3cqp_rl.checkpoint import STDOUT, write_atomic, write_text_atomic
+from a3cqp_rl.cli import help_summary, seed_arg
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.run_folder import check_output_path
 from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, guided_rates,  # noqa: F401 (re-exported)
@@ -63,6 +65,7 @@ from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, gui
 from a3cqp_rl.worker_start import MAX_DEFAULT_WORKERS, default_workers  # noqa: F401 (re-exported)
 from envs import eval_cache
 from envs.evaluate_cli import PANDA_WORKER_IMPORTS as WORKER_IMPORTS
+from envs.reach import reach_warning
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "trial_seeds", "paired", "free_motion_rates", "free_motion_warning",
            "guided_rates", "guided_warning", "sensing_warning", "limit_stress", "LimitStress", "capped_time",
@@ -973,6 +976,15 @@ def format_policy_ranking(docs: list[dict]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry for `a3cqp evaluate --scene ...`; returns an exit code."""
+    args = _parser().parse_args(argv)
+    if args.json != STDOUT:
+        return _cli(args)
+    json_out = sys.stdout
+    with contextlib.redirect_stdout(sys.stderr):  # standard output: the JSON alone, for a pipe
+        return _cli(args, json_out)
+
+
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="a3cqp evaluate", description=help_summary(__doc__))
     p.add_argument("--scene", required=True, choices=["peg_in_hole", "polishing", "guidance"])
     p.add_argument("--policy", nargs="+", default=None, metavar="PATH",
@@ -980,7 +992,7 @@ def main(argv: list[str] | None = None) -> int:
                    "panda.policy); several: each on the same trials, one after the other, then a line per policy")
     p.add_argument("--trials", type=int, default=26, help="trials per controller (default: 26, Table VI's)")
     seeds = p.add_mutually_exclusive_group()
-    seeds.add_argument("--seed", type=int, default=0, help="seed of the trials (default: 0)")
+    seeds.add_argument("--seed", type=seed_arg, default=0, help="seed of the trials (default: 0)")
     seeds.add_argument("--seeds", type=_seed_list, default=None, metavar="LIST",
                        help="several seeds, e.g. 0,3-10: each seed's trials as --seed runs them, pooled")
     p.add_argument("--config", default=None, help="YAML config (default: configs/panda_<scene>.yaml of the working "
@@ -991,7 +1003,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--controllers", default=",".join(CONTROLLERS), help="comma-separated subset of "
                    + ",".join(CONTROLLERS))
     p.add_argument("--cycles", type=int, default=None, help="peg-in-hole insertions per episode (Fig. 7: 3)")
-    p.add_argument("--json", default=None, help="write the metrics to this JSON file")
+    p.add_argument("--json", default=None, help="write the metrics to this JSON file (-: to standard output, the "
+                   "report then to standard error)")
     p.add_argument("--out", default=None, help="run folder: results.json and the recorded episodes (episode_*.npz, "
                    "for `a3cqp plot episode`; with --seeds, the first seed's)")
     p.add_argument("--controller-config", nargs="+", default=[], metavar="FILE",
@@ -1010,15 +1023,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cache", default=None, metavar="DIR", help="keep each seed's (and policy's) result in DIR as it "
                    "ends; the same command again reads the finished ones back (a stopped sweep resumes)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    args = p.parse_args(argv)
+    return p
+
+
+def _cli(args: argparse.Namespace, json_out: TextIO | None = None) -> int:
+    """The evaluation the parsed `args` ask for; `json_out`: the stream of `--json -`."""
     torch.set_num_threads(1)
+    docs: list[dict] = []
     try:
         from a3cqp_rl.config import check_fits, load_config, parse_overrides, read_config_file
 
         if args.trials < 1:
             raise ValueError(f"--trials must be >= 1, got {args.trials}")
-        if args.seeds is None and args.seed < 0:  # NumPy's SeedSequence takes none below 0
-            raise ValueError(f"--seed must be >= 0, got {args.seed}")
         if args.threads < 1:
             raise ValueError(f"--threads must be >= 1, got {args.threads}")
         if args.workers is None:
@@ -1027,7 +1043,7 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(f"--workers must be >= 1, got {args.workers}")
         for flag, path, folder in (("--json", args.json, False), ("--out", args.out, True),
                                    ("--cache", args.cache, True)):
-            if path is not None:
+            if path is not None and not (flag == "--json" and path == STDOUT):
                 check_output_path(path, flag, folder=folder)  # before the simulation, not after it
         if 0 < args.record_trial < args.trials and not args.out:  # (one outside the trials: evaluate's message)
             raise ValueError("--record-trial picks the trial that --out records: give --out DIR too")
@@ -1077,8 +1093,9 @@ def main(argv: list[str] | None = None) -> int:
                   record_trial=args.record_trial)
         if policies != [None] and (warning := sensing_warning(cfg.panda)):  # the config's: once for every policy
             print(warning, file=sys.stderr)
+        if warning := reach_warning(cfg.panda):  # a hole or a plate moved out of the workspace: say so first
+            print(warning, file=sys.stderr)
         loaded_all = [None if policy is None else _load_agent_policy(policy) for policy in policies]  # all first
-        docs = []
         for policy, loaded in zip(policies, loaded_all):
             prints = None
             if policy is not None:
@@ -1094,7 +1111,7 @@ def main(argv: list[str] | None = None) -> int:
             docs.append(_document(args, cfg_path, res, policy, prints))
             # written before anything is printed (a closed pipe cannot lose them), after each policy (a long sweep
             # stopped midway keeps what ran)
-            if args.json:
+            if args.json and json_out is None:
                 _write_json(Path(args.json), docs[0] if len(policies) == 1 else {"policies": docs})
             if args.out:  # one policy (checked above)
                 _write_json(Path(args.out) / "results.json", docs[0])
@@ -1108,12 +1125,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         kept = (f"; the seeds that ended are kept in {args.cache} and the same command resumes" if args.cache else
-                "" if not (args.json and docs) else f"; the policies that ended are in {args.json}")
+                "" if not (args.json and docs and json_out is None) else f"; the policies that ended are in {args.json}")
         print(f"\ninterrupted{kept}", file=sys.stderr)
         return 130
     if len(docs) > 1:
         print(format_policy_ranking(docs))
-    if args.json:
+    if json_out is not None:
+        json_out.write(json.dumps(docs[0] if len(docs) == 1 else {"policies": docs}, indent=2) + "\n")
+        json_out.flush()
+    elif args.json:
         print(f"wrote {args.json}")
     if args.out:
         out = Path(args.out)

@@ -35,7 +35,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from a3cqp_rl.checkpoint import write_text_atomic
+from a3cqp_rl.checkpoint import write_output_text
 from a3cqp_rl.config import ExperimentConfig, check_fits, config_from_dict, config_to_dict
 from envs.point_mass import PointMassEnv, agent_step, observe_state
 
@@ -163,10 +163,10 @@ class EvalResult:
                 "policies": {p: {**{s: dict(m) for s, m in sc.items()}, "return_mean": self.return_mean(p)}
                              for p, sc in self.metrics.items()}}
 
-    def write_json(self, path: str | Path, extra: dict | None = None) -> Path:
-        """Write `to_dict()` (and the entries of `extra`) to `path` atomically; NaN is written as null."""
+    def write_json(self, path: str | Path, extra: dict | None = None) -> Path | None:
+        """Write `to_dict()` (and the entries of `extra`) to `path` atomically ("-": standard output); NaN as null."""
         text = json.dumps(_nan_to_none({**self.to_dict(), **(extra or {})}), indent=1)
-        return write_text_atomic(path, text + "\n")
+        return write_output_text(path, text + "\n")
 
     def table(self) -> str:
         """Two markdown tables, policies as rows: the behaviour metrics per scenario, then the returns."""

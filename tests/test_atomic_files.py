@@ -32,11 +32,12 @@ def test_write_text_atomic_keeps_the_old_file_when_the_write_fails(tmp_path) -> 
 
 
 def test_panda_and_point_mass_json_writers_go_through_it(tmp_path, monkeypatch) -> None:
+    import a3cqp_rl.checkpoint as checkpoint
     import envs.panda_eval as panda_eval
     import envs.point_mass_eval as point_mass_eval
 
     seen = []
-    real = point_mass_eval.write_text_atomic
+    real = checkpoint.write_text_atomic
 
     def spy(path, text):  # noqa: ANN001, ANN202
         seen.append(path)
@@ -45,7 +46,7 @@ def test_panda_and_point_mass_json_writers_go_through_it(tmp_path, monkeypatch) 
     monkeypatch.setattr(panda_eval, "write_text_atomic", spy)
     panda_eval._write_json(tmp_path / "p" / "results.json", {"trials": 2})
     assert json.loads((tmp_path / "p" / "results.json").read_text()) == {"trials": 2}
-    monkeypatch.setattr(point_mass_eval, "write_text_atomic", spy)
+    monkeypatch.setattr(checkpoint, "write_text_atomic", spy)  # under write_output_text ("-": standard output)
     res = point_mass_eval.EvalResult.__new__(point_mass_eval.EvalResult)
     monkeypatch.setattr(point_mass_eval.EvalResult, "to_dict", lambda self: {"v": math.nan})
     res.write_json(tmp_path / "m.json")

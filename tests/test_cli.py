@@ -1,5 +1,6 @@
 """`a3cqp train` end to end: files, plots, resume, seed sweeps and clear errors."""
 
+import json
 from pathlib import Path
 
 import pytest
@@ -232,3 +233,10 @@ def test_evaluate_checks_its_json_path_before_evaluating(tmp_path, capsys):
     assert main(["evaluate", "--episodes", "2", "--json", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert "--json" in err and "is a folder, expected a file name" in err
+
+
+def test_evaluate_json_dash_writes_the_metrics_alone_to_standard_output(capsys):
+    assert main(["evaluate", "--episodes", "2", "--json", "-"]) == 0
+    out, err = capsys.readouterr()
+    doc = json.loads(out)  # one document, nothing else
+    assert "checks" in doc and "Closed loop, point mass" in err and "wrote" not in err

@@ -794,3 +794,19 @@ def test_the_config_may_be_a_yaml_path_and_nothing_else_but_a_config() -> None:
     assert env.pcfg.scene == "polishing"
     with pytest.raises(TypeError, match="config must be an ExperimentConfig .* or a YAML path, got dict"):
         PandaEnv(1, {"panda": {}})
+
+
+def test_actions_outside_the_spec_saturate_at_its_bounds() -> None:
+    """Eq. 29 clips the rates to [-1, 1]: a policy whose actions overshoot the spec moves the arm as one at the bound."""
+    ends = []
+    for scale in (1.0, 5.0):
+        env = PandaEnv(2, _cfg(), seed=0)
+        td = env.reset()
+        g = torch.Generator().manual_seed(1)
+        for _ in range(15):
+            td["action"] = (torch.rand(2, 6, 4, generator=g) * 2 - 1).sign() * scale
+            td = env.step(td)["next"]
+        ends.append((env.q.copy(), env.weights.copy(), env.f_d.copy(), td["reward"].clone()))
+    for at_bound, beyond in zip(*ends):
+        assert (np.asarray(at_bound) == np.asarray(beyond)).all()
+    assert np.abs(ends[0][0] - PandaEnv(2, _cfg(), seed=0).q).max() > 0  # the actions moved the arm

@@ -195,8 +195,20 @@ def test_the_tables_name_units_and_give_no_spread_for_one_sample() -> None:
 def test_main_names_where_a_missing_policy_and_a_bad_seed_came_from(capsys) -> None:  # noqa: ANN001
     assert main(["--scene", "guidance", "--trials", "1", "--set", "panda.policy=/nonexistent/p.pt"]) == 2
     assert "(panda.policy of --set)" in capsys.readouterr().err
-    assert main(["--scene", "guidance", "--trials", "1", "--seed", "-5", "--controllers", "ik"]) == 2
-    assert "--seed must be >= 0, got -5" in capsys.readouterr().err
+    for seed in ("-5", str(2**63)):  # the seeds `train` and the point-mass evaluation take, no more
+        with pytest.raises(SystemExit) as exc:
+            main(["--scene", "guidance", "--trials", "1", "--seed", seed, "--controllers", "ik"])
+        assert exc.value.code == 2 and f"seed {seed} is outside [0, 2**63 - 1]" in capsys.readouterr().err
+
+
+def test_json_dash_writes_the_results_alone_to_standard_output(tmp_path, capsys) -> None:  # noqa: ANN001
+    """`--json -` pipes: standard output holds one JSON document, the report goes to standard error."""
+    assert main(["--scene", "guidance", "--trials", "1", "--controllers", "ik", "--quiet", "--json", "-",
+                 "--out", str(tmp_path / "run")]) == 0
+    out, err = capsys.readouterr()
+    doc = json.loads(out)
+    assert doc["trials"] == 1 and doc == json.loads((tmp_path / "run" / "results.json").read_text())
+    assert "guidance" in err and "wrote -" not in err and not (Path.cwd() / "-").exists()
 
 
 @pytest.mark.parametrize("args, said", [
