@@ -17,7 +17,7 @@ import torch
 
 from a3cqp_rl.exceptions import CheckpointError
 
-__all__ = ["write_atomic", "save_atomic", "write_text_atomic", "load_checkpoint"]
+__all__ = ["write_atomic", "save_atomic", "write_text_atomic", "write_output_text", "load_checkpoint"]
 
 
 def write_atomic(path: str | Path, write: Callable[[BinaryIO], Any]) -> Path:
@@ -33,6 +33,9 @@ def write_atomic(path: str | Path, write: Callable[[BinaryIO], Any]) -> Path:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as exc:  # named by the file asked for, not by the temporary one beside it
+        Path(tmp).unlink(missing_ok=True)
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from exc
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise

@@ -31,6 +31,17 @@ def test_write_text_atomic_keeps_the_old_file_when_the_write_fails(tmp_path) -> 
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
 
 
+def test_a_failed_write_names_the_file_asked_for_not_the_temporary_one(tmp_path) -> None:
+    def full(f):  # noqa: ANN001, ANN202
+        raise OSError(28, "No space left on device", f.name)
+
+    with pytest.raises(OSError) as exc:
+        write_atomic(tmp_path / "r.json", full)
+    assert exc.value.filename == str(tmp_path / "r.json") and exc.value.errno == 28
+    assert ".tmp" not in str(exc.value) and "No space left" in str(exc.value)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_panda_and_point_mass_json_writers_go_through_it(tmp_path, monkeypatch) -> None:
     import a3cqp_rl.checkpoint as checkpoint
     import envs.panda_eval as panda_eval
