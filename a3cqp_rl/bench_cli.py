@@ -27,6 +27,9 @@ def main(argv: list[str] | None = None) -> int:
     if argv[0] not in (*BENCHES, "all"):
         print(f"error: no benchmark named {argv[0]!r}; choose from {', '.join(BENCHES)} or all", file=sys.stderr)
         return 2
+    if argv[0] == "all" and {"-h", "--help"} & set(argv[1:]):  # not the first benchmark's help alone
+        print(__doc__ + "\n`a3cqp bench NAME --help` gives one benchmark's options.")
+        return 0
     names = list(BENCHES) if argv[0] == "all" else [argv[0]]
     rest = argv[1:] or (["--quick"] if argv[0] == "all" else [])
     rc = 0

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 # sub-command -> "module:function" taking the remaining argv list and returning an exit code.
@@ -43,8 +44,42 @@ def seed_arg(text: str) -> int:
     return seed
 
 
+class ClosedPipeGuard:
+    """Standard output that, once its reader has gone (`a3cqp train ... | head -1`), sends the rest to /dev/null: the
+    command still finishes its work and its files, without a 'Broken pipe' error or exit code."""
+
+    def __init__(self, stream) -> None:  # noqa: ANN001
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        """Write `text`; after the reader has gone, drop it."""
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._to_devnull()
+            return len(text)
+
+    def flush(self) -> None:
+        """Flush; after the reader has gone, into /dev/null."""
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._to_devnull()
+
+    def _to_devnull(self) -> None:
+        # the descriptor itself, so that the interpreter's own flush at exit finds nothing to complain about
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, self._stream.fileno())
+        os.close(null)
+
+    def __getattr__(self, name: str):  # noqa: ANN204
+        return getattr(self._stream, name)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Dispatch `a3cqp <command> ...` to the command's module; returns the process exit code."""
+    if argv is None and not isinstance(sys.stdout, ClosedPipeGuard):  # the console command (tests pass argv)
+        sys.stdout = ClosedPipeGuard(sys.stdout)
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="a3cqp", description=help_summary(__doc__))
     parser.add_argument("command", choices=sorted(COMMANDS), help="; ".join(f"{k}: {v[1]}" for k, v in COMMANDS.items()))

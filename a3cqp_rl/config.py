@@ -1355,8 +1355,13 @@ def _convert(tp: Any, value: Any, key: str, source: str) -> Any:
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, str):  # PyYAML (YAML 1.1) reads "1e6" without a dot as a string
+                try:
+                    value = float(value)
+                except ValueError:
+                    pass
             if isinstance(value, float) and value.is_integer():
-                return int(value)  # 1e6 is read by YAML as a float
+                return int(value)  # 1.0e6 is read by YAML as a float
             raise ConfigError(f"{source}: {key}: expected an integer, got {value!r}")
         return value
     if tp is float:
@@ -1445,7 +1450,7 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
     A top-level `base: OTHER.yaml` (relative to the file) reads that file first and applies this one over it, key by
     key, so that a training config can share every setting of the evaluation config it is judged with."""
     data: dict = {}
-    source = "<defaults>"
+    source = "the paper's defaults"
     if path is not None:
         source = str(path)
         data = _read_with_base(Path(path), ())

@@ -26,6 +26,7 @@ and update compiled together into one graph (or, for small batches, the same ite
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -37,7 +38,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from a3cqp_rl.config import A2CConfig, ExperimentConfig
+from a3cqp_rl.config import A2CConfig, ExperimentConfig, project_path
 from a3cqp_rl.exceptions import TrainingDiverged
 from a3cqp_rl.timing import Timer, process_age
 from algorithms.a2c_run import (Checkpoints, ParameterAverage, RegionChecks, SigintCheckpoint, TransferSelection,
@@ -613,6 +614,9 @@ def train(
     total = int(total_steps if total_steps is not None else hp.total_steps)
     if total <= 0:
         raise ValueError(f"total_steps must be > 0, got {total}")
+    if total != hp.total_steps:  # the run's config.yaml records the length it runs to: a plain --resume continues it
+        cfg = dataclasses.replace(cfg, a2c=dataclasses.replace(hp, total_steps=total))
+        hp = cfg.a2c
     if hp.select_policy == "panda":  # before training: the selection after it needs both
         from algorithms.panda_select import select_config_path
 
@@ -641,8 +645,8 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     fused = getattr(type(env), "fused_functions", None) is not None and hp.rollout == "auto" and spec.unit_bounds()
     layout = ParamLayout(spec.obs_dim, spec.act_dim, hp.hidden, hp.network, _critic_input_dim(env, hp, fused, spec.obs_dim))
     flat = layout.init(gen, hp.log_std_init)
-    if hp.init_policy is not None and not resume:
-        copied = init_from_policy(hp.init_policy, layout, flat, spec.low, spec.high)
+    if hp.init_policy is not None and not resume:  # a shipped policy is found from any working directory
+        copied = init_from_policy(project_path(hp.init_policy), layout, flat, spec.low, spec.high)
         fresh = [k for k in layout.offsets if k not in copied]
         print(f"a2c: starting from {hp.init_policy} ({len(copied)} of {len(layout.offsets)} tensors"
               + (f"; initialised afresh: {', '.join(fresh)}" if fresh else "") + ")")

@@ -61,6 +61,17 @@ def parse_seeds(text: str) -> list[int]:
     return seeds
 
 
+def _count(text: str) -> int:
+    """A whole count written as an integer or in scientific notation (2e5)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid count {text!r}: expected an integer, e.g. 200000 or 2e5") from None
+    if not value.is_integer():
+        raise argparse.ArgumentTypeError(f"invalid count {text!r}: not a whole number")
+    return int(value)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="a3cqp train", description=help_summary(__doc__))
     p.add_argument("--config", default=None, help=f"YAML config (default: {DEFAULT_CONFIG.name} on the point mass, "
@@ -71,11 +82,13 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
                    help="override one config value, e.g. --set a2c.learning_rate=1e-4 (VALUE read as YAML; "
                         "repeatable; the run folder's config.yaml keeps the result)")
-    p.add_argument("--steps", type=int, default=None, help="total agent steps (default: a2c.total_steps)")
+    p.add_argument("--steps", type=_count, default=None, help="total agent steps, e.g. 200000 or 2e5 (default: "
+                   "a2c.total_steps)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--seed", type=seed_arg, default=None, help="random seed (default: the config's)")
     g.add_argument("--seeds", type=parse_seeds, default=None, help="sweep, e.g. 0-19: one run per seed in OUT/seed_S")
-    p.add_argument("--out", default=None, help="output folder (default: runs/<config name>)")
+    p.add_argument("--out", default=None, help="output folder (default: runs/<config name>, with --env "
+                                               "runs/<config name>_<env>)")
     r = p.add_mutually_exclusive_group()
     r.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.pt (a sweep: each seed that "
                                                          "has one; the others start)")
@@ -99,10 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _run(args)
     except KeyboardInterrupt as exc:
-        said = str(exc) or "interrupted"
-        if args.steps is not None and said.endswith("continue with --resume"):  # the length is not in config.yaml
-            said += f" --steps {args.steps}"
-        print(f"\n{said}", file=sys.stderr)
+        print(f"\n{str(exc) or 'interrupted'}", file=sys.stderr)  # (config.yaml holds --steps: a plain --resume)
         return 130
     except (A3CQPError, OSError, ValueError) as exc:
         if args.debug:
@@ -114,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     import torch
 
-    from a3cqp_rl.config import load_config, parse_overrides
+    from a3cqp_rl.config import load_config, parse_overrides, project_path
     from algorithms.a2c import train
 
     torch.set_num_threads(1)  # tiny networks: threads cost more than they give
@@ -123,7 +133,8 @@ def _run(args: argparse.Namespace) -> int:
         overrides["env"] = args.env
     # the default config trains the point mass; another env without --config starts from the paper's settings
     point_mass = args.env in (None, "point_mass")
-    config = args.config or (DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() and point_mass else None)
+    config = (project_path(args.config) if args.config else  # configs/... found from any working directory
+              DEFAULT_CONFIG if DEFAULT_CONFIG.is_file() and point_mass else None)
     cfg = load_config(config, overrides)
     name = Path(config).stem if config else "point_mass_a2c"
     out = Path(args.out or Path("runs") / (name if not args.env else f"{name}_{args.env}"))
@@ -142,9 +153,12 @@ def _run(args: argparse.Namespace) -> int:
         run_cfg = load_config(run_config, {**overrides, "seed": seed})
         # a sweep resumes seed by seed: seeds that never started (no checkpoint) start now
         resume = args.resume and (not sweep or (run_dir / "checkpoint.pt").is_file())
+        steps = args.steps
+        if resume and steps is None and saved.is_file():  # the length the run was started with (--steps changes it)
+            steps = load_config(saved).a2c.total_steps
         if len(seeds) > 1:
             print(f"[seed {seed}] -> {run_dir}{' (resumed)' if resume else ''}")
-        res = train(run_cfg, run_dir, total_steps=args.steps, resume=resume, force=args.force,
+        res = train(run_cfg, run_dir, total_steps=steps, resume=resume, force=args.force,
                     override=args.override, progress=not args.quiet)
         run_dirs.append(run_dir)
         results.append(res)
@@ -200,7 +214,10 @@ def _plot(run_dirs: list[Path], out: Path, results: list, region_checks: int) ->
 def _one_line(exc: BaseException) -> str:
     """An error as one line (config errors list their fields after a colon)."""
     text = str(exc) or type(exc).__name__
-    return "; ".join(part.strip() for part in text.splitlines() if part.strip())
+    out = ""
+    for part in (p.strip() for p in text.splitlines() if p.strip()):
+        out += ("" if not out else " " if out.endswith(":") else "; ") + part
+    return out
 
 
 def _reward_text(r: float) -> str:

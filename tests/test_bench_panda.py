@@ -56,3 +56,12 @@ def test_the_bench_command_names_an_unknown_benchmark_and_checks_the_panda_argum
             bench_main(["panda", "--quick", *args])
         err = capsys.readouterr().err
         assert says in err and "usage: a3cqp bench panda" in err
+
+
+def test_bench_all_help_lists_every_benchmark_and_runs_none(capsys) -> None:  # noqa: ANN001
+    from a3cqp_rl.bench_cli import BENCHES
+    from a3cqp_rl.bench_cli import main as bench_main
+
+    assert bench_main(["all", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "===" not in out and all(name in out for name in BENCHES)

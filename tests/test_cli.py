@@ -240,3 +240,46 @@ def test_evaluate_json_dash_writes_the_metrics_alone_to_standard_output(capsys):
     out, err = capsys.readouterr()
     doc = json.loads(out)  # one document, nothing else
     assert "checks" in doc and "Closed loop, point mass" in err and "wrote" not in err
+
+
+def test_steps_are_recorded_so_a_plain_resume_continues_to_them(tmp_path, capsys):
+    out = tmp_path / "short"
+    base = ["train", "--config", CONFIG, "--no-compile", "--quiet", "--no-plots", "--no-eval", "--out", str(out)]
+    assert main([*base, "--steps", "160"]) == 0
+    assert load_config(out / "config.yaml").a2c.total_steps == 160
+    capsys.readouterr()
+    for again in ([base[0], *base[3:]], base):  # no --steps, with and without --config: the run's own length
+        assert main([*again, "--resume"]) == 0
+        assert "trained 160 steps" in capsys.readouterr().out
+    assert main([*base, "--resume", "--steps", "320"]) == 0  # --steps changes it
+    assert "trained 320 steps" in capsys.readouterr().out and load_config(out / "config.yaml").a2c.total_steps == 320
+
+
+def test_shipped_configs_and_policies_are_found_from_another_folder(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)  # no configs/ or policies/ here
+    assert main(["train", "--config", "configs/panda_a2c_finetune.yaml", "--steps", "1", "--no-compile",
+                 "--quiet", "--no-plots", "--out", str(tmp_path / "ft"), "--set", "a2c.num_envs=1",
+                 "--set", "a2c.n_steps=1", "--set", "a2c.select_policy=last"]) == 0
+    assert "a2c: starting from" in capsys.readouterr().out
+
+
+def test_a_reader_that_goes_away_neither_stops_the_command_nor_fails_it(tmp_path):
+    """`a3cqp ... | head -1`: the rest of standard output is dropped, the command finishes and exits 0."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "a3cqp_rl.cli", "evaluate", "--episodes", "2", "--json",
+                             str(tmp_path / "e.json")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            cwd=Path(CONFIG).parents[1])
+    proc.stdout.close()  # gone before the first line
+    err = proc.stderr.read().decode()
+    assert proc.wait() == 0, err
+    assert "Broken pipe" not in err and "Traceback" not in err
+    assert "checks" in json.loads((tmp_path / "e.json").read_text())
+
+
+def test_an_unknown_env_is_one_readable_line(tmp_path, capsys):
+    assert main(["train", "--env", "Foo-v9", "--steps", "100", "--out", str(tmp_path / "e")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "invalid value(s): env: unknown environment 'Foo-v9'" in err
+    assert ":;" not in err and "\n" not in err and "<defaults>" not in err

@@ -285,5 +285,17 @@ def test_set_overrides_parse_dotted_keys_with_yaml_values_and_name_bad_items():
     for bad in ("seed", "=3", "a..b=1", "a2c.gamma=[1"):
         with pytest.raises(ConfigError, match="--set"):
             parse_overrides([bad])
-    with pytest.raises(ConfigError, match=r"<defaults> with overrides: unknown key\(s\) a2c.gama"):
+    with pytest.raises(ConfigError, match=r"the paper's defaults with overrides: unknown key\(s\) a2c.gama"):
         load_config(None, parse_overrides(["a2c.gama=0.9"]))
+
+
+def test_counts_in_scientific_notation_are_whole_numbers() -> None:
+    from algorithms.train import _parser
+
+    assert load_config(None, {"a2c": {"total_steps": "2e3"}}).a2c.total_steps == 2000  # YAML 1.1: a string
+    assert load_config(None, {"a2c": {"total_steps": 2.0e3}}).a2c.total_steps == 2000
+    with pytest.raises(ConfigError, match="expected an integer"):
+        load_config(None, {"a2c": {"total_steps": "2.5e0"}})
+    assert _parser().parse_args(["--steps", "2e5"]).steps == 200_000
+    with pytest.raises(SystemExit):
+        _parser().parse_args(["--steps", "1.5"])

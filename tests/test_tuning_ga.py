@@ -325,3 +325,12 @@ def test_local_workers_import_the_preloaded_modules_before_their_first_task():
     finally:
         pool.close()
     assert found == [True, False]
+
+
+def test_resume_of_a_folder_without_a_run_says_so(tmp_path, capsys):
+    from algorithms.tuning import nsga2
+
+    for command in (ga_mod.main, nsga2.main):
+        assert command(["--out", str(tmp_path / "empty"), "--resume", "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert f"no tuning run in {tmp_path / 'empty'} to resume" in err and "Traceback" not in err

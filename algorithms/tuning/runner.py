@@ -162,6 +162,8 @@ def cli_config(config: str | None, out: str | None, resume: bool, default: str, 
 
     if config is None:
         config = str(Path(out) / "config.yaml") if resume and out else str(project_path(default))
+        if resume and out and not Path(config).is_file():  # the run's own config: none means no run there
+            raise CheckpointError(f"no tuning run in {out} to resume ({config} not found); drop --resume to start one")
     _check_tuner_config(read_config_file(config), config, section)
     given = {k: v for k, v in overrides.items() if v is not None}
     out_path = check_output_path(out or Path("runs") / f"{prefix}_{Path(config).stem}", "--out", folder=True)
