@@ -274,6 +274,7 @@ def test_infeasible_qp_falls_back_safely_and_is_reported(caplog: pytest.LogCaptu
     assert out.status.tolist()[1] != 0 and out.status[0] == 0 and out.status[2] == 0
     assert out.fallback.tolist() == [False, True, False]
     assert "robots [1]" in caplog.text and ctrl.fallback_count == 1
+    assert "QP status ['PRIMAL_INFEASIBLE']" in caplog.text  # by name, not its number
     # the fallback brakes (q̈ opposes q̇) with zero wrench and gravity compensation
     assert torch.all(out.qdd[1] * s.qd[1] < 0) and out.wrench[1].abs().max() == 0.0
     # keep running infeasible: robot 1 comes to rest without NaN, the others keep tracking

@@ -399,3 +399,27 @@ def test_a_three_level_stack_under_random_switching_weights_stays_within_the_lim
     assert ctrl.fallback_count == 0
     assert (q >= np.array(PANDA_LIMITS.q_min)).all() and (q <= np.array(PANDA_LIMITS.q_max)).all()
     assert (np.abs(qd) <= np.array(PANDA_LIMITS.dq_max)).all() and np.abs(qd).max() > 0.3  # and the arms moved
+
+
+def test_a_regularizer_in_a_level_of_its_own_stays_convex_with_ik_weights_above_one(states: dict) -> None:
+    """A fixed controller's IK weight plus FC's idle share can pass 1 (PandaEnv.controller_weights); the regularizer's
+    γ(I − W1) was then negative and a Pareto genome's stack (ik + ac + fc) / (regularizer) / (jc) NON_CONVEX at
+    every step. It weighs the axes IK leaves, D(I − min(w1, 1))Dᵀ."""
+    inputs = dict(states)
+    w = inputs["weights"].clone()
+    w[:, :, 0] = 1.0 + 0.4 * torch.rand(w.shape[:2], generator=torch.Generator().manual_seed(2), dtype=F64)
+    inputs["weights"] = w
+    stack = dict(ik=1, ac=1, fc=1, cartesian_regularizer=2, jc=3)
+    ctrl, costs, G, h = level_problems(stack, inputs, 48)
+    for k, (P, _) in enumerate(costs):
+        assert torch.linalg.eigvalsh(0.5 * (P + P.mT)).min() > 0.0, f"level {k + 1} is not convex"
+    _, ctrl, out = step_x(stack, {k: v for k, v in inputs.items() if k not in ("kin",)}, 48)
+    assert (out.status == 0).all() and ctrl.fallback_count == 0
+    # at w1 ≤ 1 nothing changed: the regularizer's weight is γ(I − W1) there
+    ref = dict(states)
+    _, costs_ref, _, _ = level_problems(stack, ref, 48)
+    ctx = ctrl.build_context(**{k: v for k, v in ref.items() if k not in ("kin", "bias", "model")},
+                             bias=ref["bias"], kin=ref["kin"])
+    res = ctrl.task_residuals(ctx)["cartesian_regularizer"]
+    gamma = ctrl.options.cartesian_regularization
+    assert torch.equal(torch.as_tensor(res.W), gamma * torch.eye(6, dtype=F64) - gamma * ctx.W1)

@@ -308,3 +308,19 @@ def test_a_fallback_starts_only_the_failed_robots_qp_cold(monkeypatch, backend) 
     assert (kept["duals"][2] > 0).any() and (duals[2] == 0).all()  # robot 2's working set is gone
     others = [0, 1, 3, 4, 5]
     assert (kept["duals"][others] > 0).any() and torch.equal(duals[others], kept["duals"][others])
+
+
+def test_native_regularizer_clips_ik_weights_above_one_as_python_does() -> None:
+    """tasks.regularizer_ik_weight in C: an IK weight above 1 (a fixed controller's, plus FC's idle share)."""
+    inputs, model = random_inputs(N, seed=5)
+    w = inputs["weights"].clone()
+    w[: N // 2, :, 0] += 0.6  # half the robots past 1 on some axes
+    inputs["weights"] = w
+    py, nat = pair(N, {}, model, (inputs["q"], inputs["qd"]))
+    args = {k: v for k, v in inputs.items() if k not in ("kin", "bias")}
+    P, c, G, h = py.build_qp(py.build_context(**args, bias=inputs["bias"], kin=inputs["kin"]))
+    a = {k: (v.numpy() if isinstance(v, torch.Tensor) else v) for k, v in inputs.items() if k != "kin"}
+    asm = nat.assemble_native(a["q"], a["qd"], a["mass"], a["bias"], a["weights"], a["f_d"], a["pos_d"], a["rot_d"],
+                              a["f_ext"], a["in_contact"], controller_module._kin_numpy(inputs["kin"]))
+    assert_close(asm.P, P, "P")
+    assert_close(asm.c, c, "c")

@@ -131,3 +131,15 @@ def test_a_fixed_controller_pressing_above_the_scenes_force_bound_is_refused() -
     with pytest.raises(ValueError, match=r"adaptation.f_d_max \(10 N\), .*: pick \(15 N\)"):
         evaluate("peg_in_hole", None, trials=1, seed=0, config=cfg, controllers=("ik",), progress=False,
                  fixed=[strong])
+
+
+def test_a_genome_with_the_regularizer_in_a_level_of_its_own_runs_its_qp() -> None:
+    """A genome of `a3cqp pareto --config configs/nsga2_peg.yaml` (generation 1): (ik + ac + fc) / (regularizer) /
+    (jc), IK weights plus FC's idle share above 1. Its regularizer level was NON_CONVEX: the brake at every period
+    (fallback fraction 1), with a per-step log line."""
+    genome = {"ik.w": [0.667, 0.669, 0.605], "ik.level": 1, "ik.kp": 70.9, "ik.k_theta": 10.68,
+              "ac.w": [0.438, 0.423, 0.963], "ac.level": 1, "ac.lambda_d": 1.31, "ac.c_d": 1.23,
+              "fc.w": [0.653, 0.295, 0.466], "fc.level": 1, "fc.f_d": 3.18, "jc.w": 16.5, "jc.level": 3, "jc.kq": 1.89,
+              "cartesian_regularizer.w": 5.8e-4, "cartesian_regularizer.level": 2}
+    res = evaluate_fixed([fixed_from_genome(genome, "g")], _cfg(scenes=["guidance"]))
+    assert res.per_trial["guidance"]["fallback_fraction"][0, 0] == 0.0 and res.objectives[0, 2] == 0.0

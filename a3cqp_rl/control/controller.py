@@ -24,7 +24,7 @@ from a3cqp_rl.control.limits import (FrictionPyramid, Inequality, JointLimitsVia
                                      WrenchBox)
 from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer, CartesianIK, ForceControl,
                                     JointCentering, Residual, Task)
-from a3cqp_rl.qp import QPSolution, solve_qp
+from a3cqp_rl.qp import QPSolution, QPStatus, solve_qp
 from a3cqp_rl.robot.kinematics import Kinematics, PandaModel
 from a3cqp_rl.robot.sense import wrench as _native_wrench
 from a3cqp_rl.robot.specs import PANDA_HOME, PANDA_LIMITS, PandaLimits
@@ -41,6 +41,12 @@ INVALID_INPUT = -1
 """`ControlOutput.status` code of a robot whose inputs (state, B(q), references) were not finite."""
 SOLVER_ERROR = -2
 """`ControlOutput.status` code when solve_qp raised instead of returning (every robot of the batch falls back)."""
+
+
+def _status_names(status: torch.Tensor) -> list[str]:
+    """QP statuses by name (NON_CONVEX, not 4; −1: the controller's own input check), for the fallback's log line."""
+    names = {int(s): s.name for s in QPStatus} | {-1: "INVALID_INPUT"}
+    return [names.get(int(s), str(int(s))) for s in status.tolist()]
 
 
 @dataclass
@@ -647,7 +653,7 @@ class A3CQPController:
         k = self._fallback_steps
         if k <= FALLBACK_LOG_FIRST or k % FALLBACK_LOG_EVERY == 0:  # a scene that falls back often fills no log
             logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s, valid input %s"
-                           " (step %d with a fallback, %d robot-steps in all%s)", bad, qp_status[bad].tolist(),
+                           " (step %d with a fallback, %d robot-steps in all%s)", bad, _status_names(qp_status[bad]),
                            [bool(valid[i]) for i in bad], k, self.fallback_count,
                            f"; now logged every {FALLBACK_LOG_EVERY}th" if k == FALLBACK_LOG_FIRST else "")
         # a failed instance's multipliers are no working set to start from; the others' still are

@@ -41,7 +41,7 @@ from a3cqp_rl.control.controller import (A3CQPController, ControllerOptions, Con
 from a3cqp_rl.control.exceptions import InvalidGainError, InvalidLevelError
 from a3cqp_rl.control.hierarchy import MAX_LEVEL, Hierarchy, solve_cascade
 from a3cqp_rl.control.tasks import (Admittance, CartesianAccelerationRegularizer, CartesianIK, ForceControl,
-                                    JointCentering, Residual)
+                                    JointCentering, Residual, regularizer_ik_weight)
 from a3cqp_rl.robot.kinematics import PandaModel
 from a3cqp_rl.robot.specs import PANDA_LIMITS, PandaLimits
 
@@ -145,7 +145,7 @@ class _RobotJointCentering(JointCentering):
 
 
 class _RobotCartesianRegularizer(CartesianAccelerationRegularizer):
-    """CartesianAccelerationRegularizer with γ per robot: weight γ D(I − w1^L)Dᵀ = γ (I − W1)."""
+    """CartesianAccelerationRegularizer with γ per robot: weight γ D(I − min(w1^L, 1))Dᵀ."""
 
     def __init__(self, gamma: np.ndarray) -> None:
         super().__init__(0.0)
@@ -153,7 +153,7 @@ class _RobotCartesianRegularizer(CartesianAccelerationRegularizer):
         self._eye6 = torch.eye(6, dtype=torch.float64)
 
     def residual(self, ctx: ControlContext) -> Residual:
-        W = const(self.gamma, ctx.q) * (const(self._eye6, ctx.q) - ctx.W1)
+        W = const(self.gamma, ctx.q) * (const(self._eye6, ctx.q) - regularizer_ik_weight(ctx))
         return Residual(A=ctx.kin.jac, b=zeros((ctx.batch, 6), ctx.q), W=W, col=0)
 
 

@@ -17,6 +17,7 @@ import torch
 from a3cqp_rl.control.arrays import Array, const, mm, mv, zeros
 from a3cqp_rl.control.context import N_QDD, N_VARS, ControlContext
 from a3cqp_rl.control.exceptions import InvalidGainError
+from a3cqp_rl.control.frames import weights_to_world
 from a3cqp_rl.control.piece import QPPiece
 
 __all__ = ["Residual", "Task", "CartesianIK", "Admittance", "ForceControl", "JointCentering",
@@ -220,12 +221,27 @@ class JointCentering(Task):
         return Residual(A=None, b=self.desired_acceleration(ctx), W=W, col=0)
 
 
+def regularizer_ik_weight(ctx: ControlContext) -> Array:
+    """D min(w1^𝓛, 1) Dᵀ [B, 6, 6]: the IK weight the Cartesian regularizer leaves out, W1 wherever w1 ≤ 1.
+
+    A fixed controller's IK weight plus the share of force control that does not push (PandaEnv's idle share) can
+    pass 1 on an axis; γ(I − W1) would then be negative there, and a level holding the regularizer alone (a Pareto
+    genome's stack) non-convex: the QP's NON_CONVEX status at every step."""
+    w1 = ctx.weights_local[..., 0]
+    over = (w1 > 1.0 + 1e-9).any(-1)  # (a softmax's rounding above 1 is no reason to change a robot's numbers)
+    if not bool(over.any()):
+        return ctx.W1
+    clipped = weights_to_world(ctx.D, w1.clip(max=1.0))
+    return ctx.xp.where(over[:, None, None], clipped, ctx.W1)
+
+
 class CartesianAccelerationRegularizer(Task):
-    """J q̈ ≈ 0 on the axes IK does not weight: ‖J q̈‖² with weight γ D(I − w1^𝓛)Dᵀ (not in the paper).
+    """J q̈ ≈ 0 on the axes IK does not weight: ‖J q̈‖² with weight γ D(I − min(w1^𝓛, 1))Dᵀ (not in the paper).
 
     Eq. 1 leaves q̈ free on the axes where w1 = 0 and only the Tikhonov term picks it; the minimum-norm q̈ then
     accelerates those axes (and pushes, through B q̈, on the AC/FC axes: a 10 N FC force loses ~2 N). With this
-    term the IK/JC acceleration stays out of the AC/FC axes. γ = 0 removes it.
+    term the IK/JC acceleration stays out of the AC/FC axes. γ = 0 removes it. (`regularizer_ik_weight`: why w1 is
+    clipped at 1.)
     """
 
     name = "cartesian_regularizer"
@@ -241,4 +257,4 @@ class CartesianAccelerationRegularizer(Task):
 
     def residual(self, ctx: ControlContext) -> Residual:
         return Residual(A=ctx.kin.jac, b=zeros((ctx.batch, 6), ctx.q),
-                        W=const(self._gamma_eye, ctx.q) - self.gamma * ctx.W1, col=0)
+                        W=const(self._gamma_eye, ctx.q) - self.gamma * regularizer_ik_weight(ctx), col=0)

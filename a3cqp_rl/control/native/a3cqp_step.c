@@ -354,9 +354,22 @@ static void assemble_one(const a3cqp_params *p, const double *q, const double *q
     /* q̈ block: Jᵀ (W1 + γ(I − W1)) J, −Jᵀ W1 b_ik (IK and the regularizer share A = J), + the JC weight */
     /* cost[0..2]: IK, AC, FC's share of this cost (1 1 1: the single QP; a population's level: 0 or 1 per arm) */
     double Wg[36], wb[6], WJ[42], Hqq[49], gqq[7], Wjc[49], wjb[7];
+    /* tasks.regularizer_ik_weight: the regularizer leaves out D min(w1, 1) Dᵀ (an IK weight above 1 would make its
+       weight negative, and a level holding it alone non-convex); W1 itself wherever w1 ≤ 1 */
+    const double *W1r = W1;
+    double W1c[36];
+    int over = 0;
+    for (int a = 0; a < 6; a++) over |= w[a * 3] > 1.0 + 1e-9;
+    if (p->creg_gamma != 0.0 && over) {
+        double Dw[36];
+        for (int i = 0; i < 6; i++)
+            for (int a = 0; a < 6; a++) Dw[i * 6 + a] = cx.D[i * 6 + a] * fmin(w[a * 3], 1.0);
+        mm_nt(6, 6, 6, Dw, cx.D, W1c);
+        W1r = W1c;
+    }
     for (int i = 0; i < 36; i++)
         Wg[i] = cost[0] * W1[i]
-                + (p->creg_gamma != 0.0 ? (i % 7 == 0 ? p->creg_gamma : 0.0) - p->creg_gamma * W1[i] : 0.0);
+                + (p->creg_gamma != 0.0 ? (i % 7 == 0 ? p->creg_gamma : 0.0) - p->creg_gamma * W1r[i] : 0.0);
     mv(6, 6, W1, b_ik, wb);
     for (int i = 0; i < 6; i++) wb[i] *= cost[0];
     mm(6, 6, 7, Wg, J, WJ);
