@@ -43,7 +43,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import logging
 import math
 import sys
 import time
@@ -471,13 +470,10 @@ def _run_workers(jobs: list[tuple], arms: int, progress: bool) -> list[dict]:
 
 def _run_job(job: tuple) -> dict:
     """`_run(*job)`, the controller's log line per fallback step giving way to the table's count per trial."""
-    log = logging.getLogger("a3cqp_rl.control.controller")
-    level = log.level
-    log.setLevel(max(level, logging.ERROR))
-    try:
+    from a3cqp_rl.control.controller import fallback_log_quiet
+
+    with fallback_log_quiet():
         return _run(*job)
-    finally:
-        log.setLevel(level)
 
 
 def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tuple[str, ...],  # noqa: ANN001
@@ -873,8 +869,12 @@ def write_episodes(out: Path, episodes: dict[str, dict]) -> list[str]:
     return stale
 
 
+def _json_text(doc: dict) -> str:
+    return json.dumps(doc, indent=2)
+
+
 def _write_json(path: Path, doc: dict) -> None:
-    write_text_atomic(path, json.dumps(doc, indent=2))
+    write_text_atomic(path, _json_text(doc))
 
 
 def _default_config(scene: str) -> Path | None:
@@ -1131,7 +1131,7 @@ def _cli(args: argparse.Namespace, json_out: TextIO | None = None) -> int:
     if len(docs) > 1:
         print(format_policy_ranking(docs))
     if json_out is not None:
-        json_out.write(json.dumps(docs[0] if len(docs) == 1 else {"policies": docs}, indent=2) + "\n")
+        json_out.write(_json_text(docs[0] if len(docs) == 1 else {"policies": docs}) + "\n")
         json_out.flush()
     elif args.json:
         print(f"wrote {args.json}")

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import logging
 import operator
 from dataclasses import dataclass, field
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any, Literal
 
 import numpy as np
@@ -41,6 +42,17 @@ INVALID_INPUT = -1
 """`ControlOutput.status` code of a robot whose inputs (state, B(q), references) were not finite."""
 SOLVER_ERROR = -2
 """`ControlOutput.status` code when solve_qp raised instead of returning (every robot of the batch falls back)."""
+
+
+@contextlib.contextmanager
+def fallback_log_quiet() -> Iterator[None]:
+    """Within it, no per-step fallback log line: for callers that count fallbacks per trial or genome instead."""
+    level = logger.level
+    logger.setLevel(max(level, logging.ERROR))
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 def _status_names(status: torch.Tensor) -> list[str]:

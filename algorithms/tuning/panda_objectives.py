@@ -36,7 +36,6 @@ together); `nsga2.chunk_size` fixes the batches whatever the number of workers.
 
 from __future__ import annotations
 
-import logging
 import time
 from dataclasses import dataclass, field
 
@@ -220,12 +219,7 @@ def panda(genomes: list[dict], cfg: ExperimentConfig) -> np.ndarray:
 
     torch.set_num_threads(1)
     fixed = [fixed_from_genome(g, name=f"genome_{i}") for i, g in enumerate(genomes)]
-    # a genome whose QP falls back is scored for it (the failure objective); the controller's per-step log line
-    # would only fill the run's output (as in `a3cqp evaluate`, which counts fallbacks per trial instead)
-    log = logging.getLogger("a3cqp_rl.control.controller")
-    level = log.level
-    log.setLevel(max(level, logging.ERROR))
-    try:
+    from a3cqp_rl.control.controller import fallback_log_quiet
+
+    with fallback_log_quiet():  # a genome whose QP falls back is scored for it (the failure objective)
         return evaluate_fixed(fixed, cfg).objectives
-    finally:
-        log.setLevel(level)
