@@ -154,7 +154,8 @@ def _run(args: argparse.Namespace) -> int:
         # a sweep resumes seed by seed: seeds that never started (no checkpoint) start now
         resume = args.resume and (not sweep or (run_dir / "checkpoint.pt").is_file())
         steps = args.steps
-        if resume and steps is None and saved.is_file():  # the length the run was started with (--steps changes it)
+        # the length the run was started with (--steps or --set a2c.total_steps changes it)
+        if resume and steps is None and saved.is_file() and "total_steps" not in overrides.get("a2c", {}):
             steps = load_config(saved).a2c.total_steps
         if len(seeds) > 1:
             print(f"[seed {seed}] -> {run_dir}{' (resumed)' if resume else ''}")

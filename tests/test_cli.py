@@ -253,6 +253,8 @@ def test_steps_are_recorded_so_a_plain_resume_continues_to_them(tmp_path, capsys
         assert "trained 160 steps" in capsys.readouterr().out
     assert main([*base, "--resume", "--steps", "320"]) == 0  # --steps changes it
     assert "trained 320 steps" in capsys.readouterr().out and load_config(out / "config.yaml").a2c.total_steps == 320
+    assert main([*base, "--resume", "--set", "a2c.total_steps=480"]) == 0  # and so does --set
+    assert "trained 480 steps" in capsys.readouterr().out and load_config(out / "config.yaml").a2c.total_steps == 480
 
 
 def test_shipped_configs_and_policies_are_found_from_another_folder(tmp_path, monkeypatch, capsys):
