@@ -264,3 +264,28 @@ def test_tuner_output_paths_are_checked_before_any_work(tmp_path, capsys):
         assert said in err and "Traceback" not in err
     assert main(["pareto", "--config", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "is a folder, expected a YAML config file" in capsys.readouterr().err
+
+
+def test_tuners_take_set_overrides_kept_in_the_run_and_refused_on_a_different_resume(tmp_path, capsys):
+    from a3cqp_rl.cli import main
+
+    out = tmp_path / "run"
+    assert main(["pareto", "--config", str(ROOT / "configs" / "nsga2_zdt1.yaml"), "--out", str(out), "--quiet",
+                 "--set", "nsga2.population=8", "--set", "seed=3", "--set", "nsga2.generations=5",
+                 "--generations", "1"]) == 0  # the flag wins over a --set of the same key
+    saved = yaml.safe_load((out / "config.yaml").read_text())
+    assert (saved["nsga2"]["population"], saved["seed"], saved["nsga2"]["generations"]) == (8, 3, 1)
+    assert read_state(out)["generation"] == 1
+    # a resume under another setting would mix two runs' evaluations
+    assert main(["pareto", "--out", str(out), "--resume", "--quiet", "--set", "seed=4"]) == 2
+    assert "with a different config (seed: 3 -> 4)" in capsys.readouterr().err
+    assert main(["pareto", "--out", str(out), "--resume", "--quiet", "--set", "nsga2.generations=2"]) == 0
+    assert read_state(out)["generation"] == 2
+    for argv, said in ((["--set", "nsga2.population=-1"], "population"), (["--set", "nope"], "expected KEY=VALUE"),
+                       (["--out", str(out), "--pick", "0", "--set", "seed=1"], "--set applies to a run")):
+        assert main(["pareto", *argv, "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err
+    tune_out = tmp_path / "ga"
+    assert main(["tune", "--out", str(tune_out), "--set", "ga.num_generations=-2", "--quiet"]) == 2
+    assert "num_generations" in capsys.readouterr().err and not (tune_out / "state.json").exists()

@@ -38,7 +38,7 @@ from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, confi
 from a3cqp_rl.exceptions import A3CQPError, ConfigError
 
 from .genome import GenomeSpec
-from .runner import Problem, RunResult, cli_config, interrupted, run
+from .runner import Problem, RunResult, add_set_argument, cli_config, interrupted, run
 
 __all__ = ["FITNESS", "make_problem", "tune", "trial_config", "episode_reward", "behaviour", "write_best", "main"]
 
@@ -220,13 +220,14 @@ def main(argv: list[str] | None = None) -> int:
                                                                   "'local' (a Ray instance on this machine)")
     p.add_argument("--out", default=None, help="output folder (default: runs/tune_<config name>)")
     p.add_argument("--resume", action="store_true", help="continue the run in OUT from its last finished generation")
+    add_set_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
 
     out = None
     try:
         cfg, out = cli_config(args.config, args.out, args.resume, "configs/ga_point_mass.yaml", "tune", "ga",
-                              {"num_generations": args.generations, "steps_per_trial": args.steps_per_trial})
+                              {"num_generations": args.generations, "steps_per_trial": args.steps_per_trial}, args.overrides)
         import torch
 
         torch.set_num_threads(1)

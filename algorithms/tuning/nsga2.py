@@ -35,7 +35,7 @@ from a3cqp_rl.tuning_files import read_rows, read_state
 from .genome import GenomeSpec
 from .objectives import Objective, get_objective
 from .pareto import hypervolume, non_dominated
-from .runner import Problem, RunResult, cli_config, interrupted, run
+from .runner import Problem, RunResult, add_set_argument, cli_config, interrupted, run
 
 __all__ = ["make_problem", "tune_pareto", "crowded_tournament_sbx", "rank_and_crowding", "pareto_front", "read_front",
            "pick", "main"]
@@ -222,6 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="output folder (default: runs/pareto_<config name>)")
     p.add_argument("--resume", action="store_true", help="continue the run in OUT from its last finished generation")
     p.add_argument("--pick", type=int, default=None, metavar="K", help="write solution K of OUT/front.csv as a YAML")
+    add_set_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
 
@@ -230,10 +231,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.pick is not None:
             if not args.out:
                 raise A3CQPError("--pick needs --out DIR (a finished run)")
+            if args.overrides:
+                raise A3CQPError("--set applies to a run; --pick reads OUT/front.csv as the run wrote it")
             print(f"wrote {pick(args.out, args.pick)}")
             return 0
         cfg, out = cli_config(args.config, args.out, args.resume, "configs/nsga2_zdt1.yaml", "pareto", "nsga2",
-                              {"generations": args.generations, "population": args.population})
+                              {"generations": args.generations, "population": args.population}, args.overrides)
         result = tune_pareto(cfg, out, workers=args.workers, ray=args.ray, resume=args.resume, progress=not args.quiet)
         front = read_front(out)
         objective = get_objective(cfg.nsga2.objective)

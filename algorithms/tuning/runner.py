@@ -24,7 +24,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -154,20 +154,29 @@ def _run_locked(problem: Problem, cfg: ExperimentConfig, out: Path, workers: int
 
 
 def cli_config(config: str | None, out: str | None, resume: bool, default: str, prefix: str,
-               section: str, overrides: dict) -> tuple[ExperimentConfig, Path]:
+               section: str, overrides: dict, sets: Sequence[str] = ()) -> tuple[ExperimentConfig, Path]:
     """The config and output folder of a tuner's CLI run: `config`, else OUT/config.yaml on --resume, else `default`
     (relative to the working directory, else to this checkout); OUT defaults to runs/<prefix>_<config name>;
-    `overrides` (None values dropped) go into `section`."""
-    from a3cqp_rl.config import load_config, project_path, read_config_file
+    `sets` are --set KEY=VALUE items over the file, and `overrides` (the command's own flags; None values dropped)
+    go into `section` over both."""
+    from a3cqp_rl.config import load_config, parse_overrides, project_path, read_config_file
 
     if config is None:
         config = str(Path(out) / "config.yaml") if resume and out else str(project_path(default))
         if resume and out and not Path(config).is_file():  # the run's own config: none means no run there
             raise CheckpointError(f"no tuning run in {out} to resume ({config} not found); drop --resume to start one")
     _check_tuner_config(read_config_file(config), config, section)
-    given = {k: v for k, v in overrides.items() if v is not None}
+    # the flags as --set items after the user's, so that a flag wins over a --set of the same key
+    items = [*sets, *(f"{section}.{k}={v}" for k, v in overrides.items() if v is not None)]
     out_path = check_output_path(out or Path("runs") / f"{prefix}_{Path(config).stem}", "--out", folder=True)
-    return load_config(config, {section: given}), out_path
+    return load_config(config, parse_overrides(items)), out_path
+
+
+def add_set_argument(parser) -> None:  # noqa: ANN001
+    """The tuners' --set KEY=VALUE option (as train's and evaluate's)."""
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
+                        help="override one config value over --config, e.g. --set panda.operator.timeout=4 (VALUE "
+                             "read as YAML; repeatable; OUT/config.yaml keeps the result)")
 
 
 TUNERS = {"ga": ("a3cqp tune", "a GA"), "nsga2": ("a3cqp pareto", "an NSGA-II")}
