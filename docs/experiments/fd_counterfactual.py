@@ -50,6 +50,9 @@ def episode_returns(cfg, policy, force: float | None, thr: float, n: int = 2048,
 
 def main() -> None:
     """CLI: see the module docstring."""
+    if len(sys.argv) < 3 or sys.argv[1] in ("-h", "--help"):
+        print(__doc__)
+        sys.exit(0 if sys.argv[1:2] in (["-h"], ["--help"]) else 2)
     torch.set_num_threads(1)
     config, run = sys.argv[1], sys.argv[2]
     cfg = load_config(config, json.loads(sys.argv[3]) if len(sys.argv) > 3 else {})
