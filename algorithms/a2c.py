@@ -33,7 +33,7 @@ import time
 import types
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import torch
 from torch import Tensor
@@ -48,6 +48,9 @@ from algorithms.policy import init_from_policy, load_actor, load_policy
 from algorithms.rmsprop import clip_grad_norm_, rmsprop_step_
 from a3cqp_rl.regions import REGION_COLUMNS
 from algorithms.run_log import CSV_COLUMNS, METRICS, TRANSFER_COLUMNS, RunLog, truncate_csv
+
+if TYPE_CHECKING:  # annotations only: torchrl is imported where an env is read
+    from torchrl.envs import EnvBase
 
 __all__ = ["Batch", "HeldNoise", "ParameterAverage", "EnvLayout", "read_env_layout", "nstep_returns", "gae_advantages",
            "a2c_update", "train", "TrainResult", "load_policy", "load_actor", "METRICS", "CSV_COLUMNS"]
@@ -182,7 +185,7 @@ class EnvLayout:
         return self.low is not None and all(v == -1.0 for v in self.low) and all(v == 1.0 for v in self.high)
 
 
-def read_env_layout(env) -> EnvLayout:
+def read_env_layout(env: EnvBase) -> EnvLayout:
     """`EnvLayout` of a TorchRL env; ValueError naming what is missing or unsupported."""
     batch = tuple(env.batch_size)
     keys = list(env.observation_spec.keys())
@@ -601,7 +604,7 @@ def train(
     force: bool = False,
     override: bool = False,
     progress: bool = False,
-    env=None,
+    env: EnvBase | None = None,
     callback: Callable[[int, dict], None] | None = None,
 ) -> TrainResult:
     """Train a Gaussian policy with A2C on `env` (default: the env `cfg.env` names, a2c.num_envs copies, seeded);

@@ -10,13 +10,17 @@ where its spaces are flat Boxes (the A2C's case) and through TorchRL's `GymWrapp
 from __future__ import annotations
 
 import importlib
+from typing import TYPE_CHECKING
 
 from a3cqp_rl.config import ENV_FACTORIES, ExperimentConfig
+
+if TYPE_CHECKING:  # annotations only: torchrl is imported where an env is built
+    from torchrl.envs import EnvBase
 
 __all__ = ["make_env", "point_mass", "gym_env"]
 
 
-def make_env(cfg: ExperimentConfig, num_envs: int | None = None, seed: int | None = None):
+def make_env(cfg: ExperimentConfig, num_envs: int | None = None, seed: int | None = None) -> EnvBase:
     """The env `cfg.env` names, with `num_envs` (default a2c.num_envs) copies, seeded with `seed` (default cfg.seed)."""
     num_envs = cfg.a2c.num_envs if num_envs is None else num_envs
     seed = cfg.seed if seed is None else seed
@@ -26,7 +30,7 @@ def make_env(cfg: ExperimentConfig, num_envs: int | None = None, seed: int | Non
     return gym_env(cfg.env, num_envs, seed)
 
 
-def point_mass(cfg: ExperimentConfig, num_envs: int, seed: int):
+def point_mass(cfg: ExperimentConfig, num_envs: int, seed: int) -> EnvBase:
     """PointMassEnv (eq. 35), natively batched, reset."""
     from envs.point_mass import PointMassEnv
 
@@ -35,7 +39,7 @@ def point_mass(cfg: ExperimentConfig, num_envs: int, seed: int):
     return env
 
 
-def gym_env(env_id: str, num_envs: int, seed: int, torchrl_wrapper: bool = False):
+def gym_env(env_id: str, num_envs: int, seed: int, torchrl_wrapper: bool = False) -> EnvBase:
     """gymnasium `env_id` × num_envs as one TorchRL env, batch_size [num_envs], seeded: `envs.gym_vector.GymVectorEnv`
     for 1-D float Box observations and actions, TorchRL's `GymWrapper` for any other spaces (or for every space with
     `torchrl_wrapper`: the baseline of `bench/pendulum.py`)."""

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor, nn
@@ -21,6 +22,10 @@ from torch import Tensor, nn
 from a3cqp_rl.checkpoint import load_checkpoint
 from a3cqp_rl.exceptions import CheckpointError
 from algorithms.networks import ParamLayout, policy_mean
+
+if TYPE_CHECKING:  # annotations only: torchrl is imported where an actor is built
+    from torchrl.envs import EnvBase
+    from torchrl.modules import ProbabilisticActor
 
 __all__ = ["A2CPolicy", "load_policy", "load_actor", "layout_key", "first_episode_returns", "fingerprint"]
 
@@ -139,7 +144,7 @@ def init_from_policy(path: str | Path, layout: ParamLayout, flat: Tensor, low: t
     return copied
 
 
-def load_actor(path: str | Path, sample: bool = False):
+def load_actor(path: str | Path, sample: bool = False) -> ProbabilisticActor:
     """OUT/policy.pt as a TorchRL ProbabilisticActor ("observation" -> "action"); the mean unless `sample`."""
     from tensordict.nn import InteractionType, TensorDictModule
     from torchrl.data import Bounded, Unbounded
@@ -156,7 +161,7 @@ def load_actor(path: str | Path, sample: bool = False):
 
 
 @torch.no_grad()
-def first_episode_returns(policy_path: str | Path, env, max_steps: int, sample: bool = False) -> Tensor:
+def first_episode_returns(policy_path: str | Path, env: EnvBase, max_steps: int, sample: bool = False) -> Tensor:
     """Return of each env's first episode [num_envs] under the policy of `policy_path` (its mean action unless
     `sample`), from `env`'s reset; ValueError if an env's episode outlasts `max_steps`."""
     td = env.rollout(max_steps, policy=load_actor(policy_path, sample), break_when_any_done=False)

@@ -16,10 +16,14 @@ import importlib
 import sys
 from collections.abc import Iterable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
 
 from a3cqp_rl import worker_start
 from a3cqp_rl.cli import help_summary, seed_arg
 from a3cqp_rl.exceptions import A3CQPError
+
+if TYPE_CHECKING:  # annotations only
+    from a3cqp_rl.config import ExperimentConfig
 
 PANDA_WORKER_IMPORTS = ("envs.panda_eval", "envs.panda", "envs.panda_fixed", "algorithms.a2c")
 """What the worker processes of `a3cqp evaluate --scene` import before they simulate (their fork server's preload)."""
@@ -124,8 +128,8 @@ PANDA_CHECK = "Passing both does not yet make a policy insert; check on the Pand
 """Printed with the paths of the policies that pass both Panda rules."""
 
 
-def report(policies: Sequence[str | Path], config=None, episodes: int = 64, seed: int = 0,
-           json_path: str | Path | None = None, out=None) -> dict[str, dict[str, bool]]:
+def report(policies: Sequence[str | Path], config: ExperimentConfig | None = None, episodes: int = 64, seed: int = 0,
+           json_path: str | Path | None = None, out: TextIO | None = None) -> dict[str, dict[str, bool]]:
     """Evaluate the saved policies with the baselines; print the table, regions and checks (to `out`, default the
     current sys.stdout); return the checks per policy.
 

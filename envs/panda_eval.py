@@ -49,7 +49,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 import numpy as np
 import torch
@@ -65,6 +65,11 @@ from a3cqp_rl.worker_start import MAX_DEFAULT_WORKERS, default_workers  # noqa: 
 from envs import eval_cache
 from envs.evaluate_cli import PANDA_WORKER_IMPORTS as WORKER_IMPORTS
 from envs.reach import reach_warning
+
+if TYPE_CHECKING:  # annotations only
+    from a3cqp_rl.config import ExperimentConfig, FixedControllerConfig, PandaEnvConfig
+    from a3cqp_rl.control.controller import ControllerOptions
+    from a3cqp_rl.transfer import Policy
 
 __all__ = ["main", "evaluate", "evaluate_seeds", "trial_seeds", "paired", "free_motion_rates", "free_motion_warning",
            "guided_rates", "guided_warning", "sensing_warning", "limit_stress", "LimitStress", "capped_time",
@@ -171,7 +176,8 @@ def trial_seeds(seed: int, trials: int) -> list[int]:
     return [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(trials)]
 
 
-def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int = 0, config=None,  # noqa: ANN001
+def evaluate(scene: str, policy_path: str | Path | None, trials: int, seed: int = 0,
+             config: ExperimentConfig | None = None,
              controllers: tuple[str, ...] = CONTROLLERS, cycles: int | None = None,
              progress: bool = True, fixed: Sequence = (), sim_threads: int = 1, workers: int = 1,
              park: bool = True, record_trial: int = 0) -> EvalResult:
@@ -557,7 +563,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     return {"scene": env.scene.name, "metrics": per, "episodes": eps, "sim_seconds": steps * env.adapt.dt * n}
 
 
-def guided_warning(policy) -> str | None:  # noqa: ANN001
+def guided_warning(policy: Policy) -> str | None:
     """A warning when a policy does not yield to the operator's push (mean ẇ2 <= 0 or ḟd >= 0 at GUIDED_OBS): on
     the Panda it then pushes back with force control and the operator cannot guide the arm (docs/panda.md,
     "Yielding to the operator is a second draw"); None otherwise."""
@@ -569,7 +575,7 @@ def guided_warning(policy) -> str | None:  # noqa: ANN001
             "to guide it (polishing relocations, guidance; docs/panda.md)")
 
 
-def free_motion_warning(policy) -> str | None:  # noqa: ANN001
+def free_motion_warning(policy: Policy) -> str | None:
     """A warning when a policy does not raise IK's weight over admittance's in free motion (mean ẇ1 <= 0 or ẇ2 >= 0
     at FREE_MOTION_E): on the Panda it then lets the reference go (docs/panda.md, "Which point-mass policies
     transfer"); None otherwise."""
@@ -585,7 +591,7 @@ def free_motion_warning(policy) -> str | None:  # noqa: ANN001
             f"the reference ({seen}; docs/panda.md)")
 
 
-def sensing_warning(panda) -> str | None:  # noqa: ANN001
+def sensing_warning(panda: PandaEnvConfig) -> str | None:
     """A warning when a PandaEnvConfig's sensors are biased but not tared, or noisy while the agents observe single
     samples: a learned policy then yields to phantom operator forces (docs/panda.md, "Imperfect force sensing")."""
     s = panda.sensors
@@ -621,7 +627,8 @@ class LimitStress:
     """Largest |q̇|/q̇_max over every joint, arm and control period (the env's `joint_speed_ratio`)."""
 
 
-def limit_stress(num_envs: int, steps: int, seed: int, config=None, controller_options=None,  # noqa: ANN001
+def limit_stress(num_envs: int, steps: int, seed: int, config: ExperimentConfig | None = None,
+                 controller_options: ControllerOptions | None = None,
                  hold: int = 20) -> LimitStress:
     """Random actions, each held for `hold` agent steps, on `num_envs` Pandas for `steps` agent steps (done arms
     reset): the worst joint-position excess (the env's `joint_limit_excess`, every 1 kHz control period), joint-speed
@@ -658,7 +665,7 @@ def limit_stress(num_envs: int, steps: int, seed: int, config=None, controller_o
     return LimitStress(worst, joint + 1, arm, tau, int(env.diverged.sum()), env.ctrl.fallback_count, speed)
 
 
-def load_fixed_controller(path: str | Path):  # noqa: ANN201
+def load_fixed_controller(path: str | Path) -> FixedControllerConfig:
     """The FixedControllerConfig of a YAML file's `fixed_controller` section (what `a3cqp pareto --pick K` writes)."""
     from a3cqp_rl.config import load_config
 
