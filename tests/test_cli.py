@@ -19,7 +19,7 @@ def test_train_writes_results_and_plots_then_resumes(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert str(out) in printed  # tells the user where results went
     assert "Fig. 5 regions " in printed and "w2 admittance" in printed  # and how the policy does on Fig. 5
-    assert main(["train", "--config", CONFIG, "--steps", "640", "--no-compile", "--quiet", "--no-plots",
+    assert main(["train", "--config", CONFIG, "--steps", "640", "--no-compile", "--quiet", "--no-plots", "--no-eval",
                  "--out", str(out), "--resume"]) == 0
     assert "640" in capsys.readouterr().out
 
@@ -57,7 +57,7 @@ def test_final_message_says_when_no_episode_ended():
 
 def test_default_config_works_from_any_directory(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
-    assert main(["train", "--steps", "512", "--no-compile", "--quiet", "--no-plots", "--timings"]) == 0
+    assert main(["train", "--steps", "512", "--no-compile", "--quiet", "--no-plots", "--no-eval", "--timings"]) == 0
     assert (tmp_path / "runs" / "point_mass_a2c_default" / "policy.pt").is_file()
     assert "timings: start-up " in capsys.readouterr().out  # what the train bench reads
 
@@ -84,7 +84,7 @@ def test_panda_evaluation_and_tuners_find_the_checkouts_configs_and_policy_from_
 
 
 def test_file_errors_are_one_line_naming_the_file(tmp_path, capsys, monkeypatch):
-    args = ["train", "--config", CONFIG, "--steps", "32", "--no-compile", "--quiet", "--no-plots"]
+    args = ["train", "--config", CONFIG, "--steps", "32", "--no-compile", "--quiet", "--no-plots", "--no-eval"]
     afile = tmp_path / "afile"
     afile.write_text("x")
     assert main([*args, "--out", str(afile)]) == 2
@@ -179,7 +179,7 @@ def test_a_finished_run_resumed_keeps_its_log_a_shorter_one_is_refused_and_resum
     from algorithms.policy import load_policy
 
     out = tmp_path / "run"
-    args = ["train", "--config", CONFIG, "--no-compile", "--quiet", "--no-plots", "--out", str(out),
+    args = ["train", "--config", CONFIG, "--no-compile", "--quiet", "--no-plots", "--no-eval", "--out", str(out),
             "--set", "a2c.log_every=2"]
     assert main([*args, "--steps", "464"]) == 0  # 29 updates of 16 steps: the last row is not on a log_every boundary
     csv0, flat0 = (out / "metrics.csv").read_bytes(), load_policy(out).flat.clone()
@@ -191,7 +191,7 @@ def test_a_finished_run_resumed_keeps_its_log_a_shorter_one_is_refused_and_resum
     assert (out / "metrics.csv").read_bytes() == csv0
     # the README's `a3cqp train --out runs/paper --resume`: the run's own config, not the default one
     assert main(["train", "--out", str(out), "--resume", "--steps", "640", "--no-compile", "--quiet",
-                 "--no-plots"]) == 0
+                 "--no-plots", "--no-eval"]) == 0
 
 
 def test_a_diverging_run_stops_at_once_with_one_line_naming_the_step_and_the_lever(tmp_path, capsys):

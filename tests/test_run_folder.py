@@ -116,12 +116,13 @@ def test_ctrl_c_writes_a_checkpoint_and_the_resume_is_exact(tmp_path):
 def test_cli_refuses_a_second_run_and_a_sweep_resumes_seed_by_seed(tmp_path, capsys):
     args = ["train", "--config", CONFIG, "--steps", "160", "--no-compile", "--quiet", "--no-plots"]
     out = tmp_path / "sweep"
-    assert main([*args, "--seeds", "0", "--out", str(out)]) == 0
+    assert main([*args, "--seeds", "0", "--out", str(out), "--no-eval"]) == 0  # (the sweep's resume evaluates)
     assert main([*args, "--seeds", "0-1", "--out", str(out)]) == 2
     assert "already holds a run" in capsys.readouterr().err
     assert main([*args, "--seeds", "0-1", "--out", str(out), "--resume"]) == 0  # seed 1 never started: it starts
     assert (out / "seed_1" / "policy.pt").is_file()
-    assert main([*args, "--seed", "0", "--out", str(out / "seed_0"), "--resume", "--override", "--steps", "320"]) == 0
+    assert main([*args, "--seed", "0", "--out", str(out / "seed_0"), "--resume", "--override", "--steps", "320",
+                 "--no-eval"]) == 0
     assert main([*args, "--out", str(out / "x"), "--override"]) == 2
     assert "--override only applies with --resume" in capsys.readouterr().err
     assert (out / "evaluation.json").is_file()
