@@ -233,3 +233,32 @@ def test_every_pair_the_filter_drops_is_farther_apart_than_its_slack_and_the_sla
         reg.detach()
     assert dropped > 0.3 * (dropped + kept) and kept > 0
     assert (seen, out) == (dropped + kept, dropped) and by_slab > 0.1 * (kept + by_slab)
+
+
+def test_roles_zeroed_in_place_drop_nothing_and_restored_drop_again() -> None:
+    """`Registration.role` is the array the C filter reads (docs/experiments/collision_floor.py zeroes it to time
+    MuJoCo's collision without the filter): zeroed, no pair is dropped; restored, the same pairs are."""
+    m = _peg_in_bore(0.0006)
+    d = mujoco.MjData(m)
+    boxes = np.flatnonzero(m.geom_type == int(mujoco.mjtGeom.mjGEOM_BOX))
+    reg = contact_filter.attach(m, d, [m.geom("peg").id], boxes)
+    d.qpos[2] = -0.03  # the peg 22 mm down, inside the bore: some boxes near, most far
+    mujoco.mj_forward(m, d)
+    role = reg.role
+    assert role is not None and set(np.flatnonzero(role == 2)) == set(boxes) and role[m.geom("peg").id] == 1
+
+    def dropped() -> int:
+        before = reg.counts()[1]
+        mujoco.mj_collision(m, d)
+        return reg.counts()[1] - before
+
+    first = dropped()
+    assert first > 0
+    saved = role.copy()
+    role[:] = 0
+    assert dropped() == 0
+    role[:] = saved
+    assert dropped() == first
+    reg.detach()
+    assert reg.role is None
+

@@ -173,6 +173,12 @@ class Registration:
         self._out = np.zeros(3, dtype=np.int64)
         self._unregister = weakref.finalize(self, lib.cf_unregister, slot)
 
+    @property
+    def role(self) -> np.ndarray | None:
+        """Each geom's role [ngeom] (0 other, 1 tool, 2 box), read by the filter in place (zeroed, it drops nothing);
+        None after `detach()`."""
+        return None if self._held is None else self._held[2]
+
     def counts(self) -> tuple[int, int]:
         """(tool-box pairs seen, pairs dropped) so far."""
         return self.counts_by_test()[:2]

@@ -54,7 +54,7 @@ def _measure(env: panda_env.PandaEnv) -> str:
     """One line: live arms, contacts, boxes in contact, pre-filter pairs, and the four ways' µs per call."""
     sim = env.sim
     m, d, reg = sim.model, sim.data, sim._contact_filter
-    role = reg._held[2]  # the geoms' roles, which contact_filter.c reads in place: zeroed, the callback drops nothing
+    role = reg.role  # read in place by contact_filter.c: zeroed, the callback drops nothing
     role0 = role.copy()
     boxes = np.flatnonzero(role0 == 2)
     mujoco.mj_collision(m, d)
