@@ -44,6 +44,14 @@ def seed_arg(text: str) -> int:
     return seed
 
 
+def add_set_option(parser: argparse.ArgumentParser, example: str, kept: str) -> None:
+    """The commands' `--set KEY=VALUE` (repeatable, into `args.overrides` for `config.parse_overrides`); `example`
+    a KEY=VALUE of the command's own config, `kept` where the result is recorded."""
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
+                        help=f"override one config value over --config, e.g. --set {example} (VALUE read as YAML; "
+                             f"repeatable; {kept})")
+
+
 class ClosedPipeGuard:
     """Standard output that, once its reader has gone (`a3cqp train ... | head -1`), sends the rest to /dev/null: the
     command still finishes its work and its files, without a 'Broken pipe' error or exit code."""

@@ -21,7 +21,7 @@ import math
 import sys
 from pathlib import Path
 
-from a3cqp_rl.cli import help_summary, seed_arg
+from a3cqp_rl.cli import add_set_option, help_summary, seed_arg
 from a3cqp_rl.config import MAX_SEED
 from a3cqp_rl.exceptions import A3CQPError
 
@@ -79,9 +79,7 @@ def _parser() -> argparse.ArgumentParser:
                                                     "on other envs)")
     p.add_argument("--env", default=None, help="environment: point_mass or a gymnasium id, e.g. Pendulum-v1 "
                                                "(default: the config's env)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
-                   help="override one config value, e.g. --set a2c.learning_rate=1e-4 (VALUE read as YAML; "
-                        "repeatable; the run folder's config.yaml keeps the result)")
+    add_set_option(p, "a2c.learning_rate=1e-4", "the run folder's config.yaml keeps the result")
     p.add_argument("--steps", type=_count, default=None, help="total agent steps, e.g. 200000 or 2e5 (default: "
                    "a2c.total_steps)")
     g = p.add_mutually_exclusive_group()

@@ -56,7 +56,7 @@ import torch
 
 from a3cqp_rl import worker_start
 from a3cqp_rl.checkpoint import STDOUT, write_atomic, write_text_atomic
-from a3cqp_rl.cli import help_summary, seed_arg
+from a3cqp_rl.cli import add_set_option, help_summary, seed_arg
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.run_folder import check_output_path
 from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, guided_rates,  # noqa: F401 (re-exported)
@@ -1004,9 +1004,7 @@ def _parser() -> argparse.ArgumentParser:
                        help="several seeds, e.g. 0,3-10: each seed's trials as --seed runs them, pooled")
     p.add_argument("--config", default=None, help="YAML config (default: configs/panda_<scene>.yaml of the working "
                    "directory, else of this checkout)")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
-                   help="override one config value over --config, e.g. --set panda.blocked_force=2.0 (VALUE read as "
-                        "YAML; repeatable; kept in the JSON)")
+    add_set_option(p, "panda.blocked_force=2.0", "kept in the JSON")
     p.add_argument("--controllers", default=",".join(CONTROLLERS), help="comma-separated subset of "
                    + ",".join(CONTROLLERS))
     p.add_argument("--cycles", type=int, default=None, help="peg-in-hole insertions per episode (Fig. 7: 3)")

@@ -33,12 +33,12 @@ import numpy as np
 import yaml
 
 from a3cqp_rl.checkpoint import write_text_atomic
-from a3cqp_rl.cli import help_summary
+from a3cqp_rl.cli import add_set_option, help_summary
 from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, config_to_dict
 from a3cqp_rl.exceptions import A3CQPError, ConfigError
 
 from .genome import GenomeSpec
-from .runner import Problem, RunResult, add_set_argument, cli_config, interrupted, run
+from .runner import Problem, RunResult, cli_config, interrupted, run
 
 __all__ = ["FITNESS", "make_problem", "tune", "trial_config", "episode_reward", "behaviour", "write_best", "main"]
 
@@ -220,14 +220,15 @@ def main(argv: list[str] | None = None) -> int:
                                                                   "'local' (a Ray instance on this machine)")
     p.add_argument("--out", default=None, help="output folder (default: runs/tune_<config name>)")
     p.add_argument("--resume", action="store_true", help="continue the run in OUT from its last finished generation")
-    add_set_argument(p)
+    add_set_option(p, "ga.sol_per_pop=12", "OUT/config.yaml keeps the result")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
 
     out = None
     try:
         cfg, out = cli_config(args.config, args.out, args.resume, "configs/ga_point_mass.yaml", "tune", "ga",
-                              {"num_generations": args.generations, "steps_per_trial": args.steps_per_trial}, args.overrides)
+                              {"num_generations": args.generations, "steps_per_trial": args.steps_per_trial},
+                              args.overrides)
         import torch
 
         torch.set_num_threads(1)

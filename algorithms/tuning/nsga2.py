@@ -27,7 +27,7 @@ import numpy as np
 import yaml
 
 from a3cqp_rl.checkpoint import write_text_atomic
-from a3cqp_rl.cli import help_summary
+from a3cqp_rl.cli import add_set_option, help_summary
 from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.tuning_files import read_rows, read_state
@@ -35,7 +35,7 @@ from a3cqp_rl.tuning_files import read_rows, read_state
 from .genome import GenomeSpec
 from .objectives import Objective, get_objective
 from .pareto import hypervolume, non_dominated
-from .runner import Problem, RunResult, add_set_argument, cli_config, interrupted, run
+from .runner import Problem, RunResult, cli_config, interrupted, run
 
 __all__ = ["make_problem", "tune_pareto", "crowded_tournament_sbx", "rank_and_crowding", "pareto_front", "read_front",
            "pick", "main"]
@@ -222,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="output folder (default: runs/pareto_<config name>)")
     p.add_argument("--resume", action="store_true", help="continue the run in OUT from its last finished generation")
     p.add_argument("--pick", type=int, default=None, metavar="K", help="write solution K of OUT/front.csv as a YAML")
-    add_set_argument(p)
+    add_set_option(p, "panda.operator.timeout=4", "OUT/config.yaml keeps the result")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
 

@@ -172,13 +172,6 @@ def cli_config(config: str | None, out: str | None, resume: bool, default: str, 
     return load_config(config, parse_overrides(items)), out_path
 
 
-def add_set_argument(parser) -> None:  # noqa: ANN001
-    """The tuners' --set KEY=VALUE option (as train's and evaluate's)."""
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
-                        help="override one config value over --config, e.g. --set panda.operator.timeout=4 (VALUE "
-                             "read as YAML; repeatable; OUT/config.yaml keeps the result)")
-
-
 TUNERS = {"ga": ("a3cqp tune", "a GA"), "nsga2": ("a3cqp pareto", "an NSGA-II")}
 """Config section -> the command that reads it and what it runs."""
 

@@ -10,8 +10,8 @@ an upper bound on what dropping the parked arms from the batch (compacting it) c
 its episodes ended (simulated time) and how much of the wall came after its last one. `--breakdown` also
 times MuJoCo's two halves of a step and the C controller and QP (wrapped calls: ~1 % slower), the floor that no
 change of the Python glue can go below; it runs the control period in Python (`A3CQP_NATIVE_TICK=0`, the same
-numbers bit for bit), since the C period's calls are out of a wrapper's reach. docs/panda.md, sections "The same numbers across workers and threads, and
-where the evaluation's time goes" and "An exact contact pre-filter, the evaluation's floor, ...", have the numbers.
+numbers bit for bit), since the C period's calls are out of a wrapper's reach. docs/panda.md, sections "The same
+numbers across workers and threads, and where the evaluation's time goes" and "An exact contact pre-filter, the evaluation's floor, ...", have the numbers.
 """
 from __future__ import annotations
 
