@@ -242,7 +242,7 @@ def test_roles_zeroed_in_place_drop_nothing_and_restored_drop_again() -> None:
     d = mujoco.MjData(m)
     boxes = np.flatnonzero(m.geom_type == int(mujoco.mjtGeom.mjGEOM_BOX))
     reg = contact_filter.attach(m, d, [m.geom("peg").id], boxes)
-    d.qpos[2] = -0.03  # the peg 22 mm down, inside the bore: some boxes near, most far
+    d.qpos[2] = -0.03  # the peg lowered 30 mm toward the bore: some of its boxes near, most far
     mujoco.mj_forward(m, d)
     role = reg.role
     assert role is not None and set(np.flatnonzero(role == 2)) == set(boxes) and role[m.geom("peg").id] == 1
