@@ -223,7 +223,7 @@ def test_parameters_come_from_the_objects_and_the_c_table() -> None:
     ctrl = A3CQPController(1)
     lib = native.load()
     c_names = [name for name, _ in lib.Params._fields_]
-    assert len(c_names) == len(set(c_names)) == 40
+    assert len(c_names) == len(set(c_names)) == 41
     # every C field is set by exactly one owner: a task, a limit or the step
     owners = {}
     for piece in [*ctrl.tasks, *ctrl.limits]:

@@ -114,6 +114,10 @@ class ControllerOptions:
     """[rad/s] velocity limits are tightened by this much."""
     limit_horizon_steps: float = 2.0
     """Horizon of the viability bounds in control periods (TSID uses 2)."""
+    viability_stop_share: float = 0.9
+    """Share of the acceleration limit ddq_max the viability bound counts on to stop before a position limit (the
+    bounds still allow all of it): headroom for torque the model lacks, e.g. MuJoCo's joint damping
+    (JointLimitsViability.stopping_deceleration). 1.0: Del Prete's bound as published."""
     torque_limits: bool = True
     """Add |τ| ≤ 0.98 τ_max rows (TorqueLimits; not in the paper) so the QP never asks for unrealisable torques."""
     contact_force_threshold: float = 1.0
@@ -366,7 +370,8 @@ class A3CQPController:
                                                  q_margin=opt.q_margin, dq_margin=opt.dq_margin,
                                                  horizon_steps=opt.limit_horizon_steps, target=opt.joint_limit_target,
                                                  include_f_ext=opt.joint_limits_include_f_ext,
-                                                 brake_gain=opt.brake_gain, tau_max=lim["tau_max"])
+                                                 brake_gain=opt.brake_gain, tau_max=lim["tau_max"],
+                                                 stop_share=opt.viability_stop_share)
         self.limits: list[Limit] = [self.joint_limits, WrenchBox(cfg.force_limit, cfg.torque_limit),
                                     FrictionPyramid(cfg.mu)]
         if opt.torque_limits:

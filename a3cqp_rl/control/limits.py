@@ -182,8 +182,8 @@ class JointLimitsViability(Limit):
             default: then x = (q̈ inside the bounds, f = 0) satisfies every row, so the QP is always feasible;
             with it, an external wrench larger than the wrench box can make the QP infeasible (-> fallback).
         brake_gain: k [1/s] of `safe_acceleration` (the fallback brake q̈ = −k q̇ inside the bounds).
-        tau_max, torque_share, min_stop_fraction: torque-consistent stopping deceleration of the viability bound
-            (`stopping_deceleration`; tau_max None = Del Prete's ddq_max).
+        tau_max, torque_share, min_stop_fraction, stop_share: torque-consistent stopping deceleration of the
+            viability bound (`stopping_deceleration`; tau_max None = Del Prete's ddq_max).
     """
 
     name = "joint_limits"
@@ -193,12 +193,15 @@ class JointLimitsViability(Limit):
                  dt: float, q_margin: float = 0.01, dq_margin: float = 0.02, horizon_steps: float = 2.0,
                  target: Literal["total", "qdd"] = "total", include_f_ext: bool = False,
                  brake_gain: float = 20.0, tau_max: torch.Tensor | None = None, torque_share: float = 0.5,
-                 min_stop_fraction: float = 0.2) -> None:
+                 min_stop_fraction: float = 0.2, stop_share: float = 0.9) -> None:
         if target not in ("total", "qdd"):
             raise InvalidGainError(f"target must be 'total' or 'qdd', got {target!r}")
         if not (dt > 0 and horizon_steps >= 1 and q_margin >= 0 and dq_margin >= 0 and brake_gain >= 0):
             raise InvalidGainError(f"need dt > 0, horizon_steps >= 1, margins >= 0; got {dt}, {horizon_steps}, "
                                    f"{q_margin}, {dq_margin}")
+        if not min_stop_fraction <= stop_share <= 1.0:
+            raise InvalidGainError(f"stop_share must be in [min_stop_fraction, 1] = [{min_stop_fraction}, 1], got "
+                                   f"{stop_share!r}")
         f64 = torch.float64
         self.q_min = torch.as_tensor(q_min, dtype=f64) + q_margin
         self.q_max = torch.as_tensor(q_max, dtype=f64) - q_margin
@@ -207,7 +210,7 @@ class JointLimitsViability(Limit):
         self.dt, self.horizon, self.target, self.include_f_ext = dt, horizon_steps * dt, target, include_f_ext
         self.brake_gain = brake_gain
         self.tau_max = None if tau_max is None else torch.as_tensor(tau_max, dtype=f64)
-        self.torque_share, self.min_stop_fraction = torque_share, min_stop_fraction
+        self.torque_share, self.min_stop_fraction, self.stop_share = torque_share, min_stop_fraction, stop_share
         self._np_limits = tuple(t.numpy() for t in (self.q_min, self.q_max, self.dq_max, self.ddq_max))
 
     def _c_params(self) -> tuple[str, dict]:
@@ -217,7 +220,8 @@ class JointLimitsViability(Limit):
             "target_total": float(self.target == "total"), "include_f_ext": float(self.include_f_ext),
             "brake_gain": self.brake_gain, "has_tau_stop": float(self.tau_max is not None),
             "tau_stop_max": np.zeros(7) if self.tau_max is None else self.tau_max.numpy(),
-            "torque_share": self.torque_share, "min_stop_fraction": self.min_stop_fraction}
+            "torque_share": self.torque_share, "min_stop_fraction": self.min_stop_fraction,
+            "stop_share": self.stop_share}
 
     def bounds(self, q: Array, qd: Array, ddq_stop: Array | None = None) -> tuple[Array, Array]:
         """Viable acceleration bounds (lb, ub) [B, 7] (rad/s²) at state (q, q̇), arrays of q's kind.
@@ -245,7 +249,14 @@ class JointLimitsViability(Limit):
         inertial coupling the Panda's shoulder cannot (random switching: joint 2 braking with τ saturated at
         −87 N m under −44 N m of gravity reached −3 rad/s², not −7.5, and overshot q_max). As in OpenSoT, where the
         acceleration limits are chosen consistent with the torque limits, the deceleration counted on is
-        min(ddq_max, `torque_share` (τ_max − |h + g|) / B_ii), at least `min_stop_fraction` ddq_max.
+        min(`stop_share` ddq_max, `torque_share` (τ_max − |h + g|) / B_ii), at least `min_stop_fraction` ddq_max.
+
+        `stop_share` < 1 keeps headroom between the deceleration the bound counts on and the one the acceleration
+        bounds allow, for torque the model does not have. In MuJoCo the joints' viscous damping (0.1 N m s/rad, not in
+        h + g), coupled through B⁻¹, cut joint 2's realised braking from the commanded 7.5 to 7.2 rad/s² at 2.1 rad/s:
+        the stop then needs v²/2 (1/7.2 − 1/7.5) ≈ 13 mrad more than the bound planned, more than the 10 mrad
+        q_margin, and the joint reached its datasheet limit. With 0.9 the bound starts braking at 90 % of ddq_max,
+        and the QP may brake up to all of it.
         """
         if ctx.bias is None or self.tau_max is None:
             return None
@@ -254,7 +265,8 @@ class JointLimitsViability(Limit):
         room = (const(self.tau_max, ctx.q) - xp.abs(ctx.bias)).clip(0.0)
         ddq_max = const(self.ddq_max, ctx.q)
         # (the lower bound min_stop_fraction · ddq_max > 0 also clips negative values)
-        return xp.maximum(xp.minimum(self.torque_share * room / diag, ddq_max), self.min_stop_fraction * ddq_max)
+        return xp.maximum(xp.minimum(self.torque_share * room / diag, self.stop_share * ddq_max),
+                          self.min_stop_fraction * ddq_max)
 
     def bounds_for(self, ctx: ControlContext) -> tuple[Array, Array]:
         """`bounds(ctx.q, ctx.qd)`, computed once per context (shared with TorqueLimits and the fallback)."""

@@ -41,7 +41,7 @@
     S(reg) S(pinv_damping) S(nullspace_damping)                                                                    \
     A(q_min, 7) A(q_max, 7) A(dq_max, 7) A(ddq_max, 7) /* JointLimitsViability (margins applied) */                \
     S(horizon) S(target_total) S(include_f_ext) S(brake_gain)                                                      \
-    S(has_tau_stop) A(tau_stop_max, 7) S(torque_share) S(min_stop_fraction)                                        \
+    S(has_tau_stop) A(tau_stop_max, 7) S(torque_share) S(min_stop_fraction) S(stop_share)                          \
     A(wrench_max, 6)                         /* WrenchBox */                                                       \
     S(mu)                                    /* FrictionPyramid */                                                 \
     S(has_torque_limits) A(torque_max, 7) S(torque_safe) /* TorqueLimits (scaled τ̄), anchored to the brake */      \
@@ -304,7 +304,8 @@ static void viable_bounds(const a3cqp_params *p, const double *q, const double *
         double stop = p->ddq_max[i];
         if (p->has_tau_stop != 0.0) {
             double room = fmax(p->tau_stop_max[i] - fabs(bias[i]), 0.0);
-            stop = fmax(fmin(p->torque_share * room / M[i * 8], p->ddq_max[i]), p->min_stop_fraction * p->ddq_max[i]);
+            stop = fmax(fmin(p->torque_share * room / M[i * 8], p->stop_share * p->ddq_max[i]),
+                        p->min_stop_fraction * p->ddq_max[i]);
         }
         joint_bounds(q[i], qd[i], p->q_min[i], p->q_max[i], p->dq_max[i], p->ddq_max[i], stop, p->horizon,
                      &lb[i], &ub[i]);
