@@ -357,3 +357,23 @@ def test_module_takes_addresses_or_arrays_and_refuses_a_wrong_call() -> None:
         lib.solve(B, n, 0, m, *args, strides, 1e-9, 100)
     with pytest.raises((BufferError, ValueError, TypeError)):
         lib.solve(B, n, 0, m, *args, strides, 1e-9, 100, np.empty((B * (3 * n + m + 2), 2))[:, 0])
+
+
+def test_a_violated_row_the_range_space_values_hide_is_found_by_the_certificate() -> None:
+    """A controller QP under random switching weights (13 variables, 58 rows, multipliers up to 5.6e5, |x₀| ~1e6):
+    the range-space row values round at ~5e-3 there, so G-I stopped with a total-acceleration row violated by
+    3.6e-3 and the certificate failed (handed on; the controller braked). The C route now adds the row the
+    certificate's direct C x − d shows violated and solves it alone, as the torch route and Clarabel do."""
+    d = np.load(Path(__file__).parent / "data" / "qp_coarse_row_values.npz")
+    P, q, G, h = (torch.from_numpy(d[k])[None] for k in ("P", "q", "G", "h"))
+    c = solve_qp(P, q, G=G, h=h, hand_on=False)  # the C route alone: an undecided instance would say MAX_ITER
+    t = solve_qp(P, q, G=G, h=h, backend="torch")
+    assert c.status.item() == QPStatus.SOLVED and t.status.item() == QPStatus.SOLVED
+    assert torch.allclose(c.x, t.x, rtol=0, atol=1e-8 * float(t.x.abs().max()))
+    assert float((G[0] @ c.x[0] - h[0]).max()) <= 1e-9 * float(h.abs().max())
+    import cvxpy as cp
+
+    x = cp.Variable(13)
+    cp.Problem(cp.Minimize(0.5 * cp.quad_form(x, cp.psd_wrap(d["P"])) + d["q"] @ x), [d["G"] @ x <= d["h"]]).solve(
+        solver="CLARABEL")
+    assert np.allclose(c.x[0].numpy(), x.value, rtol=0, atol=1e-6 * float(np.abs(x.value).max()))

@@ -73,6 +73,8 @@ enum {
 #define DEP_REL 1e-13
 /* Relative rounding of a row value computed in the range space (a few hundred ulps of its terms). */
 #define ROUND_REL 1e-13
+/* Rounds of G-I steps after a failed certificate, each adding the row its direct evaluation shows violated. */
+#define POLISH_ROUNDS 3
 /* |bound| at and above which a bound or right-hand side means "none" (peers write 1e20 for it). */
 #define NO_BOUND 1e20
 
@@ -593,9 +595,11 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
 
     /* G-I steps. */
     int exact = 1; /* lw holds the exact multipliers of buf[0..k) (no incremental update since) */
-    int steps = 0;
+    int steps = 0, forced = -1, rounds = 0;
+gi_steps:
     while (r > p) {
-        int j = most_violated(w);
+        int j = forced >= 0 ? forced : most_violated(w);
+        forced = -1;
         if (j < 0) break; /* every row within its threshold (NaN values fail the certificate) */
         double vj = w->v[j];
         if (++steps > max_steps) return GI_BUDGET;
@@ -671,7 +675,25 @@ static int solve_one(gi_ws *w, const double *z0, double tol, int max_steps, doub
         if (solve_working(w, k, lw)) return GI_DEPENDENT;
     }
     *solves_out = solves;
-    return certify(w, k, lw, tol, x_out, out, nout, 0);
+    const int st = certify(w, k, lw, tol, x_out, out, nout, 0);
+    if (st == GI_UNCERTIFIED && rounds++ < POLISH_ROUNDS) {
+        /* The range-space row values were too coarse to see a violated row (a large x₀: their rounding threshold
+         * exceeded the violation) that the certificate's direct C x − d shows (w->t): that row goes on with the
+         * G-I steps, from the refined multipliers, as the next row to add. */
+        double best = 0.0;
+        for (int i = p; i < r; ++i) {
+            if (w->W[i] || !(w->t[i] > tol * w->err_mag[i])) continue;
+            const double rel = w->t[i] * row_ginv(w, i);
+            if (rel > best) best = rel, forced = i;
+        }
+        if (forced >= 0) {
+            w->v[forced] = w->t[forced];
+            w->skip[forced] = 0;
+            exact = 1;
+            goto gi_steps;
+        }
+    }
+    return st;
 }
 
 /* Hint that the `len` doubles at a (len 0: a shared array, already in cache) will be read soon.  The batch's data
