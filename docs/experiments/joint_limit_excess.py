@@ -1,7 +1,7 @@
 """How far a joint goes past its datasheet limit under random held actions (the slow test's loop), per seed.
 
     python docs/experiments/joint_limit_excess.py --seeds 1-6 [--steps 3000] [--q-margin 0.05] [--include-f-ext]
-                                                  [--end-stop-tc 0.02]
+                                                  [--end-stop-tc 0.02] [--stop-share 1.0] [--scene guidance]
 
 Runs `envs.panda_eval.limit_stress` as the slow test
 `tests/test_panda_env.py::test_joint_and_torque_limits_hold_over_many_random_episodes` does: 8 arms on peg-in-hole
@@ -10,7 +10,8 @@ excess past a datasheet position limit [mrad], its joint and arm, the largest |Ï
 (1 kHz periods of one arm that braked because the QP failed). `--q-margin` sets
 ControllerOptions.q_margin (default 0.01 rad), `--include-f-ext` ControllerOptions.joint_limits_include_f_ext,
 `--end-stop-tc` the time constant [s] of the joints' end stops (panda.xml: 0.002; MuJoCo's default, before
-2026-11-28: 0.02). docs/panda.md, sections "Joint limits under random weights, contact dropouts, and the runs that
+2026-11-28: 0.02), `--stop-share` ControllerOptions.viability_stop_share (default 0.9; 1.0 before 2026-12-01),
+`--scene` the scene (default peg_in_hole; guidance: no contact, the operator guides). docs/panda.md, sections "Joint limits under random weights, contact dropouts, and the runs that
 yield" and "Stiff end stops, ..." have the numbers.
 """
 from __future__ import annotations
@@ -40,14 +41,19 @@ def main() -> None:
     ap.add_argument("--q-margin", type=float, default=ControllerOptions.q_margin)
     ap.add_argument("--include-f-ext", action="store_true")
     ap.add_argument("--end-stop-tc", type=float, default=None, help="end-stop time constant [s] (default: panda.xml's)")
+    ap.add_argument("--stop-share", type=float, default=ControllerOptions.viability_stop_share)
+    ap.add_argument("--scene", choices=["peg_in_hole", "guidance"], default="peg_in_hole")
     args = ap.parse_args()
     if args.end_stop_tc is not None:
         _set_end_stops(args.end_stop_tc)
     logging.getLogger("a3cqp_rl.control.controller").setLevel(logging.ERROR)  # one warning per fallback otherwise
-    options = ControllerOptions(q_margin=args.q_margin, joint_limits_include_f_ext=args.include_f_ext)
-    print(f"{ARMS} arms x {args.steps} agent steps, q_margin {args.q_margin} rad, include_f_ext {args.include_f_ext}")
+    options = ControllerOptions(q_margin=args.q_margin, joint_limits_include_f_ext=args.include_f_ext,
+                                viability_stop_share=args.stop_share)
+    print(f"{ARMS} arms x {args.steps} agent steps, {args.scene}, q_margin {args.q_margin} rad, include_f_ext "
+          f"{args.include_f_ext}, stop_share {args.stop_share}")
+    config = config_from_dict({"panda": {**CONFIG["panda"], "scene": args.scene}})
     for seed in args.seeds:
-        r = limit_stress(ARMS, args.steps, seed, config_from_dict(CONFIG), options)
+        r = limit_stress(ARMS, args.steps, seed, config, options)
         print(f"seed {seed}: worst excess {1e3 * max(r.worst_excess, 0.0):5.1f} mrad (joint {r.joint}, arm {r.arm}), "
               f"max |tau|/tau_max {r.worst_torque_ratio:.3f}, max |dq|/dq_max {r.worst_speed_ratio:.2f}, "
               f"QP fallback periods {r.fallbacks}")
