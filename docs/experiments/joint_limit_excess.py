@@ -6,8 +6,8 @@
 Runs `envs.panda_eval.limit_stress` as the slow test
 `tests/test_panda_env.py::test_joint_and_torque_limits_hold_over_many_random_episodes` does: 8 arms on peg-in-hole
 (3-s trials, the operator on), random actions held for 20 agent steps, done arms reset. Prints per seed the worst
-excess past a datasheet position limit [mrad], its joint and arm, the largest |τ|/τ_max and the QP fallbacks
-(1 kHz periods of one arm that braked because the QP failed). `--q-margin` sets
+excess past a datasheet position limit [mrad] (negative: the closest approach, inside), its joint and arm, the
+largest |τ|/τ_max and the QP fallbacks (1 kHz periods of one arm that braked because the QP failed). `--q-margin` sets
 ControllerOptions.q_margin (default 0.01 rad), `--include-f-ext` ControllerOptions.joint_limits_include_f_ext,
 `--end-stop-tc` the time constant [s] of the joints' end stops (panda.xml: 0.002; MuJoCo's default, before
 2026-11-28: 0.02), `--stop-share` ControllerOptions.viability_stop_share (default 0.9; 1.0 before 2026-12-01),
@@ -54,7 +54,7 @@ def main() -> None:
     config = config_from_dict({"panda": {**CONFIG["panda"], "scene": args.scene}})
     for seed in args.seeds:
         r = limit_stress(ARMS, args.steps, seed, config, options)
-        print(f"seed {seed}: worst excess {1e3 * max(r.worst_excess, 0.0):5.1f} mrad (joint {r.joint}, arm {r.arm}), "
+        print(f"seed {seed}: worst excess {1e3 * r.worst_excess:+6.2f} mrad (< 0: inside; joint {r.joint}, arm {r.arm}), "
               f"max |tau|/tau_max {r.worst_torque_ratio:.3f}, max |dq|/dq_max {r.worst_speed_ratio:.2f}, "
               f"QP fallback periods {r.fallbacks}")
 
