@@ -26,7 +26,9 @@
  * rounds of "add the rows x₀ violates, trim to positive multipliers" (measured on 300 instances:
  * 1.07 / 6.60 / 12.07 solves at spread 0.015 / 0.35 / 1.0 with 2 rounds, 1.07 / 7.73 / 12.98 with 1).
  * Warm start: the working set {z0 > 0}, trimmed to positive multipliers; in the control loop that is
- * one k × k solve.
+ * one k × k solve.  Where x₀ is large the range-space row values round coarsely (their decision threshold
+ * counts that rounding) and can hide a small violation that the certificate's direct C x − d sees: after a
+ * failed certificate that row is added by further G-I steps, up to POLISH_ROUNDS times.
  *
  * Nothing is returned as solved unless certified on the original KKT system, per row:
  *   stationarity  |(P x + q + Cᵀλ)_c| ≤ tol (1 + |q_c| + Σ_k |P_ck x_k| + Σ_a |C_ac λ_a|),
