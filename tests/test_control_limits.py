@@ -107,7 +107,7 @@ def _brake_toward_q_min(stop_share: float, realised: float) -> float:
     lim = PANDA_LIMITS.tensors()
     viability = JointLimitsViability(lim["q_min"], lim["q_max"], lim["dq_max"], lim["ddq_max"], 1e-3,
                                      tau_max=lim["tau_max"], stop_share=stop_share)
-    q_min, _, dq_max, _ = viability._np_limits
+    q_min, dq_max = viability.q_min.numpy(), viability.dq_max.numpy()  # (tightened by the margins)
     q, qd, dt, low = (q_min + 0.6)[None], -dq_max[None], 1e-3, np.inf
     mass, bias = 0.5 * np.eye(7)[None], np.zeros((1, 7))  # (light links: the torque never limits the brake here)
     for _ in range(1500):
@@ -127,8 +127,8 @@ def test_the_viability_bound_keeps_headroom_for_a_brake_the_joint_does_not_fully
     assert _brake_toward_q_min(1.0, 0.96) < -0.010
     assert _brake_toward_q_min(0.9, 0.96) > -1e-12 and _brake_toward_q_min(0.9, 0.90) > -1e-12
     assert ControllerOptions().viability_stop_share == 0.9
+    lim = PANDA_LIMITS.tensors()
     with pytest.raises(InvalidGainError, match="stop_share"):
-        lim = PANDA_LIMITS.tensors()
         JointLimitsViability(lim["q_min"], lim["q_max"], lim["dq_max"], lim["ddq_max"], 1e-3, stop_share=1.2)
 
 
