@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import cvxpy as cp
 import numpy as np
 import pytest
 import torch
@@ -371,8 +372,6 @@ def test_a_violated_row_the_range_space_values_hide_is_found_by_the_certificate(
     assert c.status.item() == QPStatus.SOLVED and t.status.item() == QPStatus.SOLVED
     assert torch.allclose(c.x, t.x, rtol=0, atol=1e-8 * float(t.x.abs().max()))
     assert float((G[0] @ c.x[0] - h[0]).max()) <= 1e-9 * float(h.abs().max())
-    import cvxpy as cp
-
     x = cp.Variable(13)
     cp.Problem(cp.Minimize(0.5 * cp.quad_form(x, cp.psd_wrap(d["P"])) + d["q"] @ x), [d["G"] @ x <= d["h"]]).solve(
         solver="CLARABEL")

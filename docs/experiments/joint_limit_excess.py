@@ -11,8 +11,9 @@ largest |τ|/τ_max and the QP fallbacks (1 kHz periods of one arm that braked b
 ControllerOptions.q_margin (default 0.01 rad), `--include-f-ext` ControllerOptions.joint_limits_include_f_ext,
 `--end-stop-tc` the time constant [s] of the joints' end stops (panda.xml: 0.002; MuJoCo's default, before
 2026-11-28: 0.02), `--stop-share` ControllerOptions.viability_stop_share (default 0.9; 1.0 before 2026-12-01),
-`--scene` the scene (default peg_in_hole; guidance: no contact, the operator guides). docs/panda.md, sections "Joint limits under random weights, contact dropouts, and the runs that
-yield" and "Stiff end stops, ..." have the numbers.
+`--scene` the scene (default peg_in_hole; guidance: no contact, the operator guides). docs/panda.md, sections
+"Joint limits under random weights, contact dropouts, and the runs that yield", "Stiff end stops, ..." and "Headroom
+in the joint-limit bound, ..." have the numbers.
 """
 from __future__ import annotations
 
@@ -54,7 +55,8 @@ def main() -> None:
     config = config_from_dict({"panda": {**CONFIG["panda"], "scene": args.scene}})
     for seed in args.seeds:
         r = limit_stress(ARMS, args.steps, seed, config, options)
-        print(f"seed {seed}: worst excess {1e3 * r.worst_excess:+6.2f} mrad (< 0: inside; joint {r.joint}, arm {r.arm}), "
+        print(f"seed {seed}: worst excess {1e3 * r.worst_excess:+6.2f} mrad (< 0: inside; joint {r.joint}, "
+              f"arm {r.arm}), "
               f"max |tau|/tau_max {r.worst_torque_ratio:.3f}, max |dq|/dq_max {r.worst_speed_ratio:.2f}, "
               f"QP fallback periods {r.fallbacks}")
 
