@@ -1029,6 +1029,12 @@ class PandaEnvConfig:
     while the operator holds its handle: the peg pulled out of its bore; configs/panda_peg_in_hole.yaml) or "off"
     (default: in stiff contact, the peg on the rim, the contact's impulses make the QP infeasible and the controller
     brakes; docs/panda.md, "External forces carry the joints past their limits")."""
+    qp_failure: Literal["brake", "least_violation"] = "brake"
+    """What an arm whose QP fails gets (ControllerOptions.qp_failure): "brake" (default) the fallback brake, with no
+    wrench; "least_violation" the same QP with the joint-limit rows of its actual acceleration soft, so that its
+    joints give way as little as the torque limits force them to and its tasks go on (docs/panda.md, "A
+    least-violation step for a failed QP": on the peg the operator pulled more of the baselines' pegs out, but a
+    joint ran 1.2 mrad past its limit and `make peg` took 48 % longer)."""
     ik_bound_tool_axis: float | None = None
     """How far [m] the reference that the IK task of a policy-driven arm pulls toward may be from the tool along the
     tool axis (local z); None: the scene's reference as it is. On the peg the procedure's reference goes on down at

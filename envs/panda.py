@@ -157,7 +157,7 @@ class PandaEnv(EnvBase):
         for m in self.sim.models:  # one diverging arm must not make MuJoCo reset the whole batch (its default on bad
             m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)  # qpos/qvel/qacc)
         opts = dataclasses.replace(controller_options or ControllerOptions(), leak_axes=self.pcfg.state_leak,
-                                   **TASK_BLENDS[self.pcfg.task_blend])
+                                   qp_failure=self.pcfg.qp_failure, **TASK_BLENDS[self.pcfg.task_blend])
         if self.pcfg.joint_limits_f_ext == "always":
             opts = dataclasses.replace(opts, joint_limits_include_f_ext=True)
         self.ctrl = (controller_factory or A3CQPController)(n, model=self.model, config=cfg.controller, options=opts)
@@ -211,6 +211,9 @@ class PandaEnv(EnvBase):
         """Arms set aside by `park` (until their reset): no collisions, IK holding, no divergence checks."""
         self.fallbacks = np.zeros(n, dtype=np.int64)
         """Control periods in which the controller's QP fell back to braking, per arm, this episode."""
+        self.relaxations = np.zeros(n, dtype=np.int64)
+        """Control periods in which the controller's QP failed and its least-violation QP gave the torque, per arm,
+        this episode (ControllerOptions.qp_failure)."""
         self.joint_limit_excess = np.full(n, -np.inf)
         """Per arm, this episode: the largest excess of a joint past its datasheet position limit [rad] over the 1 kHz
         control periods (negative: the closest approach, inside the limits), until its episode ends, it is parked or it
@@ -294,6 +297,7 @@ class PandaEnv(EnvBase):
         self.diverged[idx] = False
         self.parked[idx] = False
         self.fallbacks[idx] = 0
+        self.relaxations[idx] = 0
         self.joint_limit_excess[idx] = -np.inf
         self.joint_limit_joint[idx] = -1
         self.joint_speed_ratio[idx] = 0.0
@@ -519,6 +523,7 @@ class PandaEnv(EnvBase):
                              leak_extra=None if self._idle_leak is None else torch.from_numpy(self._idle_leak),
                              f_ext_limits=held, active=torch.from_numpy(~self.parked) if self.parked.any() else None)
         self.fallbacks += out.fallback.numpy() & live
+        self.relaxations += out.relaxed.numpy() & live
         tau = out.tau.numpy()
         self.tau[:] = tau
         # the operator's hand at the handle (above the F/T sensor: read by the joint torques only)

@@ -514,6 +514,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     td = env.reset()
     finished = np.zeros(n, dtype=bool)
     fallbacks = np.zeros(n, dtype=np.int64)  # each trial's QP fallback periods, taken when its episode ends
+    relaxed = np.zeros(n, dtype=np.int64)  # and its periods on the least-violation QP
     # in a worker process the parent draws the bar (`_run_workers`)
     bar = _QueueBar(_PROGRESS_QUEUE, worker) if progress and _PROGRESS_QUEUE is not None else _progress(n, progress)
     steps = 0
@@ -537,6 +538,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
                 rec[k].append(rows[j])
         newly = td["done"].reshape(n).numpy() & ~finished
         fallbacks[newly] = env.fallbacks[newly]
+        relaxed[newly] = env.relaxations[newly]
         if park:
             env.park(np.flatnonzero(newly))
         finished |= newly
@@ -550,6 +552,7 @@ def _run(scene: str, policy_path, trial_seeds: list[int], cfg, controllers: tupl
     metrics["joint_limit_excess"] = env.joint_limit_excess.copy()
     metrics["joint_speed_ratio"] = env.joint_speed_ratio.copy()
     metrics["qp_fallbacks"] = fallbacks
+    metrics["qp_relaxed"] = relaxed
     per = {c: {k: np.asarray(v)[j * trials:(j + 1) * trials] for k, v in metrics.items()}
            for j, c in enumerate(controllers)}
     meta = {"scene": env.scene.name, "tool": env.scene.tool, "scene_xml": env.scene.mjcf(),
@@ -744,7 +747,7 @@ def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
         out["extracted_rate"] = float(np.mean(np.asarray(m["extracted"])[grasped])) if grasped.any() else None
     else:
         for k, v in m.items():
-            if k not in ("diverged", "joint_limit_excess", "joint_speed_ratio", "qp_fallbacks"):
+            if k not in ("diverged", "joint_limit_excess", "joint_speed_ratio", "qp_fallbacks", "qp_relaxed"):
                 out[f"{k}_mean"], out[f"{k}_std"] = _mean_std(v)
     if "joint_limit_excess" in m:  # the worst trial [mrad]: > 0 a joint passed a datasheet limit
         worst = float(np.max(m["joint_limit_excess"])) if len(m["joint_limit_excess"]) else -math.inf
@@ -755,6 +758,10 @@ def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
         fb = np.asarray(m["qp_fallbacks"])
         out["qp_fallback_trials"] = int((fb > 0).sum())
         out["qp_fallback_ms_max"] = int(fb.max()) if fb.size else 0
+    if "qp_relaxed" in m:  # 1 kHz periods in which the QP failed and the least-violation QP gave the torque
+        rl = np.asarray(m["qp_relaxed"])
+        out["qp_relaxed_trials"] = int((rl > 0).sum())
+        out["qp_relaxed_ms_max"] = int(rl.max()) if rl.size else 0
     return out
 
 
@@ -836,6 +843,9 @@ def format_table(res: EvalResult) -> str:
     if all("qp_fallback_trials" in s[c] for c in names):
         rows.append(("QP fallbacks: trials, worst [ms]", (["-"] if res.scene == "peg_in_hole" else [])
                      + [f"{s[c]['qp_fallback_trials']}, {s[c]['qp_fallback_ms_max']}" for c in names]))
+    if all("qp_relaxed_trials" in s[c] for c in names):
+        rows.append(("QP least-violation: trials, worst [ms]", (["-"] if res.scene == "peg_in_hole" else [])
+                     + [f"{s[c]['qp_relaxed_trials']}, {s[c]['qp_relaxed_ms_max']}" for c in names]))
     rows.append(("diverged", (["-"] if res.scene == "peg_in_hole" else []) + [str(s[c]["diverged"]) for c in names]))
     w0 = max(len(r[0]) for r in rows)
     widths = [max(len(cols[i]), *(len(r[1][i]) for r in rows)) for i in range(len(cols))]

@@ -69,9 +69,10 @@ def test_qp_fallbacks_are_counted_per_trial_instead_of_logged(monkeypatch, caplo
 
     def arm_1_fails_every_tenth(*a, **k):  # noqa: ANN002, ANN003, ANN202
         sol = real(*a, **k)
-        calls[0] += 1
-        if calls[0] % 10 == 0:
-            sol.status[1] = QPStatus.MAX_ITER
+        if sol.status.shape[0] > 1:  # the step's QP of both arms (not the least-violation QP of arm 1 alone)
+            calls[0] += 1
+            if calls[0] % 10 == 0:
+                sol.status[1] = QPStatus.MAX_ITER
         return sol
 
     monkeypatch.setattr(controller_module, "solve_qp", arm_1_fails_every_tenth)
@@ -86,6 +87,15 @@ def test_qp_fallbacks_are_counted_per_trial_instead_of_logged(monkeypatch, caplo
     assert f"1, {fb[1]}" in format_table(res) and json.loads(json.dumps(to_json(res)))["per_trial"]["ik_fc"][
         "qp_fallbacks"] == fb
     assert not [r for r in caplog.records if "A3CQP fallback" in r.getMessage()] and log.level == level
+    assert list(res.per_trial["ik_fc"]["qp_relaxed"]) == [0, 0]
+    # with the least-violation step the same failures are counted as such, and nothing brakes
+    calls[0] = 0
+    res = evaluate("peg_in_hole", None, trials=2, seed=0, controllers=("ik_fc",), progress=False,
+                   config=config_from_dict({"panda": {**FAST["panda"], "qp_failure": "least_violation"}}))
+    relaxed = res.per_trial["ik_fc"]["qp_relaxed"]
+    assert relaxed[0] == 0 and relaxed[1] > 100 and list(res.per_trial["ik_fc"]["qp_fallbacks"]) == [0, 0]
+    assert res.summary["ik_fc"]["qp_relaxed_trials"] == 1 and res.summary["ik_fc"]["qp_relaxed_ms_max"] == relaxed[1]
+    assert "QP least-violation: trials, worst [ms]" in format_table(res)
 
 
 @pytest.mark.slow

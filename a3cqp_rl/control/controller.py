@@ -124,6 +124,17 @@ class ControllerOptions:
     """[N] measured contact force above which the friction pyramid is active."""
     brake_gain: float = 20.0
     """[1/s] fallback joint deceleration q̈ = −k q̇ (within the viable bounds) when a QP fails."""
+    qp_failure: Literal["brake", "least_violation"] = "brake"
+    """What a robot whose QP fails gets. "brake" (default): the fallback brake (`brake_gain`, f = 0, gravity
+    compensation). "least_violation": the same QP once more with the joint-limit rows that bound the arm's actual
+    acceleration soft (`JointLimitsViability.soft_rows`; a slack per row, s ≥ 0, penalised by `RELAX_L1` Σs +
+    `RELAX_L2`/2 Σs², far above every task), so that the torque, wrench and friction rows still hold, those joint
+    rows give way as little as they can, and the tasks go on in what is left; `ControlOutput.relaxed` says so, and
+    the brake follows only where that QP fails too. Those rows are the ones that conflict: with the measured f_ext
+    counted in them (`joint_limits_include_f_ext`, `step(f_ext_limits=)`) an operator's pull can ask for more torque
+    than the limits give. On the peg it let the operator pull more of the baselines' pegs out, but braked less of a
+    pull and ran slower (docs/panda.md, "A least-violation step for a failed QP"). Strict hierarchies
+    (`set_levels`) always brake."""
     qp_max_iter: int = 50
     """Interior-point iteration budget of the QP solver."""
     qp_hand_on: bool = False
@@ -166,6 +177,8 @@ class ControlOutput:
     """Bool [N]: some joint torque hit its limit."""
     iterations: torch.Tensor
     """QP solver iterations per robot [N]."""
+    relaxed: torch.Tensor
+    """Bool [N]: the QP failed and the least-violation QP (`ControllerOptions.qp_failure`) gave the step instead."""
 
 
 def wrench_from_joint_torques(tau_ext: torch.Tensor, jac: torch.Tensor, mass: torch.Tensor,
@@ -228,6 +241,15 @@ W_MAX = 1e6
 """The largest task weight `step` takes. Up to 1e6 the C and Python routes agree to 5e-7 N m on random inputs; at 1e9
 the QP runs out of iterations (a fallback, said so); at 1e12 it reported SOLVED with torques 40 N m apart and
 accelerations of 1e8 rad/s² (2026-12-01). The A3CQP weights lie in [0, 1] (eq. 28)."""
+
+
+RELAX_L1 = 1e4
+"""Linear penalty of the least-violation QP's joint-row slacks (ControllerOptions.qp_failure), per rad/s²: an exact
+penalty, so the rows give way only where no x meets them, as long as no task's multiplier on them exceeds it."""
+RELAX_L2 = 1.0
+"""Its quadratic penalty on the slacks, per (rad/s²)²: keeps the slacks' block of the Hessian positive definite; small
+beside RELAX_L1, so that the sum of the violations is the least an LP finds (at 1e2 it was 7 % above it under a
+300-N pull; tests/test_control_least_violation.py)."""
 
 
 def _f_ext_limits(mask: Array | None, n: int) -> np.ndarray:
@@ -393,12 +415,16 @@ class A3CQPController:
         when the step ran on the CPU path (see arrays.py); empty after a native step (ControlOutput has f_adm, f_ctc)."""
         self.fallback_count = 0
         """Number of (robot, step) pairs that used the fallback since construction."""
+        self.relaxed_count = 0
+        """Number of (robot, step) pairs that used the least-violation QP since construction."""
         self._fallback_steps = 0  # steps with a fallback: the log shows the first ones, then every FALLBACK_LOG_EVERY
         self._native: native.NativeStep | None = None
         if opt.leak_axes not in ("per_axis", "min_w1"):
             raise InvalidGainError(f"leak_axes must be 'per_axis' or 'min_w1', got {opt.leak_axes!r}")
         if opt.wrench_blend not in ("normalized", "weighted_sum"):
             raise InvalidGainError(f"wrench_blend must be 'normalized' or 'weighted_sum', got {opt.wrench_blend!r}")
+        if opt.qp_failure not in ("least_violation", "brake"):
+            raise InvalidGainError(f"qp_failure must be 'least_violation' or 'brake', got {opt.qp_failure!r}")
         if opt.backend not in ("auto", "python", "native"):
             raise InvalidGainError(f"backend must be 'auto', 'python' or 'native', got {opt.backend!r}")
         if opt.backend != "python":
@@ -662,6 +688,53 @@ class A3CQPController:
         return (like.new_zeros(n, N_VARS), torch.full((n,), SOLVER_ERROR, dtype=torch.long),
                 torch.zeros(n, dtype=torch.long))
 
+    def _relax_failed(self, P: torch.Tensor, c: torch.Tensor, G: torch.Tensor, h: torch.Tensor, x: torch.Tensor,
+                      solved: np.ndarray, valid: np.ndarray) -> tuple[torch.Tensor, np.ndarray | None]:
+        """x [B, 13] with the least-violation QP's answer where the QP failed on valid inputs, and which robots got
+        it (bool [B], None where none did); `ControllerOptions.qp_failure`."""
+        failed = np.flatnonzero(valid & ~(solved & torch.isfinite(x).all(-1).cpu().numpy()))
+        if (len(failed) == 0 or self.options.qp_failure != "least_violation"
+                or self.limits[0] is not self.joint_limits):  # (the joint rows must be G's first)
+            return x, None
+        xr, ok = self.least_violation(P[failed], c[failed], G[failed], h[failed])
+        if not ok.any():
+            return x, None
+        x = x.clone()
+        x[failed[ok]] = xr[ok].to(x.device)
+        relaxed = np.zeros(len(x), dtype=bool)
+        relaxed[failed[ok]] = True
+        self.relaxed_count += int(ok.sum())
+        return x, relaxed
+
+    def least_violation(self, P: torch.Tensor, c: torch.Tensor, G: torch.Tensor, h: torch.Tensor
+                        ) -> tuple[torch.Tensor, np.ndarray]:
+        """The QPs (P, c, G, h) of `build_qp` with the joint-limit rows soft: (x [B, 13], solved bool [B]).
+
+        min ½xᵀPx + cᵀx + RELAX_L1 Σs + ½ RELAX_L2 Σs² s.t. G_soft x − s ≤ h_soft, G_rest x ≤ h_rest, s ≥ 0, with
+        the soft rows `JointLimitsViability.soft_rows`. The other rows are met by x = (the viable brake, f = 0)
+        (TorqueLimits is anchored to it), so this QP always has a solution; solved cold (its size differs from the
+        step's)."""
+        B, nv = c.shape
+        soft = self.joint_limits.soft_rows
+        mj = soft.stop - soft.start
+        eye = torch.eye(mj, dtype=P.dtype, device=P.device).expand(B, mj, mj)
+        Pz = P.new_zeros(B, nv + mj, nv + mj)
+        Pz[:, :nv, :nv] = P
+        Pz[:, nv:, nv:] = RELAX_L2 * eye
+        Gz = P.new_zeros(B, G.shape[1], nv + mj)
+        Gz[:, :, :nv] = G
+        Gz[:, soft, nv:] = -eye
+        cz = torch.cat([c, c.new_full((B, mj), RELAX_L1)], 1)
+        lb = torch.cat([c.new_full((nv,), -torch.inf), c.new_zeros(mj)])
+        try:
+            sol = solve_qp(Pz, cz, G=Gz, h=h, lb=lb, max_iter=self.options.qp_max_iter,
+                           hand_on=self.options.qp_hand_on)
+        except Exception:  # as `_solve`: a solver bug brakes these robots instead of taking the batch down
+            logger.exception("A3CQP: the least-violation QP raised; its robots fall back to the brake")
+            return c.new_zeros(B, nv), np.zeros(B, dtype=bool)
+        xr = sol.x[:, :nv]
+        return xr, ((sol.status == 0) & torch.isfinite(xr).all(-1)).cpu().numpy()
+
     def _report_fallback(self, ok: Array, qp_status: torch.Tensor, valid: Array) -> None:
         """Count and log the robots that fell back this step (and start their next QP cold)."""
         bad = [i for i in range(self.n) if not bool(ok[i])]
@@ -732,6 +805,7 @@ class A3CQPController:
             inp = self._stand_ins(inp)
         ctx = self.build_context(inp.q, inp.qd, inp.mass, inp.weights, inp.f_d, inp.pos_d, inp.rot_d, inp.f_ext,
                                  inp.in_contact, inp.bias, kin=inp.kin, f_ext_limits=inp.f_ext_limits)
+        relaxed = None
         if self.hierarchy.strict:  # paper 002 eq. 2: one QP per level
             costs, G, h = self.build_levels(ctx)
             t = torch.as_tensor
@@ -739,7 +813,9 @@ class A3CQPController:
         else:
             P, c, G, h = (torch.as_tensor(a) for a in self.build_qp(ctx))
             x, qp_status, iterations = self._solve(P, c, G, h)
-        out = self._apply(inp, ctx, x, qp_status, iterations)
+            x, relaxed = self._relax_failed(P, c, G, h, x, qp_status.cpu().numpy() == 0,
+                                            torch.as_tensor(inp.valid).cpu().numpy())
+        out = self._apply(inp, ctx, x, qp_status, iterations, relaxed)
         return out if split is None else self._hold(out, split[1], inp.bias, refs)
 
     def _active_rows(self, active: torch.Tensor | np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
@@ -756,7 +832,7 @@ class A3CQPController:
         """`out` with the robots `idle` given `step`'s inactive output (τ = h + g clipped, q*, q̇* from `refs`)."""
         fields = {}
         for name in ("tau", "qdd", "wrench", "qdd_pd", "pose_error", "f_adm", "f_ctc", "status", "fallback",
-                     "saturated", "iterations"):
+                     "saturated", "iterations", "relaxed"):
             v = getattr(out, name).clone()
             v[idle] = 0
             fields[name] = v
@@ -854,14 +930,18 @@ class A3CQPController:
             f_ext=keep(inp.f_ext, 0.0), pos_d=keep(inp.pos_d, 0.0), rot_d=keep(inp.rot_d, eye7[:3, :3]), kin=None)
 
     def _apply(self, inp: _StepInputs, ctx: ControlContext, x: torch.Tensor, qp_status: torch.Tensor,
-               iterations: torch.Tensor) -> ControlOutput:
-        """Stage 4: computed torque (eq. 4-7) where the QP succeeded, the safe brake elsewhere, then the clip."""
+               iterations: torch.Tensor, relaxed: np.ndarray | None = None) -> ControlOutput:
+        """Stage 4: computed torque (eq. 4-7) where the QP (or the least-violation QP, `relaxed`) succeeded, the safe
+        brake elsewhere, then the clip."""
         xp = inp.xp
+        solved = qp_status.cpu().numpy() == 0
+        if relaxed is not None:
+            solved = solved | relaxed
         if xp is np:
             x = _np(x)
-            ok = (_np(qp_status) == 0) & inp.valid & np.isfinite(x).all(axis=1)
+            ok = solved & inp.valid & np.isfinite(x).all(axis=1)
         else:
-            ok = (qp_status == 0) & inp.valid & torch.isfinite(x).all(-1)
+            ok = torch.as_tensor(solved, device=x.device) & inp.valid & torch.isfinite(x).all(-1)
         cfg, dt = self.config, self.dt
         q_des, qd_des = const(self.q_des, inp.q), const(self.qd_des, inp.q)
         tau, qdd, f, qdd_pd, q_des, qd_des = _torque_law(x, inp.q, inp.qd, inp.mass, inp.bias, ctx.kin.jac,
@@ -889,8 +969,10 @@ class A3CQPController:
         tau, qdd, f, qdd_pd, self.q_des, self.qd_des, saturated, pose_err, f_adm, f_ctc, ok = out
         status = qp_status if inp.all_valid else torch.where(
             torch.as_tensor(inp.valid), qp_status, torch.full_like(qp_status, INVALID_INPUT))
+        relaxed = torch.zeros(self.n, dtype=torch.bool) if relaxed is None else torch.from_numpy(relaxed)
         return ControlOutput(tau=tau, qdd=qdd, wrench=f, qdd_pd=qdd_pd, pose_error=pose_err, f_adm=f_adm,
-                             f_ctc=f_ctc, status=status, fallback=~ok, saturated=saturated, iterations=iterations)
+                             f_ctc=f_ctc, status=status, fallback=~ok, saturated=saturated, iterations=iterations,
+                             relaxed=relaxed.to(ok.device))
 
     def assemble_native(self, q: np.ndarray, qd: np.ndarray, mass: np.ndarray, bias: np.ndarray,
                         weights: np.ndarray, f_d: np.ndarray, pos_d: np.ndarray, rot_d: np.ndarray,
@@ -929,8 +1011,14 @@ class A3CQPController:
         asm, x, qp_status, iterations = self._native_qp(inp, rows) if sub else self._native_qp(inp)
         xn = _np(x)
         ok = (_np(qp_status) == 0) & np.isfinite(xn).all(axis=1)
+        relaxed = np.zeros(len(ok), dtype=bool)
+        if not ok.all() and not self.hierarchy.strict:  # (a cascade's failure brakes: ControllerOptions.qp_failure)
+            t = torch.from_numpy
+            x, done = self._relax_failed(t(asm.P), t(asm.c), t(asm.G), t(asm.h), x, ok, np.ones(len(ok), dtype=bool))
+            if done is not None:
+                xn, relaxed, ok = _np(x), done, ok | done
         extra = inp.leak_extra if not sub or inp.leak_extra is None else inp.leak_extra[rows]
-        out = [*self._native.torque(xn, ok, asm, extra), asm.pose_error, asm.f_adm, asm.f_ctc, ok]
+        out = [*self._native.torque(xn, ok, asm, extra), asm.pose_error, asm.f_adm, asm.f_ctc, ok, relaxed]
         if rows is not None:  # the inactive robots: h + g, their q*, q̇* kept, no fallback, zeros elsewhere
             counts = [_np(qp_status), _np(iterations)]
             if sub:  # (spread: zeros in the idle rows already)
@@ -942,7 +1030,7 @@ class A3CQPController:
             out[0][idle] = np.clip(inp.bias[idle], -self._tau_max_np, self._tau_max_np)
             out[4][idle], out[5][idle], out[10][idle] = _np(self.q_des)[idle], _np(self.qd_des)[idle], True
             qp_status, iterations = (torch.from_numpy(a) for a in counts)
-        tau, qdd, f, qdd_pd, q_des, qd_des, saturated, pose_error, f_adm, f_ctc, ok = out
+        tau, qdd, f, qdd_pd, q_des, qd_des, saturated, pose_error, f_adm, f_ctc, ok, relaxed = out
         if not ok.all():
             self._report_fallback(ok, qp_status, np.ones(self.n, dtype=bool))
         self.q_des, self.qd_des = torch.from_numpy(q_des), torch.from_numpy(qd_des)
@@ -950,4 +1038,4 @@ class A3CQPController:
         t = torch.from_numpy
         return ControlOutput(tau=t(tau), qdd=t(qdd), wrench=t(f), qdd_pd=t(qdd_pd), pose_error=t(pose_error),
                              f_adm=t(f_adm), f_ctc=t(f_ctc), status=qp_status, fallback=t(~ok),
-                             saturated=t(saturated), iterations=iterations)
+                             saturated=t(saturated), iterations=iterations, relaxed=t(relaxed))

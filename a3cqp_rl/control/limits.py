@@ -287,6 +287,18 @@ class JointLimitsViability(Limit):
             out = ctx.cache[key] = ctx.xp.minimum(ctx.xp.maximum(-self.brake_gain * ctx.qd, lb), ub)
         return out
 
+    @property
+    def row_count(self) -> int:
+        """Rows of `rows`: ± the motion part, and ± the total where `target` is "total"."""
+        return 4 * N_QDD if self.target == "total" else 2 * N_QDD
+
+    @property
+    def soft_rows(self) -> slice:
+        """The rows of `rows` a least-violation QP may relax: the ones that bound the acceleration the arm will have
+        (the total, with f_ext where counted; the motion part where `target` is "qdd"). The motion rows of the
+        "total" target only keep f from faking IK success, and the brake meets them and every other row."""
+        return slice(2 * N_QDD, 4 * N_QDD) if self.target == "total" else slice(0, 2 * N_QDD)
+
     def rows(self, ctx: ControlContext) -> Inequality:
         lb, ub = self.bounds_for(ctx)
         B = ctx.batch
