@@ -628,6 +628,9 @@ class LimitStress:
     """1 kHz periods of one arm in which the QP failed and the controller braked."""
     worst_speed_ratio: float = math.nan
     """Largest |q̇|/q̇_max over every joint, arm and control period (the env's `joint_speed_ratio`)."""
+    relaxed: int = 0
+    """1 kHz periods of one arm in which the QP failed and its least-violation QP gave the torque
+    (`panda.qp_failure: least_violation`)."""
 
 
 def limit_stress(num_envs: int, steps: int, seed: int, config: ExperimentConfig | None = None,
@@ -665,7 +668,8 @@ def limit_stress(num_envs: int, steps: int, seed: int, config: ExperimentConfig 
             record(np.flatnonzero(done.numpy()))
             td = env.reset(td.empty().set("_reset", done.reshape(num_envs, 1)))
     record(np.arange(num_envs))
-    return LimitStress(worst, joint + 1, arm, tau, int(env.diverged.sum()), env.ctrl.fallback_count, speed)
+    return LimitStress(worst, joint + 1, arm, tau, int(env.diverged.sum()), env.ctrl.fallback_count, speed,
+                       env.ctrl.relaxed_count)
 
 
 def load_fixed_controller(path: str | Path) -> FixedControllerConfig:

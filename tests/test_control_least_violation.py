@@ -79,13 +79,19 @@ def test_a_failed_qp_gets_the_least_violation_step_instead_of_the_brake(backend:
     assert lv.wrench[1:, 2].max() < -19.9 and lv.wrench[1:, 0].max() < -10.0
     tau_max = torch.as_tensor(PANDA_LIMITS.tau_max, dtype=F64)
     assert (lv.tau.abs() <= tau_max + 1e-9).all() and torch.isfinite(lv.tau).all()
+    # the references forget the relaxed step (q* = q, q̇* = q̇, as under the brake) and keep the solved arm's
+    s, _ = pulled_arms()
+    assert torch.equal(ctrl.q_des[1:], s.q[1:]) and torch.equal(ctrl.qd_des[1:], s.qd[1:])
+    assert not torch.equal(ctrl.qd_des[0], s.qd[0])
 
 
 def test_both_routes_give_the_same_least_violation_step() -> None:
-    (_, py), (_, nat) = step("python", "least_violation"), step("native", "least_violation")
+    (c_py, py), (c_nat, nat) = step("python", "least_violation"), step("native", "least_violation")
     assert py.relaxed.tolist() == nat.relaxed.tolist() == [False, True, True]
     for name in ("tau", "qdd", "wrench"):
         torch.testing.assert_close(getattr(py, name), getattr(nat, name), rtol=0, atol=1e-6, msg=name)
+    for name in ("q_des", "qd_des"):
+        torch.testing.assert_close(getattr(c_py, name), getattr(c_nat, name), rtol=0, atol=1e-9, msg=name)
 
 
 def test_an_unknown_qp_failure_mode_is_refused() -> None:

@@ -706,6 +706,17 @@ class A3CQPController:
         self.relaxed_count += int(ok.sum())
         return x, relaxed
 
+    @staticmethod
+    def _forget_relaxed(q_des: np.ndarray, qd_des: np.ndarray, relaxed: np.ndarray, q: np.ndarray,
+                        qd: np.ndarray) -> None:
+        """q*, q̇* [B, 7] set in place to the measured q, q̇ where the step was relaxed, as the brake sets them.
+
+        The relaxed q̈* gave the torque of this period only: integrated into q*, q̇* (eq. 6-7), an acceleration the
+        joint rows did not bound would drive the arm after it through the PD in the next periods. On the peg it did:
+        with the references kept, IK + FC's arms swung up to 1 rad in their null space onto a joint limit while the
+        operator pulled, and the QP stayed infeasible for seconds (docs/panda.md, "A least-violation step ...")."""
+        q_des[relaxed], qd_des[relaxed] = q[relaxed], qd[relaxed]
+
     def least_violation(self, P: torch.Tensor, c: torch.Tensor, G: torch.Tensor, h: torch.Tensor
                         ) -> tuple[torch.Tensor, np.ndarray]:
         """The QPs (P, c, G, h) of `build_qp` with the joint-limit rows soft: (x [B, 13], solved bool [B]).
@@ -955,6 +966,9 @@ class A3CQPController:
             qdd, f, qdd_pd = xp.where(o1, qdd, qdd_fb), xp.where(o1, f, 0.0), xp.where(o1, qdd_pd, 0.0)
             q_des, qd_des = xp.where(o1, q_des, inp.q), xp.where(o1, qd_des, inp.qd)
             self._report_fallback(ok, qp_status, inp.valid)
+        if relaxed is not None:  # the references forget a relaxed step (`_forget_relaxed`)
+            r1 = torch.as_tensor(relaxed, device=inp.q.device)[:, None] if xp is torch else relaxed[:, None]
+            q_des, qd_des = xp.where(r1, inp.q, q_des), xp.where(r1, inp.qd, qd_des)
         leak = dt * self.options.desired_state_leak
         if self.options.leak_axes == "per_axis":
             q_des, qd_des = _relax_per_axis(q_des, qd_des, inp.q, inp.qd, inp.weights, ctx.f_d_local, ctx.kin.jac,
@@ -1019,6 +1033,9 @@ class A3CQPController:
                 xn, relaxed, ok = _np(x), done, ok | done
         extra = inp.leak_extra if not sub or inp.leak_extra is None else inp.leak_extra[rows]
         out = [*self._native.torque(xn, ok, asm, extra), asm.pose_error, asm.f_adm, asm.f_ctc, ok, relaxed]
+        if relaxed.any():
+            q, qd = (inp.q, inp.qd) if not sub else (inp.q[rows], inp.qd[rows])
+            self._forget_relaxed(out[4], out[5], relaxed, q, qd)
         if rows is not None:  # the inactive robots: h + g, their q*, q̇* kept, no fallback, zeros elsewhere
             counts = [_np(qp_status), _np(iterations)]
             if sub:  # (spread: zeros in the idle rows already)
