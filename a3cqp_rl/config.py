@@ -1033,8 +1033,7 @@ class PandaEnvConfig:
     """What an arm whose QP fails gets (ControllerOptions.qp_failure): "brake" (default) the fallback brake, with no
     wrench; "least_violation" the same QP with the joint-limit rows of its actual acceleration soft, so that its
     joints give way as little as the torque limits force them to and its tasks go on (docs/panda.md, "A
-    least-violation step for a failed QP": on the peg the operator pulled more of the baselines' pegs out, but a
-    joint ran 1.2 mrad past its limit and `make peg` took ~45 % longer)."""
+    least-violation step for a failed QP": on the peg its numbers match the brake's, and `make peg` runs longer)."""
     ik_bound_tool_axis: float | None = None
     """How far [m] the reference that the IK task of a policy-driven arm pulls toward may be from the tool along the
     tool axis (local z); None: the scene's reference as it is. On the peg the procedure's reference goes on down at

@@ -132,9 +132,9 @@ class ControllerOptions:
     rows give way as little as they can, and the tasks go on in what is left; `ControlOutput.relaxed` says so, and
     the brake follows only where that QP fails too. Those rows are the ones that conflict: with the measured f_ext
     counted in them (`joint_limits_include_f_ext`, `step(f_ext_limits=)`) an operator's pull can ask for more torque
-    than the limits give. On the peg it let the operator pull more of the baselines' pegs out, but braked less of a
-    pull and ran slower (docs/panda.md, "A least-violation step for a failed QP"). Strict hierarchies
-    (`set_levels`) always brake."""
+    than the limits give. q*, q̇* forget a relaxed step as they forget a braked one (`_forget_relaxed`). On the peg
+    its numbers match the brake's, each failed period costing a Python period (docs/panda.md, "A least-violation
+    step for a failed QP"). Strict hierarchies (`set_levels`) always brake."""
     qp_max_iter: int = 50
     """Interior-point iteration budget of the QP solver."""
     qp_hand_on: bool = False
