@@ -108,22 +108,47 @@ def test_scripted_force_control_inserts_the_peg() -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("observe_pull", [True, False])
 def test_the_operator_pulls_out_a_peg_the_bore_holds_once_a_pull_reads_as_no_wall(observe_pull: bool) -> None:
-    """Trial 21 of seed 0 (the learned policy, ~20 s each): the bore's friction holds the inserted peg against the
+    """Trial 17 of seed 0 (the learned policy, one arm): the bore's friction holds the inserted peg against the
     operator's pull. Read as |f_env| of a wall pressed hard, the pull makes the point-mass policy raise f_d and the peg
     stays in under the hand's full 15 N; read as no wall (`observe_f_env_pull: false`, the peg config) the operator
-    pulls it out. The insertion is the same either way (6.57 s on the machine of 2026-11-30)."""
+    pulls it out. The insertion is the same either way (6.12 s on the machine of 2026-12-02). (Trial 21, this test's
+    trial before the peg config's `f_ope_max_rot` of 3 N m, now comes out either way.)"""
     from a3cqp_rl.config import load_config
     from envs.panda_eval import _run, trial_seeds
 
     root = Path(__file__).resolve().parents[1]
     cfg = load_config(root / "configs/panda_peg_in_hole.yaml")
     cfg.panda.observe_f_env_pull = observe_pull
-    out = _run("peg_in_hole", str(root / cfg.panda.policy), [trial_seeds(0, 26)[21]], cfg, ("learned",), (), 1, False,
+    out = _run("peg_in_hole", str(root / cfg.panda.policy), [trial_seeds(0, 26)[17]], cfg, ("learned",), (), 1, False,
                None, True)
     m = out["metrics"]["learned"]
-    assert bool(m["success"].ravel()[0]) and m["insertion_time"].ravel()[0] < 8.21  # (6.57 s here either way)
+    assert bool(m["success"].ravel()[0]) and m["insertion_time"].ravel()[0] < 8.21
     assert bool(m["extracted"].ravel()[0]) != observe_pull
     assert (m["disengage_force"].ravel()[0] > 14.0) == observe_pull  # the hand at its bound: the peg held
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("f_ope_max_rot", [1.5, None])
+def test_the_operator_pulls_out_a_peg_that_wedged_once_the_handles_moment_reads_at_its_lever(
+        f_ope_max_rot: float | None) -> None:
+    """Trial 6 of seed 0 (the learned policy, one arm): the hand pulls at the handle, 0.19 m from the tool tip, with
+    a moment about the tip. Normalised by 1.5 N m (a 0.1 m lever) that moment reads as the operator's full push, the
+    rotational agents yield to it, the peg tilts and wedges, and it stays in under the hand's full 15 N; with the peg
+    config's 3 N m (a 0.2 m lever) they hold the peg's axis and the operator pulls it out. The insertion is the same."""
+    from a3cqp_rl.config import load_config
+    from envs.panda_eval import _run, trial_seeds
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = load_config(root / "configs/panda_peg_in_hole.yaml")
+    assert cfg.panda.f_ope_max_rot == 3.0
+    if f_ope_max_rot is not None:
+        cfg.panda.f_ope_max_rot = f_ope_max_rot
+    out = _run("peg_in_hole", str(root / cfg.panda.policy), [trial_seeds(0, 26)[6]], cfg, ("learned",), (), 1, False,
+               None, True)
+    m = out["metrics"]["learned"]
+    assert bool(m["success"].ravel()[0]) and m["insertion_time"].ravel()[0] < 8.21
+    assert bool(m["extracted"].ravel()[0]) == (f_ope_max_rot is None)
+    assert (m["disengage_force"].ravel()[0] > 14.0) == (f_ope_max_rot is not None)  # the hand at its bound: held
 
 
 def test_main_reports_bad_input_in_one_line(tmp_path, capsys) -> None:  # noqa: ANN001
