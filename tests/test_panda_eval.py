@@ -134,7 +134,8 @@ def test_the_operator_pulls_out_a_peg_that_wedged_once_the_handles_moment_reads_
     """Trial 6 of seed 0 (the learned policy, one arm): the hand pulls at the handle, 0.19 m from the tool tip, with
     a moment about the tip. Normalised by 1.5 N m (a 0.1 m lever) that moment reads as the operator's full push, the
     rotational agents yield to it, the peg tilts and wedges, and it stays in under the hand's full 15 N; with the peg
-    config's 3 N m (a 0.2 m lever) they hold the peg's axis and the operator pulls it out. The insertion is the same."""
+    config's 3 N m (a 0.2 m lever) they give way to the bore more than to the hand and the operator pulls it out. The
+    insertion is the same."""
     from a3cqp_rl.config import load_config
     from envs.panda_eval import _run, trial_seeds
 
