@@ -105,6 +105,21 @@ def test_scripted_force_control_inserts_the_peg() -> None:
     assert s["successes"] >= 3 and 0.0 < s["insertion_time_mean_s"] < 15.0
 
 
+def _learned_peg_trial(trial: int, **panda: object) -> dict:
+    """The metrics of trial `trial` of seed 0, the learned policy alone, under the peg config with `panda` set."""
+    from a3cqp_rl.config import load_config
+    from envs.panda_eval import _run, trial_seeds
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = load_config(root / "configs/panda_peg_in_hole.yaml")
+    assert cfg.panda.f_ope_max_rot == 3.0 and not cfg.panda.observe_f_env_pull  # the config the tests describe
+    for key, value in panda.items():
+        setattr(cfg.panda, key, value)
+    out = _run("peg_in_hole", str(root / cfg.panda.policy), [trial_seeds(0, 26)[trial]], cfg, ("learned",), (), 1,
+               False, None, True)
+    return out["metrics"]["learned"]
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("observe_pull", [True, False])
 def test_the_operator_pulls_out_a_peg_the_bore_holds_once_a_pull_reads_as_no_wall(observe_pull: bool) -> None:
@@ -113,15 +128,7 @@ def test_the_operator_pulls_out_a_peg_the_bore_holds_once_a_pull_reads_as_no_wal
     stays in under the hand's full 15 N; read as no wall (`observe_f_env_pull: false`, the peg config) the operator
     pulls it out. The insertion is the same either way (6.12 s on the machine of 2026-12-02). (Trial 21, this test's
     trial before the peg config's `f_ope_max_rot` of 3 N m, now comes out either way.)"""
-    from a3cqp_rl.config import load_config
-    from envs.panda_eval import _run, trial_seeds
-
-    root = Path(__file__).resolve().parents[1]
-    cfg = load_config(root / "configs/panda_peg_in_hole.yaml")
-    cfg.panda.observe_f_env_pull = observe_pull
-    out = _run("peg_in_hole", str(root / cfg.panda.policy), [trial_seeds(0, 26)[17]], cfg, ("learned",), (), 1, False,
-               None, True)
-    m = out["metrics"]["learned"]
+    m = _learned_peg_trial(17, observe_f_env_pull=observe_pull)
     assert bool(m["success"].ravel()[0]) and m["insertion_time"].ravel()[0] < 8.21
     assert bool(m["extracted"].ravel()[0]) != observe_pull
     assert (m["disengage_force"].ravel()[0] > 14.0) == observe_pull  # the hand at its bound: the peg held
@@ -136,17 +143,7 @@ def test_the_operator_pulls_out_a_peg_that_wedged_once_the_handles_moment_reads_
     rotational agents yield to it, the peg tilts and wedges, and it stays in under the hand's full 15 N; with the peg
     config's 3 N m (a 0.2 m lever) they give way to the bore more than to the hand and the operator pulls it out. The
     insertion is the same."""
-    from a3cqp_rl.config import load_config
-    from envs.panda_eval import _run, trial_seeds
-
-    root = Path(__file__).resolve().parents[1]
-    cfg = load_config(root / "configs/panda_peg_in_hole.yaml")
-    assert cfg.panda.f_ope_max_rot == 3.0
-    if f_ope_max_rot is not None:
-        cfg.panda.f_ope_max_rot = f_ope_max_rot
-    out = _run("peg_in_hole", str(root / cfg.panda.policy), [trial_seeds(0, 26)[6]], cfg, ("learned",), (), 1, False,
-               None, True)
-    m = out["metrics"]["learned"]
+    m = _learned_peg_trial(6, **({} if f_ope_max_rot is None else {"f_ope_max_rot": f_ope_max_rot}))
     assert bool(m["success"].ravel()[0]) and m["insertion_time"].ravel()[0] < 8.21
     assert bool(m["extracted"].ravel()[0]) == (f_ope_max_rot is None)
     assert (m["disengage_force"].ravel()[0] > 14.0) == (f_ope_max_rot is not None)  # the hand at its bound: held
