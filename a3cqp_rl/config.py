@@ -977,7 +977,9 @@ class PandaEnvConfig:
     f_env_max_rot: float = 3.0
     """f̄_env for the rotational axes [N m]."""
     f_ope_max_rot: float = 1.5
-    """f̄_ope for the rotational axes [N m]."""
+    """f̄_ope for the rotational axes [N m]. The peg config sets 3.0: the handle is 0.19 m from the tool tip, and a
+    hand pulling a peg out there read as a full push on 1.5 tilted the peg into a wedge (docs/panda.md, "The
+    operator's moment at the handle"); guidance and polishing, where the hand turns a free tool, keep 1.5."""
     fd_axes: tuple[str, ...] = ("x", "y", "z")
     """Local translational axes whose agent sets a desired force f_d (eq. 29d); the others, and every rotational
     axis, keep f_d = 0 (desired torques are zero)."""
