@@ -765,6 +765,12 @@ class OperatorConfig:
                 err.add(name, f"must be a finite number >= 0, got {v}")
 
 
+PEG_DIAMETER = 0.020
+"""Diameter of the peg tool [m] (a3cqp_rl/robot/assets/tool_peg.xml): a hole must be wider to take it."""
+HOLE_DIAMETER_MAX = 0.1
+"""Widest bore the peg block holds [m]: twice its ring's outer apothem (a3cqp_rl.robot.scenes.HoleGeometry)."""
+
+
 @dataclass
 class PegInHoleConfig:
     """Peg-in-hole scene and procedure (paper 000, section VI-B1, Table VI, Fig. 7); lengths in m, times in s.
@@ -849,6 +855,9 @@ class PegInHoleConfig:
                      "approach_tolerance", "descent_time", "align_time", "contact_force", "success_depth",
                      "time_limit", "cycles", "return_time", "disengage_lift", "insert_speed", "insert_depth"):
             err.positive(self, name)
+        if not PEG_DIAMETER < self.hole_diameter < HOLE_DIAMETER_MAX:
+            err.add("hole_diameter", f"must be between the peg's diameter ({PEG_DIAMETER} m) and the block's ring "
+                                     f"({HOLE_DIAMETER_MAX} m), exclusive, got {self.hole_diameter}")
         if self.insert_depth >= self.hole_depth:
             err.add("insert_depth", f"must be < hole_depth ({self.hole_depth}), got {self.insert_depth}")
         if self.insert_depth <= self.success_depth:  # a reference that stops short leaves IK nothing to push with

@@ -105,6 +105,9 @@ def test_roundtrip_and_overrides(tmp_path):
         ("point_mass: {episode_steps: 3}", "point_mass.episode_steps"),
         ("panda: {peg_in_hole: {insert_depth: 0.02}}", "panda.peg_in_hole.insert_depth"),
         ("panda: {peg_in_hole: {insert_depth: 0.04}}", "panda.peg_in_hole.insert_depth"),
+        ("panda: {peg_in_hole: {hole_diameter: 0.019}}", "panda.peg_in_hole.hole_diameter"),
+        ("panda: {peg_in_hole: {hole_diameter: 0.020}}", "panda.peg_in_hole.hole_diameter"),
+        ("panda: {peg_in_hole: {hole_diameter: 0.2}}", "panda.peg_in_hole.hole_diameter"),
     ],
 )
 def test_bad_values_name_file_and_key(tmp_path, text, key):

@@ -4,11 +4,13 @@ the collision mesh of the peg avoids a MuJoCo 4.0 EPA problem; scene MJCF compos
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import mujoco
 import numpy as np
 import pytest
 
+import a3cqp_rl.robot
 from a3cqp_rl.config import load_config
 from a3cqp_rl.exceptions import ConfigError
 from a3cqp_rl.robot import PandaSim, compose_mjcf
@@ -130,6 +132,25 @@ def test_hole_geometry_validation() -> None:
         HoleGeometry(segments=4)
     with pytest.raises(ValueError, match="ring_radius"):
         HoleGeometry(bore_diameter=0.2)
+
+
+def test_the_configs_hole_bounds_are_the_pegs_and_the_blocks() -> None:
+    """PegInHoleConfig's check of hole_diameter reads the peg's diameter from its MJCF and the block's ring."""
+    import xml.etree.ElementTree as ET
+
+    from a3cqp_rl.config import HOLE_DIAMETER_MAX, PEG_DIAMETER
+
+    assets = Path(a3cqp_rl.robot.__file__).parent / "assets"
+
+    def xml(name: str) -> ET.Element:  # an MJCF fragment: several top-level elements
+        return ET.fromstring(f"<fragment>{(assets / name).read_text()}</fragment>")
+
+    (peg,) = [g for g in xml("tool_peg.xml").iter("geom") if g.get("name") == "peg"]
+    assert 2 * float(peg.get("size")) == pytest.approx(PEG_DIAMETER, abs=1e-12)
+    (hull,) = xml("tool_peg_mesh.xml").iter("mesh")  # the colliding prism of the Panda scenes
+    xy = np.array(hull.get("vertex").split(), dtype=float).reshape(-1, 3)[:, :2]
+    assert 2 * np.hypot(*xy.T).max() == pytest.approx(PEG_DIAMETER, abs=1e-6)
+    assert HOLE_DIAMETER_MAX == pytest.approx(2 * HoleGeometry().ring_radius)
 
 
 @pytest.mark.parametrize("needs_extraction", [True, False])
