@@ -75,7 +75,7 @@ def save(path: Path, key: dict, res) -> None:  # noqa: ANN001
 
 def load(path: Path, key: dict, seed: int):  # noqa: ANN201
     """The EvalResult kept in `path` if it was written for `key`; None if absent, unreadable or for another key."""
-    from envs.panda_eval import EvalResult
+    from envs.panda_report import EvalResult
 
     if not path.is_file():
         return None

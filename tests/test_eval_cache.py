@@ -94,7 +94,7 @@ def test_main_resumes_a_sweep_with_cache(tmp_path, capsys, monkeypatch) -> None:
 
 
 def test_a_result_that_needs_pickle_is_not_kept(tmp_path, caplog) -> None:  # noqa: ANN001
-    from envs.panda_eval import EvalResult
+    from envs.panda_report import EvalResult
 
     ragged = np.empty(2, dtype=object)
     ragged[:] = [np.zeros(1), np.zeros(2)]

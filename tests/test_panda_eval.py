@@ -15,10 +15,10 @@ from a3cqp_rl.checkpoint import save_atomic
 from a3cqp_rl.config import config_from_dict, load_config
 from algorithms.networks import ParamLayout
 from algorithms.policy import fingerprint, load_policy
-from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, PAPER_TABLE_VI, EvalResult, capped_time, evaluate,
-                             format_policy_ranking,
-                             evaluate_seeds, format_paired, format_table, format_targets, free_motion_rates,
-                             free_motion_warning, guided_rates, guided_warning, main, paired, targets, to_json)
+from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, evaluate, evaluate_seeds, free_motion_rates,
+                             free_motion_warning, guided_rates, guided_warning, main)
+from envs.panda_report import (PAPER_TABLE_VI, EvalResult, capped_time, format_paired, format_policy_ranking,
+                               format_table, format_targets, paired, targets, to_json)
 
 FAST = {"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "align_time": 2.0, "time_limit": 2.0,
                                   "operator_disengage": False, "return_time": 0.5}}}
@@ -202,7 +202,7 @@ def test_results_are_written_before_the_report_is_printed(tmp_path, monkeypatch)
 
 
 def test_the_tables_name_units_and_give_no_spread_for_one_sample() -> None:
-    from envs.panda_eval import EvalResult, format_table
+    from envs.panda_report import EvalResult, format_table
 
     nan = float("nan")
     guided = {"guide_force": np.array([6.3, 6.5]), "goal_error": np.array([[0.012, 0.014], [0.013, nan]]),

@@ -20,7 +20,8 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))  # this checkout's a3cqp_rl/envs/algorithms
 
 from a3cqp_rl.config import load_config, parse_overrides
-from envs.panda_eval import _pm, evaluate, paired  # the table cell of a3cqp evaluate
+from envs.panda_eval import evaluate
+from envs.panda_report import _pm, paired  # the table cell of a3cqp evaluate
 
 VARIANTS = {
     "moved": {"hole_center": [0.55, 0.15]},  # 0.18 m from the configured hole: another arm posture
