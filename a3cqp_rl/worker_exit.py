@@ -11,6 +11,11 @@ every result is sent; `multiprocessing.process.BaseProcess._bootstrap`), and Pyt
 later) run before it, those registered before it are skipped. A pool's `initializer` installs it before the
 pool's own set-up imports anything (torch registers six handlers on import). For pool workers only: the exit
 status is always 0 (a pool reads results and errors from its queues, not from exit codes).
+
+A worker also ends, with status 1, as soon as the process that owns its pool ends (`watch_owner`): killed (SIGTERM,
+SIGKILL, a `timeout`), the owner leaves its workers waiting on queues whose other end each worker holds itself, so
+they would wait forever, a busy one simulating on to the end of its job first (2026-12-02: `a3cqp evaluate` killed
+after 10 s left its two workers and the fork server behind, the workers asleep on a pipe for good).
 """
 
 from __future__ import annotations
@@ -18,9 +23,16 @@ from __future__ import annotations
 import atexit
 import importlib
 import os
+import select
 import sys
+import threading
+import time
 
-__all__ = ["install", "initializer"]
+__all__ = ["install", "initializer", "watch_owner"]
+
+OWNER_POLL_SECONDS = 1.0
+"""Where a process cannot be waited on through a pidfd (not Linux, or a kernel before 5.3): how often a worker looks
+whether its pool's owner is still there [s]."""
 
 
 def _exit_now() -> None:
@@ -40,9 +52,43 @@ def install() -> None:
     atexit.register(_exit_now)
 
 
-def initializer(target: str, *args: object) -> None:
-    """A process pool's initializer: `install`, then `target(*args)` ("module:function"), whose module is imported
-    only now, so that the exit handlers of what it imports (torch, ...) run before the worker ends."""
+def _owner_gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # there, but not ours to signal
+        return False
+    try:  # an owner that ended but was not yet reaped by its own parent is a zombie: gone too
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except (OSError, IndexError):
+        return False
+
+
+def _wait_for(pid: int) -> None:
+    try:
+        fd = os.pidfd_open(pid)  # readable once the process has ended, reaped or not
+    except ProcessLookupError:
+        os._exit(1)
+    except (AttributeError, OSError):  # no pidfd here: poll
+        while not _owner_gone(pid):
+            time.sleep(OWNER_POLL_SECONDS)
+        os._exit(1)
+    select.select([fd], [], [])
+    os._exit(1)
+
+
+def watch_owner(pid: int) -> None:
+    """In a worker process: end it at once (status 1, nothing left to send) when the process `pid` ends."""
+    threading.Thread(target=_wait_for, args=(pid,), name="watch-owner", daemon=True).start()
+
+
+def initializer(owner: int, target: str, *args: object) -> None:
+    """A process pool's initializer: `install`, `watch_owner(owner)` (the pid of the process that made the pool),
+    then `target(*args)` ("module:function"), whose module is imported only now, so that the exit handlers of what it
+    imports (torch, ...) run before the worker ends."""
     install()
+    watch_owner(owner)
     module, name = target.split(":")
     getattr(importlib.import_module(module), name)(*args)

@@ -90,14 +90,15 @@ def _end_server() -> None:
 def pool(workers: int, ctx: BaseContext, target: str, *args: object) -> ProcessPoolExecutor:
     """A process pool of `workers` in `ctx` (`context`) whose workers get this process's environment and run
     `target(*args)` ("module:function") at set-up; spawned ones end without their interpreter's teardown, which the
-    pool's shutdown would wait for (`worker_exit`)."""
+    pool's shutdown would wait for, and every one ends with this process, killed or not (`worker_exit`)."""
     return ProcessPoolExecutor(workers, mp_context=ctx, initializer=_initializer,
-                               initargs=(dict(os.environ), target, *args))
+                               initargs=(dict(os.environ), os.getpid(), target, *args))
 
 
-def _initializer(environ: dict[str, str], target: str, *args: object) -> None:
-    """A pool worker's set-up: the parent's environment, then `worker_exit.initializer(target, *args)`."""
+def _initializer(environ: dict[str, str], owner: int, target: str, *args: object) -> None:
+    """A pool worker's set-up: the parent's environment, then `worker_exit.initializer(owner, target, *args)` (a
+    forked worker's parent is the fork server: `owner` is the process that made the pool)."""
     if dict(os.environ) != environ:
         os.environ.clear()
         os.environ.update(environ)
-    worker_exit.initializer(target, *args)
+    worker_exit.initializer(owner, target, *args)

@@ -67,7 +67,7 @@ class ProcessPool:
         self.workers = workers
         # (the workers end without their interpreter's teardown, ~1 s with torch and torchrl: worker_exit)
         self._ex = ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=worker_exit.initializer,
-                                       initargs=("algorithms.tuning.pool:_init_worker", tuple(preload)))
+                                       initargs=(os.getpid(), "algorithms.tuning.pool:_init_worker", tuple(preload)))
 
     def imap(self, fn: Callable, chunks: Sequence, args: tuple = ()) -> Iterator[Result]:
         """Yield (index, fn(chunk, *args), seconds) as chunks finish."""
