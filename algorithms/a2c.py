@@ -41,7 +41,7 @@ from torch import Tensor
 from a3cqp_rl.config import A2CConfig, ExperimentConfig, project_path
 from a3cqp_rl.exceptions import TrainingDiverged
 from a3cqp_rl.timing import Timer, process_age
-from algorithms.a2c_run import (Checkpoints, ParameterAverage, RegionChecks, SigintCheckpoint, TransferSelection,
+from algorithms.a2c_run import (Checkpoints, ParameterAverage, RegionChecks, StopCheckpoint, TransferSelection,
                                open_run_folder)
 from algorithms.networks import LOG_2PI, ParamLayout, backward, forward, policy_forward
 from algorithms.policy import init_from_policy, load_actor, load_policy
@@ -674,7 +674,7 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     timer, compile_s, startup_s, last = Timer(), 0.0, float("nan"), {}
     t_start = time.perf_counter()
     u = start
-    with SigintCheckpoint(enabled=folder is not None) as sigint:
+    with StopCheckpoint(enabled=folder is not None) as stop:
         while u < num_updates:
             t0 = time.perf_counter()
             runner.set_progress(u / num_updates)  # the learning-rate schedule's clock
@@ -704,10 +704,10 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
                     callback(done * per_update, last)
                 bar.set_postfix(ep_reward=f"{last['episode_reward']:.2f}", refresh=False)
             bar.update(per_update * k)
-            if folder and (done % hp.checkpoint_every == 0 or done == num_updates or sigint.requested):
+            if folder and (done % hp.checkpoint_every == 0 or done == num_updates or stop.requested is not None):
                 with timer("checkpoint"):
                     ckpt.save(done)
-            sigint.stop_if_requested(done * per_update, folder)
+            stop.stop_if_requested(done * per_update, folder)
     bar.close()
     log.close()
     if isinstance(runner, TorchRLRollout):

@@ -20,7 +20,7 @@ from a3cqp_rl.transfer import transfer_margin
 from algorithms.networks import ParamLayout, policy_mean
 from algorithms.policy import A2CPolicy, layout_key
 
-__all__ = ["open_run_folder", "Checkpoints", "ParameterAverage", "TransferSelection", "RegionChecks", "SigintCheckpoint",
+__all__ = ["open_run_folder", "Checkpoints", "ParameterAverage", "TransferSelection", "RegionChecks", "StopCheckpoint",
            "TrainingInterrupted", "CKPT_KEYS", "RESUMABLE_CHANGES"]
 
 CKPT_KEYS = ("format", "update", "flat", "square_avg", "gen", "rollout", "config", "layout", "metric_sum", "metric_count")
@@ -290,37 +290,55 @@ class RegionChecks:
 
 
 class TrainingInterrupted(KeyboardInterrupt):
-    """Ctrl-C stopped training after a checkpoint was written."""
+    """Ctrl-C (SIGINT) or SIGTERM stopped training after a checkpoint was written; `signum` says which."""
+
+    def __init__(self, message: str, signum: int = signal.SIGINT) -> None:
+        super().__init__(message)
+        self.signum = int(signum)
 
 
-class SigintCheckpoint:
-    """While active, Ctrl-C (SIGINT) asks the loop to finish its update, write a checkpoint and stop; a second Ctrl-C
-    interrupts at once (the previous handler is back)."""
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""The signals that stop training at the next update with a checkpoint: Ctrl-C, and the SIGTERM of `kill`, `timeout`,
+a job scheduler's time limit or a container's stop (which follow it with SIGKILL after a grace period)."""
+
+
+class StopCheckpoint:
+    """While active, Ctrl-C (SIGINT) or SIGTERM asks the loop to finish its update, write a checkpoint and stop; a
+    second signal interrupts at once (the previous handlers are back)."""
 
     def __init__(self, enabled: bool) -> None:
-        """Install the handler on `__enter__` if `enabled` and in the main thread (signals go only there)."""
+        """Install the handlers on `__enter__` if `enabled` and in the main thread (signals go only there)."""
         self.enabled = enabled and threading.current_thread() is threading.main_thread()
-        self.requested = False
-        self._previous = None
+        self.requested: int | None = None
+        """The signal that asked to stop, None while none came."""
+        self._previous: dict[int, object] = {}
 
     def _handle(self, signum, frame) -> None:  # noqa: ANN001
-        self.requested = True
-        signal.signal(signal.SIGINT, self._previous)
+        self.requested = signum
+        self._restore()
 
-    def __enter__(self) -> SigintCheckpoint:
+    def _restore(self) -> None:
+        for sig, handler in self._previous.items():
+            if signal.getsignal(sig) == self._handle:
+                signal.signal(sig, handler)
+
+    def __enter__(self) -> StopCheckpoint:
         if self.enabled:
-            self._previous = signal.getsignal(signal.SIGINT)
-            if self._previous is None:  # set from C: the best we can restore is Python's default
-                self._previous = signal.default_int_handler
-            signal.signal(signal.SIGINT, self._handle)
+            for sig in STOP_SIGNALS:
+                previous = signal.getsignal(sig)
+                if previous is None:  # set from C: the best we can restore is Python's default
+                    previous = signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL
+                self._previous[sig] = previous
+                signal.signal(sig, self._handle)
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self.enabled and signal.getsignal(signal.SIGINT) == self._handle:
-            signal.signal(signal.SIGINT, self._previous)
+        if self.enabled:
+            self._restore()
 
     def stop_if_requested(self, step: int, folder: RunFolder | None) -> None:
-        """Raise TrainingInterrupted if Ctrl-C came (call after the checkpoint was written)."""
-        if self.requested:
+        """Raise TrainingInterrupted if a stop signal came (call after the checkpoint was written)."""
+        if self.requested is not None:
             where = f"; {folder.path / 'checkpoint.pt'} holds it, continue with --resume" if folder else ""
-            raise TrainingInterrupted(f"interrupted at step {step:,}{where}")
+            name = "" if self.requested == signal.SIGINT else f" by {signal.Signals(self.requested).name}"
+            raise TrainingInterrupted(f"interrupted{name} at step {step:,}{where}", self.requested)

@@ -5,7 +5,7 @@ sweep of seeds.
                 [--out runs/NAME] [--resume [--override] | --force] [--no-compile] [--no-plots] [--timings] [--debug]
 
 Writes under OUT (per seed OUT/seed_S when sweeping): config.yaml, metrics.csv, checkpoint.pt (atomic, every
-`a2c.checkpoint_every` updates and on Ctrl-C), policy.pt, and plots: loss_curves.png, and on the point mass
+`a2c.checkpoint_every` updates and on Ctrl-C or SIGTERM), policy.pt, and plots: loss_curves.png, and on the point mass
 policy_map.png and regions.png (the Fig. 5 regions checked over training). A folder holding a run is not started
 again: `--resume` continues it (no lost or repeated steps; a sweep resumes seed by seed), `--force` starts over,
 `--override` lets a resume change the config (recorded in OUT/overrides.log). One process writes a folder at a time.
@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         return _run(args)
     except KeyboardInterrupt as exc:
         print(f"\n{str(exc) or 'interrupted'}", file=sys.stderr)  # (config.yaml holds --steps: a plain --resume)
-        return 130
+        return 128 + getattr(exc, "signum", 2)  # 130 after Ctrl-C (SIGINT), 143 after SIGTERM
     except (A3CQPError, OSError, ValueError) as exc:
         if args.debug:
             raise

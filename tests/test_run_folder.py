@@ -95,19 +95,21 @@ def test_resume_cleans_temporary_files_of_a_killed_writer(tmp_path):
     assert not orphan.exists() and not list((tmp_path / "run").glob("*.tmp"))
 
 
-def test_ctrl_c_writes_a_checkpoint_and_the_resume_is_exact(tmp_path):
+@pytest.mark.parametrize("sig, said", [(signal.SIGINT, "interrupted"), (signal.SIGTERM, "interrupted by SIGTERM")])
+def test_ctrl_c_or_sigterm_writes_a_checkpoint_and_the_resume_is_exact(tmp_path, sig, said):
     cfg = config_from_dict(BASE)
     train(cfg, tmp_path / "full", total_steps=16 * 30)
-    before = signal.getsignal(signal.SIGINT)  # (SIG_IGN where the suite was started in the background)
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}  # (SIGINT: SIG_IGN in the background)
 
-    def ctrl_c(step, row):
+    def stop(step, row):
         if step == 16 * 15:  # between checkpoints (10, 20)
-            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), sig)
 
-    with pytest.raises(KeyboardInterrupt, match="interrupted at step 240.*--resume"):
-        train(cfg, tmp_path / "part", total_steps=16 * 30, callback=ctrl_c)
+    with pytest.raises(KeyboardInterrupt, match=f"^{said} at step 240.*--resume") as info:
+        train(cfg, tmp_path / "part", total_steps=16 * 30, callback=stop)
+    assert info.value.signum == sig
     assert torch.load(tmp_path / "part" / "checkpoint.pt", weights_only=True)["update"] == 15
-    assert signal.getsignal(signal.SIGINT) is before  # handler given back
+    assert {s: signal.getsignal(s) for s in before} == before  # handlers given back
     train(cfg, tmp_path / "part", total_steps=16 * 30, resume=True)
     assert torch.equal(_flat(tmp_path / "part"), _flat(tmp_path / "full"))
     assert _rows(tmp_path / "part") == _rows(tmp_path / "full")
@@ -184,3 +186,30 @@ def test_a_run_that_fails_before_writing_anything_leaves_no_folder(tmp_path, cap
     (fresh.path / "notes.txt").write_text("x")
     fresh.close(failed=True)  # one that holds something stays
     assert (tmp_path / "fresh" / "notes.txt").is_file()
+
+
+def test_a_sigterm_stops_the_cli_with_a_checkpoint_and_exit_code_143(tmp_path):
+    """`a3cqp train` as a job scheduler stops it: SIGTERM mid-run, a checkpoint, the resume hint, 128 + 15."""
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "a3cqp_rl.cli", "train", "--config", CONFIG, "--steps", "1000000000", "--out",
+           str(out), "--no-compile", "--quiet", "--no-plots", "--set", "a2c.log_every=2", "--set",
+           "a2c.checkpoint_every=1000000"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=Path(__file__).parents[1])
+    try:
+        deadline = time.monotonic() + 120
+        while not ((out / "metrics.csv").is_file() and len((out / "metrics.csv").read_text().splitlines()) > 2):
+            assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read() if proc.poll() else ""
+            time.sleep(0.1)
+        assert not (out / "checkpoint.pt").exists()  # none yet: checkpoint_every is far away
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 143, err
+    assert "interrupted by SIGTERM at step" in err and "continue with --resume" in err
+    assert torch.load(out / "checkpoint.pt", weights_only=True)["update"] > 0
