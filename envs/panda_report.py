@@ -170,6 +170,17 @@ def targets(res: EvalResult, primary: str = "learned") -> dict:
     return out
 
 
+def _paired_note(p: dict, primary: str, other: str) -> str:
+    """', primary − other on the same trials: mean ± standard error [s] over n pairs' (and whether that is level
+    within two standard errors: a seed's 26 pairs spread by ~1 s), or '' without a paired mean."""
+    d, se, n = p.get("time_difference_mean_s"), p.get("time_difference_se_s"), p.get("insertions_both", 0)
+    if d is None:
+        return ""
+    spread = "" if se is None else f" ± {se:.2f}"
+    level = ", level within two standard errors" if se is not None and abs(d) <= 2.0 * se else ""
+    return f", {primary} − {other} on the same trials {d:+.2f}{spread} s over {n} pair{'' if n == 1 else 's'}{level}"
+
+
 def format_targets(res: EvalResult, primary: str = "learned") -> str:
     """Text lines of `targets` (empty where it has nothing to say)."""
     t = targets(res, primary)
@@ -185,12 +196,13 @@ def format_targets(res: EvalResult, primary: str = "learned") -> str:
         lost = [f"{c} {100 * v['success_rate']:.0f} %" for c, v in b.items() if not v["success_met"]]
         # a baseline's mean is over its own insertions, which may be a few easy trials: say how many
         counts = {c: res.summary[c]["successes"] for c in b}
+        pairs = paired(res, primary)
         slower = [f"{c} {_fmt(v['insertion_time_mean_s'])} s over {counts[c]} insertion{'' if counts[c] == 1 else 's'}"
-                  for c, v in b.items() if not v["time_met"]]
+                  + _paired_note(pairs.get(c, {}), primary, c) for c, v in b.items() if not v["time_met"]]
         lines.append("  success rate at least every baseline's: " + yes[not lost]
                      + (f" ({', '.join(lost)})" if lost else ""))
         lines.append("  mean insertion time at most every baseline's: " + yes[not slower]
-                     + (f" ({', '.join(slower)}; the paired differences above say by how much)" if slower else ""))
+                     + (f" ({'; '.join(slower)})" if slower else ""))
     return "\n".join(lines)
 
 

@@ -463,12 +463,20 @@ def test_targets_say_which_of_table_vi_and_the_baselines_the_learned_policy_meet
     text = format_targets(res)
     assert "success rate >= 89 %: met (90 %)" in text and "mean insertion time <= 8.21 s: met (6.00 s)" in text
     assert "at least every baseline's: NOT met (ik_fc 100 %)" in text
-    assert "at most every baseline's: NOT met (ik_fc 5.50 s over 10 insertions;" in text
+    assert ("at most every baseline's: NOT met (ik_fc 5.50 s over 10 insertions, learned − ik_fc on the same trials "
+            "+0.50 ± 0.00 s over 9 pairs)") in text  # slower on every pair: not level
     assert to_json(res)["targets"] == t
     one_fast = EvalResult.from_metrics("peg_in_hole", {"learned": metrics["learned"],
                                                        "ik": _peg_metrics([True] + [False] * 9, [4.0] + [nan] * 9)},
                                        {}, 1.0, 10.0, (0,))
-    assert "NOT met (ik 4.00 s over 1 insertion;" in format_targets(one_fast)
+    assert "NOT met (ik 4.00 s over 1 insertion, learned − ik on the same trials +2.00 s over 1 pair)" in format_targets(
+        one_fast)
+    # slower in the mean by less than two standard errors of the paired difference: said, still not met
+    level = EvalResult.from_metrics("peg_in_hole", {"learned": _peg_metrics([True] * 4, [5.0, 7.0, 5.0, 7.2]),
+                                                    "ik_fc": _peg_metrics([True] * 4, [6.0, 6.0, 6.0, 6.0])},
+                                    {}, 1.0, 10.0, (0,))
+    assert not targets(level)["baselines"]["ik_fc"]["time_met"]
+    assert "+0.05 ± 0.61 s over 4 pairs, level within two standard errors)" in format_targets(level)
     # nobody inserts: the time target is not met (it read "met" when neither side had a time)
     none = EvalResult.from_metrics("peg_in_hole", {"learned": metrics["equal"], "ik": metrics["equal"]}, {}, 1.0,
                                    10.0, (0,))
