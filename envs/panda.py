@@ -454,7 +454,7 @@ class PandaEnv(EnvBase):
                 ahead_max[blocked] = self.pcfg.ik_bound_blocked
             # the blocked bound wins over the lead: np.clip is min(max(ez, lo), hi)
             target = np.clip(ez, np.where(ahead, lead, behind), ahead_max)
-            moved = (target != ez) & ~self._scripted
+            moved = (target != ez) & (~self._scripted | self.pcfg.ik_rules_scripted)
             if moved.any():
                 pos_d[moved] += (target - ez)[moved, None] * axis[moved]
         s = self.stiffness_scale if scale is None else self.stiffness_scale * scale

@@ -625,6 +625,14 @@ def test_the_tool_axis_bound_moves_only_the_policy_arms_reference_along_the_tool
     for bad in (0.0, -0.01):
         with pytest.raises(ConfigError, match="ik_bound_tool_axis"):
             _cfg({"panda": {"ik_bound_tool_axis": bad}})
+    # `ik_rules_scripted`: the scripted arm's reference is bounded as the policy arms' are
+    every = PandaEnv(3, _cfg({"panda": {"ik_bound_tool_axis": 0.02, "ik_rules_scripted": True}}), seed=0)
+    every.reset()
+    axis = every.rot[:, :, 2]
+    every.scene.pos_d[:] = every.pos + along[:, None] * axis
+    every._scripted = np.array([False, False, True])
+    e = every._controller_reference()[0].numpy() - every.pos
+    np.testing.assert_allclose(np.einsum("nk,nk->n", e, axis), [0.02, -0.02, 0.02], atol=1e-12)
 
 
 def test_in_contact_an_advancing_reference_is_not_left_behind_the_tool() -> None:
