@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import collections
 import math
+import signal
 import sys
 from pathlib import Path
 
@@ -111,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         return _run(args)
     except KeyboardInterrupt as exc:
         print(f"\n{str(exc) or 'interrupted'}", file=sys.stderr)  # (config.yaml holds --steps: a plain --resume)
-        return 128 + getattr(exc, "signum", 2)  # 130 after Ctrl-C (SIGINT), 143 after SIGTERM
+        return 128 + int(getattr(exc, "signum", signal.SIGINT))  # 130 after Ctrl-C (SIGINT), 143 after SIGTERM
     except (A3CQPError, OSError, ValueError) as exc:
         if args.debug:
             raise

@@ -22,6 +22,7 @@ import numpy as np
 
 from a3cqp_rl.checkpoint import write_atomic
 from a3cqp_rl.config import config_to_dict
+from envs.panda_report import EvalResult
 
 logger = logging.getLogger(__name__)
 
@@ -75,8 +76,6 @@ def save(path: Path, key: dict, res) -> None:  # noqa: ANN001
 
 def load(path: Path, key: dict, seed: int):  # noqa: ANN201
     """The EvalResult kept in `path` if it was written for `key`; None if absent, unreadable or for another key."""
-    from envs.panda_report import EvalResult
-
     if not path.is_file():
         return None
     try:
