@@ -65,8 +65,8 @@ from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, gui
 from a3cqp_rl.worker_start import MAX_DEFAULT_WORKERS, default_workers  # noqa: F401 (re-exported)
 from envs import eval_cache
 from envs.evaluate_cli import PANDA_WORKER_IMPORTS as WORKER_IMPORTS
-from envs.panda_report import (EvalResult, format_paired, format_policy_ranking, format_table, format_targets,
-                               to_json)
+from envs.panda_report import (EvalResult, format_paired, format_policy_ranking, format_reference_rules, format_table,
+                               format_targets, to_json)
 from envs.reach import reach_warning
 
 if TYPE_CHECKING:  # annotations only
@@ -593,8 +593,9 @@ def _document(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalRe
 
 
 def _print_report(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalResult, policy: Path | None,
-                  prints: str | None, used: int) -> None:
-    """Print one evaluation (`used` worker processes): header, table, paired differences, targets."""
+                  prints: str | None, used: int, panda: PandaEnvConfig) -> None:
+    """Print one evaluation (`used` worker processes, `panda` its config): header, table, paired differences,
+    targets."""
     which = f"seed {args.seed}" if args.seeds is None else f"seeds {','.join(map(str, args.seeds))} pooled"
     given = f" with {', '.join(args.overrides)}" if args.overrides else ""
     cycles = next(iter(res.summary.values())).get("cycles", 1)
@@ -611,6 +612,8 @@ def _print_report(args: argparse.Namespace, cfg_path: str | Path | None, res: Ev
           f"{used} worker{'s' if used > 1 else ''}{then})")
     if policy is not None:
         print(f"learned: {policy} (parameters {prints})")
+    if rules := format_reference_rules(panda, list(res.summary)):
+        print(rules)
     print(format_table(res))
     primary = "learned" if "learned" in res.summary else next(iter(res.summary))
     for lines in (format_paired(res, primary), format_targets(res, primary)):
@@ -761,7 +764,7 @@ def _cli(args: argparse.Namespace, json_out: TextIO | None = None) -> int:
                 if stale:
                     print(f"{args.out}: removed the earlier run's episodes of {', '.join(stale)} (results.json now "
                           "describes this run)", file=sys.stderr)
-            _print_report(args, cfg_path, res, policy, prints, docs[-1]["workers"])
+            _print_report(args, cfg_path, res, policy, prints, docs[-1]["workers"], cfg.panda)
     except (A3CQPError, OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

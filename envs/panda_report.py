@@ -7,12 +7,17 @@ the trials; this module only reads their per-trial metrics.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+if TYPE_CHECKING:  # annotations only
+    from a3cqp_rl.config import PandaEnvConfig
+
 __all__ = ["PAPER_TABLE_VI", "TARGET_SUCCESS_RATE", "EvalResult", "capped_time", "paired", "format_paired", "targets",
-           "format_targets", "format_table", "to_json", "format_policy_ranking", "SCENE_ROWS"]
+           "format_targets", "format_table", "to_json", "format_policy_ranking", "format_reference_rules", "SCENE_ROWS"]
 
 PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
                   "insertion_time_std_s": 0.24, "misalignment_rotation_mean_deg": 3.66,
@@ -179,6 +184,27 @@ def _paired_note(p: dict, primary: str, other: str) -> str:
     spread = "" if se is None else f" ± {se:.2f}"
     level = ", level within two standard errors" if se is not None and abs(d) <= 2.0 * se else ""
     return f", {primary} − {other} on the same trials {d:+.2f}{spread} s over {n} pair{'' if n == 1 else 's'}{level}"
+
+
+def format_reference_rules(panda: PandaEnvConfig, controllers: Sequence[str]) -> str | None:
+    """One line saying whose IK reference along the tool axis follows the tool-axis rules (bounds in mm), so that a
+    reader of the table knows what the learned arms get that the baselines may not; None where no rule is set or no
+    other controller runs beside the learned one."""
+    if panda.ik_bound_tool_axis is None or "learned" not in controllers or len(controllers) < 2:
+        return None
+    rules = [f"at most {1e3 * panda.ik_bound_tool_axis:g} mm from the tool"]
+    if panda.ik_bound_blocked is not None:
+        rules.append("at a tool the contact holds" if panda.ik_bound_blocked == 0.0 else
+                     f"at most {1e3 * panda.ik_bound_blocked:g} mm ahead of a tool the contact holds")
+    if panda.ik_lead_sliding > 0.0:
+        rules.append(f"{1e3 * panda.ik_lead_sliding:g} mm ahead of a tool sliding on in contact")
+    kept = "kept " + (rules[0] if len(rules) == 1 else f"{', '.join(rules[:-1])} and {rules[-1]}")
+    if panda.ik_rules_scripted:
+        return f"IK reference along the tool axis: every controller's is {kept} (panda.ik_rules_scripted)"
+    # the time the learned arms gain from these rules is the controller's, not the policy's (docs/panda.md, "The
+    # baselines with the learned arms' reference rules")
+    return (f"IK reference along the tool axis: the learned arms' is {kept}; the baselines' is the scene's reference "
+            "as it is (the same rules for every controller: --set panda.ik_rules_scripted=true)")
 
 
 def format_targets(res: EvalResult, primary: str = "learned") -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 import re
@@ -18,7 +19,7 @@ from algorithms.policy import fingerprint, load_policy
 from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, evaluate, evaluate_seeds, free_motion_rates,
                              free_motion_warning, guided_rates, guided_warning, main)
 from envs.panda_report import (PAPER_TABLE_VI, EvalResult, capped_time, format_paired, format_policy_ranking,
-                               format_table, format_targets, paired, targets, to_json)
+                               format_reference_rules, format_table, format_targets, paired, targets, to_json)
 
 FAST = {"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "align_time": 2.0, "time_limit": 2.0,
                                   "operator_disengage": False, "return_time": 0.5}}}
@@ -392,6 +393,37 @@ def test_main_applies_set_overrides_over_the_config_and_keeps_them(tmp_path, cap
         assert main(["--scene", "peg_in_hole", "--config", str(cfg), "--trials", "1", "--set", bad]) == 2
         err = capsys.readouterr().err
         assert says in err and ("--set" in err or "with overrides" in err) and "Traceback" not in err
+
+
+def test_the_report_says_whose_ik_reference_follows_the_tool_axis_rules(tmp_path, capsys) -> None:  # noqa: ANN001
+    """The peg config's rules are the learned arms' unless `panda.ik_rules_scripted`; the line names them in mm and
+    the option that gives them to the baselines, and is absent where no rule is set or the learned arms run alone."""
+    peg = load_config(ROOT / "configs" / "panda_peg_in_hole.yaml").panda
+    line = format_reference_rules(peg, ["learned", "ik_fc"])
+    assert line is not None and "the learned arms' is kept at most 20 mm from the tool, " in line
+    assert "at a tool the contact holds" in line and "20 mm ahead of a tool sliding on in contact" in line
+    assert "--set panda.ik_rules_scripted=true" in line
+    both = format_reference_rules(dataclasses.replace(peg, ik_rules_scripted=True), ["learned", "vic"])
+    assert both is not None and "every controller's is kept" in both and "learned arms'" not in both
+    lead_only = dataclasses.replace(peg, ik_bound_blocked=0.004, ik_lead_sliding=0.0)
+    assert "at most 4 mm ahead of a tool the contact holds" in format_reference_rules(lead_only, ["learned", "ik"])
+    assert "sliding" not in format_reference_rules(lead_only, ["learned", "ik"])
+    assert format_reference_rules(peg, ["learned"]) is None and format_reference_rules(peg, ["ik", "vic"]) is None
+    assert format_reference_rules(dataclasses.replace(peg, ik_bound_tool_axis=None), ["learned", "ik"]) is None
+    # printed above the table by the command
+    path = tmp_path / "pol" / "policy.pt"
+    layout = ParamLayout(3, 4, (64, 64), "separate")
+    save_atomic({"format": 1, "flat": layout.init(torch.Generator().manual_seed(0), 0.0),
+                 "layout": [3, 4, [64, 64], "separate", 3]}, path)
+    cfg = tmp_path / "peg.yaml"
+    rules = {"ik_bound_tool_axis": 0.02, "ik_bound_blocked": 0.0, "ik_lead_sliding": 0.02}
+    cfg.write_text(yaml.safe_dump({"env": "panda", "panda": {**FAST["panda"], **rules, "policy": str(path)}}))
+    assert main(["--scene", "peg_in_hole", "--config", str(cfg), "--controllers", "learned,ik", "--trials", "1",
+                 "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    said = [ln for ln in printed.splitlines() if ln.startswith("IK reference along the tool axis")]
+    assert said == [format_reference_rules(load_config(cfg).panda, ["learned", "ik"])]
+    assert printed.index(said[0]) < printed.index("successes")
 
 
 def _peg_metrics(success: list[bool], times: list[float], diverged: list[bool] | None = None,
