@@ -66,7 +66,7 @@ from a3cqp_rl.worker_start import MAX_DEFAULT_WORKERS, default_workers  # noqa: 
 from envs import eval_cache
 from envs.evaluate_cli import PANDA_WORKER_IMPORTS as WORKER_IMPORTS
 from envs.panda_report import (EvalResult, format_paired, format_policy_ranking, format_reference_rules, format_table,
-                               format_targets, to_json)
+                               format_targets, reference_rules, to_json)
 from envs.reach import reach_warning
 
 if TYPE_CHECKING:  # annotations only
@@ -582,11 +582,12 @@ def _policy_file(path: str | Path | None, from_cli: bool, cfg_path: str | Path |
 
 
 def _document(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalResult, policy: Path | None,
-              prints: str | None) -> dict:
-    """One evaluation's JSON document: the metrics, the run's settings and the policy."""
+              prints: str | None, panda: PandaEnvConfig) -> dict:
+    """One evaluation's JSON document: the metrics, the run's settings (`panda`: its config) and the policy."""
     doc = to_json(res)
     doc["workers"] = min(args.workers, args.trials)  # the trials split into at most this many groups
     doc["config"], doc["overrides"] = None if cfg_path is None else str(cfg_path), list(args.overrides)
+    doc["ik_reference_rules"] = reference_rules(panda)
     if policy is not None:
         doc["policy"], doc["policy_fingerprint"] = str(policy), prints
     return doc
@@ -753,7 +754,7 @@ def _cli(args: argparse.Namespace, json_out: TextIO | None = None) -> int:
             log = lambda msg: print(msg, file=sys.stderr)  # noqa: E731
             res = evaluate_seeds(args.scene, policy, args.trials, [args.seed] if args.seeds is None else args.seeds,
                                  cache=args.cache, policy_fingerprint=prints, log=log, **kw)
-            docs.append(_document(args, cfg_path, res, policy, prints))
+            docs.append(_document(args, cfg_path, res, policy, prints, cfg.panda))
             # written before anything is printed (a closed pipe cannot lose them), after each policy (a long sweep
             # stopped midway keeps what ran)
             if args.json and json_out is None:

@@ -17,7 +17,8 @@ if TYPE_CHECKING:  # annotations only
     from a3cqp_rl.config import PandaEnvConfig
 
 __all__ = ["PAPER_TABLE_VI", "TARGET_SUCCESS_RATE", "EvalResult", "capped_time", "paired", "format_paired", "targets",
-           "format_targets", "format_table", "to_json", "format_policy_ranking", "format_reference_rules", "SCENE_ROWS"]
+           "format_targets", "format_table", "to_json", "format_policy_ranking", "reference_rules",
+           "format_reference_rules", "SCENE_ROWS"]
 
 PAPER_TABLE_VI = {"trials": 26, "successes": 23, "success_rate": 23 / 26, "insertion_time_mean_s": 8.21,
                   "insertion_time_std_s": 0.24, "misalignment_rotation_mean_deg": 3.66,
@@ -184,6 +185,16 @@ def _paired_note(p: dict, primary: str, other: str) -> str:
     spread = "" if se is None else f" ± {se:.2f}"
     level = ", level within two standard errors" if se is not None and abs(d) <= 2.0 * se else ""
     return f", {primary} − {other} on the same trials {d:+.2f}{spread} s over {n} pair{'' if n == 1 else 's'}{level}"
+
+
+def reference_rules(panda: PandaEnvConfig) -> dict | None:
+    """The tool-axis rules of the IK reference as the JSON document gives them (m), and whose arms they place
+    ("learned" or "every controller"); None where no rule is set (PandaEnvConfig.ik_bound_tool_axis)."""
+    if panda.ik_bound_tool_axis is None:
+        return None
+    return {"tool_axis_bound_m": panda.ik_bound_tool_axis, "blocked_bound_m": panda.ik_bound_blocked,
+            "sliding_lead_m": panda.ik_lead_sliding,
+            "arms": "every controller" if panda.ik_rules_scripted else "learned"}
 
 
 def format_reference_rules(panda: PandaEnvConfig, controllers: Sequence[str]) -> str | None:

@@ -19,7 +19,8 @@ from algorithms.policy import fingerprint, load_policy
 from envs.panda_eval import (FREE_MOTION_E, GUIDED_OBS, evaluate, evaluate_seeds, free_motion_rates,
                              free_motion_warning, guided_rates, guided_warning, main)
 from envs.panda_report import (PAPER_TABLE_VI, EvalResult, capped_time, format_paired, format_policy_ranking,
-                               format_reference_rules, format_table, format_targets, paired, targets, to_json)
+                               format_reference_rules, format_table, format_targets, paired, reference_rules,
+                               targets, to_json)
 
 FAST = {"panda": {"peg_in_hole": {"settle_time": 0.1, "approach_time": 1.0, "align_time": 2.0, "time_limit": 2.0,
                                   "operator_disengage": False, "return_time": 0.5}}}
@@ -418,12 +419,18 @@ def test_the_report_says_whose_ik_reference_follows_the_tool_axis_rules(tmp_path
     cfg = tmp_path / "peg.yaml"
     rules = {"ik_bound_tool_axis": 0.02, "ik_bound_blocked": 0.0, "ik_lead_sliding": 0.02}
     cfg.write_text(yaml.safe_dump({"env": "panda", "panda": {**FAST["panda"], **rules, "policy": str(path)}}))
+    out = tmp_path / "res.json"
     assert main(["--scene", "peg_in_hole", "--config", str(cfg), "--controllers", "learned,ik", "--trials", "1",
-                 "--quiet"]) == 0
+                 "--quiet", "--json", str(out)]) == 0
     printed = capsys.readouterr().out
     said = [ln for ln in printed.splitlines() if ln.startswith("IK reference along the tool axis")]
     assert said == [format_reference_rules(load_config(cfg).panda, ["learned", "ik"])]
     assert printed.index(said[0]) < printed.index("successes")
+    # and the JSON document, in metres
+    assert json.loads(out.read_text())["ik_reference_rules"] == {
+        "tool_axis_bound_m": 0.02, "blocked_bound_m": 0.0, "sliding_lead_m": 0.02, "arms": "learned"}
+    assert reference_rules(dataclasses.replace(peg, ik_rules_scripted=True))["arms"] == "every controller"
+    assert reference_rules(dataclasses.replace(peg, ik_bound_tool_axis=None)) is None
 
 
 def _peg_metrics(success: list[bool], times: list[float], diverged: list[bool] | None = None,
