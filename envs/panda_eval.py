@@ -594,9 +594,10 @@ def _document(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalRe
 
 
 def _print_report(args: argparse.Namespace, cfg_path: str | Path | None, res: EvalResult, policy: Path | None,
-                  prints: str | None, used: int, panda: PandaEnvConfig) -> None:
-    """Print one evaluation (`used` worker processes, `panda` its config): header, table, paired differences,
-    targets."""
+                  prints: str | None, doc: dict) -> None:
+    """Print one evaluation (`doc`: its JSON document, for the worker count and the reference rules): header, table,
+    paired differences, targets."""
+    used = doc["workers"]
     which = f"seed {args.seed}" if args.seeds is None else f"seeds {','.join(map(str, args.seeds))} pooled"
     given = f" with {', '.join(args.overrides)}" if args.overrides else ""
     cycles = next(iter(res.summary.values())).get("cycles", 1)
@@ -613,7 +614,7 @@ def _print_report(args: argparse.Namespace, cfg_path: str | Path | None, res: Ev
           f"{used} worker{'s' if used > 1 else ''}{then})")
     if policy is not None:
         print(f"learned: {policy} (parameters {prints})")
-    if rules := format_reference_rules(panda, list(res.summary)):
+    if rules := format_reference_rules(doc["ik_reference_rules"], list(res.summary)):
         print(rules)
     print(format_table(res))
     primary = "learned" if "learned" in res.summary else next(iter(res.summary))
@@ -765,7 +766,7 @@ def _cli(args: argparse.Namespace, json_out: TextIO | None = None) -> int:
                 if stale:
                     print(f"{args.out}: removed the earlier run's episodes of {', '.join(stale)} (results.json now "
                           "describes this run)", file=sys.stderr)
-            _print_report(args, cfg_path, res, policy, prints, docs[-1]["workers"], cfg.panda)
+            _print_report(args, cfg_path, res, policy, prints, docs[-1])
     except (A3CQPError, OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

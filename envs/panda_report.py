@@ -197,20 +197,20 @@ def reference_rules(panda: PandaEnvConfig) -> dict | None:
             "arms": "every controller" if panda.ik_rules_scripted else "learned"}
 
 
-def format_reference_rules(panda: PandaEnvConfig, controllers: Sequence[str]) -> str | None:
-    """One line saying whose IK reference along the tool axis follows the tool-axis rules (bounds in mm), so that a
-    reader of the table knows what the learned arms get that the baselines may not; None where no rule is set or no
-    other controller runs beside the learned one."""
-    if panda.ik_bound_tool_axis is None or "learned" not in controllers or len(controllers) < 2:
+def format_reference_rules(rules: dict | None, controllers: Sequence[str]) -> str | None:
+    """One line saying whose IK reference along the tool axis follows the tool-axis `rules` (`reference_rules`;
+    bounds in mm), so that a reader of the table knows what the learned arms get that the baselines may not; None
+    where no rule is set or no other controller runs beside the learned one."""
+    if rules is None or "learned" not in controllers or len(controllers) < 2:
         return None
-    rules = [f"at most {1e3 * panda.ik_bound_tool_axis:g} mm from the tool"]
-    if panda.ik_bound_blocked is not None:
-        rules.append("at a tool the contact holds" if panda.ik_bound_blocked == 0.0 else
-                     f"at most {1e3 * panda.ik_bound_blocked:g} mm ahead of a tool the contact holds")
-    if panda.ik_lead_sliding > 0.0:
-        rules.append(f"{1e3 * panda.ik_lead_sliding:g} mm ahead of a tool sliding on in contact")
-    kept = "kept " + (rules[0] if len(rules) == 1 else f"{', '.join(rules[:-1])} and {rules[-1]}")
-    if panda.ik_rules_scripted:
+    said = [f"at most {1e3 * rules['tool_axis_bound_m']:g} mm from the tool"]
+    if rules["blocked_bound_m"] is not None:
+        said.append("at a tool the contact holds" if rules["blocked_bound_m"] == 0.0 else
+                    f"at most {1e3 * rules['blocked_bound_m']:g} mm ahead of a tool the contact holds")
+    if rules["sliding_lead_m"] > 0.0:
+        said.append(f"{1e3 * rules['sliding_lead_m']:g} mm ahead of a tool sliding on in contact")
+    kept = "kept " + (said[0] if len(said) == 1 else f"{', '.join(said[:-1])} and {said[-1]}")
+    if rules["arms"] == "every controller":
         return f"IK reference along the tool axis: every controller's is {kept} (panda.ik_rules_scripted)"
     # the time the learned arms gain from these rules is the controller's, not the policy's (docs/panda.md, "The
     # baselines with the learned arms' reference rules")

@@ -279,14 +279,16 @@ def test_every_policy_is_checked_before_the_first_is_simulated(tmp_path, capsys,
     assert "Traceback" not in err
 
 
-def test_several_policies_run_on_the_same_trials_and_end_with_a_line_each(tmp_path, capsys) -> None:  # noqa: ANN001
+def _random_policy(path: Path, seed: int = 0) -> Path:
+    """A point-mass-shaped policy (3 -> 4, 64x64) of random parameters written to `path`."""
     layout = ParamLayout(3, 4, (64, 64), "separate")
-    paths = []
-    for k in range(2):
-        path = tmp_path / f"run{k}" / "policy.pt"
-        save_atomic({"format": 1, "flat": layout.init(torch.Generator().manual_seed(k), 0.0),
-                     "layout": [3, 4, [64, 64], "separate", 3]}, path)
-        paths.append(path)
+    save_atomic({"format": 1, "flat": layout.init(torch.Generator().manual_seed(seed), 0.0),
+                 "layout": [3, 4, [64, 64], "separate", 3]}, path)
+    return path
+
+
+def test_several_policies_run_on_the_same_trials_and_end_with_a_line_each(tmp_path, capsys) -> None:  # noqa: ANN001
+    paths = [_random_policy(tmp_path / f"run{k}" / "policy.pt", k) for k in range(2)]
     cfg = tmp_path / "peg.yaml"
     cfg.write_text(yaml.safe_dump({"env": "panda", "panda": FAST["panda"]}))
     out = tmp_path / "res.json"
@@ -348,10 +350,7 @@ def test_the_default_worker_count_is_the_usable_cores_up_to_a_bound(monkeypatch)
 
 
 def test_main_takes_the_learned_policy_from_the_config(tmp_path, capsys) -> None:  # noqa: ANN001
-    path = tmp_path / "pol" / "policy.pt"
-    layout = ParamLayout(3, 4, (64, 64), "separate")
-    save_atomic({"format": 1, "flat": layout.init(torch.Generator().manual_seed(0), 0.0),
-                 "layout": [3, 4, [64, 64], "separate", 3]}, path)
+    path = _random_policy(tmp_path / "pol" / "policy.pt")
     cfg = tmp_path / "peg.yaml"
     cfg.write_text(yaml.safe_dump({"env": "panda", "panda": {**FAST["panda"], "policy": str(path.parent)}}))
     out = tmp_path / "res.json"
@@ -376,10 +375,7 @@ def test_main_takes_the_learned_policy_from_the_config(tmp_path, capsys) -> None
 def test_main_applies_set_overrides_over_the_config_and_keeps_them(tmp_path, capsys) -> None:  # noqa: ANN001
     """`--set panda.policy=...` replaces the config's missing policy; the header and the JSON name the overrides; a
     bad key or value is one line naming it."""
-    path = tmp_path / "pol" / "policy.pt"
-    layout = ParamLayout(3, 4, (64, 64), "separate")
-    save_atomic({"format": 1, "flat": layout.init(torch.Generator().manual_seed(0), 0.0),
-                 "layout": [3, 4, [64, 64], "separate", 3]}, path)
+    path = _random_policy(tmp_path / "pol" / "policy.pt")
     cfg = tmp_path / "peg.yaml"
     cfg.write_text(yaml.safe_dump({"env": "panda", "panda": {**FAST["panda"], "policy": str(tmp_path / "no.pt")}}))
     out = tmp_path / "res.json"
@@ -400,22 +396,23 @@ def test_the_report_says_whose_ik_reference_follows_the_tool_axis_rules(tmp_path
     """The peg config's rules are the learned arms' unless `panda.ik_rules_scripted`; the line names them in mm and
     the option that gives them to the baselines, and is absent where no rule is set or the learned arms run alone."""
     peg = load_config(ROOT / "configs" / "panda_peg_in_hole.yaml").panda
-    line = format_reference_rules(peg, ["learned", "ik_fc"])
+    line = format_reference_rules(reference_rules(peg), ["learned", "ik_fc"])
     assert line is not None and "the learned arms' is kept at most 20 mm from the tool, " in line
     assert "at a tool the contact holds" in line and "20 mm ahead of a tool sliding on in contact" in line
     assert "--set panda.ik_rules_scripted=true" in line
-    both = format_reference_rules(dataclasses.replace(peg, ik_rules_scripted=True), ["learned", "vic"])
+    both = format_reference_rules(reference_rules(dataclasses.replace(peg, ik_rules_scripted=True)),
+                                  ["learned", "vic"])
     assert both is not None and "every controller's is kept" in both and "learned arms'" not in both
-    lead_only = dataclasses.replace(peg, ik_bound_blocked=0.004, ik_lead_sliding=0.0)
+    lead_only = reference_rules(dataclasses.replace(peg, ik_bound_blocked=0.004, ik_lead_sliding=0.0))
     assert "at most 4 mm ahead of a tool the contact holds" in format_reference_rules(lead_only, ["learned", "ik"])
     assert "sliding" not in format_reference_rules(lead_only, ["learned", "ik"])
-    assert format_reference_rules(peg, ["learned"]) is None and format_reference_rules(peg, ["ik", "vic"]) is None
-    assert format_reference_rules(dataclasses.replace(peg, ik_bound_tool_axis=None), ["learned", "ik"]) is None
+    peg_rules = reference_rules(peg)
+    assert format_reference_rules(peg_rules, ["learned"]) is None
+    assert format_reference_rules(peg_rules, ["ik", "vic"]) is None
+    assert format_reference_rules(reference_rules(dataclasses.replace(peg, ik_bound_tool_axis=None)),
+                                  ["learned", "ik"]) is None
     # printed above the table by the command
-    path = tmp_path / "pol" / "policy.pt"
-    layout = ParamLayout(3, 4, (64, 64), "separate")
-    save_atomic({"format": 1, "flat": layout.init(torch.Generator().manual_seed(0), 0.0),
-                 "layout": [3, 4, [64, 64], "separate", 3]}, path)
+    path = _random_policy(tmp_path / "pol" / "policy.pt")
     cfg = tmp_path / "peg.yaml"
     rules = {"ik_bound_tool_axis": 0.02, "ik_bound_blocked": 0.0, "ik_lead_sliding": 0.02}
     cfg.write_text(yaml.safe_dump({"env": "panda", "panda": {**FAST["panda"], **rules, "policy": str(path)}}))
@@ -424,7 +421,7 @@ def test_the_report_says_whose_ik_reference_follows_the_tool_axis_rules(tmp_path
                  "--quiet", "--json", str(out)]) == 0
     printed = capsys.readouterr().out
     said = [ln for ln in printed.splitlines() if ln.startswith("IK reference along the tool axis")]
-    assert said == [format_reference_rules(load_config(cfg).panda, ["learned", "ik"])]
+    assert said == [format_reference_rules(reference_rules(load_config(cfg).panda), ["learned", "ik"])]
     assert printed.index(said[0]) < printed.index("successes")
     # and the JSON document, in metres
     assert json.loads(out.read_text())["ik_reference_rules"] == {
