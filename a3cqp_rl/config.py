@@ -1070,6 +1070,14 @@ class PandaEnvConfig:
     for a blocked tool); 0 (default): at the tool. 20 mm on the peg (configs/panda_peg_in_hole.yaml): a peg that
     enters the bore ahead of the procedure's z schedule goes down at its own pace (docs/panda.md, "A reference that
     leads a sliding peg")."""
+    ik_lead_engaged: bool = False
+    """With `ik_bound_tool_axis`: whether the reference is kept not behind (and `ik_lead_sliding` ahead of) a tool
+    that reads no contact now but has touched since its scene reference began to advance along the axis (a peg
+    between the bore's walls, which it touches only now and then); false (default): only a tool in contact. Without
+    it a peg that drops into the bore ahead of the procedure's z schedule reads free there, and IK pulls it back up
+    to the schedule: with the x-y alignment in 4 s instead of 8 the learned peg then takes 1.0 s down the bore against
+    IK + FC's 0.2 s; with it 0.2 s, but a peg that enters still tilted (at first contact, while the alignment turns
+    the tool) can wedge (docs/panda.md, "A reference not behind a peg between the bore's walls")."""
     sliding_speed: float = 0.001
     """Speed forward along the tool axis [m/s] above which a tool in contact slides (`ik_lead_sliding`): above the
     jitter of a peg on the rim, below a peg's pace down the bore."""
@@ -1123,6 +1131,8 @@ class PandaEnvConfig:
                                              or not 0.0 <= self.ik_lead_sliding <= self.ik_bound_tool_axis):
             err.add("ik_lead_sliding", "needs ik_bound_tool_axis and must be a distance in [0, ik_bound_tool_axis] "
                     f"[m], got {self.ik_lead_sliding}")
+        if self.ik_lead_engaged and self.ik_bound_tool_axis is None:
+            err.add("ik_lead_engaged", "needs ik_bound_tool_axis (the rules it extends to a tool between the walls)")
         if not self.sliding_speed >= 0:
             err.add("sliding_speed", f"must be a speed >= 0 [m/s], got {self.sliding_speed}")
         if not self.blocked_force > 0:

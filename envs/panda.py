@@ -182,6 +182,7 @@ class PandaEnv(EnvBase):
         self._override: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._scripted = np.zeros(n, dtype=bool)  # arms whose weights `hold_weights` set this step (not the policy)
         self._ref_step = np.zeros((n, 3))  # how far the scene's reference moved in the last agent step [m], world
+        self._engaged = np.zeros(n, dtype=bool)  # touched since the scene reference began to advance (ik_lead_engaged)
         self._noise: dict[str, np.ndarray] = {}
         self._ft_bias = np.zeros((n, 6))
         self._tau_bias = np.zeros((n, 7))
@@ -317,6 +318,7 @@ class PandaEnv(EnvBase):
         self.f_env_obs[idx], self.f_ope_obs[idx] = self.f_env[idx], self.f_ope[idx]
         self._update_scene()
         self._ref_step[idx] = 0.0  # a fresh reference has not moved yet
+        self._engaged[idx] = False
 
     # ------------------------------------------------------------------ control
     def hold_weights(self, mask: np.ndarray, weights: np.ndarray, f_d: np.ndarray) -> None:
@@ -436,7 +438,16 @@ class PandaEnv(EnvBase):
             f_env = self.observed_wrenches()[0]
             ref_along = np.einsum("nk,nk->n", self._ref_step, axis)
             contact = self.ctrl.contact_from(torch.from_numpy(f_env)).numpy()
-            ahead = contact & (ref_along > 0.0)
+            advancing = ref_along > 0.0
+            if self.pcfg.ik_lead_engaged:
+                # a peg in the bore touches its walls only now and then: it stays engaged from its first contact
+                # until the procedure's reference stops advancing (the operator's turn, the return home), and its
+                # reference is not held behind it there either: read as free, a peg that entered the bore ahead of
+                # the schedule was pulled back up to it (docs/panda.md, "A reference not behind a peg between ...")
+                self._engaged = (self._engaged | contact) & advancing
+                ahead = self._engaged
+            else:
+                ahead = contact & advancing
             # the bound is against a reference that runs on into the block; one the procedure moves back (the return
             # home of --cycles) from a tool in contact pulls a peg the bore still holds out, as the scripted
             # baselines' does, and is not held 20 mm behind it (docs/panda.md, "The return home pulls a held peg out")

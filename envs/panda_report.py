@@ -193,7 +193,7 @@ def reference_rules(panda: PandaEnvConfig) -> dict | None:
     if panda.ik_bound_tool_axis is None:
         return None
     return {"tool_axis_bound_m": panda.ik_bound_tool_axis, "blocked_bound_m": panda.ik_bound_blocked,
-            "sliding_lead_m": panda.ik_lead_sliding,
+            "sliding_lead_m": panda.ik_lead_sliding, "lead_engaged": panda.ik_lead_engaged,
             "arms": "every controller" if panda.ik_rules_scripted else "learned"}
 
 
@@ -209,6 +209,8 @@ def format_reference_rules(rules: dict | None, controllers: Sequence[str]) -> st
                     f"at most {1e3 * rules['blocked_bound_m']:g} mm ahead of a tool the contact holds")
     if rules["sliding_lead_m"] > 0.0:
         said.append(f"{1e3 * rules['sliding_lead_m']:g} mm ahead of a tool sliding on in contact")
+    if rules.get("lead_engaged"):
+        said.append("not behind a tool that touched while the reference advances")
     kept = "kept " + (said[0] if len(said) == 1 else f"{', '.join(said[:-1])} and {said[-1]}")
     if rules["arms"] == "every controller":
         return f"IK reference along the tool axis: every controller's is {kept} (panda.ik_rules_scripted)"

@@ -764,6 +764,44 @@ def test_a_sliding_tool_gets_its_reference_ahead_unless_it_is_blocked() -> None:
         _cfg({"panda": {"sliding_speed": -1.0}})
 
 
+def test_an_engaged_tool_between_the_walls_keeps_its_reference_not_behind_it() -> None:
+    """With `ik_lead_engaged`, a tool that touched while its scene reference advances stays engaged when it reads no
+    contact (a peg between the bore's walls): a scene reference 5 mm behind it is held at the tool (arm 0), not for
+    an arm that never touched (arm 1) nor once the reference stops advancing (arm 0 again); without the option the
+    reference stays behind (arm 2)."""
+    cfg = {"panda": {"ik_bound_tool_axis": 0.02, "ik_bound_blocked": 0.0, "ik_lead_sliding": 0.01,
+                     "ik_lead_engaged": True}}
+    env = PandaEnv(2, _cfg(cfg), seed=0)
+    off = PandaEnv(1, _cfg({"panda": {**cfg["panda"], "ik_lead_engaged": False}}), seed=0)
+
+    def reference_along(e: PandaEnv, pressed: float) -> np.ndarray:
+        """The controller's reference along the tool axis [m] with the scene's 5 mm behind, advancing 4 mm a step."""
+        axis = e.rot[:, :, 2]
+        e.scene.pos_d[:] = e.pos - 0.005 * axis
+        e._ref_step[:] = 0.004 * axis
+        e._twist[:] = 0.0
+        e.f_env = np.zeros((e.num_envs, 6))
+        e.f_env[:, :3] = -pressed * axis
+        return np.einsum("nk,nk->n", e._controller_reference()[0].numpy() - e.pos, axis)
+
+    env.reset()
+    env._engaged[:] = [True, False]  # arm 0 touched earlier in this advance
+    np.testing.assert_allclose(reference_along(env, 0.0), [0.0, -0.005], atol=1e-12)
+    np.testing.assert_array_equal(env._engaged, [True, False])
+    env._ref_step[:] = 0.0  # the procedure's reference stops: the latch clears, the reference stays behind
+    axis = env.rot[:, :, 2]
+    np.testing.assert_allclose(np.einsum("nk,nk->n", env._controller_reference()[0].numpy() - env.pos, axis),
+                               [-0.005, -0.005], atol=1e-12)
+    np.testing.assert_array_equal(env._engaged, [False, False])
+    # a touch while advancing engages; the free step after it is held at the tool only with the option
+    for e, expect in ((env, 0.0), (off, -0.005)):
+        e.reset()
+        reference_along(e, 3.0)
+        np.testing.assert_allclose(reference_along(e, 0.0), expect, atol=1e-12)
+    with pytest.raises(ConfigError, match="ik_lead_engaged.*needs ik_bound_tool_axis"):
+        _cfg({"panda": {"ik_lead_engaged": True}})
+
+
 def test_with_the_mean_filter_the_reference_rules_read_the_observed_wrench() -> None:
     """With `observation_filter: mean` the contact and the press that the tool-axis rules test are the period's mean
     wrench, which the agents observe: a last 1-kHz sample in contact over a free mean sets no lead (arm 0), a free

@@ -425,7 +425,13 @@ def test_the_report_says_whose_ik_reference_follows_the_tool_axis_rules(tmp_path
     assert printed.index(said[0]) < printed.index("successes")
     # and the JSON document, in metres
     assert json.loads(out.read_text())["ik_reference_rules"] == {
-        "tool_axis_bound_m": 0.02, "blocked_bound_m": 0.0, "sliding_lead_m": 0.02, "arms": "learned"}
+        "tool_axis_bound_m": 0.02, "blocked_bound_m": 0.0, "sliding_lead_m": 0.02, "lead_engaged": False,
+        "arms": "learned"}
+    engaged = format_reference_rules(reference_rules(dataclasses.replace(peg, ik_lead_engaged=True)), ["learned", "ik"])
+    assert engaged.endswith("; the baselines' is the scene's reference as it is (the same rules for every controller: "
+                            "--set panda.ik_rules_scripted=true)")
+    assert "in contact and not behind a tool that touched while the reference advances;" in engaged
+    assert "touched" not in line
     assert reference_rules(dataclasses.replace(peg, ik_rules_scripted=True))["arms"] == "every controller"
     assert reference_rules(dataclasses.replace(peg, ik_bound_tool_axis=None)) is None
 
