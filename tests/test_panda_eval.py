@@ -107,8 +107,9 @@ def test_scripted_force_control_inserts_the_peg() -> None:
     assert s["successes"] >= 3 and 0.0 < s["insertion_time_mean_s"] < 15.0
 
 
-def _learned_peg_trial(trial: int, **panda: object) -> dict:
-    """The metrics of trial `trial` of seed 0, the learned policy alone, under the peg config with `panda` set."""
+def _learned_peg_trial(trial: int, align_time: float | None = None, **panda: object) -> dict:
+    """The metrics of trial `trial` of seed 0, the learned policy alone, under the peg config with `panda` set (and
+    the scene's x-y alignment time [s])."""
     from a3cqp_rl.config import load_config
     from envs.panda_eval import _run, trial_seeds
 
@@ -117,6 +118,8 @@ def _learned_peg_trial(trial: int, **panda: object) -> dict:
     assert cfg.panda.f_ope_max_rot == 3.0 and not cfg.panda.observe_f_env_pull  # the config the tests describe
     for key, value in panda.items():
         setattr(cfg.panda, key, value)
+    if align_time is not None:
+        cfg.panda.peg_in_hole.align_time = align_time
     out = _run("peg_in_hole", str(root / cfg.panda.policy), [trial_seeds(0, 26)[trial]], cfg, ("learned",), (), 1,
                False, None, True)
     return out["metrics"]["learned"]
@@ -149,6 +152,18 @@ def test_the_operator_pulls_out_a_peg_that_wedged_once_the_handles_moment_reads_
     assert bool(m["success"].ravel()[0]) and m["insertion_time"].ravel()[0] < 8.21
     assert bool(m["extracted"].ravel()[0]) == (f_ope_max_rot == 3.0)
     assert (m["disengage_force"].ravel()[0] > 14.0) == (f_ope_max_rot == 1.5)  # the hand at its bound: held
+
+
+@pytest.mark.parametrize("engaged", [False, True])
+def test_a_peg_between_the_bores_walls_goes_down_at_its_own_pace_once_engaged(engaged: bool) -> None:
+    """Trial 21 of seed 0 (the learned policy, one arm) with the x-y alignment in 4 s: the peg drops into the bore
+    ahead of the z schedule and reads no contact between its walls. Without `ik_lead_engaged` the scene's reference,
+    behind it, pulls it back to the schedule (2.4 s from 1 mm in the bore to the success depth on the machine of
+    2026-12-02); with it the reference stays not behind the peg (0.2 s)."""
+    m = _learned_peg_trial(21, align_time=4.0, ik_lead_engaged=engaged)
+    assert bool(m["success"].ravel()[0])
+    descent = m["bore_descent_time"].ravel()[0]
+    assert descent < 0.6 if engaged else descent > 1.2
 
 
 def test_main_reports_bad_input_in_one_line(tmp_path, capsys) -> None:  # noqa: ANN001
