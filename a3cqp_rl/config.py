@@ -1071,13 +1071,14 @@ class PandaEnvConfig:
     enters the bore ahead of the procedure's z schedule goes down at its own pace (docs/panda.md, "A reference that
     leads a sliding peg")."""
     ik_lead_engaged: bool = False
-    """With `ik_bound_tool_axis`: whether the reference is kept not behind (and `ik_lead_sliding` ahead of) a tool
-    that reads no contact now but has touched since its scene reference began to advance along the axis (a peg
-    between the bore's walls, which it touches only now and then); false (default): only a tool in contact. Without
-    it a peg that drops into the bore ahead of the procedure's z schedule reads free there, and IK pulls it back up
-    to the schedule: with the x-y alignment in 4 s instead of 8 the learned peg then takes 1.0 s down the bore against
-    IK + FC's 0.2 s; with it 0.2 s, but a peg that enters still tilted (at first contact, while the alignment turns
-    the tool) can wedge (docs/panda.md, "A reference not behind a peg between the bore's walls")."""
+    """With `ik_bound_tool_axis`: whether a tool the block has pressed back along its axis (by more than
+    `blocked_force`) while its scene reference advances stays engaged until that reference stops advancing, and gets
+    the rules of a tool in contact (its reference not behind it, `ik_lead_sliding` ahead while it slides) also where
+    it reads no contact (a peg between the bore's walls, which it touches only now and then); false (dataclass
+    default): only a tool in contact. Without it a peg that drops off the rim into the bore ahead of the procedure's z
+    schedule reads free there, and IK pulls it back up to the schedule: with the x-y alignment in 4 s instead of 8 the
+    learned peg took 1.0 s down the bore against IK + FC's 0.2 s, with z at 2 mm/s 2.9 s. True in the peg config
+    (docs/panda.md, "A reference not behind a peg between the bore's walls")."""
     sliding_speed: float = 0.001
     """Speed forward along the tool axis [m/s] above which a tool in contact slides (`ik_lead_sliding`): above the
     jitter of a peg on the rim, below a peg's pace down the bore."""

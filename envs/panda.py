@@ -439,13 +439,17 @@ class PandaEnv(EnvBase):
             ref_along = np.einsum("nk,nk->n", self._ref_step, axis)
             contact = self.ctrl.contact_from(torch.from_numpy(f_env)).numpy()
             advancing = ref_along > 0.0
+            f_axis = np.einsum("nk,nk->n", f_env[:, :3], axis)  # < 0: pushed back along the axis
             if self.pcfg.ik_lead_engaged:
-                # a peg in the bore touches its walls only now and then: it stays engaged from its first contact
-                # until the procedure's reference stops advancing (the operator's turn, the return home), and its
-                # reference is not held behind it there either: read as free, a peg that entered the bore ahead of
-                # the schedule was pulled back up to it (docs/panda.md, "A reference not behind a peg between ...")
-                self._engaged = (self._engaged | contact) & advancing
-                ahead = self._engaged
+                # a peg in the bore touches its walls only now and then: once the block has pressed it back along its
+                # axis (the rim) it stays engaged until the procedure's reference stops advancing (the operator's
+                # turn, the return home), and its reference is not held behind it there either: read as free, a peg
+                # that dropped off the rim into the bore ahead of the schedule was pulled back up to it. A peg that
+                # slides straight in is never far ahead of the schedule, which keeps it near the top while the
+                # alignment still turns it: driven down tilted, it wedges (docs/panda.md, "A reference not behind
+                # a peg between ...")
+                self._engaged = (self._engaged | (f_axis < -self.pcfg.blocked_force)) & advancing
+                ahead = self._engaged | (contact & advancing)
             else:
                 ahead = contact & advancing
             # the bound is against a reference that runs on into the block; one the procedure moves back (the return
@@ -460,7 +464,7 @@ class PandaEnv(EnvBase):
             if self.pcfg.ik_bound_blocked is not None:
                 # anti-windup: a reference running on ahead of a tool the block holds only presses it harder (eq. 35's
                 # IK half on top of the FC half's f_d), flat onto the rim; the point mass's walls never taught that
-                pressed = np.einsum("nk,nk->n", f_env[:, :3], axis) < -self.pcfg.blocked_force
+                pressed = f_axis < -self.pcfg.blocked_force
                 blocked = pressed & (np.abs(v_axis) < self.pcfg.blocked_speed)
                 ahead_max[blocked] = self.pcfg.ik_bound_blocked
             # the blocked bound wins over the lead: np.clip is min(max(ez, lo), hi)

@@ -210,7 +210,7 @@ def format_reference_rules(rules: dict | None, controllers: Sequence[str]) -> st
     if rules["sliding_lead_m"] > 0.0:
         said.append(f"{1e3 * rules['sliding_lead_m']:g} mm ahead of a tool sliding on in contact")
     if rules.get("lead_engaged"):
-        said.append("not behind a tool that touched while the reference advances")
+        said.append("not behind a tool the block has pressed while the reference advances")
     kept = "kept " + (said[0] if len(said) == 1 else f"{', '.join(said[:-1])} and {said[-1]}")
     if rules["arms"] == "every controller":
         return f"IK reference along the tool axis: every controller's is {kept} (panda.ik_rules_scripted)"

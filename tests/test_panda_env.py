@@ -765,27 +765,29 @@ def test_a_sliding_tool_gets_its_reference_ahead_unless_it_is_blocked() -> None:
 
 
 def test_an_engaged_tool_between_the_walls_keeps_its_reference_not_behind_it() -> None:
-    """With `ik_lead_engaged`, a tool that touched while its scene reference advances stays engaged when it reads no
-    contact (a peg between the bore's walls): a scene reference 5 mm behind it is held at the tool (arm 0), not for
-    an arm that never touched (arm 1) nor once the reference stops advancing (arm 0 again); without the option the
-    reference stays behind (arm 2)."""
+    """With `ik_lead_engaged`, a tool the block pressed back along its axis (by more than `blocked_force`) while its
+    scene reference advances stays engaged when it reads no contact (a peg between the bore's walls): a scene
+    reference 5 mm behind it is held at the tool (arm 0), not for an arm never pressed (arm 1) nor once the reference
+    stops advancing (arm 0 again); a touch across the axis does not engage, and without the option the reference
+    stays behind."""
     cfg = {"panda": {"ik_bound_tool_axis": 0.02, "ik_bound_blocked": 0.0, "ik_lead_sliding": 0.01,
                      "ik_lead_engaged": True}}
     env = PandaEnv(2, _cfg(cfg), seed=0)
     off = PandaEnv(1, _cfg({"panda": {**cfg["panda"], "ik_lead_engaged": False}}), seed=0)
 
-    def reference_along(e: PandaEnv, pressed: float) -> np.ndarray:
-        """The controller's reference along the tool axis [m] with the scene's 5 mm behind, advancing 4 mm a step."""
+    def reference_along(e: PandaEnv, pressed: float, across: float = 0.0) -> np.ndarray:
+        """The controller's reference along the tool axis [m] with the scene's 5 mm behind, advancing 4 mm a step,
+        the tool pushed back along its axis by `pressed` and sideways by `across` [N]."""
         axis = e.rot[:, :, 2]
         e.scene.pos_d[:] = e.pos - 0.005 * axis
         e._ref_step[:] = 0.004 * axis
         e._twist[:] = 0.0
         e.f_env = np.zeros((e.num_envs, 6))
-        e.f_env[:, :3] = -pressed * axis
+        e.f_env[:, :3] = -pressed * axis + across * e.rot[:, :, 0]
         return np.einsum("nk,nk->n", e._controller_reference()[0].numpy() - e.pos, axis)
 
     env.reset()
-    env._engaged[:] = [True, False]  # arm 0 touched earlier in this advance
+    env._engaged[:] = [True, False]  # arm 0 was pressed earlier in this advance
     np.testing.assert_allclose(reference_along(env, 0.0), [0.0, -0.005], atol=1e-12)
     np.testing.assert_array_equal(env._engaged, [True, False])
     env._ref_step[:] = 0.0  # the procedure's reference stops: the latch clears, the reference stays behind
@@ -793,11 +795,15 @@ def test_an_engaged_tool_between_the_walls_keeps_its_reference_not_behind_it() -
     np.testing.assert_allclose(np.einsum("nk,nk->n", env._controller_reference()[0].numpy() - env.pos, axis),
                                [-0.005, -0.005], atol=1e-12)
     np.testing.assert_array_equal(env._engaged, [False, False])
-    # a touch while advancing engages; the free step after it is held at the tool only with the option
+    # a press along the axis while advancing engages; the free step after it is held at the tool only with the option
     for e, expect in ((env, 0.0), (off, -0.005)):
         e.reset()
-        reference_along(e, 3.0)
+        reference_along(e, 8.0)
         np.testing.assert_allclose(reference_along(e, 0.0), expect, atol=1e-12)
+    # a wall touched across the axis (a peg sliding straight into the bore) keeps the tool-in-contact rule only
+    env.reset()
+    np.testing.assert_allclose(reference_along(env, 0.0, across=8.0), [0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(reference_along(env, 0.0), [-0.005, -0.005], atol=1e-12)
     with pytest.raises(ConfigError, match="ik_lead_engaged.*needs ik_bound_tool_axis"):
         _cfg({"panda": {"ik_lead_engaged": True}})
 

@@ -442,11 +442,12 @@ def test_the_report_says_whose_ik_reference_follows_the_tool_axis_rules(tmp_path
     assert json.loads(out.read_text())["ik_reference_rules"] == {
         "tool_axis_bound_m": 0.02, "blocked_bound_m": 0.0, "sliding_lead_m": 0.02, "lead_engaged": False,
         "arms": "learned"}
-    engaged = format_reference_rules(reference_rules(dataclasses.replace(peg, ik_lead_engaged=True)), ["learned", "ik"])
-    assert engaged.endswith("; the baselines' is the scene's reference as it is (the same rules for every controller: "
-                            "--set panda.ik_rules_scripted=true)")
-    assert "in contact and not behind a tool that touched while the reference advances;" in engaged
-    assert "touched" not in line
+    assert line.endswith("; the baselines' is the scene's reference as it is (the same rules for every controller: "
+                         "--set panda.ik_rules_scripted=true)")
+    assert "in contact and not behind a tool the block has pressed while the reference advances;" in line
+    unlatched = format_reference_rules(reference_rules(dataclasses.replace(peg, ik_lead_engaged=False)),
+                                       ["learned", "ik"])
+    assert "pressed" not in unlatched and unlatched.startswith(line.split(", 20 mm ahead")[0])
     assert reference_rules(dataclasses.replace(peg, ik_rules_scripted=True))["arms"] == "every controller"
     assert reference_rules(dataclasses.replace(peg, ik_bound_tool_axis=None)) is None
 
