@@ -182,7 +182,7 @@ class PandaEnv(EnvBase):
         self._override: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._scripted = np.zeros(n, dtype=bool)  # arms whose weights `hold_weights` set this step (not the policy)
         self._ref_step = np.zeros((n, 3))  # how far the scene's reference moved in the last agent step [m], world
-        self._engaged = np.zeros(n, dtype=bool)  # touched since the scene reference began to advance (ik_lead_engaged)
+        self._engaged = np.zeros(n, dtype=bool)  # pressed along the axis while the reference advances (ik_lead_engaged)
         self._noise: dict[str, np.ndarray] = {}
         self._ft_bias = np.zeros((n, 6))
         self._tau_bias = np.zeros((n, 7))
@@ -424,7 +424,8 @@ class PandaEnv(EnvBase):
         """The scene's reference, along the tool axis within `ik_bound_tool_axis` of the tool (`ik_bound_blocked`
         ahead of a blocked tool; not held behind a tool in contact whose scene reference moves back) and, in contact
         while the scene's reference advances along the axis, not behind it (`ik_lead_sliding` ahead of a tool sliding
-        forward; the policy's arms), moved toward the tool by
+        forward; with `ik_lead_engaged` also for a tool the block pressed in this advance that reads free now; the
+        policy's arms), moved toward the tool by
         `stiffness_scale` (times `scale` [N, 6]) where it is not 1 (arm frame)."""
         pos_d, rot_d = self.scene.pos_d.copy(), self.scene.rot_d.copy()
         bound = self.pcfg.ik_bound_tool_axis
@@ -439,7 +440,8 @@ class PandaEnv(EnvBase):
             ref_along = np.einsum("nk,nk->n", self._ref_step, axis)
             contact = self.ctrl.contact_from(torch.from_numpy(f_env)).numpy()
             advancing = ref_along > 0.0
-            f_axis = np.einsum("nk,nk->n", f_env[:, :3], axis)  # < 0: pushed back along the axis
+            pressed = np.einsum("nk,nk->n", f_env[:, :3], axis) < -self.pcfg.blocked_force  # pushed back along it
+            ahead = contact & advancing
             if self.pcfg.ik_lead_engaged:
                 # a peg in the bore touches its walls only now and then: once the block has pressed it back along its
                 # axis (the rim) it stays engaged until the procedure's reference stops advancing (the operator's
@@ -448,10 +450,8 @@ class PandaEnv(EnvBase):
                 # slides straight in is never far ahead of the schedule, which keeps it near the top while the
                 # alignment still turns it: driven down tilted, it wedges (docs/panda.md, "A reference not behind
                 # a peg between ...")
-                self._engaged = (self._engaged | (f_axis < -self.pcfg.blocked_force)) & advancing
-                ahead = self._engaged | (contact & advancing)
-            else:
-                ahead = contact & advancing
+                self._engaged = (self._engaged | pressed) & advancing
+                ahead |= self._engaged
             # the bound is against a reference that runs on into the block; one the procedure moves back (the return
             # home of --cycles) from a tool in contact pulls a peg the bore still holds out, as the scripted
             # baselines' does, and is not held 20 mm behind it (docs/panda.md, "The return home pulls a held peg out")
@@ -464,7 +464,6 @@ class PandaEnv(EnvBase):
             if self.pcfg.ik_bound_blocked is not None:
                 # anti-windup: a reference running on ahead of a tool the block holds only presses it harder (eq. 35's
                 # IK half on top of the FC half's f_d), flat onto the rim; the point mass's walls never taught that
-                pressed = f_axis < -self.pcfg.blocked_force
                 blocked = pressed & (np.abs(v_axis) < self.pcfg.blocked_speed)
                 ahead_max[blocked] = self.pcfg.ik_bound_blocked
             # the blocked bound wins over the lead: np.clip is min(max(ez, lo), hi)

@@ -209,7 +209,7 @@ def format_reference_rules(rules: dict | None, controllers: Sequence[str]) -> st
                     f"at most {1e3 * rules['blocked_bound_m']:g} mm ahead of a tool the contact holds")
     if rules["sliding_lead_m"] > 0.0:
         said.append(f"{1e3 * rules['sliding_lead_m']:g} mm ahead of a tool sliding on in contact")
-    if rules.get("lead_engaged"):
+    if rules["lead_engaged"]:
         said.append("not behind a tool the block has pressed while the reference advances")
     kept = "kept " + (said[0] if len(said) == 1 else f"{', '.join(said[:-1])} and {said[-1]}")
     if rules["arms"] == "every controller":
