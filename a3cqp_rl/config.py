@@ -1079,6 +1079,10 @@ class PandaEnvConfig:
     schedule reads free there, and IK pulls it back up to the schedule: with the x-y alignment in 4 s instead of 8 the
     learned peg took 1.0 s down the bore against IK + FC's 0.2 s, with z at 2 mm/s 2.9 s. True in the peg config
     (docs/panda.md, "A reference not behind a peg between the bore's walls")."""
+    engaged_depth: float = 0.0
+    """With `ik_lead_engaged`: how far [m] along its axis past where the engaging press began (the rim) an engaged
+    tool must be before it keeps the rules of a tool in contact where it reads free: between the bore's walls, not
+    hopping on the rim. 0 (default): at or past it. 2 mm on the peg (docs/panda.md, "An engaged peg past the rim")."""
     sliding_speed: float = 0.001
     """Speed forward along the tool axis [m/s] above which a tool in contact slides (`ik_lead_sliding`): above the
     jitter of a peg on the rim, below a peg's pace down the bore."""
@@ -1134,6 +1138,8 @@ class PandaEnvConfig:
                     f"[m], got {self.ik_lead_sliding}")
         if self.ik_lead_engaged and self.ik_bound_tool_axis is None:
             err.add("ik_lead_engaged", "needs ik_bound_tool_axis (the rules it extends to a tool between the walls)")
+        if not self.engaged_depth >= 0:
+            err.add("engaged_depth", f"must be a distance >= 0 [m], got {self.engaged_depth}")
         if not self.sliding_speed >= 0:
             err.add("sliding_speed", f"must be a speed >= 0 [m/s], got {self.sliding_speed}")
         if not self.blocked_force > 0:

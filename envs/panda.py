@@ -183,6 +183,7 @@ class PandaEnv(EnvBase):
         self._scripted = np.zeros(n, dtype=bool)  # arms whose weights `hold_weights` set this step (not the policy)
         self._ref_step = np.zeros((n, 3))  # how far the scene's reference moved in the last agent step [m], world
         self._engaged = np.zeros(n, dtype=bool)  # pressed along the axis while the reference advances (ik_lead_engaged)
+        self._press_pos = np.zeros((n, 3))  # where the press that engaged it began, arm frame [m]
         self._noise: dict[str, np.ndarray] = {}
         self._ft_bias = np.zeros((n, 6))
         self._tau_bias = np.zeros((n, 7))
@@ -450,8 +451,15 @@ class PandaEnv(EnvBase):
                 # slides straight in is never far ahead of the schedule, which keeps it near the top while the
                 # alignment still turns it: driven down tilted, it wedges (docs/panda.md, "A reference not behind
                 # a peg between ...")
+                # ... but only once the tool is `engaged_depth` past where the press began (between the walls): a peg
+                # that hops on the rim after its press reads free there too, and a reference 20 mm ahead of it drove
+                # it into the bore while the alignment still turned it, where it wedged tilted (docs/panda.md, "An
+                # engaged peg past the rim")
+                start = pressed & advancing & ~self._engaged
+                self._press_pos[start] = self.pos[start]
                 self._engaged = (self._engaged | pressed) & advancing
-                ahead |= self._engaged
+                depth = np.einsum("nk,nk->n", self.pos - self._press_pos, axis)
+                ahead |= self._engaged & (depth >= self.pcfg.engaged_depth)
             # the bound is against a reference that runs on into the block; one the procedure moves back (the return
             # home of --cycles) from a tool in contact pulls a peg the bore still holds out, as the scripted
             # baselines' does, and is not held 20 mm behind it (docs/panda.md, "The return home pulls a held peg out")

@@ -194,6 +194,7 @@ def reference_rules(panda: PandaEnvConfig) -> dict | None:
         return None
     return {"tool_axis_bound_m": panda.ik_bound_tool_axis, "blocked_bound_m": panda.ik_bound_blocked,
             "sliding_lead_m": panda.ik_lead_sliding, "lead_engaged": panda.ik_lead_engaged,
+            "engaged_depth_m": panda.engaged_depth,
             "arms": "every controller" if panda.ik_rules_scripted else "learned"}
 
 
@@ -210,7 +211,9 @@ def format_reference_rules(rules: dict | None, controllers: Sequence[str]) -> st
     if rules["sliding_lead_m"] > 0.0:
         said.append(f"{1e3 * rules['sliding_lead_m']:g} mm ahead of a tool sliding on in contact")
     if rules["lead_engaged"]:
-        said.append("not behind a tool the block has pressed while the reference advances")
+        past = rules.get("engaged_depth_m", 0.0)
+        said.append("not behind a tool the block has pressed while the reference advances" +
+                    (f", {1e3 * past:g} mm past that press" if past > 0.0 else ""))
     kept = "kept " + (said[0] if len(said) == 1 else f"{', '.join(said[:-1])} and {said[-1]}")
     if rules["arms"] == "every controller":
         return f"IK reference along the tool axis: every controller's is {kept} (panda.ik_rules_scripted)"

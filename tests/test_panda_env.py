@@ -787,7 +787,8 @@ def test_an_engaged_tool_between_the_walls_keeps_its_reference_not_behind_it() -
         return np.einsum("nk,nk->n", e._controller_reference()[0].numpy() - e.pos, axis)
 
     env.reset()
-    env._engaged[:] = [True, False]  # arm 0 was pressed earlier in this advance
+    env._engaged[:] = [True, False]  # arm 0 was pressed earlier in this advance, where it is now
+    env._press_pos[:] = env.pos
     np.testing.assert_allclose(reference_along(env, 0.0), [0.0, -0.005], atol=1e-12)
     np.testing.assert_array_equal(env._engaged, [True, False])
     env._ref_step[:] = 0.0  # the procedure's reference stops: the latch clears, the reference stays behind
@@ -806,6 +807,37 @@ def test_an_engaged_tool_between_the_walls_keeps_its_reference_not_behind_it() -
     np.testing.assert_allclose(reference_along(env, 0.0), [-0.005, -0.005], atol=1e-12)
     with pytest.raises(ConfigError, match="ik_lead_engaged.*needs ik_bound_tool_axis"):
         _cfg({"panda": {"ik_lead_engaged": True}})
+    with pytest.raises(ConfigError, match="engaged_depth.*>= 0"):
+        _cfg({"panda": {"engaged_depth": -0.001}})
+
+
+def test_an_engaged_tool_keeps_the_rules_only_past_where_the_press_began() -> None:
+    """With `engaged_depth`, an engaged tool that reads free keeps a tool-in-contact's reference (not behind it) only
+    once it is that far along its axis past where the engaging press began: a peg hopping on the rim after its press
+    gets the scene's reference, one 3 mm down the bore is held at the tool."""
+    env = PandaEnv(1, _cfg({"panda": {"ik_bound_tool_axis": 0.02, "ik_bound_blocked": 0.0, "ik_lead_sliding": 0.01,
+                                      "ik_lead_engaged": True, "engaged_depth": 0.002}}), seed=0)
+    env.reset()
+    axis = env.rot[:, :, 2]
+    start = env.pos.copy()
+
+    def reference_along(offset: float, pressed: float) -> float:
+        """The reference along the tool axis [m] relative to a tool `offset` [m] along its axis from the start, the
+        scene's 5 mm behind it and advancing, the tool pushed back along its axis by `pressed` [N]."""
+        env.pos = start + offset * axis
+        env.scene.pos_d[:] = env.pos - 0.005 * axis
+        env._ref_step[:] = 0.004 * axis
+        env._twist[:] = 0.0
+        env.f_env = np.zeros((1, 6))
+        env.f_env[:, :3] = -pressed * axis
+        return float(np.einsum("nk,nk->n", env._controller_reference()[0].numpy() - env.pos, axis)[0])
+
+    assert reference_along(0.0, 8.0) == pytest.approx(0.0, abs=1e-12)  # pressed on the rim: the contact rule
+    assert env._engaged[0]
+    assert reference_along(0.0005, 0.0) == pytest.approx(-0.005, abs=1e-12)  # hopping on the rim: the scene's
+    assert reference_along(-0.0005, 0.0) == pytest.approx(-0.005, abs=1e-12)
+    assert reference_along(0.003, 0.0) == pytest.approx(0.0, abs=1e-12)  # between the walls: not behind it
+    assert env._engaged[0]
 
 
 def test_with_the_mean_filter_the_reference_rules_read_the_observed_wrench() -> None:

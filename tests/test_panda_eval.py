@@ -416,6 +416,8 @@ def test_the_report_says_whose_ik_reference_follows_the_tool_axis_rules(tmp_path
     assert line is not None and "the learned arms' is kept at most 20 mm from the tool, " in line
     assert "at a tool the contact holds" in line and "20 mm ahead of a tool sliding on in contact" in line
     assert "--set panda.ik_rules_scripted=true" in line
+    anywhere = format_reference_rules(reference_rules(dataclasses.replace(peg, engaged_depth=0.0)), ["learned", "ik"])
+    assert anywhere is not None and "reference advances;" in anywhere and "past that press" not in anywhere
     both = format_reference_rules(reference_rules(dataclasses.replace(peg, ik_rules_scripted=True)),
                                   ["learned", "vic"])
     assert both is not None and "every controller's is kept" in both and "learned arms'" not in both
@@ -442,10 +444,11 @@ def test_the_report_says_whose_ik_reference_follows_the_tool_axis_rules(tmp_path
     # and the JSON document, in metres
     assert json.loads(out.read_text())["ik_reference_rules"] == {
         "tool_axis_bound_m": 0.02, "blocked_bound_m": 0.0, "sliding_lead_m": 0.02, "lead_engaged": False,
-        "arms": "learned"}
+        "engaged_depth_m": 0.0, "arms": "learned"}
     assert line.endswith("; the baselines' is the scene's reference as it is (the same rules for every controller: "
                          "--set panda.ik_rules_scripted=true)")
-    assert "in contact and not behind a tool the block has pressed while the reference advances;" in line
+    assert "in contact and not behind a tool the block has pressed while the reference advances, 2 mm past that " \
+        "press;" in line
     unlatched = format_reference_rules(reference_rules(dataclasses.replace(peg, ik_lead_engaged=False)),
                                        ["learned", "ik"])
     assert "pressed" not in unlatched and unlatched.startswith(line.split(", 20 mm ahead")[0])
