@@ -107,8 +107,8 @@ def test_scripted_force_control_inserts_the_peg() -> None:
     assert s["successes"] >= 3 and 0.0 < s["insertion_time_mean_s"] < 15.0
 
 
-def _learned_peg_trial(trial: int, align_time: float | None = None, **panda: object) -> dict:
-    """The metrics of trial `trial` of seed 0, the learned policy alone, under the peg config with `panda` set (and
+def _learned_peg_trial(trial: int, align_time: float | None = None, seed: int = 0, **panda: object) -> dict:
+    """The metrics of trial `trial` of `seed`, the learned policy alone, under the peg config with `panda` set (and
     the scene's x-y alignment time [s])."""
     from a3cqp_rl.config import load_config
     from envs.panda_eval import _run, trial_seeds
@@ -120,7 +120,7 @@ def _learned_peg_trial(trial: int, align_time: float | None = None, **panda: obj
         setattr(cfg.panda, key, value)
     if align_time is not None:
         cfg.panda.peg_in_hole.align_time = align_time
-    out = _run("peg_in_hole", str(root / cfg.panda.policy), [trial_seeds(0, 26)[trial]], cfg, ("learned",), (), 1,
+    out = _run("peg_in_hole", str(root / cfg.panda.policy), [trial_seeds(seed, 26)[trial]], cfg, ("learned",), (), 1,
                False, None, True)
     return out["metrics"]["learned"]
 
@@ -165,6 +165,18 @@ def test_a_peg_between_the_bores_walls_goes_down_at_its_own_pace_once_engaged(en
     assert bool(m["success"].ravel()[0])
     descent = m["bore_descent_time"].ravel()[0]
     assert descent < 0.6 if engaged else descent > 1.2
+
+
+@pytest.mark.parametrize("past", [0.0, 0.002])
+def test_a_peg_hopping_on_the_rim_after_its_press_is_not_driven_into_the_bore_tilted(past: float) -> None:
+    """Trial 5 of seed 5 (the learned policy, one arm): the peg is pressed on the rim, then hops there reading free.
+    Engaged anywhere (`engaged_depth: 0`), it gets the 20-mm lead of a sliding peg on the rim, drops into the bore
+    while still tilted ~3.6° and wedges ~10 mm deep until the time limit; engaged only 2 mm past where the press
+    began (the peg config), it waits on the rim as without the rule and inserts."""
+    m = _learned_peg_trial(5, seed=5, engaged_depth=past)
+    assert bool(m["success"].ravel()[0]) == (past > 0.0)
+    if past == 0.0:
+        assert 0.005 < m["max_depth"].ravel()[0] < 0.015  # wedged in the bore, not left on the rim
 
 
 def test_main_reports_bad_input_in_one_line(tmp_path, capsys) -> None:  # noqa: ANN001
