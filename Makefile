@@ -49,9 +49,8 @@ bench: $(STAMP)
 #   make peg PEG_SEEDS=0,3-10 PEG_ARGS="--controllers learned,ik_fc"   several seeds' trials pooled (paired times);
 #                  each seed kept in runs/peg_cache as it ends, so the same command resumes a stopped sweep
 #   make peg PEG_ARGS="--controllers learned,ik_fc"      a subset of the controllers
-#   make peg PEG_ARGS="--set panda.ik_rules_scripted=true --set panda.ik_lead_engaged=false"   like for like: the
-#                  baselines' IK reference follows the learned arms' first three tool-axis rules too (the fourth
-#                  does not suit VIC; the report's line above the table says whose reference follows which)
+#   make peg PEG_ARGS="--set panda.ik_rules_scripted=true"   like for like: the baselines' IK reference follows the
+#                  learned arms' tool-axis rules too (the report's line above the table says whose follows which)
 #   make fig7      Fig. 7: three insertions with the operator, learned and IK + FC, plotted into runs/peg_fig7
 #                  (add the snapshots with: a3cqp plot episode runs/peg_fig7 --strip, needs EGL or OSMesa)
 #   make policy    trains that policy here into runs/pm_default (~1 min: 4 s training, then its four candidates on

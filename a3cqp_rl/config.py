@@ -1091,11 +1091,11 @@ class PandaEnvConfig:
     blocked_speed: float = 0.005
     """Speed along the tool axis [m/s] below which a pressed tool is blocked (`ik_bound_blocked`)."""
     ik_rules_scripted: bool = False
-    """Whether the tool-axis rules (`ik_bound_tool_axis`, `ik_bound_blocked`, `ik_lead_sliding`) also place the IK
-    reference of the arms whose weights `PandaEnv.hold_weights` sets (the scripted baselines of `a3cqp evaluate`);
-    false (default): those keep the procedure's reference, as the paper's scripted controller does. True compares
-    every controller with the same reference along the tool axis (docs/panda.md, "The baselines with the learned
-    arms' reference rules")."""
+    """Whether the tool-axis rules (`ik_bound_tool_axis`, `ik_bound_blocked`, `ik_lead_sliding`, `ik_lead_engaged`)
+    also place the IK reference of the arms whose weights `PandaEnv.hold_weights` sets (the scripted baselines of
+    `a3cqp evaluate`); false (default): those keep the procedure's reference, as the paper's scripted controller
+    does. True compares every controller with the same reference along the tool axis (docs/panda.md, "The baselines
+    with the learned arms' reference rules", "Every set of seeds again, with the rule past the press")."""
     policy: str | None = None
     """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
     folder, relative to the working directory, else to the checkout's root (None: --policy is needed for the learned
