@@ -128,13 +128,13 @@ def _learned_peg_trial(trial: int, align_time: float | None = None, seed: int = 
 @pytest.mark.slow
 @pytest.mark.parametrize("observe_pull", [True, False])
 def test_the_operator_pulls_out_a_peg_the_bore_holds_once_a_pull_reads_as_no_wall(observe_pull: bool) -> None:
-    """Trial 14 of seed 0 (the learned policy, one arm): the bore's friction holds the inserted peg against the
+    """Trial 3 of seed 0 (the learned policy, one arm): the bore's friction holds the inserted peg against the
     operator's pull. Read as |f_env| of a wall pressed hard, the pull makes the point-mass policy raise f_d and the peg
     stays in under the hand's full 15 N; read as no wall (`observe_f_env_pull: false`, the peg config) the operator
-    pulls it out. The insertion is the same either way (5.57 s on the machine of 2026-12-02). (Trials 21 and then 17
-    were this test's before the peg config's `f_ope_max_rot` of 3 N m and its `ik_lead_engaged`: each ends deeper or
-    tilted otherwise since, and comes out, or stays in, either way.)"""
-    m = _learned_peg_trial(14, observe_f_env_pull=observe_pull)
+    pulls it out. The insertion is the same either way (5.82 s on the machine of 2026-12-03). (Trials 21, 17 and then
+    14 were this test's before the peg config's `f_ope_max_rot` of 3 N m, its `ik_lead_engaged` and its
+    `engaged_depth`: each ends deeper or tilted otherwise since, and comes out, or stays in, either way.)"""
+    m = _learned_peg_trial(3, observe_f_env_pull=observe_pull)
     assert bool(m["success"].ravel()[0]) and m["insertion_time"].ravel()[0] < 8.21
     assert bool(m["extracted"].ravel()[0]) != observe_pull
     assert (m["disengage_force"].ravel()[0] > 14.0) == observe_pull  # the hand at its bound: the peg held
@@ -144,12 +144,13 @@ def test_the_operator_pulls_out_a_peg_the_bore_holds_once_a_pull_reads_as_no_wal
 @pytest.mark.parametrize("f_ope_max_rot", [1.5, 3.0])
 def test_the_operator_pulls_out_a_peg_that_wedged_once_the_handles_moment_reads_at_its_lever(
         f_ope_max_rot: float) -> None:
-    """Trial 21 of seed 0 (the learned policy, one arm; trial 6 before the peg config's `ik_lead_engaged`): the hand
-    pulls at the handle, 0.19 m from the tool tip, with a moment about the tip. Normalised by 1.5 N m (a 0.1 m lever) that moment reads as the operator's full push, the
-    rotational agents yield to it, the peg tilts and wedges, and it stays in under the hand's full 15 N; with the peg
-    config's 3 N m (a 0.2 m lever) they give way to the bore more than to the hand and the operator pulls it out. The
-    insertion is the same."""
-    m = _learned_peg_trial(21, f_ope_max_rot=f_ope_max_rot)  # (3.0: the peg config's own, which the helper checks)
+    """Trial 19 of seed 0 (the learned policy, one arm; trial 6 before the peg config's `ik_lead_engaged`, 21 before
+    its `engaged_depth`): the hand pulls at the handle, 0.19 m from the tool tip, with a moment about the tip.
+    Normalised by 1.5 N m (a 0.1 m lever) that moment reads as the operator's full push, the rotational agents yield
+    to it, the peg tilts and wedges, and it stays in under the hand's full 15 N; with the peg config's 3 N m (a 0.2 m
+    lever) they give way to the bore more than to the hand and the operator pulls it out. The insertion is the same
+    (6.38 s on the machine of 2026-12-03)."""
+    m = _learned_peg_trial(19, f_ope_max_rot=f_ope_max_rot)  # (3.0: the peg config's own, which the helper checks)
     assert bool(m["success"].ravel()[0]) and m["insertion_time"].ravel()[0] < 8.21
     assert bool(m["extracted"].ravel()[0]) == (f_ope_max_rot == 3.0)
     assert (m["disengage_force"].ravel()[0] > 14.0) == (f_ope_max_rot == 1.5)  # the hand at its bound: held
