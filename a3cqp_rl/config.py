@@ -962,12 +962,24 @@ class GuidanceConfig:
     """Handle goals relative to the handle's position at home (x, y, z) [m], visited in order."""
     pause: float = 1.5
     """Time between a release and the next grasp (and before the first) [s]."""
+    waypoint_turn_deg: float = 0.0
+    """Per trial, the waypoints are turned about the vertical through the handle's home position by an angle drawn
+    uniformly within ± this [deg] (0: every trial visits `waypoints` as listed)."""
+    waypoint_spread: float = 0.0
+    """Per trial, each waypoint is moved by a draw uniform in a ball of this radius [m], before the turn."""
 
     def _check(self, err: _Errors) -> None:
         if not self.waypoints:
             err.add("waypoints", "needs at least one (x, y, z)")
-        if self.pause < 0:
-            err.add("pause", f"must be >= 0, got {self.pause}")
+        for k, w in enumerate(self.waypoints):
+            if len(w) != 3 or not all(math.isfinite(v) for v in w):
+                err.add("waypoints", f"waypoint {k + 1} needs 3 finite numbers (x, y, z) [m], got {list(w)}")
+        if not (self.pause >= 0 and math.isfinite(self.pause)):
+            err.add("pause", f"must be a finite number >= 0, got {self.pause}")
+        if not (0 <= self.waypoint_turn_deg <= 180):
+            err.add("waypoint_turn_deg", f"must be within [0, 180] deg, got {self.waypoint_turn_deg}")
+        if not (self.waypoint_spread >= 0 and math.isfinite(self.waypoint_spread)):
+            err.add("waypoint_spread", f"must be a finite distance >= 0 [m], got {self.waypoint_spread}")
 
 
 @dataclass

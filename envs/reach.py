@@ -34,7 +34,8 @@ class KeyPose:
 
 
 def key_poses(pcfg: PandaEnvConfig, home_pos: np.ndarray, home_rot: np.ndarray) -> list[KeyPose]:
-    """The procedure's nominal poses (no trial's misalignment, plate height or turn) of `pcfg.scene`."""
+    """The procedure's nominal poses of `pcfg.scene` (no trial's misalignment, plate height or zone; the guidance
+    waypoints also at the ends of their turn)."""
     if pcfg.scene == "peg_in_hole":
         c = pcfg.peg_in_hole
         hole = np.array([c.hole_center[0], c.hole_center[1], c.hole_top])
@@ -53,8 +54,18 @@ def key_poses(pcfg: PandaEnvConfig, home_pos: np.ndarray, home_rot: np.ndarray) 
                 poses.append(KeyPose(what, np.array([xy[0], xy[1], c.plate_top - c.preload]), home_rot,
                                      "panda.polishing.plate_center, start_offset, relocations, plate_top"))
         return poses
-    return [KeyPose(f"waypoint {k + 1}", home_pos + np.array(w), home_rot, "panda.guidance.waypoints")
-            for k, w in enumerate(pcfg.guidance.waypoints)]
+    c = pcfg.guidance
+    poses = []
+    # a trial's turn moves a waypoint along an arc about the handle's home: its two ends are checked as well (not
+    # the ball of `waypoint_spread` about each point: a few cm inside a workspace of ~0.8 m)
+    for turn in sorted({0.0, -c.waypoint_turn_deg, c.waypoint_turn_deg}, key=abs):
+        a = np.deg2rad(turn)
+        rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        for k, w in enumerate(c.waypoints):
+            what = f"waypoint {k + 1}" + (f" turned {turn:+g} deg" if turn else "")
+            poses.append(KeyPose(what, home_pos + rz @ np.array(w), home_rot,
+                                 "panda.guidance.waypoints, waypoint_turn_deg"))
+    return poses
 
 
 def _pose_error(model: PandaModel, q: torch.Tensor, pos_d: torch.Tensor, rot_d: torch.Tensor):  # noqa: ANN202

@@ -650,7 +650,9 @@ class Polishing(Scene):
 
 
 class Guidance(Scene):
-    """Free guidance: the operator takes the tool to each waypoint and lets go; the robot holds the taught pose.
+    """Free guidance: the operator takes the tool to each waypoint and lets go; the robot holds the taught pose. Each
+    trial can turn the waypoints about the vertical and move each within a ball (`waypoint_turn_deg`,
+    `waypoint_spread`), so that trials differ by more than the hand's tremor.
 
     Metrics: |f_ope| while guiding (mean, peak: the effort), the hand's distance to its goal at release, the time
     to reach the goal, and how far the robot drifts from the taught pose after the release."""
@@ -665,6 +667,10 @@ class Guidance(Scene):
         super().__init__(n, operator, home_pos, home_rot)
         self.cfg, self.handle_home = cfg, handle_home.copy()
         K = len(cfg.waypoints)
+        self.goals = np.tile(np.asarray(cfg.waypoints, dtype=np.float64), (n, 1, 1))
+        """This trial's handle goals relative to the handle's position at home [N, K, 3] (m, arm frame)."""
+        self.turn = np.zeros(n)
+        """This trial's turn of the waypoints about the vertical [rad]."""
         self.k = np.zeros(n, dtype=np.int64)
         self._releases = np.zeros(n, dtype=np.int64)
         self.goal_error = np.full((n, K), np.nan)
@@ -683,6 +689,24 @@ class Guidance(Scene):
 
     def reset(self, idx: np.ndarray, rngs: list[np.random.Generator]) -> None:
         super().reset(idx, rngs)
+        c = self.cfg
+        w = np.asarray(c.waypoints, dtype=np.float64)
+        if c.waypoint_turn_deg > 0 or c.waypoint_spread > 0:
+            # 1 + 4K draws per trial whatever the spreads (one spread set to 0 leaves the other's draws as they were);
+            # none with both at 0, so the fixed procedure keeps its trials' noise streams
+            K = len(w)
+            u = np.array([np.concatenate([r.random(1), r.standard_normal(3 * K), r.random(K)]) for r in rngs])
+            turn = np.deg2rad(c.waypoint_turn_deg) * (2.0 * u[:, 0] - 1.0)
+            d = u[:, 1:1 + 3 * K].reshape(len(idx), K, 3)
+            d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
+            rho = c.waypoint_spread * np.cbrt(u[:, 1 + 3 * K:])  # uniform in the ball
+            g = w + rho[..., None] * d
+            cos, sin = np.cos(turn)[:, None], np.sin(turn)[:, None]
+            self.turn[idx] = turn
+            self.goals[idx] = np.stack([cos * g[..., 0] - sin * g[..., 1], sin * g[..., 0] + cos * g[..., 1],
+                                        g[..., 2]], axis=-1)
+        else:
+            self.goals[idx], self.turn[idx] = w, 0.0
         self.k[idx] = 0
         for a in (self.goal_error, self.reach_time):
             a[idx] = np.nan
@@ -707,7 +731,7 @@ class Guidance(Scene):
                 more = gm & (self.k < K)
                 mo = arms[more]
                 if len(mo):
-                    goal = self.handle_home + np.array(c.waypoints)[self.k[mo]]
+                    goal = self.handle_home + self.goals[mo, self.k[mo]]
                     self._releases[mo] = self.operator.releases[mo]
                     self.operator.grasp(mo, goal, t)
                     self._enter(more, self.GUIDE, t)

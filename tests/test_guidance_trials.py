@@ -1,0 +1,97 @@
+"""Guidance trials differ: each turns the waypoints about the vertical and moves each within a ball, drawn from the
+arm's own stream; zero spreads give the listed waypoints and leave the trial's noise stream untouched."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict, load_config
+from envs.reach import reach_warning
+
+
+def _guidance(**guidance) -> ExperimentConfig:
+    d = config_to_dict(ExperimentConfig())
+    d["panda"].update(scene="guidance", fd_axes=["z"])
+    d["panda"]["guidance"].update(guidance)
+    return config_from_dict(d)
+
+
+def _unturned(goals: np.ndarray, turn: np.ndarray) -> np.ndarray:
+    """Goals [N, K, 3] turned back by each trial's turn [N] about the vertical."""
+    c, s = np.cos(-turn)[:, None], np.sin(-turn)[:, None]
+    return np.stack([c * goals[..., 0] - s * goals[..., 1], s * goals[..., 0] + c * goals[..., 1], goals[..., 2]],
+                    axis=-1)
+
+
+def test_each_trial_turns_and_moves_its_waypoints_and_a_seed_repeats_them() -> None:
+    from envs.panda import PandaEnv
+
+    cfg = _guidance(waypoint_turn_deg=45.0, waypoint_spread=0.02)
+    c = cfg.panda.guidance
+    env = PandaEnv(6, cfg, trial_seeds=[0, 1, 2, 3, 4, 5])
+    env.reset()
+    sc = env.scene
+    w = np.array(c.waypoints)
+    assert np.all(np.abs(sc.turn) <= math.radians(45.0)) and len(np.unique(sc.turn)) == 6
+    moved = np.linalg.norm(_unturned(sc.goals, sc.turn) - w, axis=-1)  # [6, K]: within the ball, never all at 0
+    assert np.all(moved <= 0.02 + 1e-12) and np.all(moved > 0.0)
+    again = PandaEnv(2, cfg, trial_seeds=[3, 1])  # a trial depends on its own stream only, whatever the batch
+    again.reset()
+    np.testing.assert_array_equal(again.scene.goals, sc.goals[[3, 1]])
+    np.testing.assert_array_equal(again.scene.turn, sc.turn[[3, 1]])
+
+
+def test_the_operator_is_sent_to_the_trials_goal() -> None:
+    from envs.panda import PandaEnv
+
+    cfg = _guidance(waypoint_turn_deg=90.0, waypoint_spread=0.03, pause=0.05)
+    env = PandaEnv(2, cfg, trial_seeds=[7, 8])
+    td = env.reset()
+    while not env.operator.active.all():
+        td["action"] = torch.zeros(2, 6, 4)
+        td = env.step(td)["next"]
+    np.testing.assert_allclose(env.operator.goal, env.scene.handle_home + env.scene.goals[:, 0], rtol=0, atol=1e-12)
+    assert not np.allclose(env.scene.goals[0, 0], env.scene.goals[1, 0])
+
+
+def test_zero_spreads_visit_the_listed_waypoints_and_draw_nothing() -> None:
+    from envs.panda import PandaEnv
+
+    cfg = _guidance(waypoint_turn_deg=0.0, waypoint_spread=0.0)
+    env = PandaEnv(3, cfg, trial_seeds=[0, 1, 2])
+    env.reset()
+    np.testing.assert_array_equal(env.scene.goals, np.tile(np.array(cfg.panda.guidance.waypoints), (3, 1, 1)))
+    assert np.all(env.scene.turn == 0.0)
+    # the fixed procedure's trials keep their noise streams: nothing was drawn at the reset
+    for s, rng in zip([0, 1, 2], env.arm_rngs):
+        assert rng.random() == np.random.default_rng(s).random()
+
+
+def test_the_shipped_guidance_config_turns_and_moves_its_waypoints() -> None:
+    g = load_config("configs/panda_guidance.yaml").panda.guidance
+    assert g.waypoint_turn_deg > 0 and g.waypoint_spread > 0
+    assert ExperimentConfig().panda.guidance.waypoint_turn_deg == 0.0  # the dataclass keeps the list as it is
+
+
+def test_a_waypoint_out_of_reach_only_when_turned_is_named() -> None:
+    """(0, 0.4, 0) from the handle's home is in reach; turned by 90° it lies behind the arm's base."""
+    as_listed = load_config("configs/panda_guidance.yaml",
+                            {"panda": {"guidance": {"waypoints": [[0.0, 0.4, 0.0]], "waypoint_turn_deg": 10.0}}})
+    assert reach_warning(as_listed.panda) is None
+    turned = load_config("configs/panda_guidance.yaml",
+                         {"panda": {"guidance": {"waypoints": [[0.0, 0.4, 0.0]], "waypoint_turn_deg": 90.0}}})
+    warning = reach_warning(turned.panda)
+    assert warning is not None and "waypoint 1 turned +90 deg" in warning and "waypoint_turn_deg" in warning
+    assert "turned -90" not in warning
+
+
+@pytest.mark.parametrize("key,value", [("waypoint_turn_deg", -5.0), ("waypoint_turn_deg", 200.0),
+                                       ("waypoint_spread", float("nan")), ("waypoint_spread", -0.01),
+                                       ("waypoints", [[0.1, 0.1]]), ("pause", float("inf"))])
+def test_the_guidance_values_are_validated(key: str, value: object) -> None:
+    with pytest.raises(Exception, match=key):
+        _guidance(**{key: value})
