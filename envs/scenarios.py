@@ -696,6 +696,7 @@ class Guidance(Scene):
             # none with both at 0, so the fixed procedure keeps its trials' noise streams
             K = len(w)
             u = np.array([np.concatenate([r.random(1), r.standard_normal(3 * K), r.random(K)]) for r in rngs])
+            u = u.reshape(len(idx), 1 + 4 * K)
             turn = np.deg2rad(c.waypoint_turn_deg) * (2.0 * u[:, 0] - 1.0)
             d = u[:, 1:1 + 3 * K].reshape(len(idx), K, 3)
             d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
