@@ -297,6 +297,13 @@ def _summarise(scene: str, m: dict[str, np.ndarray]) -> dict:
         for k, v in m.items():
             if k not in ("diverged", "joint_limit_excess", "joint_speed_ratio", "qp_fallbacks", "qp_relaxed"):
                 out[f"{k}_mean"], out[f"{k}_std"] = _mean_std(v)
+        if "reach_time" in m:  # guidance: the mean time hides the goals never reached (NaN)
+            rt = np.asarray(m["reach_time"], dtype=float)
+            out["goals_reached"] = float(np.isfinite(rt).mean()) if rt.size else None
+        if "drift" in m:  # ... and its mean the release that drifted most
+            dr = np.asarray(m["drift"], dtype=float)
+            dr = dr[np.isfinite(dr)]
+            out["drift_max"] = float(dr.max()) if dr.size else None
     if "joint_limit_excess" in m:  # the worst trial [mrad]: > 0 a joint passed a datasheet limit
         worst = float(np.max(m["joint_limit_excess"])) if len(m["joint_limit_excess"]) else -math.inf
         out["joint_limit_excess_max_mrad"] = 1e3 * worst if math.isfinite(worst) else None
@@ -382,6 +389,11 @@ def format_table(res: EvalResult) -> str:
         for k in keys:
             label, scale, prec = SCENE_ROWS.get(k, (k, 1.0, 3))
             rows.append((label, [_pm(s[c][k + '_mean'], s[c][k + '_std'], scale, prec) for c in names]))
+        if all("goals_reached" in s[c] for c in names):
+            rows.append(("goals reached [fraction]", [_fmt(s[c]["goals_reached"]) for c in names]))
+        if all("drift_max" in s[c] for c in names):
+            rows.append(("drift after the release, worst [mm]", [_fmt(s[c]["drift_max"], scale=1e3, prec=1)
+                                                                  for c in names]))
     if all("joint_limit_excess_max_mrad" in s[c] for c in names):
         rows.append(("joint-limit excess, worst [mrad]", (["-"] if res.scene == "peg_in_hole" else [])
                      + [_fmt(s[c]["joint_limit_excess_max_mrad"], prec=1) for c in names]))
@@ -431,6 +443,7 @@ RANKING_COLUMNS = {
                   ("|f_ope| relocating [N]", lambda d: _num(d["relocation_force_mean"], "{:.2f}"))),
     "guidance": (("|f_ope| guiding [N]", lambda d: _num(d["guide_force_mean"], "{:.2f}")),
                  ("hand to goal [mm]", lambda d: _num(1e3 * d["goal_error_mean"], "{:.0f}")),
+                 ("goals reached", lambda d: _num(d.get("goals_reached"), "{:.0%}")),
                  ("drift [mm]", lambda d: _num(1e3 * d["drift_mean"], "{:.0f}"))),
 }
 """Per scene, the learned controller's headline metrics (label, cell from its JSON document) that

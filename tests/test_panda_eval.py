@@ -241,6 +241,12 @@ def test_the_tables_name_units_and_give_no_spread_for_one_sample() -> None:
     table = format_table(EvalResult.from_metrics("guidance", {"learned": guided}, {}, 1.0, 1.0, (0,)))
     assert "hand to goal at release [mm]" in table and "13 ± 1" in table and "goal_error" not in table
     assert "drift after the release [mm]" in table and "|f_ope| guiding [N]" in table
+    guided["reach_time"] = np.array([[4.1, nan], [3.9, 5.0]])  # three of the four goals reached
+    res = EvalResult.from_metrics("guidance", {"learned": guided}, {}, 1.0, 1.0, (0,))
+    assert res.summary["learned"]["goals_reached"] == 0.75 and res.summary["learned"]["drift_max"] == 0.003
+    rows = dict(line.split(" | ", 1) for line in format_table(res).splitlines()[2:])
+    assert rows["goals reached [fraction]".ljust(len(next(iter(rows))))].strip() == "0.75"
+    assert rows["drift after the release, worst [mm]".ljust(len(next(iter(rows))))].strip() == "3.0"
     one = {"success": np.array([[True], [False]]), "insertion_time": np.array([[6.5], [nan]]),
            "diverged": np.zeros(2, dtype=bool), "misalign_rotation": np.array([[0.06], [0.07]]),
            "misalign_translation": np.array([[0.012], [0.010]]), "disengage_force": np.array([[9.0], [nan]]),
@@ -356,8 +362,8 @@ def test_the_policy_ranking_lists_each_scene_s_headline_metrics() -> None:
     assert lines[2].split() == ["a.pt", "f1", "0/26", "-"]
     assert lines[3].split() == ["b.pt", "f1", "25/26", "6.21", "±", "1.07"]
     gui = {"scene": "guidance", "policy": "c.pt", "policy_fingerprint": "f2", "guide_force_mean": 6.26,
-           "goal_error_mean": 0.0131, "drift_mean": 0.002}
-    assert format_policy_ranking([gui]).splitlines()[2].split() == ["c.pt", "f2", "6.26", "13", "2"]
+           "goal_error_mean": 0.0131, "goals_reached": 0.875, "drift_mean": 0.002}
+    assert format_policy_ranking([gui]).splitlines()[2].split() == ["c.pt", "f2", "6.26", "13", "88%", "2"]
     pol = {"scene": "polishing", "policy": "d.pt", "policy_fingerprint": "f3", "zones_reached_mean": 1.0,
            "force_error_mean": 4.84, "relocation_force_mean": 8.39}
     assert format_policy_ranking([pol]).splitlines()[2].split() == ["d.pt", "f3", "100%", "4.84", "8.39"]
