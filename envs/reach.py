@@ -15,6 +15,7 @@ import torch
 
 from a3cqp_rl.config import PandaEnvConfig
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaModel
+from envs.scenarios import SCENES, turn_about_vertical
 
 POSITION_TOLERANCE = 0.002
 """Tool-tip distance [m] from a key pose above which IK's end counts as not reaching it."""
@@ -59,12 +60,9 @@ def key_poses(pcfg: PandaEnvConfig, home_pos: np.ndarray, home_rot: np.ndarray) 
     # a trial's turn moves a waypoint along an arc about the handle's home: its two ends are checked as well (not
     # the ball of `waypoint_spread` about each point: a few cm inside a workspace of ~0.8 m)
     for turn in sorted({0.0, -c.waypoint_turn_deg, c.waypoint_turn_deg}, key=abs):
-        a = np.deg2rad(turn)
-        rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
-        for k, w in enumerate(c.waypoints):
+        for k, w in enumerate(turn_about_vertical(np.array(c.waypoints), np.deg2rad(turn))):
             what = f"waypoint {k + 1}" + (f" turned {turn:+g} deg" if turn else "")
-            poses.append(KeyPose(what, home_pos + rz @ np.array(w), home_rot,
-                                 "panda.guidance.waypoints, waypoint_turn_deg"))
+            poses.append(KeyPose(what, home_pos + w, home_rot, "panda.guidance.waypoints, waypoint_turn_deg"))
     return poses
 
 
@@ -105,8 +103,6 @@ def ik_miss(model: PandaModel, poses: list[KeyPose], iterations: int = 150) -> t
 
 def reach_warning(pcfg: PandaEnvConfig) -> str | None:
     """A line naming the scene's key poses out of the arm's reach (config keys included), else None."""
-    from envs.scenarios import SCENES
-
     model = PandaModel(tool=SCENES[pcfg.scene].tool)
     home_pos, home_rot = (x[0].numpy() for x in model.fk(torch.tensor([PANDA_HOME], dtype=torch.float64)))
     poses = key_poses(pcfg, home_pos, home_rot)

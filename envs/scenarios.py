@@ -20,13 +20,22 @@ from a3cqp_rl.control.frames import rotation_log
 from a3cqp_rl.robot.scenes import HoleGeometry, hole_block_xml, plate_xml
 
 __all__ = ["Operator", "SceneInput", "Scene", "PegInHole", "Polishing", "Guidance", "make_scene", "min_jerk",
-           "rotvec_to_matrix", "SCENES"]
+           "rotvec_to_matrix", "turn_about_vertical", "SCENES"]
 
 
 def min_jerk(t: np.ndarray, duration: float | np.ndarray) -> np.ndarray:
     """Minimum-jerk progress s ∈ [0, 1] at time t of a move lasting `duration` [s] (10τ³ − 15τ⁴ + 6τ⁵)."""
     tau = np.clip(t / np.maximum(duration, 1e-9), 0.0, 1.0)
     return tau * tau * tau * (10.0 + tau * (-15.0 + 6.0 * tau))
+
+
+def turn_about_vertical(v: np.ndarray, angle: np.ndarray | float) -> np.ndarray:
+    """Vectors v [..., 2 or 3] (x, y[, z]; m) turned about the vertical z by `angle` [rad], which broadcasts against
+    v[..., 0]; z is kept."""
+    c, s = np.cos(angle), np.sin(angle)
+    out = np.array(v, dtype=np.float64)
+    out[..., 0], out[..., 1] = c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]
+    return out
 
 
 def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
@@ -597,8 +606,7 @@ class Polishing(Scene):
             if len(end):
                 em = np.isin(arms, end)
                 k = self.period[end]
-                d0, ct, st = np.array(c.relocations)[k], np.cos(self.turn[end]), np.sin(self.turn[end])
-                d = np.stack([ct * d0[:, 0] - st * d0[:, 1], st * d0[:, 0] + ct * d0[:, 1]], axis=1)
+                d = turn_about_vertical(np.array(c.relocations)[k], self.turn[end])
                 goal = inp.handle_pos[end] + np.concatenate([d, np.full((len(end), 1), c.lift)], axis=1)
                 self._releases[end] = self.operator.releases[end]
                 self.operator.grasp(end, goal, t)
@@ -701,11 +709,8 @@ class Guidance(Scene):
             d = u[:, 1:1 + 3 * K].reshape(len(idx), K, 3)
             d /= np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
             rho = c.waypoint_spread * np.cbrt(u[:, 1 + 3 * K:])  # uniform in the ball
-            g = w + rho[..., None] * d
-            cos, sin = np.cos(turn)[:, None], np.sin(turn)[:, None]
             self.turn[idx] = turn
-            self.goals[idx] = np.stack([cos * g[..., 0] - sin * g[..., 1], sin * g[..., 0] + cos * g[..., 1],
-                                        g[..., 2]], axis=-1)
+            self.goals[idx] = turn_about_vertical(w + rho[..., None] * d, turn[:, None])
         else:
             self.goals[idx], self.turn[idx] = w, 0.0
         self.k[idx] = 0

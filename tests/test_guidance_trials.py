@@ -11,6 +11,7 @@ import torch
 
 from a3cqp_rl.config import ExperimentConfig, config_from_dict, config_to_dict, load_config
 from envs.reach import reach_warning
+from envs.scenarios import turn_about_vertical
 
 
 def _guidance(**guidance) -> ExperimentConfig:
@@ -18,13 +19,6 @@ def _guidance(**guidance) -> ExperimentConfig:
     d["panda"].update(scene="guidance", fd_axes=["z"])
     d["panda"]["guidance"].update(guidance)
     return config_from_dict(d)
-
-
-def _unturned(goals: np.ndarray, turn: np.ndarray) -> np.ndarray:
-    """Goals [N, K, 3] turned back by each trial's turn [N] about the vertical."""
-    c, s = np.cos(-turn)[:, None], np.sin(-turn)[:, None]
-    return np.stack([c * goals[..., 0] - s * goals[..., 1], s * goals[..., 0] + c * goals[..., 1], goals[..., 2]],
-                    axis=-1)
 
 
 def test_each_trial_turns_and_moves_its_waypoints_and_a_seed_repeats_them() -> None:
@@ -37,7 +31,7 @@ def test_each_trial_turns_and_moves_its_waypoints_and_a_seed_repeats_them() -> N
     sc = env.scene
     w = np.array(c.waypoints)
     assert np.all(np.abs(sc.turn) <= math.radians(45.0)) and len(np.unique(sc.turn)) == 6
-    moved = np.linalg.norm(_unturned(sc.goals, sc.turn) - w, axis=-1)  # [6, K]: within the ball, never all at 0
+    moved = np.linalg.norm(turn_about_vertical(sc.goals, -sc.turn[:, None]) - w, axis=-1)  # [6, K]: within the ball, never all at 0
     assert np.all(moved <= 0.02 + 1e-12) and np.all(moved > 0.0)
     again = PandaEnv(2, cfg, trial_seeds=[3, 1])  # a trial depends on its own stream only, whatever the batch
     again.reset()
@@ -87,6 +81,13 @@ def test_a_waypoint_out_of_reach_only_when_turned_is_named() -> None:
     warning = reach_warning(turned.panda)
     assert warning is not None and "waypoint 1 turned +90 deg" in warning and "waypoint_turn_deg" in warning
     assert "turned -90" not in warning
+
+
+def test_turning_about_the_vertical_keeps_z_and_takes_planar_vectors() -> None:
+    np.testing.assert_allclose(turn_about_vertical(np.array([[1.0, 0.0, 5.0], [0.0, 2.0, -1.0]]), math.pi / 2),
+                               [[0.0, 1.0, 5.0], [-2.0, 0.0, -1.0]], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(turn_about_vertical(np.array([[1.0, 1.0], [1.0, 0.0]]), np.array([math.pi, 0.0])),
+                               [[-1.0, -1.0], [1.0, 0.0]], rtol=0, atol=1e-15)
 
 
 @pytest.mark.parametrize("key,value", [("waypoint_turn_deg", -5.0), ("waypoint_turn_deg", 200.0),
