@@ -754,12 +754,16 @@ class OperatorConfig:
     """Distance of the handle to the goal counted as reached [m]."""
     timeout: float = 8.0
     """The hand releases this long after grasping even if the goal was not reached [s]."""
+    release_speed: float = 0.0
+    """The hand lets go at a reached goal only once the handle moves slower than this [m/s] (as a person lets go of
+    an arm that has come to rest; the timeout still releases). 0 (default): `hold_time` after the goal was reached,
+    whatever the handle's speed."""
 
     def _check(self, err: _Errors) -> None:
         for name in ("stiffness", "max_force", "speed", "grip_time", "goal_tolerance", "timeout"):
             err.positive(self, name)
         for name in ("damping", "intrinsic_damping", "rot_stiffness", "rot_damping", "max_torque", "delay", "noise",
-                     "hold_time"):
+                     "hold_time", "release_speed"):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 err.add(name, f"must be a finite number >= 0, got {v}")

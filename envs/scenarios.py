@@ -90,6 +90,7 @@ class Operator:
         self._k = 0
         self._primed = np.zeros(n, dtype=bool)
         self._last_pos = np.zeros((n, 3))
+        self._last_t = np.zeros(n)
         self._last_rot = np.tile(np.eye(3), (n, 1, 1))
 
     def reset(self, idx: np.ndarray) -> None:
@@ -132,13 +133,18 @@ class Operator:
     def update(self, t: np.ndarray, handle_pos: np.ndarray, handle_rot: np.ndarray) -> None:
         """Agent-rate bookkeeping: goal reached -> hold -> release; timeouts; release fade-out ends."""
         c = self.cfg
+        still = True
+        if c.release_speed > 0:  # the handle's speed over the last agent period
+            speed = np.linalg.norm(handle_pos - self._last_pos, axis=1) / np.maximum(t - self._last_t, 1e-9)
+            still = speed < c.release_speed
         self._last_pos[:] = handle_pos
         self._last_rot[:] = handle_rot
+        self._last_t[:] = t
         hold = self.state == self.HOLD
         near = hold & (np.linalg.norm(handle_pos - self.goal, axis=1) < c.goal_tolerance) & np.isnan(self.t_reached)
         self.t_reached[near] = t[near]
         self.reached[near] = True
-        done_hold = hold & (((t - self.t_reached) >= c.hold_time) | ((t - self.t_grasp) >= c.timeout))
+        done_hold = hold & ((((t - self.t_reached) >= c.hold_time) & still) | ((t - self.t_grasp) >= c.timeout))
         self.state[done_hold] = self.RELEASE
         self.t_release[done_hold] = t[done_hold]
         done = (self.state == self.RELEASE) & ((t - self.t_release) >= c.grip_time)

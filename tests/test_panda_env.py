@@ -293,6 +293,28 @@ def test_operator_is_bounded_delayed_and_releases() -> None:
     assert not op.active[0] and op.releases[0] == 1 and op.reached[0]
 
 
+def test_with_a_release_speed_the_hand_lets_go_of_a_reached_goal_only_once_the_handle_is_still() -> None:
+    cfg = OperatorConfig(noise=0.0, hold_time=0.1, grip_time=0.01, goal_tolerance=0.01, release_speed=0.05,
+                         timeout=3.0)
+    op, rot, goal = Operator(2, cfg, 0.001), np.tile(np.eye(3), (2, 1, 1)), np.array([[1.0, 0.0, 0.0]] * 2)
+    op.update(np.zeros(2), np.zeros((2, 3)), rot)
+    op.grasp(np.arange(2), goal, np.zeros(2))
+    # both handles reach the goal at 1 s; arm 0 stops there, arm 1 swings through it at 0.2 m/s for 1 s
+    for k in range(100, 200):
+        op.update(np.full(2, k * 0.01), np.array([[1.0, 0.0, 0.0], [1.0 + 0.002 * (k % 2), 0.0, 0.0]]), rot)
+        if k == 115:  # hold_time passed: the still arm is let go of, the swinging one is not
+            assert op.state.tolist() == [Operator.IDLE, Operator.HOLD] and op.releases.tolist() == [1, 0]
+    assert op.state[1] == Operator.HOLD
+    op.update(np.full(2, 2.0), np.array([[1.0, 0.0, 0.0]] * 2), rot)  # a step of 0.002 m in 0.01 s: still moving
+    op.update(np.full(2, 2.01), np.array([[1.0, 0.0, 0.0]] * 2), rot)  # now still
+    assert op.state[1] == Operator.RELEASE
+    # the timeout lets go whatever the handle's speed
+    op.grasp(np.arange(2), goal, np.full(2, 3.0))
+    for k in range(301):
+        op.update(np.full(2, 3.0 + k * 0.01), np.array([[1.0 + 0.002 * (k % 2), 0.0, 0.0]] * 2), rot)
+    assert (op.state != Operator.HOLD).all()
+
+
 @pytest.fixture
 def mujoco_warnings():  # noqa: ANN201
     """MuJoCo's warnings collected in a list instead of its MUJOCO_LOG.TXT in the working directory."""
