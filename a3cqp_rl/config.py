@@ -971,6 +971,10 @@ class GuidanceConfig:
     uniformly within ± this [deg] (0: every trial visits `waypoints` as listed)."""
     waypoint_spread: float = 0.0
     """Per trial, each waypoint is moved by a draw uniform in a ball of this radius [m], before the turn."""
+    reference_follows: bool = False
+    """While the operator guides, the reference position follows the tool, as x_d does in the paper's polishing
+    relocations (section VI-B2, Fig. 8); False: it stays at the last taught pose, and IK pulls back against the
+    hand."""
 
     def _check(self, err: _Errors) -> None:
         if not self.waypoints:

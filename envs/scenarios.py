@@ -753,6 +753,8 @@ class Guidance(Scene):
         if m.any():
             a = arms[m]
             self._add_operator_force(self._acc, ("n", "f", "f_max"), a, inp)
+            if c.reference_follows:
+                self.pos_d[a] = inp.pos[a]
             released = self.operator.releases[a] > self._releases[a]
             if released.any():
                 r = a[released]

@@ -67,8 +67,32 @@ def test_zero_spreads_visit_the_listed_waypoints_and_draw_nothing() -> None:
 
 def test_the_shipped_guidance_config_turns_and_moves_its_waypoints() -> None:
     g = load_config("configs/panda_guidance.yaml").panda.guidance
-    assert g.waypoint_turn_deg > 0 and g.waypoint_spread > 0
-    assert ExperimentConfig().panda.guidance.waypoint_turn_deg == 0.0  # the dataclass keeps the list as it is
+    assert g.waypoint_turn_deg > 0 and g.waypoint_spread > 0 and g.reference_follows
+    d = ExperimentConfig().panda.guidance  # the dataclass keeps the list as it is, and NSGA-II's objective
+    assert d.waypoint_turn_deg == 0.0 and not d.reference_follows
+
+
+@pytest.mark.parametrize("follows", [False, True])
+def test_a_following_reference_is_the_tool_while_the_hand_guides_and_the_taught_pose_after(follows: bool) -> None:
+    from envs.panda import PandaEnv
+
+    env = PandaEnv(2, _guidance(pause=0.05, reference_follows=follows), trial_seeds=[0, 1])
+    td = env.reset()
+    taught = env.scene.pos_d.copy()
+    steps = 0
+    while steps < 60 or not (env.scene.phase == env.scene.GUIDE).all():
+        td["action"] = torch.zeros(2, 6, 4)
+        td = env.step(td)["next"]
+        steps += 1
+    assert np.linalg.norm(env.pos - taught, axis=1).min() > 1e-3  # the hand has moved the tool
+    if follows:
+        np.testing.assert_array_equal(env.scene.pos_d, env.pos)
+    else:
+        np.testing.assert_array_equal(env.scene.pos_d, taught)
+    while not (env.scene.phase == env.scene.PAUSE).all():  # the first release: the released pose is taught
+        td["action"] = torch.zeros(2, 6, 4)
+        td = env.step(td)["next"]
+    assert np.linalg.norm(env.scene.pos_d - taught, axis=1).min() > 1e-3
 
 
 def test_a_waypoint_out_of_reach_only_when_turned_is_named() -> None:
