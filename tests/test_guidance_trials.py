@@ -120,3 +120,17 @@ def test_turning_about_the_vertical_keeps_z_and_takes_planar_vectors() -> None:
 def test_the_guidance_values_are_validated(key: str, value: object) -> None:
     with pytest.raises(Exception, match=key):
         _guidance(**{key: value})
+
+
+def test_the_shipped_policy_takes_the_hand_to_every_goal_and_holds_each_taught_pose() -> None:
+    """Closed loop on an unseen trial seed with the shipped config and policy: the learned arm lets the hand reach its
+    goals and then holds the released pose; IK alone makes the hand pull at its bound and reach none."""
+    from envs.panda_eval import evaluate
+
+    res = evaluate("guidance", None, trials=2, seed=4321, config=load_config("configs/panda_guidance.yaml"),
+                   controllers=("learned", "ik"), progress=False)
+    learned, ik = res.summary["learned"], res.summary["ik"]
+    assert learned["goals_reached"] == 1.0 and ik["goals_reached"] == 0.0
+    assert learned["drift_max"] < 0.005  # [m]: the released pose is held (ik springs back ~1 cm)
+    assert learned["guide_force_mean"] < 0.6 * ik["guide_force_mean"]
+    assert learned["diverged"] == 0
