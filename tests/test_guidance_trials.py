@@ -124,7 +124,7 @@ def test_the_guidance_values_are_validated(key: str, value: object) -> None:
 
 def test_the_shipped_policy_takes_the_hand_to_every_goal_and_holds_each_taught_pose() -> None:
     """Closed loop on an unseen trial seed with the shipped config and policy: the learned arm lets the hand reach its
-    goals and then holds the released pose; IK alone makes the hand pull at its bound and reach none."""
+    goals and then holds the released pose; IK alone makes the hand pull near its bound and reach none."""
     from envs.panda_eval import evaluate
 
     res = evaluate("guidance", None, trials=2, seed=4321, config=load_config("configs/panda_guidance.yaml"),
