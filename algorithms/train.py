@@ -138,7 +138,13 @@ def _run(args: argparse.Namespace) -> int:
     name = Path(config).stem if config else "point_mass_a2c"
     out = Path(args.out or Path("runs") / (name if not args.env else f"{name}_{args.env}"))
     sweep = args.seeds is not None
-    seeds = args.seeds if sweep else [cfg.seed if args.seed is None else args.seed]
+    if args.seed is not None and "seed" in overrides and overrides["seed"] != args.seed:
+        raise A3CQPError(f"--seed {args.seed} and --set seed={overrides['seed']} disagree; give one")
+    seed = cfg.seed if args.seed is None else args.seed
+    saved_run = out / "config.yaml"
+    if args.resume and not sweep and args.seed is None and "seed" not in overrides and saved_run.is_file():
+        seed = load_config(saved_run).seed  # a plain --resume continues the run's own seed, not the config's
+    seeds = args.seeds if sweep else [seed]
     run_dirs, results, passed = [], [], []
     if sweep and args.force:  # the sweep's own plots and table describe the old runs (each seed's folder: RunFolder)
         from a3cqp_rl.run_folder import remove_outputs

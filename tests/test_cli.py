@@ -257,6 +257,30 @@ def test_steps_are_recorded_so_a_plain_resume_continues_to_them(tmp_path, capsys
     assert "trained 480 steps" in capsys.readouterr().out and load_config(out / "config.yaml").a2c.total_steps == 480
 
 
+@pytest.mark.parametrize("started", [["--seed", "3"], ["--set", "seed=3"]])
+def test_a_plain_resume_continues_the_runs_own_seed(tmp_path, capsys, started):
+    """A run started on a seed other than the config's resumes with neither --seed nor --override, on that seed."""
+    out = tmp_path / "s3"
+    base = ["train", "--config", CONFIG, "--no-compile", "--quiet", "--no-plots", "--no-eval", "--out", str(out)]
+    assert main([*base, "--steps", "160", *started]) == 0
+    capsys.readouterr()
+    assert main(["train", "--out", str(out), "--resume", "--steps", "320", "--no-compile", "--quiet", "--no-plots",
+                 "--no-eval"]) == 0
+    assert "trained 320 steps" in capsys.readouterr().out
+    assert load_config(out / "config.yaml").seed == 3 and not (out / "overrides.log").exists()
+    fresh = tmp_path / "fresh"  # the same 320 steps in one go: the resume lost and repeated nothing
+    assert main([*base[:-1], str(fresh), "--steps", "320", *started]) == 0
+    from algorithms.policy import load_policy
+
+    assert bool((load_policy(fresh).flat == load_policy(out).flat).all())
+
+
+def test_seed_given_twice_and_differently_is_refused(tmp_path, capsys):
+    assert main(["train", "--config", CONFIG, "--steps", "160", "--seed", "5", "--set", "seed=3", "--quiet",
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "--seed 5 and --set seed=3 disagree" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
 def test_shipped_configs_and_policies_are_found_from_another_folder(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)  # no configs/ or policies/ here
     assert main(["train", "--config", "configs/panda_a2c_finetune.yaml", "--steps", "1", "--no-compile",
