@@ -665,7 +665,7 @@ def _parser() -> argparse.ArgumentParser:
                    "round-off)")
     p.add_argument("--no-park", action="store_true", help="keep simulating finished arms' contacts until the last "
                    "episode ends (by default they are parked: the same metrics to round-off, less time)")
-    p.add_argument("--record-trial", type=int, default=0, metavar="K",
+    p.add_argument("--record-trial", type=int, default=None, metavar="K",
                    help="the trial whose episodes --out records for `a3cqp plot episode` (default 0)")
     p.add_argument("--cache", default=None, metavar="DIR", help="keep each seed's (and policy's) result in DIR as it "
                    "ends; the same command again reads the finished ones back (a stopped sweep resumes)")
@@ -692,10 +692,17 @@ def _cli(args: argparse.Namespace, json_out: TextIO | None = None) -> int:
                                    ("--cache", args.cache, True)):
             if path is not None and not (flag == "--json" and path == STDOUT):
                 check_output_path(path, flag, folder=folder)  # before the simulation, not after it
-        if 0 < args.record_trial < args.trials and not args.out:  # (one outside the trials: evaluate's message)
-            raise ValueError("--record-trial picks the trial that --out records: give --out DIR too")
+        if args.record_trial is not None:
+            if not 0 <= args.record_trial < args.trials:
+                raise ValueError(f"--record-trial {args.record_trial} is not one of the trials, 0 .. "
+                                 f"{args.trials - 1} (--trials {args.trials})")
+            if not args.out:
+                raise ValueError("--record-trial picks the trial that --out records: give --out DIR too")
         cfg_path = args.config if args.config is not None else _default_config(args.scene)
         overrides = parse_overrides(args.overrides)
+        if "seed" in overrides:  # the config's seed is training's; the trials are drawn from --seed / --seeds
+            raise ValueError(f"--set seed={overrides['seed']} does not choose the trials: use --seed "
+                             f"{overrides['seed']} (or --seeds)")
         if cfg_path is not None and "panda" not in read_config_file(cfg_path):  # e.g. a point-mass training config
             raise ValueError(f"{cfg_path} has no panda: section: the Panda scenes' settings would all be defaults; "
                              f"pass configs/panda_{args.scene}.yaml or a config based on it")
@@ -737,7 +744,7 @@ def _cli(args: argparse.Namespace, json_out: TextIO | None = None) -> int:
                   "only", file=sys.stderr)
         kw = dict(config=cfg, controllers=controllers, cycles=args.cycles, progress=not args.quiet, fixed=fixed,
                   sim_threads=args.threads, workers=args.workers, park=not args.no_park,
-                  record_trial=args.record_trial)
+                  record_trial=args.record_trial or 0)
         if policies != [None] and (warning := sensing_warning(cfg.panda)):  # the config's: once for every policy
             print(warning, file=sys.stderr)
         if warning := reach_warning(cfg.panda):  # a hole or a plate moved out of the workspace: say so first

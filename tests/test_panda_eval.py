@@ -289,6 +289,10 @@ def test_json_dash_writes_the_results_alone_to_standard_output(tmp_path, capsys)
     (["--controllers", "ik", "--set", "panda.scene=polishing"], "--set panda.scene is for the polishing scene"),
     (["--controllers", "ik,ik"], "--controllers names ik more than once"),
     (["--controllers", "ik", "--record-trial", "1", "--trials", "2"], "--record-trial picks the trial that --out"),
+    (["--controllers", "ik", "--record-trial", "0"], "--record-trial picks the trial that --out"),
+    (["--controllers", "ik", "--record-trial", "5", "--out", "/nonexistent/x"], "--record-trial 5 is not one of the "
+     "trials, 0 .. 0 (--trials 1)"),
+    (["--controllers", "ik", "--set", "seed=3"], "--set seed=3 does not choose the trials: use --seed 3"),
     (["--seeds", "0-99999999"], "names more than 10,000 seeds"),
 ])
 def test_main_refuses_before_simulating(args, said, capsys, monkeypatch) -> None:  # noqa: ANN001
@@ -724,4 +728,4 @@ def test_the_recorded_trial_can_be_any_trial_and_comes_from_the_worker_that_ran_
         evaluate("peg_in_hole", None, trials=3, seed=0, config=cfg, controllers=("ik",), record_trial=3)
     assert main(["--scene", "peg_in_hole", "--trials", "2", "--controllers", "ik", "--record-trial", "-1",
                  "--quiet"]) == 2
-    assert "recorded trial must be one of the trials" in capsys.readouterr().err
+    assert "--record-trial -1 is not one of the trials, 0 .. 1" in capsys.readouterr().err
