@@ -77,7 +77,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", default=None, choices=["peg_in_hole", "polishing", "guidance"],
                    help="evaluate on the simulated Panda instead; `a3cqp evaluate --scene S --help` lists its options "
                         "(--trials, --controllers, --record-trial, ...)")
-    args = p.parse_args(argv)
+    args, unknown = p.parse_known_args(argv)
+    panda_only = sorted({u.split("=", 1)[0] for u in unknown} & PANDA_ONLY)
+    if panda_only:  # the Panda's options given without --scene: say so, not just "unrecognized"
+        p.error(f"{', '.join(panda_only)} {'is' if len(panda_only) == 1 else 'are'} for the Panda scenes: add --scene "
+                "peg_in_hole|polishing|guidance (the point mass takes --episodes, --seed, --config)")
+    if unknown:
+        p.error(f"unrecognized arguments: {' '.join(unknown)}")
 
     import torch
 
@@ -96,6 +102,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     return 0
+
+
+PANDA_ONLY = {"--trials", "--seeds", "--controllers", "--controller-config", "--record-trial", "--out", "--cache",
+              "--workers", "--threads", "--cycles", "--set", "--no-park", "--quiet"}
+"""`a3cqp evaluate --scene`'s options that the point-mass evaluation does not take."""
 
 
 def _policy_file(path: str | Path) -> Path:

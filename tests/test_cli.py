@@ -229,6 +229,16 @@ def test_a_run_folder_named_like_a_baseline_gets_its_own_row(tmp_path, capsys):
     assert (out / "evaluation.json").is_file()
 
 
+def test_evaluate_names_the_panda_options_given_without_a_scene(capsys):
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--trials", "2", "--controllers=ik"])
+    err = capsys.readouterr().err
+    assert "--controllers, --trials are for the Panda scenes: add --scene" in err
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--bogus"])
+    assert "unrecognized arguments: --bogus" in capsys.readouterr().err
+
+
 def test_evaluate_checks_its_json_path_before_evaluating(tmp_path, capsys):
     assert main(["evaluate", "--episodes", "2", "--json", str(tmp_path)]) == 2
     err = capsys.readouterr().err
