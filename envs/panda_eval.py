@@ -607,7 +607,8 @@ def _print_report(args: argparse.Namespace, cfg_path: str | Path | None, res: Ev
     then = ("" if not back else
             f"; {'every seed' if back == len(res.seeds) else f'{back} of {len(res.seeds)} seeds'} read back from "
             f"{args.cache}, the wall time as measured then")
-    print(f"{res.scene}: {args.trials * len(res.seeds)} trials per controller{each}, {which}, config "
+    n = args.trials * len(res.seeds)
+    print(f"{res.scene}: {n} trial{'' if n == 1 else 's'} per controller{each}, {which}, config "
           f"{cfg_path or 'defaults'}"
           f"{given}; "
           f"{res.sim_seconds:.0f} s simulated in {res.seconds:.1f} s ({res.sim_seconds / res.seconds:.1f}x real time, "

@@ -232,7 +232,7 @@ def format_targets(res: EvalResult, primary: str = "learned") -> str:
     sr, it = t["success_rate"], t["insertion_time_mean_s"]
     lines = [f"targets for {primary}: success rate >= {100 * sr['target']:.0f} %: {yes[sr['met']]} "
              f"({100 * sr['value']:.0f} %); mean insertion time <= {it['target']:.2f} s: {yes[it['met']]} "
-             f"({_fmt(it['value'])} s)"]
+             + (f"({_fmt(it['value'])} s)" if it["value"] is not None else "(no insertion)")]
     b = t["baselines"]
     if b:
         lost = [f"{c} {100 * v['success_rate']:.0f} %" for c, v in b.items() if not v["success_met"]]

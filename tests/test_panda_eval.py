@@ -567,6 +567,7 @@ def test_targets_say_which_of_table_vi_and_the_baselines_the_learned_policy_meet
                                    10.0, (0,))
     assert not targets(none)["baselines"]["ik"]["time_met"]
     assert "at most every baseline's: NOT met" in format_targets(none)
+    assert "mean insertion time <= 8.21 s: NOT met (no insertion)" in format_targets(none)
     # below Table VI: 8 of 10, slower than 8.21 s; alone, nothing to compare with
     slow = EvalResult.from_metrics("peg_in_hole", {"learned": _peg_metrics([True] * 8 + [False] * 2,
                                                                            [9.0] * 8 + [nan] * 2)}, {}, 1.0, 10.0, (0,))
