@@ -593,6 +593,8 @@ class TrainResult:
     """With `a2c.select_policy: transfer`, their transfer margin (a3cqp_rl.transfer; > 0: both Panda checks pass)."""
     panda_selection: list[dict] = field(default_factory=list)
     """With `a2c.select_policy: panda`, each candidate's row (algorithms.panda_select), in the margins' order."""
+    resumed_steps: int = 0
+    """Steps the run had trained before this call (a resume); equal to `steps`: nothing was left to train."""
 
 
 def train(
@@ -731,7 +733,7 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
         fig5_applies=regions is not None,
         selected_update=selection.update if selection.best is not None else None,
         transfer_margin=selection.margin if selection.best is not None else float("nan"),
-        panda_selection=panda_rows,
+        panda_selection=panda_rows, resumed_steps=start * per_update,
     )
 
 

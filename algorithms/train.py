@@ -168,10 +168,14 @@ def _run(args: argparse.Namespace) -> int:
                     override=args.override, progress=not args.quiet)
         run_dirs.append(run_dir)
         results.append(res)
-        print(f"trained {res.steps:,} steps in {res.seconds:.1f} s ("
-              + (f"{res.compile_seconds:.0f} s of it compiling; {res.steps_per_second:,.0f} steps/s after that"
-                 if res.compile_seconds else f"{res.steps_per_second:,.0f} steps/s") + "); "
-              + _reward_text(res.final_metrics.get("episode_reward", float("nan"))))
+        if res.resumed_steps == res.steps:  # a finished run resumed: no rate or reward to report from this call
+            print(f"{run_dir} had already trained its {res.steps:,} steps: nothing left to train (--steps N goes on "
+                  "to N)")
+        else:
+            print(f"trained {res.steps:,} steps in {res.seconds:.1f} s ("
+                  + (f"{res.compile_seconds:.0f} s of it compiling; {res.steps_per_second:,.0f} steps/s after that"
+                     if res.compile_seconds else f"{res.steps_per_second:,.0f} steps/s") + "); "
+                  + _reward_text(res.final_metrics.get("episode_reward", float("nan"))))
         if res.selected_update is not None:
             print(_selection_text(res, run_cfg.a2c.select_last))
         if args.timings:

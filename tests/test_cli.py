@@ -184,7 +184,9 @@ def test_a_finished_run_resumed_keeps_its_log_a_shorter_one_is_refused_and_resum
     assert main([*args, "--steps", "464"]) == 0  # 29 updates of 16 steps: the last row is not on a log_every boundary
     csv0, flat0 = (out / "metrics.csv").read_bytes(), load_policy(out).flat.clone()
     assert csv0.decode().strip().splitlines()[-1].split(",")[1] == "29"
+    capsys.readouterr()
     assert main([*args, "--steps", "464", "--resume"]) == 0
+    assert f"{out} had already trained its 464 steps: nothing left to train" in capsys.readouterr().out
     assert (out / "metrics.csv").read_bytes() == csv0 and bool((load_policy(out).flat == flat0).all())
     assert main([*args, "--steps", "160", "--resume"]) == 2
     assert "more than the 160 asked for" in capsys.readouterr().err
@@ -260,7 +262,7 @@ def test_steps_are_recorded_so_a_plain_resume_continues_to_them(tmp_path, capsys
     capsys.readouterr()
     for again in ([base[0], *base[3:]], base):  # no --steps, with and without --config: the run's own length
         assert main([*again, "--resume"]) == 0
-        assert "trained 160 steps" in capsys.readouterr().out
+        assert "already trained its 160 steps" in capsys.readouterr().out
     assert main([*base, "--resume", "--steps", "320"]) == 0  # --steps changes it
     assert "trained 320 steps" in capsys.readouterr().out and load_config(out / "config.yaml").a2c.total_steps == 320
     assert main([*base, "--resume", "--set", "a2c.total_steps=480"]) == 0  # and so does --set
