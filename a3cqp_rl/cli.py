@@ -9,6 +9,7 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 
 # sub-command -> "module:function" taking the remaining argv list and returning an exit code.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -84,10 +85,16 @@ class ClosedPipeGuard:
         return getattr(self._stream, name)
 
 
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:  # noqa: ANN001
+    """A command's warnings as one plain line; the source line and file path are for library users."""
+    return f"warning: {message}\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     """Dispatch `a3cqp <command> ...` to the command's module; returns the process exit code."""
     if argv is None and not isinstance(sys.stdout, ClosedPipeGuard):  # the console command (tests pass argv)
         sys.stdout = ClosedPipeGuard(sys.stdout)
+        warnings.formatwarning = _one_line_warning
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="a3cqp", description=help_summary(__doc__))
     parser.add_argument("command", choices=sorted(COMMANDS), help="; ".join(f"{k}: {v[1]}" for k, v in COMMANDS.items()))

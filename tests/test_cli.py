@@ -1,6 +1,7 @@
 """`a3cqp train` end to end: files, plots, resume, seed sweeps and clear errors."""
 
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -321,3 +322,17 @@ def test_an_unknown_env_is_one_readable_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and "invalid value(s): env: unknown environment 'Foo-v9'" in err
     assert ":;" not in err and "\n" not in err and "<defaults>" not in err
+
+
+def test_a_commands_warning_is_one_plain_line(monkeypatch):
+    import warnings
+
+    from a3cqp_rl import cli
+
+    monkeypatch.setattr(sys, "argv", ["a3cqp", "--help"])
+    monkeypatch.setattr(sys, "stdout", sys.stdout)  # the console path wraps it; restored after the test
+    monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)
+    assert cli.main() == 0
+    said = warnings.formatwarning(UserWarning("a2c.average_last: cannot be rebuilt"), UserWarning,
+                                  "/site-packages/algorithms/a2c_run.py", 77, "warnings.warn(...)")
+    assert said == "warning: a2c.average_last: cannot be rebuilt\n"
