@@ -1,4 +1,4 @@
-"""Genetic-algorithm tuning of the A2C hyper-parameters (paper 000 section IV-C: eq. 33-34, Table V) on pygad.
+"""Genetic-algorithm tuning of the A2C hyper-parameters (A3CQP, Testa et al. 2025: eq. 33-34, Table V) on pygad.
 
     a3cqp tune --config configs/ga_point_mass.yaml [--generations G] [--steps-per-trial S] [--workers W]
                [--ray ADDRESS] [--out DIR] [--resume] [--quiet]

@@ -1,4 +1,4 @@
-"""NSGA-II on pygad (Deb et al. 2002; as paper 002 uses it to tune QP weights, priority levels and gains).
+"""NSGA-II on pygad (Deb et al. 2002; as Penco et al. 2020 use it to tune QP weights, priority levels and gains).
 
     a3cqp pareto --config configs/nsga2_zdt1.yaml [--generations G] [--population P] [--workers W]
                  [--ray ADDRESS] [--out DIR] [--resume] [--quiet]
