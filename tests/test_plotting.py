@@ -65,11 +65,16 @@ def test_plot_cli_names_and_paths_that_do_not_collide_or_trace_back(tmp_path, ca
     assert main(["plot", "policy-map", f"{runs[0]}/checkpoint.pt"]) == 0
     assert (tmp_path / "seed_0" / "policy_map.png").is_file()
     assert (tmp_path / "seed_0" / "policy_map_checkpoint.png").is_file()
+    # --x e alone: f_env stays on y and f_ope, the state left, is the one held at the levels
+    assert main(["plot", "policy-map", runs[0], "--x", "e", "--out", str(tmp_path / "e_fenv.png")]) == 0
+    assert (tmp_path / "e_fenv.png").is_file()
     capsys.readouterr()
     (tmp_path / "afile").write_text("")
     for args, said in ((["policy-map", runs[0], "--out", str(tmp_path / "afile" / "m.png")], "is a file, not a folder"),
                        (["policy-map", runs[0], "--levels", "abc"], "--levels 'abc': expected comma-separated"),
-                       (["policy-map", runs[0], "--levels", "0,2"], "level must be in [0, 1]")):
+                       (["policy-map", runs[0], "--levels", "0,2"], "level must be in [0, 1]"),
+                       (["policy-map", runs[0], "--x", "e", "--y", "e"], "--x and --y both name e"),
+                       (["policy-map", runs[0], "--x", "e", "--fixed", "e"], "--fixed e is also on an axis")):
         assert main(["plot", *args]) == 2
         err = capsys.readouterr().err
         assert said in err and "Traceback" not in err

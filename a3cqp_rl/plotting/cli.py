@@ -86,9 +86,10 @@ def main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="what", required=True)
     pm = _plot_parser(sub, "policy-map", "paper Fig. 5: actions over the normalised state space", "policy",
                       "OUT/policy.pt or OUT/checkpoint.pt (or a run folder)")
-    pm.add_argument("--x", default="f_ope", choices=["e", "f_env", "f_ope"])
-    pm.add_argument("--y", default="f_env", choices=["e", "f_env", "f_ope"])
-    pm.add_argument("--fixed", default="e", choices=["e", "f_env", "f_ope"])
+    pm.add_argument("--x", default="f_ope", choices=["e", "f_env", "f_ope"], help="state on the x axis")
+    pm.add_argument("--y", default="f_env", choices=["e", "f_env", "f_ope"], help="state on the y axis")
+    pm.add_argument("--fixed", default=None, choices=["e", "f_env", "f_ope"],
+                    help="state held at each of --levels (default: the one --x and --y leave)")
     pm.add_argument("--levels", default="0,0.05,0.3", help="comma-separated levels of the fixed variable in [0, 1]")
     for name, text in (("loss-curves", "paper Fig. 4: policy/value loss, mean and IQR over runs"),
                        ("regions", "Fig. 5 regions passed over training (metrics.csv region checks)"),
@@ -117,10 +118,15 @@ def main(argv: list[str] | None = None) -> int:
             if src.is_dir():
                 src = src / "policy.pt"
             levels = _levels(args.levels)
+            if args.x == args.y:
+                raise ValueError(f"--x and --y both name {args.x}: give two different states")
+            fixed = args.fixed or next(n for n in ("e", "f_env", "f_ope") if n not in (args.x, args.y))
+            if fixed in (args.x, args.y):
+                raise ValueError(f"--fixed {fixed} is also on an axis: fix the state --x and --y leave")
             # checkpoint.pt holds the last parameters, policy.pt the kept ones: their maps must not replace each other
             name = "policy_map" if src.name == "policy.pt" else f"policy_map_{src.stem}"
             out = Path(args.out) if args.out else src.with_name(name + ext)
-            plot_policy_map(_load_policy(src), out, args.x, args.y, args.fixed, levels, title=str(src))
+            plot_policy_map(_load_policy(src), out, args.x, args.y, fixed, levels, title=str(src))
         elif args.what == "loss-curves":
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
 
