@@ -159,6 +159,11 @@ def report(policies: Sequence[str | Path], config: ExperimentConfig | None = Non
     baselines = baseline_policies()
     names = _names(paths, reserved=baselines)
     learned = {n: load_policy(path) for n, path in zip(names, paths)}
+    for path, policy in zip(paths, learned.values()):  # before any episode: a Pendulum policy, say, is named here
+        dims = (policy.layout.obs_dim, policy.layout.act_dim)
+        if dims != (3, 4):
+            raise ValueError(f"{path}: a policy of {dims[0]} observations and {dims[1]} actions; the point mass's "
+                             "agent needs 3 -> 4 (|e|, |f_env|, |f_ope| -> ẇ1, ẇ2, ẇ3, ḟd), an A3CQP policy")
     if config is None and paths:
         saved = load_checkpoint(paths[0], ("config",))["config"]
         config = config_from_dict(saved, str(paths[0]))

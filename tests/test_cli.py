@@ -336,3 +336,13 @@ def test_a_commands_warning_is_one_plain_line(monkeypatch):
     said = warnings.formatwarning(UserWarning("a2c.average_last: cannot be rebuilt"), UserWarning,
                                   "/site-packages/algorithms/a2c_run.py", 77, "warnings.warn(...)")
     assert said == "warning: a2c.average_last: cannot be rebuilt\n"
+
+
+def test_evaluate_names_a_policy_that_is_not_an_a3cqp_one_before_any_episode(tmp_path, capsys):
+    from a3cqp_rl.config import config_from_dict
+    from algorithms.a2c import train
+
+    train(config_from_dict({"env": "Pendulum-v1", "a2c": {"compile": False}}), tmp_path / "pend", total_steps=64)
+    assert main(["evaluate", "--policy", str(tmp_path / "pend"), "--episodes", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "a policy of 3 observations and 1 actions; the point mass's agent needs 3 -> 4" in err
