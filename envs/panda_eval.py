@@ -515,7 +515,7 @@ def _progress(arms: int, enabled: bool):  # noqa: ANN202
 
     class Bar(tqdm):
         def set_simulated(self, seconds: float) -> None:
-            self.set_postfix_str(f"{seconds:.0f} s simulated", refresh=False)
+            self.set_postfix_str(f"{seconds:.0f} s into the episodes", refresh=False)
 
     bar = Bar(total=arms, disable=not enabled, mininterval=2.0, file=sys.stderr,
               bar_format="{l_bar}{bar}| {n}/{total} episodes over [{elapsed}{postfix}]")

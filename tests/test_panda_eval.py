@@ -710,7 +710,7 @@ def test_worker_processes_report_to_one_progress_bar_over_every_arm(capfd) -> No
     assert res.summary["ik"]["trials"] == 3
     err = capfd.readouterr().err
     # 3 arms in two processes (2 + 1): the parent's bar counts them all, and the simulated time comes back with them
-    assert re.search(r"3/3 episodes over \[[0-9:]+, 3 s simulated\]", err), err[-300:]
+    assert re.search(r"3/3 episodes over \[[0-9:]+, 3 s into the episodes\]", err), err[-300:]
     assert "/2 episodes" not in err and "/1 episodes" not in err
 
 
