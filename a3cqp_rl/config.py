@@ -1370,7 +1370,8 @@ class _Errors:
     def positive(self, obj: Any, name: str) -> None:
         value = getattr(obj, name)
         if not (value > 0) or (isinstance(value, float) and not math.isfinite(value)):
-            self.add(name, f"must be a finite number > 0, got {value}")
+            self.add(name, f"must be an integer >= 1, got {value}" if isinstance(value, int)
+                     else f"must be a finite number > 0, got {value}")
 
 
 def _convert(tp: Any, value: Any, key: str, source: str) -> Any:

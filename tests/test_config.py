@@ -302,3 +302,12 @@ def test_counts_in_scientific_notation_are_whole_numbers() -> None:
     assert _parser().parse_args(["--steps", "2e5"]).steps == 200_000
     with pytest.raises(SystemExit):
         _parser().parse_args(["--steps", "1.5"])
+
+
+def test_a_count_below_one_is_named_as_an_integer_and_a_length_as_a_number():
+    from a3cqp_rl.config import config_from_dict
+
+    with pytest.raises(ConfigError, match=r"panda.peg_in_hole.cycles: must be an integer >= 1, got 0"):
+        config_from_dict({"panda": {"scene": "peg_in_hole", "peg_in_hole": {"cycles": 0}}})
+    with pytest.raises(ConfigError, match=r"panda.peg_in_hole.time_limit: must be a finite number > 0, got 0.0"):
+        config_from_dict({"panda": {"scene": "peg_in_hole", "peg_in_hole": {"time_limit": 0}}})
