@@ -9,6 +9,7 @@ import argparse
 import importlib
 import os
 import sys
+import textwrap
 import warnings
 
 # sub-command -> "module:function" taking the remaining argv list and returning an exit code.
@@ -96,8 +97,13 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout = ClosedPipeGuard(sys.stdout)
         warnings.formatwarning = _one_line_warning
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = argparse.ArgumentParser(prog="a3cqp", description=help_summary(__doc__))
-    parser.add_argument("command", choices=sorted(COMMANDS), help="; ".join(f"{k}: {v[1]}" for k, v in COMMANDS.items()))
+    width = max(map(len, COMMANDS))
+    parser = argparse.ArgumentParser(
+        prog="a3cqp", description=help_summary(__doc__), formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="commands:\n" + "\n".join(textwrap.fill(v[1], 100, initial_indent=f"  {k:<{width}}  ",
+                                                       subsequent_indent=" " * (width + 4)) for k, v in COMMANDS.items())
+        + "\n\n`a3cqp COMMAND --help` lists a command's options.")
+    parser.add_argument("command", choices=sorted(COMMANDS), help="one of the commands below")
     if not argv or argv[0] in ("-h", "--help"):
         parser.print_help()
         return 0 if argv else 2

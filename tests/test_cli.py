@@ -346,3 +346,12 @@ def test_evaluate_names_a_policy_that_is_not_an_a3cqp_one_before_any_episode(tmp
     assert main(["evaluate", "--policy", str(tmp_path / "pend"), "--episodes", "2"]) == 2
     err = capsys.readouterr().err
     assert "a policy of 3 observations and 1 actions; the point mass's agent needs 3 -> 4" in err
+
+
+def test_the_top_level_help_lists_each_command_on_its_own_line(capsys):
+    from a3cqp_rl.cli import COMMANDS
+
+    assert main(["--help"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    for name, (_, text) in COMMANDS.items():
+        assert any(line.startswith(f"  {name} ") and text.split()[0] in line for line in lines), name

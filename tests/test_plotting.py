@@ -60,6 +60,14 @@ def test_plot_cli_names_and_paths_that_do_not_collide_or_trace_back(tmp_path, ca
     assert (tmp_path / "loss_curves.png").is_file()
     assert main(["plot", "loss-curves", runs[1]]) == 0
     assert (tmp_path / "seed_1" / "loss_curves.png").is_file()
+    (tmp_path / "loss_curves.png").unlink()  # the sweep's folder itself stands for its seeds
+    assert main(["plot", "loss-curves", str(tmp_path), "--out", str(tmp_path / "sweep.png")]) == 0
+    assert (tmp_path / "sweep.png").is_file()
+    from a3cqp_rl.plotting.cli import _expand_sweeps
+
+    (tmp_path / "seed_10").mkdir()
+    (tmp_path / "seed_10" / "metrics.csv").write_text("")
+    assert _expand_sweeps([str(tmp_path)]) == [*runs, str(tmp_path / "seed_10")]  # 10 after 1: seed order
     # the last parameters' map does not replace the kept policy's
     assert main(["plot", "policy-map", runs[0]]) == 0
     assert main(["plot", "policy-map", f"{runs[0]}/checkpoint.pt"]) == 0

@@ -61,6 +61,19 @@ def _beside_runs(runs: list[str], name: str) -> Path:
     return Path(runs[0]) / name if len(runs) == 1 else Path(runs[0]).parent / name
 
 
+def _expand_sweeps(runs: list[str]) -> list[str]:
+    """Run folders as given, a sweep's folder (`a3cqp train --seeds`: no metrics.csv, seed_S/metrics.csv inside)
+    replaced by its seeds' folders in seed order."""
+    out: list[str] = []
+    for run in runs:
+        seeds = sorted(Path(run).glob("seed_*/metrics.csv"), key=lambda p: (len(p.parent.name), p.parent.name))
+        if Path(run).is_dir() and not (Path(run) / "metrics.csv").exists() and seeds:
+            out += [str(p.parent) for p in seeds]
+        else:
+            out.append(run)
+    return out
+
+
 def _episode_controller(src: Path, given: str | None) -> str:
     """The controller whose episode `plot episode` draws: `given` (default learned) in a run folder; an
     episode_<controller>.npz's own name, which a different `given` contradicts."""
@@ -130,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.what == "loss-curves":
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
 
+            args.runs = _expand_sweeps(args.runs)
             out = Path(args.out) if args.out else _beside_runs(args.runs, "loss_curves" + ext)
             plot_loss_curves(args.runs, out)
         elif args.what == "episode":
@@ -153,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.what == "transfer":
             from a3cqp_rl.plotting.transfer_history import plot_transfer_history
 
+            args.runs = _expand_sweeps(args.runs)
             out = Path(args.out) if args.out else _beside_runs(args.runs, "transfer" + ext)
             plot_transfer_history(args.runs, out)
         elif args.what == "ga":
@@ -167,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             from a3cqp_rl.plotting.region_history import plot_region_history
 
+            args.runs = _expand_sweeps(args.runs)
             out = Path(args.out) if args.out else _beside_runs(args.runs, "regions" + ext)
             plot_region_history(args.runs, out)
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
