@@ -395,7 +395,7 @@ def format_table(res: EvalResult) -> str:
             rows.append(("drift after the release, worst [mm]", [_fmt(s[c]["drift_max"], scale=1e3, prec=1)
                                                                   for c in names]))
     if all("joint_limit_excess_max_mrad" in s[c] for c in names):
-        rows.append(("joint-limit excess, worst [mrad]", (["-"] if res.scene == "peg_in_hole" else [])
+        rows.append(("joint-limit excess, worst [mrad; <0: inside]", (["-"] if res.scene == "peg_in_hole" else [])
                      + [_fmt(s[c]["joint_limit_excess_max_mrad"], prec=1) for c in names]))
     if all("joint_speed_ratio_max" in s[c] for c in names):
         rows.append(("joint speed, worst [x limit]", (["-"] if res.scene == "peg_in_hole" else [])

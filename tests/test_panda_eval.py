@@ -50,7 +50,7 @@ def test_every_controller_runs_the_same_trials_and_the_json_has_table_vi_keys() 
     for c in ("ik_fc", "equal"):
         assert -1.0e3 < s[c]["joint_limit_excess_max_mrad"] < 0.0
         assert len(res.per_trial[c]["joint_limit_excess"]) == 1
-    assert "joint-limit excess, worst [mrad]" in table
+    assert "joint-limit excess, worst [mrad; <0: inside]" in table
     # ... and every joint below its datasheet speed limit (IK + FC's fastest joint reaches ~0.85 of it here)
     assert all(0.3 < s[c]["joint_speed_ratio_max"] < 1.0 for c in ("ik_fc", "equal"))
     assert "joint speed, worst [x limit]" in table
