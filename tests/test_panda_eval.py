@@ -730,3 +730,11 @@ def test_the_recorded_trial_can_be_any_trial_and_comes_from_the_worker_that_ran_
     assert main(["--scene", "peg_in_hole", "--trials", "2", "--controllers", "ik", "--record-trial", "-1",
                  "--quiet"]) == 2
     assert "--record-trial -1 is not one of the trials, 0 .. 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("pick", sorted((ROOT / "configs" / "pareto_picks").glob("*.yaml")), ids=lambda p: p.stem)
+def test_the_shipped_pareto_picks_load_as_fixed_controllers_named_after_their_files(pick) -> None:  # noqa: ANN001
+    from envs.panda_eval import load_fixed_controller
+
+    fixed = load_fixed_controller(pick)
+    assert fixed.name == pick.stem and set(fixed.levels) == {"ik", "ac", "fc", "jc", "cartesian_regularizer"}
