@@ -1116,6 +1116,12 @@ class PandaEnvConfig:
     `a3cqp evaluate`); false (default): those keep the procedure's reference, as the paper's scripted controller
     does. True compares every controller with the same reference along the tool axis (docs/panda.md, "The baselines
     with the learned arms' reference rules", "Every set of seeds again, with the rule past the press")."""
+    vic_contact_scale: tuple[float, ...] = (2.0, 2.0, 1.0 / 3.0, 1.0, 1.0, 1.0)
+    """The variable-impedance baseline's (`a3cqp evaluate --controllers vic`) scales of Table I's k_p, k_θ per local
+    axis (x, y, z, rx, ry, rz of L) from its first contact on: a hand-tuned schedule, stiff across the tool axis, soft
+    along it (docs/panda.md, "Where VIC's like-for-like lead comes from": its x and y set its time on the rim)."""
+    vic_operator_scale: tuple[float, ...] = (0.2, 0.2, 0.2, 0.5, 0.5, 0.5)
+    """The variable-impedance baseline's scales while the operator holds the handle (compliant)."""
     policy: str | None = None
     """The learned adaptation policy `a3cqp evaluate --scene` runs when no --policy is given: a policy.pt or a run
     folder, relative to the working directory, else to the checkout's root (None: --policy is needed for the learned
@@ -1171,6 +1177,10 @@ class PandaEnvConfig:
         bad = [a for a in self.fd_axes if a not in ("x", "y", "z")]
         if bad or len(set(self.fd_axes)) != len(self.fd_axes):
             err.add("fd_axes", f"must be distinct names among x, y, z, got {list(self.fd_axes)}")
+        for name in ("vic_contact_scale", "vic_operator_scale"):
+            scales = getattr(self, name)
+            if len(scales) != 6 or not all(math.isfinite(v) and v > 0 for v in scales):
+                err.add(name, f"needs 6 finite scales > 0 (x, y, z, rx, ry, rz), got {list(scales)}")
 
 
 FIXED_TASKS = ("ik", "ac", "fc", "jc", "cartesian_regularizer")

@@ -24,8 +24,8 @@ while its batch runs on (`--no-park` keeps it colliding). Controllers (the adapt
            (PopulationController, the Python QP path: slower, the same numbers to rounding for the others).
 - vic:     a variable-impedance baseline in the style of robosuite's OSC (impedance gains as actions): IK only, with
            a hand-tuned stiffness schedule per local axis (scales of Table I's k_p, k_θ): 1 in free motion; after
-           the first contact force `VIC_CONTACT` (soft along the tool axis, stiff across it); `VIC_OPERATOR` while
-           the operator holds the handle.
+           the first contact force `panda.vic_contact_scale` (soft along the tool axis, stiff across it);
+           `panda.vic_operator_scale` while the operator holds the handle.
 
 The scripted baselines know the scene's phase (which phases expect contact or the operator); the learned policy only
 sees eq. 26. Peg-in-hole prints Table VI (success rate, insertion time, misalignment at the first contact) next to
@@ -86,11 +86,6 @@ FC_FORCE = 10.0
 """Desired contact force of the scripted force-control baselines [N] (half of Table II's f̄_d)."""
 SWITCH_TIME = 1.0
 """Time over which the scripted baselines move their weights [s] (σw = 6 takes a task from off to on in ~1 s)."""
-VIC_CONTACT = (2.0, 2.0, 1.0 / 3.0, 1.0, 1.0, 1.0)
-"""vic's stiffness scales per local axis (x, y, z, rx, ry, rz) after the first contact: k_p 300 across the tool
-axis, 50 along it."""
-VIC_OPERATOR = (0.2, 0.2, 0.2, 0.5, 0.5, 0.5)
-"""vic's stiffness scales while the operator holds the handle (compliant)."""
 RECORD_KEYS = ("time", "phase", "e_local", "f_env_local", "f_ope_local", "weights", "f_d")
 
 
@@ -119,9 +114,9 @@ def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, sin
     W[m] = 1.0 / 3.0
     f_d[m, 2] = FC_FORCE
     m = ctrl == "vic"
-    scale[m] = np.where(latched[m, None], np.array(VIC_CONTACT), 1.0)
+    scale[m] = np.where(latched[m, None], np.array(env.pcfg.vic_contact_scale), 1.0)
     op = m & (task == "AC") & env.operator.active
-    scale[op] = VIC_OPERATOR
+    scale[op] = env.pcfg.vic_operator_scale
     return W, f_d, scale, ctrl != "learned"
 
 

@@ -738,3 +738,26 @@ def test_the_shipped_pareto_picks_load_as_fixed_controllers_named_after_their_fi
 
     fixed = load_fixed_controller(pick)
     assert fixed.name == pick.stem and set(fixed.levels) == {"ik", "ac", "fc", "jc", "cartesian_regularizer"}
+
+
+def test_vic_takes_its_stiffness_schedule_from_the_config() -> None:
+    """`panda.vic_contact_scale` from the first contact on, `vic_operator_scale` while the hand holds the handle;
+    the other controllers keep Table I's gains."""
+    from types import SimpleNamespace
+
+    from envs.panda_eval import _scripted
+
+    cfg = config_from_dict({"panda": {"scene": "peg_in_hole", "vic_contact_scale": [1.5, 1.5, 0.5, 1.0, 1.0, 1.0]}})
+    # arms: ik, vic (touching in the FC phase), vic (free), vic (operator phase, hand on)
+    env = SimpleNamespace(num_envs=4, pcfg=cfg.panda, t=np.ones(4), adapt=SimpleNamespace(sigma_f=10.0),
+                          scene=SimpleNamespace(phase_task=("IK", "FC", "AC"), phase=np.array([1, 1, 1, 2])),
+                          f_env=np.array([[0.0, 0, 20, 0, 0, 0], [0, 0, 20, 0, 0, 0], [0] * 6, [0] * 6], float),
+                          operator=SimpleNamespace(active=np.array([False, False, False, True])))
+    latched, since = np.zeros(4, bool), np.zeros(4)
+    _, _, scale, scripted = _scripted(env, ["ik", "vic", "vic", "vic"], 1, latched, since, 10.0)
+    np.testing.assert_array_equal(scale, [[1.0] * 6, [1.5, 1.5, 0.5, 1, 1, 1], [1.0] * 6, [0.2, 0.2, 0.2, 0.5, 0.5, 0.5]])
+    assert scripted.all()
+    with pytest.raises(Exception, match=r"panda.vic_contact_scale: needs 6 finite scales > 0"):
+        config_from_dict({"panda": {"vic_contact_scale": [2.0, 2.0, 0.0, 1.0, 1.0, 1.0]}})
+    with pytest.raises(Exception, match=r"panda.vic_operator_scale: needs 6 finite scales > 0"):
+        config_from_dict({"panda": {"vic_operator_scale": [0.2, 0.2, 0.2]}})

@@ -1,14 +1,14 @@
-"""The peg-in-hole evaluation with another stiffness across the tool axis after the first contact: VIC's (its
-hand-tuned schedule doubles Table I's k_p on local x and y) or the learned arms' (1: Table I's).
+"""The peg-in-hole evaluation with the learned arms given a stiffness across the tool axis after their first contact,
+as the variable-impedance baseline's schedule gives its arms (`panda.vic_contact_scale`, whose x and y are 2).
 
-    python docs/experiments/contact_stiffness.py --vic-lateral 1.0 -- --seeds 800-809 --controllers vic \\
-        --set panda.ik_rules_scripted=true --json runs/vic_lateral_1.json
-    python docs/experiments/contact_stiffness.py --learned-lateral 2.0 -- --seeds 800-809 --controllers learned \\
+    python docs/experiments/contact_stiffness.py --learned-lateral 2.0 -- --seeds 800-809 --controllers learned \
         --set panda.ik_rules_scripted=true
 
-Everything after `--` goes to `a3cqp evaluate --scene peg_in_hole`. The scales are module constants of
-envs/panda_eval.py, so the evaluation runs in this process (`--workers 1`: worker processes would import the module
-afresh). docs/panda.md, "Where VIC's like-for-like lead comes from", has the numbers.
+Everything after `--` goes to `a3cqp evaluate --scene peg_in_hole`. The learned arms' stiffness scales are set in
+envs/panda_eval.py's step, so the evaluation runs in this process (`--workers 1`: worker processes would import the
+module afresh). VIC's own schedule is a config value (`--set panda.vic_contact_scale=[1,1,0.3333333333333333,1,1,1]`
+gives it Table I's stiffness across the tool axis). docs/panda.md, "Where VIC's like-for-like lead comes from", has
+the numbers.
 """
 from __future__ import annotations
 
@@ -39,19 +39,15 @@ def _with_learned_lateral(scale: float):  # noqa: ANN202
 
 
 def run(argv: list[str] | None = None) -> int:
-    """Parse this script's scales, set them, and run the evaluation with the rest of the arguments."""
+    """Parse the learned arms' scale, set it, and run the evaluation with the rest of the arguments."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--vic-lateral", type=float, default=None, help="VIC's k_p scale on local x, y in contact (2)")
-    p.add_argument("--learned-lateral", type=float, default=None, help="the learned arms' scale there (1)")
+    p.add_argument("--learned-lateral", type=float, required=True,
+                   help="the learned arms' k_p scale on local x, y from their first contact on (without it: 1)")
     p.add_argument("rest", nargs="*", help="a3cqp evaluate's arguments, after --")
     args = p.parse_args(argv)
-    for flag, value in (("--vic-lateral", args.vic_lateral), ("--learned-lateral", args.learned_lateral)):
-        if value is not None and not value > 0:
-            p.error(f"{flag} must be > 0, got {value}")
-    if args.vic_lateral is not None:
-        panda_eval.VIC_CONTACT = (args.vic_lateral, args.vic_lateral, *panda_eval.VIC_CONTACT[2:])
-    if args.learned_lateral is not None:
-        panda_eval._scripted = _with_learned_lateral(args.learned_lateral)
+    if not args.learned_lateral > 0:
+        p.error(f"--learned-lateral must be > 0, got {args.learned_lateral}")
+    panda_eval._scripted = _with_learned_lateral(args.learned_lateral)
     return main(["--scene", "peg_in_hole", *args.rest, "--workers", "1"])
 
 
