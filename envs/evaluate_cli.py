@@ -84,6 +84,16 @@ def main(argv: list[str] | None = None) -> int:
                 "peg_in_hole|polishing|guidance (the point mass takes --episodes, --seed, --config)")
     if unknown:
         p.error(f"unrecognized arguments: {' '.join(unknown)}")
+    if args.episodes < 1:
+        p.error(f"--episodes must be >= 1, got {args.episodes}")
+    from a3cqp_rl.run_folder import RunFolderError, check_output_path
+
+    try:  # before torch's import and the evaluation, not after them
+        if args.json and args.json != "-":  # a3cqp_rl.checkpoint.STDOUT (its module imports torch)
+            check_output_path(args.json, "--json")
+    except (RunFolderError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
 
     import torch
 
@@ -91,10 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         from a3cqp_rl.checkpoint import STDOUT
         from a3cqp_rl.config import load_config
-        from a3cqp_rl.run_folder import check_output_path
 
-        if args.json and args.json != STDOUT:
-            check_output_path(args.json, "--json")  # before the evaluation, not after it
         config = load_config(args.config) if args.config else None
         report(args.policy, config=config, episodes=args.episodes, seed=args.seed, json_path=args.json,
                out=sys.stderr if args.json == STDOUT else None)  # stdout: the JSON alone, for a pipe

@@ -355,3 +355,15 @@ def test_the_top_level_help_lists_each_command_on_its_own_line(capsys):
     lines = capsys.readouterr().out.splitlines()
     for name, (_, text) in COMMANDS.items():
         assert any(line.startswith(f"  {name} ") and text.split()[0] in line for line in lines), name
+
+
+def test_point_mass_evaluate_refuses_a_bad_json_path_before_importing_torch():
+    import subprocess
+
+    script = ("import sys, runpy\nsys.argv = ['a3cqp', 'evaluate', '--json', '/']\ntry:\n"
+              "    runpy.run_module('a3cqp_rl.cli', run_name='__main__')\n"
+              "except SystemExit as e:\n    print('rc', e.code, 'torch' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=Path(CONFIG).parents[1])
+    assert "rc 2 False" in proc.stdout and "--json / is a folder" in proc.stderr
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--episodes", "0"])
