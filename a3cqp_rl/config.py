@@ -9,6 +9,7 @@ file and the dotted key.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import types
 import typing
@@ -1456,8 +1457,10 @@ def _build(cls: type, data: dict, prefix: str, source: str) -> Any:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
+        close = {k: difflib.get_close_matches(str(k), names, n=1) for k in unknown}  # a typo names its key
+        named = [prefix + str(k) + (f" (did you mean {prefix + close[k][0]}?)" if close[k] else "") for k in unknown]
         raise ConfigError(
-            f"{source}: unknown key(s) {', '.join(prefix + str(k) for k in unknown)}; "
+            f"{source}: unknown key(s) {', '.join(named)}; "
             f"valid keys under {prefix.rstrip('.') or 'top level'}: {sorted(names)}"
         )
     kwargs = {k: _convert(hints[k], v, prefix + k, source) for k, v in data.items()}

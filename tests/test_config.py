@@ -311,3 +311,11 @@ def test_a_count_below_one_is_named_as_an_integer_and_a_length_as_a_number():
         config_from_dict({"panda": {"scene": "peg_in_hole", "peg_in_hole": {"cycles": 0}}})
     with pytest.raises(ConfigError, match=r"panda.peg_in_hole.time_limit: must be a finite number > 0, got 0.0"):
         config_from_dict({"panda": {"scene": "peg_in_hole", "peg_in_hole": {"time_limit": 0}}})
+
+
+def test_a_misspelt_key_is_named_with_the_key_it_is_closest_to():
+    from a3cqp_rl.config import config_from_dict
+
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) a2c\.learning_rat \(did you mean a2c\.learning_rate\?\), "
+                                          r"a2c\.zzz; valid keys under a2c"):
+        config_from_dict({"a2c": {"learning_rat": 1e-3, "zzz": 1}})
