@@ -117,6 +117,17 @@ def load_policy(path: str | Path) -> A2CPolicy:
         raise CheckpointError(f"{path}: {exc}") from None
 
 
+def load_agent_policy(path: str | Path, agents: str) -> A2CPolicy:
+    """`load_policy`, refused (naming the file) unless it maps the per-axis observation [3] to the four actions
+    (ẇ1, ẇ2, ẇ3, ḟd) of an A3CQP agent (eq. 26-27); `agents` names who needs it in the message."""
+    policy = load_policy(path)
+    dims = (policy.layout.obs_dim, policy.layout.act_dim)
+    if dims != (3, 4):
+        raise ValueError(f"{path}: a policy of {dims[0]} observations and {dims[1]} actions; {agents} 3 -> 4 "
+                         "(|e|, |f_env|, |f_ope| -> ẇ1, ẇ2, ẇ3, ḟd), a point-mass or Panda policy")
+    return policy
+
+
 def init_from_policy(path: str | Path, layout: ParamLayout, flat: Tensor, low: tuple | None = None,
                      high: tuple | None = None) -> list[str]:
     """Copy into `flat` (in place) the tensors of a saved policy whose name and shape match `layout`; their names.

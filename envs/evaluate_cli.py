@@ -44,6 +44,26 @@ def _starts_workers(argv: Sequence[str]) -> bool:
     return workers.strip().isdigit() and int(workers) > 1
 
 
+def _parser() -> argparse.ArgumentParser:
+    """The point-mass evaluation's options (`--scene` hands the command to envs.panda_eval's own)."""
+    # no abbreviations: `--scen peg_in_hole` would be taken for --scene here and run the point mass instead
+    p = argparse.ArgumentParser(prog="a3cqp evaluate", description=help_summary(__doc__), allow_abbrev=False)
+    p.add_argument("--env", default="point_mass", choices=["point_mass"], help="environment (default: %(default)s)")
+    p.add_argument("--policy", nargs="*", default=[], help="policy.pt, checkpoint.pt or run folder(s); none: baselines only")
+    p.add_argument("--episodes", type=int, default=64, help="episodes per scenario (default: %(default)s)")
+    p.add_argument("--seed", type=seed_arg, default=0, help="episode seed (default: %(default)s)")
+    p.add_argument("--json", default=None, help="also write the metrics as JSON to this file (-: to standard output, "
+                   "the tables then to standard error)")
+    p.add_argument("--config", default=None,
+                   help="YAML whose dynamics, adaptation and reward the evaluation uses (default: the first policy's)")
+    # envs.scenarios.SCENES, spelled out: importing it (torch, MuJoCo) would take seconds of every --help
+    # (tests/test_cli.py checks that the two agree)
+    p.add_argument("--scene", default=None, choices=["peg_in_hole", "polishing", "guidance"],
+                   help="evaluate on the simulated Panda instead; `a3cqp evaluate --scene S --help` lists its options "
+                        "(--trials, --controllers, --record-trial, ...)")
+    return p
+
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry; returns an exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -62,21 +82,7 @@ def main(argv: list[str] | None = None) -> int:
             print("error: the Panda scenes are not available in this version", file=sys.stderr)
             return 2
         return int(panda.main(argv) or 0)
-    # no abbreviations: `--scen peg_in_hole` would be taken for --scene here and run the point mass instead
-    p = argparse.ArgumentParser(prog="a3cqp evaluate", description=help_summary(__doc__), allow_abbrev=False)
-    p.add_argument("--env", default="point_mass", choices=["point_mass"], help="environment (default: %(default)s)")
-    p.add_argument("--policy", nargs="*", default=[], help="policy.pt, checkpoint.pt or run folder(s); none: baselines only")
-    p.add_argument("--episodes", type=int, default=64, help="episodes per scenario (default: %(default)s)")
-    p.add_argument("--seed", type=seed_arg, default=0, help="episode seed (default: %(default)s)")
-    p.add_argument("--json", default=None, help="also write the metrics as JSON to this file (-: to standard output, "
-                   "the tables then to standard error)")
-    p.add_argument("--config", default=None,
-                   help="YAML whose dynamics, adaptation and reward the evaluation uses (default: the first policy's)")
-    # envs.scenarios.SCENES, spelled out: importing it (torch, MuJoCo) would take seconds of every --help
-    # (tests/test_cli.py checks that the two agree)
-    p.add_argument("--scene", default=None, choices=["peg_in_hole", "polishing", "guidance"],
-                   help="evaluate on the simulated Panda instead; `a3cqp evaluate --scene S --help` lists its options "
-                        "(--trials, --controllers, --record-trial, ...)")
+    p = _parser()
     args, unknown = p.parse_known_args(argv)
     panda_only = sorted({u.split("=", 1)[0] for u in unknown} & PANDA_ONLY)
     if panda_only:  # the Panda's options given without --scene: say so, not just "unrecognized"
@@ -113,7 +119,8 @@ def main(argv: list[str] | None = None) -> int:
 
 PANDA_ONLY = {"--trials", "--seeds", "--controllers", "--controller-config", "--record-trial", "--out", "--cache",
               "--workers", "--threads", "--cycles", "--set", "--no-park", "--quiet"}
-"""`a3cqp evaluate --scene`'s options that the point-mass evaluation does not take."""
+"""`a3cqp evaluate --scene`'s options that the point-mass evaluation does not take (tests/test_cli.py checks it
+against both parsers)."""
 
 
 def _policy_file(path: str | Path) -> Path:
@@ -157,7 +164,7 @@ def report(policies: Sequence[str | Path], config: ExperimentConfig | None = Non
     from a3cqp_rl.checkpoint import STDOUT, load_checkpoint
     from a3cqp_rl.config import config_from_dict
     from a3cqp_rl.regions import check_fig5_regions, format_regions
-    from algorithms.a2c import load_policy
+    from algorithms.policy import load_agent_policy
     from a3cqp_rl.transfer import FREE_MOTION_E, free_motion_rates, guided_rates, raises_ik, yields
     from envs.point_mass_eval import CHECKS, baseline_policies, behaviour_checks, evaluate
 
@@ -165,12 +172,8 @@ def report(policies: Sequence[str | Path], config: ExperimentConfig | None = Non
     paths = [_policy_file(p) for p in policies]
     baselines = baseline_policies()
     names = _names(paths, reserved=baselines)
-    learned = {n: load_policy(path) for n, path in zip(names, paths)}
-    for path, policy in zip(paths, learned.values()):  # before any episode: a Pendulum policy, say, is named here
-        dims = (policy.layout.obs_dim, policy.layout.act_dim)
-        if dims != (3, 4):
-            raise ValueError(f"{path}: a policy of {dims[0]} observations and {dims[1]} actions; the point mass's "
-                             "agent needs 3 -> 4 (|e|, |f_env|, |f_ope| -> ẇ1, ẇ2, ẇ3, ḟd), an A3CQP policy")
+    # each loaded before any episode: a Pendulum policy, say, is named here
+    learned = {n: load_agent_policy(path, "the point mass's agent needs") for n, path in zip(names, paths)}
     if config is None and paths:
         saved = load_checkpoint(paths[0], ("config",))["config"]
         config = config_from_dict(saved, str(paths[0]))

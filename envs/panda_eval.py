@@ -120,19 +120,6 @@ def _scripted(env, controllers: list[str], trials: int, latched: np.ndarray, sin
     return W, f_d, scale, ctrl != "learned"
 
 
-def _load_agent_policy(path: Path):  # noqa: ANN202
-    """The policy at `path`, refused (naming the file) unless it maps the per-axis observation [3] to the four
-    actions (ẇ1, ẇ2, ẇ3, ḟd) the Panda's agents take (eq. 26-27)."""
-    from algorithms.policy import load_policy
-
-    loaded = load_policy(path)
-    dims = (loaded.layout.obs_dim, loaded.layout.act_dim)
-    if dims != (3, 4):
-        raise ValueError(f"{path}: a policy of {dims[0]} observations and {dims[1]} actions; the Panda's per-axis "
-                         "agents need 3 -> 4 (|e|, |f_env|, |f_ope| -> ẇ1, ẇ2, ẇ3, ḟd), a point-mass or Panda policy")
-    return loaded
-
-
 def trial_seeds(seed: int, trials: int) -> list[int]:
     """The env seed of each of the `trials` trials of `a3cqp evaluate --seed SEED` (one spawned stream per trial, so
     trial k is the same whatever the number of trials)."""
@@ -745,7 +732,10 @@ def _cli(args: argparse.Namespace, json_out: TextIO | None = None) -> int:
             print(warning, file=sys.stderr)
         if warning := reach_warning(cfg.panda):  # a hole or a plate moved out of the workspace: say so first
             print(warning, file=sys.stderr)
-        loaded_all = [None if policy is None else _load_agent_policy(policy) for policy in policies]  # all first
+        from algorithms.policy import load_agent_policy
+
+        agents = "the Panda's per-axis agents need"
+        loaded_all = [None if policy is None else load_agent_policy(policy, agents) for policy in policies]  # all first
         for policy, loaded in zip(policies, loaded_all):
             prints = None
             if policy is not None:

@@ -367,3 +367,12 @@ def test_point_mass_evaluate_refuses_a_bad_json_path_before_importing_torch():
     assert "rc 2 False" in proc.stdout and "--json / is a folder" in proc.stderr
     with pytest.raises(SystemExit):
         main(["evaluate", "--episodes", "0"])
+
+
+def test_the_panda_only_options_are_those_of_evaluate_scene_that_the_point_mass_lacks():
+    from envs import evaluate_cli, panda_eval
+
+    def flags(parser) -> set[str]:  # noqa: ANN001
+        return {s for a in parser._actions for s in a.option_strings}
+
+    assert evaluate_cli.PANDA_ONLY == flags(panda_eval._parser()) - flags(evaluate_cli._parser())
