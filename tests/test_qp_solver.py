@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from a3cqp_rl.qp import QPShapeError, QPStatus, native, solve_qp
+from a3cqp_rl.qp import QPGradientError, QPShapeError, QPStatus, native, solve_qp
 from a3cqp_rl.qp.random_qp import clarabel_reference, random_qp_batch
 
 DT = torch.float64
@@ -274,6 +274,29 @@ def test_gradcheck_all_arguments() -> None:
     # Make sure the instance exercises active inequalities and bounds, so those gradients are non-trivial.
     assert (sol.z > 0).any() and ((sol.z_lb > 0) | (sol.z_ub > 0)).any()
     assert torch.autograd.gradcheck(lambda *a: solve_qp(*a).x, args, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_the_torch_routes_multipliers_are_differentiable_and_its_second_derivatives_right() -> None:
+    """Gradients through y, z, z_lb, z_ub (gradcheck), and second derivatives of x through A and G, whose first
+    derivatives contain the multipliers (gradgradcheck): both against finite differences on the torch route."""
+    args = _small_problem(1)
+    assert torch.autograd.gradcheck(
+        lambda *a: tuple(getattr(solve_qp(*a, backend="torch"), f) for f in ("x", "y", "z", "z_lb", "z_ub")),
+        args, eps=1e-6, atol=1e-5, rtol=1e-4)
+    P, q, A, b, G, h, lb, ub = args
+    assert torch.autograd.gradgradcheck(lambda A, G: solve_qp(P, q, A, b, G, h, lb, ub, backend="torch").x, (A, G),
+                                        eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_the_c_routes_multipliers_refuse_a_gradient_instead_of_dropping_it() -> None:
+    """On the direct C path only x is differentiated; a loss through a multiplier raises, naming the torch route."""
+    if native.load() is None:
+        pytest.skip("gi_qp.c was not built (no C compiler)")
+    args = _small_problem(2)
+    sol = solve_qp(*args)
+    (sol.x.sum() + 0.0 * sol.y.sum()).detach()  # reading them is fine
+    with pytest.raises(QPGradientError, match="backend='torch'"):
+        (sol.x.sum() + sol.z.sum()).backward()
 
 
 def test_gradients_match_cvxpylayers() -> None:

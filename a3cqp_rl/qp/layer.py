@@ -220,9 +220,9 @@ class QPLayer(torch.nn.Module):
             if kind == "x":
                 v = sol.x[:, col : col + size]
             elif col < self.p:  # an equality's multiplier: cvxpy's sign is opposite to y of yᵀ(Ax − b)
-                v = -sol.y[:, col : col + size]
+                v = -sol.y[:, col : col + size].detach()  # (multipliers without gradient, as `forward` warns)
             else:
-                v = sol.z[:, col - self.p : col - self.p + size]
+                v = sol.z[:, col - self.p : col - self.p + size].detach()
             # back from cvxpy's column-major vectorisation to the variable's shape
             v = v.reshape(v.shape[0], *reversed(shape)).permute(0, *range(len(shape), 0, -1)) if len(shape) > 1 else v.reshape(v.shape[0], *shape)
             outs.append(v)

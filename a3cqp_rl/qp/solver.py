@@ -33,7 +33,8 @@ against `tol` in the input's precision (TOLERANCE_NOT_MET if the rounded answer 
 Backward: implicit differentiation of the KKT system at the solution (as OptNet/qpth), with the
 active set read from the duals and slacks (z > h − Gx): the C adjoint (`gi_qp_vjp`) where the C
 route solved the batch and P ≻ 0, else the torch adjoint (LU / Schur / augmented Lagrangian, `kkt.py`).
-Gradients flow to every tensor argument through x of SOLVED instances; nothing is unrolled.  Without
+Gradients flow to every tensor argument through x (and, off the direct C path, the multipliers) of SOLVED
+instances; nothing is unrolled.  Without
 autograd, `vjp.qp_vjp(solution, gx)` gives the same gradients of a C-route solution from one C call.
 
 Code: `kkt.py` (working-set solves, the KKT certificate), `active_set.py`, `interior_point.py`,
@@ -118,7 +119,10 @@ class QPSolution:
     def _get(self, name: str) -> Tensor:
         v = getattr(self, name)
         if v is None:
-            v = torch.from_numpy(self._np(name))
+            if self._x is not None and self._x.requires_grad and name not in ("_status", "_iterations"):
+                v = _dual_with_grad(self, name)  # a C solve differentiated: a multiplier that refuses a gradient
+            else:
+                v = torch.from_numpy(self._np(name))
             setattr(self, name, v)
         return v
 
@@ -480,30 +484,36 @@ def _solve_canonical(
 
 
 def _backward_torch(P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Tensor, z: Tensor, gx: Tensor,
-                    need: tuple[bool, ...]) -> tuple[Tensor | None, ...]:
-    """Gradients (P, q, A, b, G, h) of Σ gx·x by the batched torch adjoint."""
+                    need: tuple[bool, ...], gy: Tensor | None = None, gz: Tensor | None = None
+                    ) -> tuple[Tensor | None, ...]:
+    """Gradients (P, q, A, b, G, h) of Σ gx·x + gy·y + gz·z by the batched torch adjoint (gy, gz: None = 0)."""
     p = A.shape[1]
     Ps = 0.5 * (P + P.mT)
     slack = (h - mv(G, x)).clamp_min(0.0)
     active = z > slack  # strictly complementary part of the active set
     C = torch.cat([A, G], 1) if p else G
     mask = torch.cat([torch.ones_like(y, dtype=torch.bool), active], 1) if p else active
-    # Adjoint: [[P, C_Wᵀ], [C_W, 0]] [wx; wν] = [gx; 0], i.e. min ½wᵀPw − gxᵀw s.t. C_W w = 0.
+    # Adjoint: [[P, C_Wᵀ], [C_W, 0]] [wx; wν] = [gx; gν_W], i.e. min ½wᵀPw − gxᵀw s.t. C_W w = gν_W; the
+    # multipliers of inactive rows stay 0 under a small change, so their gν does not enter.
     zr = torch.zeros_like(C[..., 0])
-    tol_w = 1e-12 * (1.0 + float(gx.detach().abs().amax())) if gx.numel() else 1e-12
+    gnu = zr
+    if gy is not None or gz is not None:
+        gnu = torch.cat([zr[:, :p] if gy is None else gy, zr[:, p:] if gz is None else gz], 1)
+    g_max = max(float(gx.detach().abs().amax()) if gx.numel() else 0.0, float(gnu.detach().abs().amax()) if gnu.numel() else 0.0)
+    tol_w = 1e-12 * (1.0 + g_max)
     wx = wnu = res = None
     if gx.shape[0] <= LU_MAX_BATCH:
-        wx, wnu, res = kkt_lu(Ps, -gx, C, zr, mask)
+        wx, wnu, res = kkt_lu(Ps, -gx, C, gnu, mask)
     else:
         L, info = torch.linalg.cholesky_ex(Ps)
         if bool((info == 0).all()):
             x_u = torch.cholesky_solve(gx.unsqueeze(-1), L).squeeze(-1)
-            wx, wnu, res = kkt_schur(L, x_u, Ps, -gx, C, zr, mask)
+            wx, wnu, res = kkt_schur(L, x_u, Ps, -gx, C, gnu, mask)
     nu_max = wnu.abs().amax(-1) if wnu is not None and wnu.shape[-1] else 0.0
     if res is None or not bool((res <= tol_w * (1.0 + nu_max)).all()):
         # Singular KKT (dependent active rows, P singular on their null space): the augmented
         # Lagrangian is exact in the limit and stays well posed.
-        wx, wnu, _, _ = eq_solve_alm(Ps, -gx, C, zr, mask, zr, torch.zeros_like(x), 0.1 * tol_w)
+        wx, wnu, _, _ = eq_solve_alm(Ps, -gx, C, gnu, mask, zr, torch.zeros_like(x), 0.1 * tol_w)
     wy, wz = wnu[:, :p], wnu[:, p:]
     nu = torch.cat([y, z * active], 1) if p else z * active
     # Sums of two outer products as one bmm with inner dimension 2: a single pass over the
@@ -542,33 +552,35 @@ class _QPFunction(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, lib, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter, hand_on):  # type: ignore[override]
-        # Gradients of y, z, status, iterations are never used: without materialisation autograd
-        # passes None for them instead of allocating zeros.
+        # Outputs nothing depends on get None instead of zeros (most callers differentiate x only).
         ctx.set_materialize_grads(False)
         x, y, z, status, iters, c_run = _solve_canonical(lib, P, q, A, b, G, h, z_warm, tol, max_iter, active_set_iter,
                                                          hand_on)
         ctx.lib, ctx.c_run = (lib, c_run) if c_run is not None else (None, None)
         ctx.save_for_backward(P, A, G, h, x, y, z, status)
-        ctx.mark_non_differentiable(y, z, status, iters)
+        # The duals are differentiable too: the torch adjoint's gradients of A and G contain them, so second
+        # derivatives need their dependence on the data.
+        ctx.mark_non_differentiable(status, iters)
         return x, y, z, status, iters
 
     @staticmethod
-    def backward(ctx, gx, _gy, _gz, _gs, _gi):  # type: ignore[override]
+    def backward(ctx, gx, gy, gz, _gs, _gi):  # type: ignore[override]
         P, A, G, h, x, y, z, status = ctx.saved_tensors
         if gx is None:
             gx = torch.zeros_like(x)
         need = ctx.needs_input_grad[1:7]
-        # Gradients only flow through x of solved instances (duals are outputs for information and warm starts).
+        # Gradients only flow through the solution of solved instances.
         grads = None
-        # the C route certified every instance: its range-space adjoint (not differentiable itself: with
-        # create_graph the torch adjoint below, whose operations autograd records)
-        if ctx.lib is not None and not torch.is_grad_enabled():
+        # the C route certified every instance: its range-space adjoint of x alone (not differentiable itself:
+        # with create_graph, or gradients of the duals, the torch adjoint below, whose operations autograd records)
+        if ctx.lib is not None and not torch.is_grad_enabled() and gy is None and gz is None:
             grads = _backward_c(ctx.lib, ctx.c_run, x.shape[0], x.shape[1], A.shape[1], G.shape[1], gx, need)
         if grads is None:
             ok = status == QPStatus.SOLVED
             if not bool(ok.all()):
-                gx = torch.where(ok.unsqueeze(-1), gx, torch.zeros((), dtype=gx.dtype))
-            grads = _backward_torch(P, A, G, h, x, y, z, gx, need)
+                zero = torch.zeros((), dtype=gx.dtype)
+                gx, gy, gz = (g if g is None else torch.where(ok.unsqueeze(-1), g, zero) for g in (gx, gy, gz))
+            grads = _backward_torch(P, A, G, h, x, y, z, gx, need, gy, gz)
         return (None, *grads, None, None, None, None, None)
 
 
@@ -617,7 +629,8 @@ def solve_qp(
 
     Any argument may be given unbatched (without the leading B) to share it across the batch, and as a
     numpy array (converted; its dtype must match the others').  Gradients flow to every tensor argument
-    through x (implicit differentiation of the KKT system).  Returns a `QPSolution` whose `status`
+    through x (implicit differentiation of the KKT system), and through the multipliers except on the direct C
+    path, where a gradient through them raises QPGradientError (docs/qp.md).  Returns a `QPSolution` whose `status`
     says per instance whether x is an answer (never raises on a bad instance; see `status.py`).
     """
     _check_settings(tol, max_iter, active_set_iter)
@@ -686,6 +699,15 @@ def solve_qp(
             return sol
     return _solve_general(lib, P, q, A, b, G, h, lb, ub, warm_start, tol, max_iter, active_set_iter, dtype, grad,
                           hand_on)
+
+
+def _dual_with_grad(sol: QPSolution, name: str) -> Tensor:
+    """`vjp.dual_with_grad` (bound here on first use, as `_with_grad`)."""
+    global _dual_with_grad
+    from a3cqp_rl.qp.vjp import dual_with_grad
+
+    _dual_with_grad = dual_with_grad
+    return dual_with_grad(sol, name)
 
 
 def _with_grad(sol: QPSolution) -> QPSolution:

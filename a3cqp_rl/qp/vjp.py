@@ -25,7 +25,7 @@ from torch import Tensor
 from a3cqp_rl.qp.exceptions import QPGradientError, QPShapeError
 from a3cqp_rl.qp.solver import QPSolution, _as_tensor, _backward_torch, _stack_rows, _strides
 
-__all__ = ["qp_vjp", "QPGrad", "GRAD_NAMES", "with_grad"]
+__all__ = ["qp_vjp", "QPGrad", "GRAD_NAMES", "with_grad", "dual_with_grad"]
 
 GRAD_NAMES = ("P", "q", "A", "b", "G", "h", "lb", "ub")
 """The arguments of `solve_qp` a `QPGrad` has a field for, in order."""
@@ -161,6 +161,25 @@ def with_grad(sol: QPSolution) -> QPSolution:
     inner._data = sol._data
     sol._x = _SolvedX.apply(sol, inner, *sol._data[1])
     return sol
+
+
+def dual_with_grad(sol: QPSolution, name: str) -> Tensor:
+    """Field `name` ("_y", "_z", "_z_lb", "_z_ub") of a `with_grad` solution, as an output whose backward refuses: a
+    loss through a multiplier must not silently lose that part of its gradient."""
+    return _DualOfC.apply(sol, name, *sol._data[1])
+
+
+class _DualOfC(torch.autograd.Function):
+    """A multiplier of a solution of the direct C path: its adjoint covers x only, so a gradient through it raises."""
+
+    @staticmethod
+    def forward(ctx, sol, name, *args):  # type: ignore[override]
+        return torch.from_numpy(sol._np(name))  # a view of the solver's buffer, as the field would be
+
+    @staticmethod
+    def backward(ctx, g):  # type: ignore[override]
+        raise QPGradientError("solve_qp's C route differentiates x only: for gradients through the multipliers (y, "
+                              "z, z_lb, z_ub) solve with backend='torch'")
 
 
 _LAYOUTS: dict[tuple, tuple[list, int, int]] = {}
