@@ -301,6 +301,12 @@ def test_non_finite_inputs_fall_back_without_nan() -> None:
     assert out.status.tolist() == [-1, 0] and out.fallback.tolist() == [True, False]
     assert torch.isfinite(out.tau).all()
     assert torch.allclose(out.tau[0], s.bias[0], atol=1e-9)  # at rest: brake = 0, pure gravity compensation
+    # a NaN F/T reading would read as "no contact" (the friction pyramid off): that robot's input is invalid instead
+    f_env = torch.zeros(n, 6, dtype=F64)
+    f_env[1, 4] = float("nan")
+    out = A3CQPController(n).step(s.q, s.qd, s.mass, s.bias, task_weights(n, [IK] * 6), torch.zeros(n, 6, dtype=F64),
+                                  pos0, rot0, f_env=f_env)
+    assert out.status.tolist() == [0, -1] and out.fallback.tolist() == [False, True]
 
 
 def test_solver_exception_falls_back_for_all_robots(monkeypatch: pytest.MonkeyPatch,

@@ -780,7 +780,8 @@ class A3CQPController:
             pos_d, rot_d: Cartesian reference of the control site [N, 3] (m), [N, 3, 3].
             f_ext: measured external wrench at the control site [N, 6], world frame (default 0).
             in_contact: bool [N] activating the friction pyramid; default |f_env force| > threshold, else False.
-            f_env: measured environment (F/T) wrench [N, 6], world frame, only used to infer `in_contact`.
+            f_env: measured environment (F/T) wrench [N, 6], world frame, only used to infer `in_contact` (a
+                non-finite row makes that robot's input invalid: the fallback).
             kin: kinematics of the control site at (q, q̇) if the caller has them (PandaSim's `SimState.kin`, from
                 MuJoCo's step: same values as `self.model.kinematics` to ~1e-8); default computed by `self.model`.
             leak_extra: an extra relaxation rate of q*, q̇* [N, 6] (1/s, ≥ 0) along each axis of the local frame L,
@@ -878,8 +879,11 @@ class A3CQPController:
             if tuple(c.shape) != (n,) or c.dtype not in (torch.bool, np.bool_):
                 raise ControlShapeError(f"in_contact must be a bool tensor of shape ({n},), got {c.dtype} "
                                         f"{tuple(c.shape)}")
-        if f_env is not None and tuple(f_env.shape) != (n, 6):
-            raise ControlShapeError(f"f_env must have shape ({n}, 6) (N, N m, world), got {tuple(f_env.shape)}")
+        if f_env is not None:
+            if tuple(f_env.shape) != (n, 6):
+                raise ControlShapeError(f"f_env must have shape ({n}, 6) (N, N m, world), got {tuple(f_env.shape)}")
+            # a non-finite F/T reading would read as "no contact": that robot's input is invalid instead
+            valid = valid & (np.isfinite(_np(f_env.cpu())).all(1) if on_cpu else torch.isfinite(f_env).all(-1))
         if self.q_des is None:  # first call: q*, q̇* from the measured state, a harmless stand-in where not finite
             ok = torch.as_tensor(valid)[:, None]
             self.reset(torch.where(ok, t[0], self._q_center.to(t[0])), torch.where(ok, t[1], 0.0))
