@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import numpy as np
 import pytest
 import torch
 
@@ -297,6 +300,25 @@ def test_the_c_routes_multipliers_refuse_a_gradient_instead_of_dropping_it() -> 
     (sol.x.sum() + 0.0 * sol.y.sum()).detach()  # reading them is fine
     with pytest.raises(QPGradientError, match="backend='torch'"):
         (sol.x.sum() + sol.z.sum()).backward()
+
+
+def test_duplicated_active_rows_are_solved_and_certified() -> None:
+    """A feasible QP whose equality rows are dependent (one is twice another) and whose active rows come with three
+    scaled copies each: the interior point used to stop on its mean complementarity, which the final certificate,
+    row by row, then refused (TOLERANCE_NOT_MET for an answer Clarabel gives to 1e-12)."""
+    import cvxpy as cp
+
+    d = np.load(Path(__file__).parent / "data" / "qp_duplicate_active_rows.npz")
+    args = [torch.from_numpy(d[k])[None] for k in ("P", "q", "A", "b", "G", "h")]
+    x = cp.Variable(d["P"].shape[0])
+    prob = cp.Problem(cp.Minimize(0.5 * cp.quad_form(x, cp.psd_wrap(d["P"])) + d["q"] @ x),
+                      [d["A"] @ x == d["b"], d["G"] @ x <= d["h"]])
+    prob.solve(solver="CLARABEL", tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12)
+    for tol in (1e-9, 1e-7, 1e-6):
+        sol = solve_qp(*args, tol=tol)
+        assert sol.status.item() == QPStatus.SOLVED, (tol, QPStatus(sol.status.item()).name)
+        obj = 0.5 * sol.x[0] @ args[0][0] @ sol.x[0] + args[1][0] @ sol.x[0]
+        assert abs(float(obj) - prob.value) <= 1e-6 * (1.0 + abs(prob.value)), (tol, float(obj), prob.value)
 
 
 def test_gradients_match_cvxpylayers() -> None:

@@ -101,11 +101,15 @@ def interior_point(
         mu = (s * z).sum(-1) / m
         # Residuals row by row, each against the size of its own terms (kkt.row_thresholds).
         ax = x.abs()
-        ok_p = (ri.abs() <= row_thresholds(G, h, x, tol)).all(-1)
+        thr_g = row_thresholds(G, h, x, tol)
+        ok_p = (ri.abs() <= thr_g).all(-1)
         if p:
             ok_p &= (rp.abs() <= row_thresholds(A, b, x, tol)).all(-1)
         mag_d = 1.0 + q.abs() + mv(P.abs(), ax) + mtv(G.abs(), z) + (mtv(A.abs(), y.abs()) if p else 0.0)
-        solved = ok_p & (rd.abs() <= tol * mag_d).all(-1) & (mu <= tol_d)
+        # complementarity row by row as the final certificate (kkt_certified) measures it, on the slack h − Gx: the
+        # mean μ alone let an iterate through that the certificate then refused (dependent active rows)
+        compl = (z * (s - ri).clamp_min(0.0) <= thr_g * (1.0 + z.abs().amax(-1, keepdim=True))).all(-1)
+        solved = ok_p & (rd.abs() <= tol * mag_d).all(-1) & (mu <= tol_d) & compl
         # Farkas certificate: z ≥ 0, Gᵀz + Aᵀy ≈ 0 and hᵀz + bᵀy < 0, relative to |hᵀz + bᵀy|, which
         # bounds the norm of any feasible point from below by 1/1e-7.
         gap = (h * z).sum(-1) + ((b * y).sum(-1) if p else 0.0)
