@@ -1528,7 +1528,10 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
         source = str(path)
         data = _read_with_base(Path(path), ())
     if overrides:
-        data = _merge(data, overrides)
+        try:
+            data = _merge(data, overrides)
+        except ConfigError as exc:
+            raise ConfigError(f"{source}: {exc}") from None
         source += " with overrides"  # a bad override is not the file's fault
     return config_from_dict(data, source)
 
@@ -1552,10 +1555,13 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict:
         except yaml.YAMLError as exc:
             raise ConfigError(f"--set {item!r}: the value is not valid YAML: {' '.join(str(exc).split())}") from None
         node = out
-        for p in parts[:-1]:
-            if not isinstance(node.get(p), dict):
-                node[p] = {}
-            node = node[p]
+        for k, p in enumerate(parts[:-1]):
+            if p in node and not isinstance(node[p], dict):
+                raise ConfigError(f"--set {item!r}: {'.'.join(parts[:k + 1])} is also given a value, not keys inside it "
+                                  "(a section: SECTION.KEY=VALUE)")
+            node = node.setdefault(p, {})
+        if isinstance(node.get(parts[-1]), dict) and not isinstance(value, dict):
+            raise ConfigError(f"--set {item!r}: {key.strip()} is a section, also given keys inside it (SECTION.KEY=VALUE)")
         node[parts[-1]] = value
     return out
 
@@ -1570,7 +1576,9 @@ def _read_with_base(path: Path, chain: tuple[Path, ...]) -> dict:
         where = f" (the base of {chain[-1]})" if chain else ""
         raise ConfigError(f"{source}: config file not found{where}")
     try:
-        loaded = yaml.safe_load(path.read_bytes().decode("utf-8"))
+        text = path.read_bytes().decode("utf-8")
+        loaded = yaml.safe_load(text)
+        dup = _duplicate_key(text)
     except UnicodeDecodeError as exc:
         raise ConfigError(f"{source}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset {exc.start}); "
                           "expected a YAML file") from None
@@ -1580,6 +1588,8 @@ def _read_with_base(path: Path, chain: tuple[Path, ...]) -> dict:
         raise ConfigError(f"{source}: not valid YAML: {' '.join(str(exc).split())}") from None
     if loaded is not None and not isinstance(loaded, dict):
         raise ConfigError(f"{source}: top level must be a mapping, got {type(loaded).__name__}")
+    if dup:
+        raise ConfigError(f"{source}: {dup}")
     data = dict(loaded or {})
     if "base" not in data:
         return data
@@ -1590,13 +1600,48 @@ def _read_with_base(path: Path, chain: tuple[Path, ...]) -> dict:
     if base_path.resolve() in [p.resolve() for p in (*chain, path)]:
         names = " -> ".join(str(p) for p in (*chain, path, base_path))
         raise ConfigError(f"{source}: base: the files name each other as base ({names})")
-    return _merge(_read_with_base(base_path, (*chain, path)), data)
+    base_data = _read_with_base(base_path, (*chain, path))
+    try:
+        return _merge(base_data, data)
+    except ConfigError as exc:
+        raise ConfigError(f"{source} over its base {base_path}: {exc}") from None
 
 
-def _merge(base: dict, over: dict) -> dict:
+def _duplicate_key(text: str) -> str | None:
+    """The first key written twice in one mapping of a YAML text, as a message, or None (safe_load keeps the last
+    value without a word)."""
+    def walk(node: yaml.Node, where: str) -> str | None:  # noqa: ANN001
+        if isinstance(node, yaml.MappingNode):
+            seen: dict = {}
+            for k, v in node.value:
+                key = k.value if isinstance(k, yaml.ScalarNode) else None
+                if key is not None and key in seen:
+                    return (f"{where}{key}: given twice (lines {seen[key] + 1} and {k.start_mark.line + 1}); the "
+                            "second would silently win")
+                seen.setdefault(key, k.start_mark.line)
+                found = walk(v, f"{where}{key}.")
+                if found:
+                    return found
+        elif isinstance(node, yaml.SequenceNode):
+            for i, v in enumerate(node.value):
+                found = walk(v, f"{where}[{i}].")
+                if found:
+                    return found
+        return None
+
+    root = yaml.compose(text, Loader=yaml.SafeLoader)  # nodes only: nothing is constructed
+    return None if root is None else walk(root, "")
+
+
+def _merge(base: dict, over: dict, where: str = "") -> dict:
+    """`over` merged into `base`, section by section; a section over a value that is not one is a ConfigError (it
+    would hide the bad value)."""
     out = dict(base)
     for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        old = out.get(k)
+        if isinstance(v, dict) and old is not None and not isinstance(old, dict):
+            raise ConfigError(f"{where}{k}: expected a mapping, got {type(old).__name__}")
+        out[k] = _merge(old, v, f"{where}{k}.") if isinstance(v, dict) and isinstance(old, dict) else v
     return out
 
 

@@ -14,6 +14,7 @@ import functools
 import hashlib
 import json
 import logging
+import zipfile
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Callable
@@ -96,7 +97,8 @@ def load(path: Path, key: dict, seed: int):  # noqa: ANN201
                                           float(z["sim_seconds"]), (int(seed),))
             res.read_back = (int(seed),)
             return res
-    except (OSError, ValueError, KeyError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, json.JSONDecodeError) as exc:
+        # (a truncated .npz is a BadZipFile, an empty one an EOFError)
         logger.warning("evaluation cache: %s cannot be read (%s); measuring again", path, exc)
         return None
 

@@ -292,6 +292,31 @@ def test_set_overrides_parse_dotted_keys_with_yaml_values_and_name_bad_items():
         load_config(None, parse_overrides(["a2c.gama=0.9"]))
 
 
+def test_a_section_given_a_value_is_refused_whatever_else_fills_it(tmp_path):
+    """`a2c: 5` in a file, or `--set a2c=3`, with other options filling a2c's keys: a ConfigError, never the defaults
+    of a2c in silence (the merge used to replace the bad value with the options' section)."""
+    from a3cqp_rl.config import parse_overrides
+
+    (tmp_path / "bad.yaml").write_text("a2c: 5\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml: a2c: expected a mapping, got int"):
+        load_config(tmp_path / "bad.yaml", {"a2c": {"compile": False}})
+    (tmp_path / "over.yaml").write_text("base: bad.yaml\na2c:\n  gamma: 0.9\n")
+    with pytest.raises(ConfigError, match=r"over.yaml over its base .*bad.yaml: a2c: expected a mapping, got int"):
+        load_config(tmp_path / "over.yaml")
+    for items in (["a2c=3", "a2c.compile=false"], ["a2c.gamma=0.9", "a2c=3"]):
+        with pytest.raises(ConfigError, match=r"--set 'a2c"):
+            parse_overrides(items)
+
+
+def test_a_key_written_twice_in_a_file_is_refused_with_both_lines(tmp_path):
+    (tmp_path / "dup.yaml").write_text("a2c:\n  learning_rate: 1e-3\n  gamma: 0.9\n  learning_rate: 2e-3\n")
+    with pytest.raises(ConfigError, match=r"dup.yaml: a2c.learning_rate: given twice \(lines 2 and 4\)"):
+        load_config(tmp_path / "dup.yaml")
+    (tmp_path / "ok.yaml").write_text("a2c:\n  learning_rate: 1e-3\npanda:\n  learning_rate_unused: 1\n")
+    with pytest.raises(ConfigError, match="unknown key"):  # the same name in two sections is no duplicate
+        load_config(tmp_path / "ok.yaml")
+
+
 def test_counts_in_scientific_notation_are_whole_numbers() -> None:
     from algorithms.train import _parser
 

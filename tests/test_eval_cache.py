@@ -57,6 +57,11 @@ def test_an_unreadable_or_foreign_file_is_measured_again(tmp_path, caplog) -> No
     assert eval_cache.load(path, key, 0) is not None  # rewritten
     foreign = {**key, "trials": 2}
     assert eval_cache.load(path, foreign, 0) is None  # a file holds its own key: another key never reads it
+    whole = path.read_bytes()
+    for broken in (whole[: len(whole) // 2], b""):  # cut short (not a zip), empty (no data): warned, not raised
+        caplog.clear()
+        path.write_bytes(broken)
+        assert eval_cache.load(path, key, 0) is None and "cannot be read" in caplog.text
 
 
 def test_the_key_follows_the_policy_s_parameters_and_the_code() -> None:
