@@ -14,6 +14,7 @@ from __future__ import annotations
 import datetime
 import errno
 import os
+import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -52,6 +53,12 @@ def check_output_path(path: str | Path, flag: str, *, folder: bool = False) -> P
         raise RunFolderError(f"{flag} {path}: {existing} is a file, not a folder")
     if not os.access(existing, os.W_OK | os.X_OK):
         raise RunFolderError(f"{flag} {path}: cannot write into {existing}")
+    try:  # os.access says yes to root everywhere, also on a read-only or virtual file system (/proc): try it
+        fd, probe = tempfile.mkstemp(dir=existing, prefix=".a3cqp-write-check-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise RunFolderError(f"{flag} {path}: cannot write into {existing} ({exc.strerror or exc})") from None
     return path
 
 

@@ -150,7 +150,7 @@ def test_make_train_twice_just_works(tmp_path, capsys):
     assert "trained 160 steps" in capsys.readouterr().out
 
 
-def test_an_output_path_is_checked_before_the_work_that_writes_it(tmp_path) -> None:  # noqa: ANN001
+def test_an_output_path_is_checked_before_the_work_that_writes_it(tmp_path, monkeypatch) -> None:  # noqa: ANN001
     from a3cqp_rl.run_folder import check_output_path
 
     a_file = tmp_path / "a_file"
@@ -169,6 +169,19 @@ def test_an_output_path_is_checked_before_the_work_that_writes_it(tmp_path) -> N
         locked.mkdir(mode=0o500)
         with pytest.raises(RunFolderError, match="cannot write into"):
             check_output_path(locked / "x.json", "--json")
+    # where the permission bits say yes but writing fails (root on a read-only or virtual file system: /proc)
+    import errno
+    import tempfile
+
+    def read_only(*a, **k):  # noqa: ANN002, ANN003, ANN202
+        raise OSError(errno.EROFS, "Read-only file system")
+
+    with monkeypatch.context() as m:
+        m.setattr(tempfile, "mkstemp", read_only)
+        with pytest.raises(RunFolderError, match=r"--json .*r.json: cannot write into .* \(Read-only file system\)"):
+            check_output_path(tmp_path / "r.json", "--json")
+    check_output_path(tmp_path / "r.json", "--json")
+    assert not [f for f in tmp_path.iterdir() if f.name.startswith(".a3cqp-write-check")]  # the probe cleans up
 
 
 def test_a_run_that_fails_before_writing_anything_leaves_no_folder(tmp_path, capsys) -> None:  # noqa: ANN001
