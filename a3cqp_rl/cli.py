@@ -46,6 +46,17 @@ def seed_arg(text: str) -> int:
     return seed
 
 
+def positive_int(text: str) -> int:
+    """A count option (`--workers`, `--generations`, ...): an integer >= 1, refused before any work starts."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid count {text!r}: expected an integer >= 1") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")
+    return value
+
+
 def add_set_option(parser: argparse.ArgumentParser, example: str, kept: str) -> None:
     """The commands' `--set KEY=VALUE` (repeatable, into `args.overrides` for `config.parse_overrides`); `example`
     a KEY=VALUE of the command's own config, `kept` where the result is recorded."""

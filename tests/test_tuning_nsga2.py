@@ -282,10 +282,19 @@ def test_tuners_take_set_overrides_kept_in_the_run_and_refused_on_a_different_re
     assert main(["pareto", "--out", str(out), "--resume", "--quiet", "--set", "nsga2.generations=2"]) == 0
     assert read_state(out)["generation"] == 2
     for argv, said in ((["--set", "nsga2.population=-1"], "population"), (["--set", "nope"], "expected KEY=VALUE"),
-                       (["--out", str(out), "--pick", "0", "--set", "seed=1"], "--set applies to a run")):
+                       (["--out", str(out), "--pick", "0", "--set", "seed=1"], "--set applies to a run"),
+                       (["--out", str(out), "--pick", "0", "--resume", "--generations", "5"],
+                        "--resume, --generations apply to a run")):
         assert main(["pareto", *argv, "--quiet"]) == 2
         err = capsys.readouterr().err
         assert said in err and "Traceback" not in err
     tune_out = tmp_path / "ga"
     assert main(["tune", "--out", str(tune_out), "--set", "ga.num_generations=-2", "--quiet"]) == 2
     assert "num_generations" in capsys.readouterr().err and not (tune_out / "state.json").exists()
+    # counts are refused by argparse, before a folder is made or a progress bar drawn
+    for cmd, flag in (("tune", "--workers"), ("tune", "--generations"), ("pareto", "--workers"),
+                      ("pareto", "--population")):
+        with pytest.raises(SystemExit) as exc:
+            main([cmd, "--out", str(tmp_path / "never"), flag, "0", "--quiet"])
+        assert exc.value.code == 2 and f"argument {flag}: must be an integer >= 1, got 0" in capsys.readouterr().err
+        assert not (tmp_path / "never").exists()

@@ -33,7 +33,7 @@ import numpy as np
 import yaml
 
 from a3cqp_rl.checkpoint import write_text_atomic
-from a3cqp_rl.cli import add_set_option, help_summary
+from a3cqp_rl.cli import add_set_option, help_summary, positive_int
 from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, config_to_dict
 from a3cqp_rl.exceptions import A3CQPError, ConfigError
 
@@ -213,9 +213,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="a3cqp tune", description=help_summary(__doc__))
     p.add_argument("--config", default=None,
                    help="YAML config (default: configs/ga_point_mass.yaml; OUT/config.yaml with --resume)")
-    p.add_argument("--generations", type=int, default=None, help="generations after the initial one (ga.num_generations)")
-    p.add_argument("--steps-per-trial", type=int, default=None, help="agent steps per trial training (ga.steps_per_trial)")
-    p.add_argument("--workers", type=int, default=1, help="local worker processes, one training each (default 1)")
+    p.add_argument("--generations", type=positive_int, default=None,
+                   help="generations after the initial one (>= 1; ga.num_generations)")
+    p.add_argument("--steps-per-trial", type=positive_int, default=None, help="agent steps per trial training (ga.steps_per_trial)")
+    p.add_argument("--workers", type=positive_int, default=1, help="local worker processes, one training each (default 1)")
     p.add_argument("--ray", default=None, metavar="ADDRESS", help="run trials as Ray tasks: 'auto', host:port, or "
                                                                   "'local' (a Ray instance on this machine)")
     p.add_argument("--out", default=None, help="output folder (default: runs/tune_<config name>)")

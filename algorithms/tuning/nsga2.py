@@ -27,7 +27,7 @@ import numpy as np
 import yaml
 
 from a3cqp_rl.checkpoint import write_text_atomic
-from a3cqp_rl.cli import add_set_option, help_summary
+from a3cqp_rl.cli import add_set_option, help_summary, positive_int
 from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.tuning_files import read_rows, read_state
@@ -192,6 +192,9 @@ def pick(out: str | Path, k: int) -> Path:
     from a3cqp_rl.config import load_config
 
     front = read_front(out)
+    if not front:
+        raise A3CQPError(f"--pick {k}: {out / 'front.csv'} holds no solution (a run that has not finished a "
+                         "generation, or not a front written by a3cqp pareto)")
     if not 0 <= k < len(front):
         raise A3CQPError(f"--pick {k}: the front in {out} has solutions 0..{len(front) - 1}")
     state = read_state(out)
@@ -214,9 +217,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="a3cqp pareto", description=help_summary(__doc__))
     p.add_argument("--config", default=None, help="YAML config (default: configs/nsga2_zdt1.yaml; OUT/config.yaml "
                                                   "with --resume or --pick)")
-    p.add_argument("--generations", type=int, default=None, help="generations after the initial one (nsga2.generations)")
-    p.add_argument("--population", type=int, default=None, help="survivors per generation (nsga2.population)")
-    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1: this process)")
+    p.add_argument("--generations", type=positive_int, default=None,
+                   help="generations after the initial one (>= 1; nsga2.generations)")
+    p.add_argument("--population", type=positive_int, default=None, help="survivors per generation (nsga2.population)")
+    p.add_argument("--workers", type=positive_int, default=1, help="local worker processes (default 1: this process)")
     p.add_argument("--ray", default=None, metavar="ADDRESS", help="run evaluations as Ray tasks: 'auto', host:port, "
                                                                   "or 'local' (a Ray instance on this machine)")
     p.add_argument("--out", default=None, help="output folder (default: runs/pareto_<config name>)")
@@ -233,6 +237,12 @@ def main(argv: list[str] | None = None) -> int:
                 raise A3CQPError("--pick needs --out DIR (a finished run)")
             if args.overrides:
                 raise A3CQPError("--set applies to a run; --pick reads OUT/front.csv as the run wrote it")
+            run_only = [f for f, given in (("--resume", args.resume), ("--generations", args.generations),
+                                           ("--population", args.population), ("--workers", args.workers != 1),
+                                           ("--ray", args.ray), ("--config", args.config)) if given]
+            if run_only:
+                raise A3CQPError(f"{', '.join(run_only)} {'apply' if len(run_only) > 1 else 'applies'} to a run; --pick reads OUT/front.csv as the run wrote "
+                                 "it (give --pick K --out DIR alone)")
             print(f"wrote {pick(args.out, args.pick)}")
             return 0
         cfg, out = cli_config(args.config, args.out, args.resume, "configs/nsga2_zdt1.yaml", "pareto", "nsga2",
