@@ -18,9 +18,10 @@ import tempfile
 from collections.abc import Iterable
 from pathlib import Path
 
-from a3cqp_rl.exceptions import A3CQPError
+from a3cqp_rl.exceptions import A3CQPError, CheckpointError
 
-__all__ = ["RunFolder", "RunFolderError", "RUN_FILES", "check_output_path", "config_changes", "remove_outputs"]
+__all__ = ["RunFolder", "RunFolderError", "RUN_FILES", "check_output_path", "config_changes", "policy_file",
+           "remove_outputs"]
 
 RUN_FILES = ("checkpoint.pt", "policy.pt", "metrics.csv", "config.yaml", "overrides.log")
 """What a run writes, besides the tb/ folder and its plots; `force` removes these."""
@@ -62,6 +63,19 @@ def check_output_path(path: str | Path, flag: str, *, folder: bool = False) -> P
     return path
 
 
+def policy_file(path: str | Path) -> Path:
+    """The policy file a `--policy` argument names: the file itself, or a run folder's policy.pt; a folder with only
+    checkpoint.pt is a CheckpointError that says which file to pass."""
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    if not (path / "policy.pt").is_file() and (path / "checkpoint.pt").is_file():
+        raise CheckpointError(f"{path} holds no policy.pt (a run writes it when it ends or is stopped), only "
+                              f"checkpoint.pt: pass {path / 'checkpoint.pt'} for its last parameters, or finish the "
+                              f"run with a3cqp train --out {path} --resume")
+    return path / "policy.pt"
+
+
 class RunFolder:
     """An output folder held by this process (lock taken); `close()` (or the process ending) releases it."""
 
@@ -86,9 +100,12 @@ class RunFolder:
             folder._lock()
             if not resume and folder.holds_run():
                 if not force:
+                    resumable = (path / "checkpoint.pt").is_file()
                     raise RunFolderError(
-                        f"{path} already holds a run ({', '.join(folder.existing())}); continue it with --resume, "
-                        f"start over with --force (deletes it), or choose another --out")
+                        f"{path} already holds a run ({', '.join(folder.existing())}); "
+                        + ("continue it with --resume, " if resumable else "without checkpoint.pt it cannot be "
+                           "resumed: ")
+                        + "start over with --force (deletes it), or choose another --out")
                 folder.clear()
             folder.remove_temporary_files()
         except BaseException:

@@ -229,11 +229,13 @@ class Checkpoints:
         """Load OUT/checkpoint.pt into the live state; refuse a changed config unless `override` (then recorded in
         OUT/overrides.log). Returns the update to continue after."""
         ck = load_checkpoint(self.path, CKPT_KEYS)
-        if layout_key(ck["layout"]) != self.layout_key or ck["flat"].shape != self.flat.shape:
-            raise CheckpointError(f"{self.path} was written for network {ck['layout']}, the config and env ask for "
-                                  f"{self.layout_key}")
-        start = int(ck["update"])
         changes = config_changes(_with_defaults(ck["config"]), config_to_dict(self.cfg), RESUMABLE_CHANGES)
+        if layout_key(ck["layout"]) != self.layout_key or ck["flat"].shape != self.flat.shape:
+            why = (f"; the config differs from the run's ({'; '.join(changes[:4])}{'; ...' if len(changes) > 4 else ''}"
+                   "): resume without --config to continue the run as it was recorded" if changes else "")
+            raise CheckpointError(f"{self.path} was written for network {ck['layout']}, the config and env ask for "
+                                  f"{self.layout_key}{why}")
+        start = int(ck["update"])
         if changes and not override:
             raise CheckpointError(f"{self.path} was written with another config ({'; '.join(changes)}); resume with "
                                   "--override to continue with the new values (recorded in overrides.log), or start "

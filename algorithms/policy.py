@@ -21,6 +21,7 @@ from torch import Tensor, nn
 
 from a3cqp_rl.checkpoint import load_checkpoint
 from a3cqp_rl.exceptions import CheckpointError
+from a3cqp_rl.run_folder import policy_file
 from algorithms.networks import ParamLayout, policy_mean
 
 if TYPE_CHECKING:  # annotations only: torchrl is imported where an actor is built
@@ -104,8 +105,7 @@ class _LocScale(nn.Module):
 def load_policy(path: str | Path) -> A2CPolicy:
     """OUT/policy.pt (or a checkpoint.pt: the raw, never averaged parameters; a run folder: its policy.pt) as an
     `A2CPolicy`."""
-    path = Path(path)
-    path = path / "policy.pt" if path.is_dir() else path
+    path = policy_file(path)
     data = load_checkpoint(path, ("flat", "layout"))
     obs_dim, act_dim, hidden, network, critic_dim = layout_key(data["layout"])
     layout = ParamLayout(obs_dim, act_dim, hidden, network, critic_dim)
@@ -134,8 +134,7 @@ def init_from_policy(path: str | Path, layout: ParamLayout, flat: Tensor, low: t
 
     A2CConfig.init_policy (fine-tuning). CheckpointError when nothing of the actor fits or the action bounds differ
     (the network's outputs are in normalised units of the bounds it was trained with)."""
-    path = Path(path)
-    path = path / "policy.pt" if path.is_dir() else path
+    path = policy_file(path)
     data = load_checkpoint(path, ("flat", "layout"))
     obs_dim, act_dim, hidden, network, critic_dim = layout_key(data["layout"])
     src = ParamLayout(obs_dim, act_dim, hidden, network, critic_dim).views(data["flat"].to(flat.dtype))

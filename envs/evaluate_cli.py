@@ -123,9 +123,6 @@ PANDA_ONLY = {"--trials", "--seeds", "--controllers", "--controller-config", "--
 against both parsers)."""
 
 
-def _policy_file(path: str | Path) -> Path:
-    path = Path(path)
-    return path / "policy.pt" if path.is_dir() else path
 
 
 def _names(paths: Sequence[Path], reserved: Iterable[str] = ()) -> list[str]:
@@ -164,12 +161,13 @@ def report(policies: Sequence[str | Path], config: ExperimentConfig | None = Non
     from a3cqp_rl.checkpoint import STDOUT, load_checkpoint
     from a3cqp_rl.config import config_from_dict
     from a3cqp_rl.regions import check_fig5_regions, format_regions
+    from a3cqp_rl.run_folder import policy_file
     from algorithms.policy import load_agent_policy
     from a3cqp_rl.transfer import FREE_MOTION_E, free_motion_rates, guided_rates, raises_ik, yields
     from envs.point_mass_eval import CHECKS, baseline_policies, behaviour_checks, evaluate
 
     out = sys.stdout if out is None else out  # looked up per call: a default bound at import outlives a redirect
-    paths = [_policy_file(p) for p in policies]
+    paths = [policy_file(p) for p in policies]
     baselines = baseline_policies()
     names = _names(paths, reserved=baselines)
     # each loaded before any episode: a Pendulum policy, say, is named here

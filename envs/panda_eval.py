@@ -59,7 +59,7 @@ from a3cqp_rl import worker_start
 from a3cqp_rl.checkpoint import STDOUT, write_atomic, write_text_atomic
 from a3cqp_rl.cli import add_set_option, help_summary, seed_arg
 from a3cqp_rl.exceptions import A3CQPError
-from a3cqp_rl.run_folder import check_output_path
+from a3cqp_rl.run_folder import check_output_path, policy_file
 from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, guided_rates,  # noqa: F401 (re-exported)
                                 raises_ik, yields)
 from a3cqp_rl.worker_start import MAX_DEFAULT_WORKERS, default_workers  # noqa: F401 (re-exported)
@@ -553,8 +553,7 @@ def _policy_file(path: str | Path | None, from_cli: bool, cfg_path: str | Path |
     if path is None:
         return None
     path = Path(path) if from_cli else project_path(path)
-    if path.is_dir():
-        path = path / "policy.pt"
+    path = policy_file(path)
     if not path.is_file():
         where = ("" if from_cli else " (panda.policy of --set)" if set_on_cli else
                  (f" (panda.policy of {cfg_path}: the repository ships it; pass --policy PATH, or leave learned out "

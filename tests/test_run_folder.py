@@ -41,6 +41,25 @@ def test_a_finished_run_is_not_overwritten_without_force(tmp_path):
     train(cfg, tmp_path / "run", total_steps=16 * 10, force=True)  # starts over: 10 updates, 2 rows
     assert len(_rows(tmp_path / "run")) == 2 and (tmp_path / "run" / "notes.txt").read_text() == "mine"
     assert not any((tmp_path / "run" / old).exists() for old in ("evaluation.json", "transfer.png", "policy_map.png"))
+    # a run without its checkpoint is not sent to --resume (which would say there is nothing to resume)
+    (tmp_path / "run" / "checkpoint.pt").unlink()
+    with pytest.raises(RunFolderError, match="without checkpoint.pt it cannot be resumed: start over with --force"):
+        train(cfg, tmp_path / "run", total_steps=16 * 10)
+
+
+def test_a_folder_with_only_a_checkpoint_names_the_file_to_pass_as_a_policy(tmp_path):
+    from a3cqp_rl.exceptions import CheckpointError
+    from a3cqp_rl.run_folder import policy_file
+    from algorithms.policy import load_policy
+
+    train(config_from_dict(BASE), tmp_path / "run", total_steps=16 * 2)
+    assert policy_file(tmp_path / "run") == tmp_path / "run" / "policy.pt"
+    assert policy_file(tmp_path / "run" / "checkpoint.pt") == tmp_path / "run" / "checkpoint.pt"
+    (tmp_path / "run" / "policy.pt").unlink()
+    with pytest.raises(CheckpointError, match=r"holds no policy.pt .* pass .*run/checkpoint.pt for its last parameters"):
+        load_policy(tmp_path / "run")
+    assert load_policy(tmp_path / "run" / "checkpoint.pt").layout.obs_dim == 3
+    assert policy_file(tmp_path / "empty") == tmp_path / "empty"  # not a folder: the loader says it is not found
 
 
 def test_one_writer_per_folder(tmp_path):
@@ -63,6 +82,10 @@ def test_resume_refuses_a_changed_config_unless_overridden_and_records_it(tmp_pa
         other = config_from_dict({**BASE, **change, "a2c": {**BASE["a2c"], **change.get("a2c", {})}})
         with pytest.raises(CheckpointError, match=text):
             train(other, tmp_path / "run", total_steps=16 * 20, resume=True)
+    # another network: refused whatever --override says, with what of the config differs
+    other = config_from_dict({**BASE, "a2c": {**BASE["a2c"], "hidden": [8]}})
+    with pytest.raises(CheckpointError, match=r"written for network .*the config differs from the run's \(a2c.hidden"):
+        train(other, tmp_path / "run", total_steps=16 * 20, resume=True, override=True)
     assert not (tmp_path / "run" / "overrides.log").exists()
     assert (tmp_path / "run" / "config.yaml").read_text() == config_before  # a refused resume relabels nothing
     # more steps and --no-compile are no change of the experiment

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from a3cqp_rl.cli import help_summary
 from a3cqp_rl.exceptions import A3CQPError
-from a3cqp_rl.run_folder import check_output_path
+from a3cqp_rl.run_folder import check_output_path, policy_file
 
 POLICY_LOADER = "algorithms.a2c:load_policy"
 """'module:function' turning a policy file into obs [..., 3] -> action [..., 4] (resolved on use: plotting does not
@@ -127,9 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.what == "policy-map":
             from a3cqp_rl.plotting.policy_map import plot_policy_map
 
-            src = Path(args.policy)
-            if src.is_dir():
-                src = src / "policy.pt"
+            src = policy_file(args.policy)
             levels = _levels(args.levels)
             if args.x == args.y:
                 raise ValueError(f"--x and --y both name {args.x}: give two different states")
