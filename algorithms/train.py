@@ -175,7 +175,8 @@ def _run(args: argparse.Namespace) -> int:
             print(f"trained {res.steps:,} steps in {res.seconds:.1f} s ("
                   + (f"{res.compile_seconds:.0f} s of it compiling; {res.steps_per_second:,.0f} steps/s after that"
                      if res.compile_seconds else f"{res.steps_per_second:,.0f} steps/s") + "); "
-                  + _reward_text(res.final_metrics.get("episode_reward", float("nan"))))
+                  + _reward_text(res.final_metrics.get("episode_reward", float("nan")))
+                  + (f" (--steps {steps:,} rounded up to whole updates)" if steps and res.steps != steps else ""))
         if res.selected_update is not None:
             print(_selection_text(res, run_cfg.a2c.select_last))
         if args.timings:

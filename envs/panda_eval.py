@@ -607,7 +607,12 @@ def _print_report(args: argparse.Namespace, cfg_path: str | Path | None, res: Ev
 
 def main(argv: list[str] | None = None) -> int:
     """CLI entry for `a3cqp evaluate --scene ...`; returns an exit code."""
-    args = _parser().parse_args(argv)
+    p = _parser()
+    args, unknown = p.parse_known_args(argv)
+    if unknown:  # the point mass's --episodes given with --scene: say what the scenes take instead
+        hint = " (--episodes is the point mass's: the scenes take --trials)" if any(
+            u.split("=", 1)[0] == "--episodes" for u in unknown) else ""
+        p.error(f"unrecognized arguments: {' '.join(unknown)}{hint}")
     if args.json != STDOUT:
         return _cli(args)
     json_out = sys.stdout
@@ -617,7 +622,9 @@ def main(argv: list[str] | None = None) -> int:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="a3cqp evaluate", description=help_summary(__doc__))
-    p.add_argument("--scene", required=True, choices=["peg_in_hole", "polishing", "guidance"])
+    p.add_argument("--scene", required=True, choices=["peg_in_hole", "polishing", "guidance"],
+                   help="the task on the simulated Panda: Table VI's peg-in-hole, Fig. 8's polishing, or free guidance "
+                   "by the operator")
     p.add_argument("--policy", nargs="+", default=None, metavar="PATH",
                    help="policy.pt of the learned controller (a run folder also works; default: the config's "
                    "panda.policy); several: each on the same trials, one after the other, then a line per policy")

@@ -240,6 +240,10 @@ def test_evaluate_names_the_panda_options_given_without_a_scene(capsys):
     with pytest.raises(SystemExit):
         main(["evaluate", "--bogus"])
     assert "unrecognized arguments: --bogus" in capsys.readouterr().err
+    # and the other way round: the point mass's --episodes with a scene
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--scene", "peg_in_hole", "--episodes", "3"])
+    assert "--episodes is the point mass's: the scenes take --trials" in capsys.readouterr().err
 
 
 def test_evaluate_checks_its_json_path_before_evaluating(tmp_path, capsys):

@@ -14,6 +14,8 @@ import numpy as np
 def read_metrics(run_dir: str | Path) -> dict[str, np.ndarray]:
     """Columns of RUN/metrics.csv as float arrays; FileNotFoundError with the path if absent."""
     path = Path(run_dir) / "metrics.csv"
+    if not Path(run_dir).exists():
+        raise FileNotFoundError(f"{run_dir}: no such folder")
     if not path.is_file():
         raise FileNotFoundError(f"no metrics.csv in {run_dir} (is it a training output folder?)")
     try:
