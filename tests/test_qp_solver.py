@@ -321,6 +321,25 @@ def test_duplicated_active_rows_are_solved_and_certified() -> None:
         assert abs(float(obj) - prob.value) <= 1e-6 * (1.0 + abs(prob.value)), (tol, float(obj), prob.value)
 
 
+def test_rows_scaled_by_up_to_a_million_are_solved_with_multipliers_that_meet_stationarity() -> None:
+    """Rows of norm 3e-6 to 4e5: the active set's certificate accepted a multiplier of about −1e-3 (within the sign
+    test's tol·max|z|, max|z| ≈ 2e6), and the returned, clamped z then missed stationarity by 0.19 relative on the
+    torch route (TOLERANCE_NOT_MET for an x right to 5e-15). Stationarity is now certified with z as returned."""
+    import cvxpy as cp
+
+    d = np.load(Path(__file__).parent / "data" / "qp_scaled_rows.npz")
+    P, q, G, h = (torch.from_numpy(d[k])[None] for k in ("P", "q", "G", "h"))
+    x = cp.Variable(d["P"].shape[0])
+    prob = cp.Problem(cp.Minimize(0.5 * cp.quad_form(x, cp.psd_wrap(d["P"])) + d["q"] @ x), [d["G"] @ x <= d["h"]])
+    prob.solve(solver="CLARABEL", tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12)
+    for tol in (1e-9, 1e-7):
+        sol = solve_qp(P, q, G=G, h=h, tol=tol)
+        assert sol.status.item() == QPStatus.SOLVED, (tol, QPStatus(sol.status.item()).name)
+        assert float((sol.x[0] - torch.from_numpy(x.value)).abs().max()) <= 1e-6 * (1.0 + float(abs(x.value).max()))
+        r = P[0] @ sol.x[0] + q[0] + G[0].T @ sol.z[0]
+        assert bool((sol.z >= 0).all()) and float(r.abs().max()) <= 1e-6 * (1.0 + float((G[0].abs().T @ sol.z[0]).max()))
+
+
 def test_gradients_match_cvxpylayers() -> None:
     cvxpylayers_torch = pytest.importorskip("cvxpylayers.torch")
     import cvxpy as cp
