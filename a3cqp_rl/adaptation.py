@@ -24,6 +24,21 @@ def check_finite(**tensors: Tensor) -> None:
             raise ValueError(f"{name} contains NaN or inf (shape {tuple(t.shape)})")
 
 
+def action_of(td, shape: tuple[int, ...]) -> Tensor:  # noqa: ANN001
+    """An env step's "action" entry of `td`, checked (present, `shape`, finite; a ValueError naming the rows that are
+    not) and detached: a policy's graph must not grow through the env's state."""
+    action = td.get("action", None)
+    if action is None:
+        raise ValueError(f"the tensordict has no 'action' entry (keys: {sorted(map(str, td.keys()))})")
+    if tuple(action.shape) != tuple(shape):
+        raise ValueError(f"action must have shape {tuple(shape)}, got {tuple(action.shape)}")
+    bad = ~torch.isfinite(action.reshape(shape[0], -1)).all(-1)
+    if bool(bad.any()):
+        rows = torch.nonzero(bad).flatten().tolist()
+        raise ValueError(f"action contains NaN or inf in batch row(s) {rows[:10]}{' ...' if len(rows) > 10 else ''}")
+    return action.detach()
+
+
 def _normalised(x: Tensor, bound: float) -> Tensor:
     # eq. 26 and section V-B: each term divided by its bound and kept in [0, 1].
     return (x.abs() / bound).clamp(0.0, 1.0)

@@ -35,7 +35,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from a3cqp_rl.adaptation import check_finite, integrate_force, integrate_weights, observe, reward
+from a3cqp_rl.adaptation import action_of, integrate_force, integrate_weights, observe, reward
 from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.control import A3CQPController, ControllerOptions, wrench_from_joint_torques
 from a3cqp_rl.control.frames import pose_error
@@ -59,6 +59,8 @@ TASK_BLENDS = {"eq35": {"cartesian_regularization": 1.0, "wrench_blend": "weight
 """ControllerOptions of PandaEnvConfig.task_blend: "eq35" makes the QP's per-axis blend the weighted sum of the
 point-mass surrogate (eq. 35): J q̈* = w1 ẍ_IK (the regularizer weighs the rest of ẍ with 1 − w1) and
 f* = w2 f_adm + w3 f_ctc (IK's weight pulls f toward zero); "eq24" keeps the controller's defaults."""
+_MEASURED = ("q", "qd", "pos", "rot", "_twist", "f_ext", "f_env", "f_env_true", "f_ope", "_r_handle", "handle_pos")
+"""What `PandaEnv._measure` sets for every arm (a partial reset keeps the other arms' values)."""
 INFO_KEYS = ("e_local", "f_env_local", "f_ope_local", "weights", "f_d", "phase", "time", "diverged")
 """Per-step entries written next to `observation` (plus the scene's signals, e.g. the peg's misalignment)."""
 
@@ -315,7 +317,14 @@ class PandaEnv(EnvBase):
         self.scene.reset(idx, rngs)
         for body, offset in self.scene.body_offsets().items():  # e.g. the polishing plate's height this trial
             self.sim.move_static_body(body, idx, offset[idx])
+        # the read-out is of every arm; the others keep what their last control period measured (read again after
+        # its physics step, their next step's reference rules would start from other numbers: a reset must not
+        # touch an arm it does not name)
+        keep = np.setdiff1d(np.arange(self.num_envs), idx)
+        held = {a: getattr(self, a)[keep].copy() for a in _MEASURED} if len(keep) and hasattr(self, "q") else {}
         self._measure()
+        for a, v in held.items():
+            getattr(self, a)[keep] = v
         self.f_env_obs[idx], self.f_ope_obs[idx] = self.f_env[idx], self.f_ope[idx]
         self._update_scene()
         self._ref_step[idx] = 0.0  # a fresh reference has not moved yet
@@ -396,10 +405,7 @@ class PandaEnv(EnvBase):
         return self.ctrl.options.desired_state_leak * extra if np.any(extra > 0.0) else None
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action")
-        if tuple(action.shape) != (self.num_envs, 6, 4):
-            raise ValueError(f"action must have shape ({self.num_envs}, 6, 4), got {tuple(action.shape)}")
-        check_finite(action=action)
+        action = action_of(tensordict, (self.num_envs, 6, 4))
         self._adapt(action)
         self.max_penetration[:] = 0.0
         w_ctrl, scale = self.controller_weights()
@@ -779,7 +785,8 @@ class PandaAxisAgents(EnvBase):
 
     The six per-axis agents of every arm share one policy (paper 000, section IV), so a learner that treats them as
     a batch of separate environments (algorithms.a2c through a TorchRL collector) trains that shared policy. An arm's
-    episode ends for all six of its agents; a reset request for any of them resets the arm.
+    episode ends for all six of its agents, and a reset names all six or none (TorchRL keeps the old observation of
+    an agent a reset mask leaves out, which would then not be its arm's).
     """
 
     _has_dynamic_specs = False
@@ -812,12 +819,17 @@ class PandaAxisAgents(EnvBase):
         mask = None if tensordict is None else tensordict.get("_reset", None)
         inner = None
         if mask is not None:
-            arms = mask.reshape(self.num_arms, 6).any(-1, keepdim=True)
+            per_arm = mask.reshape(self.num_arms, 6)
+            arms = per_arm.any(-1, keepdim=True)
+            if not bool((per_arm == arms).all()):
+                part = torch.nonzero(arms[:, 0] & ~per_arm.all(-1)).flatten().tolist()
+                raise ValueError(f"_reset names only some of the six agents of arm(s) {part}: an arm resets as a "
+                                 "whole (name all six of its agents)")
             inner = TensorDict({"_reset": arms}, batch_size=self.inner.batch_size)
         return self._flat(self.inner._reset(inner), reward=False)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action").reshape(self.num_arms, 6, 4)
+        action = action_of(tensordict, (self.batch_size[0], 4)).reshape(self.num_arms, 6, 4)
         td = TensorDict({"action": action}, batch_size=self.inner.batch_size)
         return self._flat(self.inner._step(td), reward=True)
 

@@ -35,7 +35,7 @@ from torch import Tensor
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from a3cqp_rl.adaptation import check_finite, integrate_force, integrate_weights, observe, reward
+from a3cqp_rl.adaptation import action_of, integrate_force, integrate_weights, observe, reward
 from a3cqp_rl.config import AdaptationConfig, ExperimentConfig, PointMassConfig, RewardConfig
 
 __all__ = ["PointMassEnv", "SCENARIOS", "INFO_KEYS"]
@@ -216,10 +216,7 @@ class PointMassEnv(EnvBase):
 
     # ------------------------------------------------------------------ step
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action")
-        if action.shape != (self.num_envs, 4):
-            raise ValueError(f"action must have shape ({self.num_envs}, 4), got {tuple(action.shape)}")
-        check_finite(action=action)
+        action = action_of(tensordict, (self.num_envs, 4))
         self._state, reward = agent_step(self._state, action.to(self.dtype), self._schedule, self.cfg, self.adapt, self.rew)
         truncated = (self._state["t"] >= self.cfg.episode_steps).unsqueeze(-1)
         terminated = torch.zeros_like(truncated)  # eq. 35 has no terminal state; episodes end by time

@@ -164,6 +164,26 @@ def test_same_seed_same_numbers_and_trial_seeds_share_trials() -> None:
     assert not np.allclose(env.scene.offset[0], env.scene.offset[1])
 
 
+def test_resetting_one_arm_leaves_the_others_bit_for_bit() -> None:
+    """A partial reset reads every arm's sensors again (mj_step1); the arms it does not name keep what their last
+    control period measured, so their trajectories equal a run without the reset (it used to move them by 1e-14 to
+    3e-3 rad over an episode through the next step's reference rules)."""
+    gen = torch.Generator().manual_seed(3)
+    actions = [torch.rand(2, 6, 4, generator=gen) * 2.0 - 1.0 for _ in range(40)]
+    qs = []
+    for reset_at in (None, 15):
+        env = PandaEnv(2, _cfg(), trial_seeds=[3, 4])
+        td = env.reset()
+        for k, a in enumerate(actions):
+            if k == reset_at:
+                td = env.reset(td.empty().set("_reset", torch.tensor([[True], [False]])))
+            td["action"] = a
+            td = env.step(td)["next"]
+        qs.append((env.q.copy(), env.qd.copy(), env.weights.copy()))
+    assert all(np.array_equal(a[1], b[1]) for a, b in zip(*qs))
+    assert not np.array_equal(qs[0][0][0], qs[1][0][0])  # arm 0 did start again
+
+
 def test_force_sensing_separates_operator_and_contact() -> None:
     # guidance: no contact, the operator pushes at the handle (above the F/T sensor)
     env = PandaEnv(1, _cfg({"panda": {"guidance": {"pause": 0.2}, "operator": {"noise": 0.0}}}), seed=0,
@@ -474,10 +494,16 @@ def test_axis_agents_view_trains_one_shared_policy_with_a2c(tmp_path) -> None:  
     td["action"] = torch.zeros(12, 4)
     out = env.step(td)["next"]
     assert out["reward"].shape == (12, 1) and out["done"].shape == (12, 1)
-    # a reset request for one agent resets its arm (all six agents)
+    # a reset names an arm's six agents (the arm resets as a whole), not some of them: TorchRL would keep the others'
+    # old observations
     env.inner.t[:] = 5.0
-    env.reset(out.empty().set("_reset", torch.tensor([[False]] * 6 + [[True]] + [[False]] * 5)))
+    with pytest.raises(ValueError, match=r"only some of the six agents of arm\(s\) \[1\]"):
+        env.reset(out.empty().set("_reset", torch.tensor([[False]] * 6 + [[True]] + [[False]] * 5)))
+    assert env.inner.t.tolist() == [5.0, 5.0]
+    back = env.reset(out.clone().set("_reset", torch.tensor([[False]] * 6 + [[True]] * 6)))
     assert env.inner.t.tolist() == [5.0, 0.0]
+    fresh = env.inner._observation(*[torch.from_numpy(a) for a in env.inner.local_state()])
+    assert torch.equal(back["observation"][6:], fresh.reshape(12, 3)[6:].to(torch.float32))
     cfg = load_config("configs/panda_a2c.yaml", {"a2c": {"num_envs": 1, "n_steps": 4, "compile": False,
                                                           "region_checks": 0}})
     res = train(cfg, tmp_path / "run", total_steps=240)
@@ -900,6 +926,25 @@ def test_the_config_may_be_a_yaml_path_and_nothing_else_but_a_config() -> None:
     assert env.pcfg.scene == "polishing"
     with pytest.raises(TypeError, match="config must be an ExperimentConfig .* or a YAML path, got dict"):
         PandaEnv(1, {"panda": {}})
+
+
+def test_an_action_with_a_graph_is_detached_and_a_bad_one_named() -> None:
+    """A policy run without no_grad: the env's state and outputs carry no graph. A missing action, or NaN in one arm's,
+    is a ValueError that names it (no arm steps)."""
+    env = PandaEnv(2, _cfg(), seed=0)
+    td = env.reset()
+    net = torch.nn.Linear(3, 4)
+    td["action"] = torch.tanh(net(td["observation"]))
+    out = env.step(td)["next"]
+    assert not out["observation"].requires_grad and not out["reward"].requires_grad
+    q = env.q.copy()
+    with pytest.raises(ValueError, match="no 'action' entry"):
+        env.step(out.clone())
+    bad = torch.zeros(2, 6, 4)
+    bad[1, 3, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"NaN or inf in batch row\(s\) \[1\]"):
+        env.step(out.clone().set("action", bad))
+    assert np.array_equal(env.q, q)
 
 
 def test_actions_outside_the_spec_saturate_at_its_bounds() -> None:

@@ -136,6 +136,11 @@ def test_bad_actions_raise_clear_errors():
         env.step(td.clone().set("action", torch.zeros(4, 3)))
     with pytest.raises(ValueError, match="num_envs"):
         PointMassEnv(0)
+    # an action with a graph (a policy run without no_grad) is detached: the state must not grow a graph step by step
+    net = torch.nn.Linear(3, 4)
+    out = env.step(td.clone().set("action", torch.tanh(net(td["observation"]))))["next"]
+    assert not out["observation"].requires_grad and not out["reward"].requires_grad
+    assert not any(torch.is_tensor(v) and v.requires_grad for v in env._state.values())
 
 
 def test_fused_step_with_auto_reset_equals_torchrl_step_then_reset():
