@@ -256,6 +256,9 @@ class A2CConfig:
             err.add("critic", "'privileged' needs network: separate (a shared trunk would pass the privileged state to the policy)")
         if self.init_policy is not None and not self.init_policy.strip():
             err.add("init_policy", "must be a path to a policy.pt, a checkpoint.pt or a run folder, or null")
+        if self.normalize_advantage and self.n_steps * self.num_envs < 2:
+            err.add("normalize_advantage", "needs at least two samples per update (n_steps × num_envs): the standard "
+                    "deviation of one advantage is undefined")
 
 
 @dataclass

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import logging
 import math
 import time
 import types
@@ -56,6 +57,9 @@ __all__ = ["Batch", "HeldNoise", "ParameterAverage", "EnvLayout", "read_env_layo
            "a2c_update", "train", "TrainResult", "load_policy", "load_actor", "METRICS", "CSV_COLUMNS"]
 
 _truncate_csv = truncate_csv  # the name tests and older callers use
+
+UNBOUNDED = 1e30
+"""An action bound at or beyond this magnitude is no bound (TorchRL's Unbounded spec reports ±3.4e38)."""
 
 
 @dataclass
@@ -210,8 +214,12 @@ def read_env_layout(env: EnvBase) -> EnvLayout:
         lo, hi = space.low.reshape(-1, act_dim).double(), space.high.reshape(-1, act_dim).double()
         if not (bool((lo == lo[0]).all()) and bool((hi == hi[0]).all())):
             raise ValueError("action bounds differ between envs/agents; the shared policy needs the same bounds")
-        if bool(torch.isfinite(lo[0]).all() and torch.isfinite(hi[0]).all()):
+        # TorchRL's Unbounded spec reports ±float32 max (and a float32 range from it overflows): no bound there
+        if bool((lo[0].abs() < UNBOUNDED).all() and (hi[0].abs() < UNBOUNDED).all()):
             low, high = tuple(lo[0].tolist()), tuple(hi[0].tolist())
+        elif bool((lo[0].abs() < UNBOUNDED).any() or (hi[0].abs() < UNBOUNDED).any()):
+            logging.getLogger(__name__).warning(
+                "the action spec bounds some components and not others: actions go to the env as sampled, unclipped")
     return EnvLayout(obs_shape[-1], act_dim, math.prod(batch), tuple(agents), low, high)
 
 
@@ -667,6 +675,10 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     selection = TransferSelection(layout, spec, num_updates, hp)
     ckpt = Checkpoints(folder, cfg, layout, spec, flat, square_avg, gen, runner, average, selection)
     start = ckpt.begin(resume, override)
+    if start and not runner.state_dict():  # a collector-driven env: its episodes start again, not bit for bit
+        logging.getLogger(__name__).warning(
+            "resumed at update %d with the parameters and optimiser state; the env (%s) is not snapshotted, so its "
+            "episodes start again from the seed: the run will not be bit for bit an uninterrupted one", start, cfg.env)
     if start > num_updates:  # the averaged policy and the logs would be cut back to a shorter run
         raise ValueError(f"the run already trained {start * per_update:,} steps, more than the {total:,} asked for: "
                          f"resume with --steps {start * per_update} or more, or train into a new --out")

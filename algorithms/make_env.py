@@ -53,6 +53,18 @@ def gym_env(env_id: str, num_envs: int, seed: int, torchrl_wrapper: bool = False
     # the final observation of an episode (for bootstrapping at truncation) comes with the step only in SAME_STEP mode
     vec = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="sync",
                        vector_kwargs={"autoreset_mode": gym.vector.AutoresetMode.SAME_STEP})
+    # a Box observation is what the A2C reads, and composite spaces fail inside TorchRL's wrapper with its internals'
+    # messages (a Dict observation only at the first episode end); discrete actions build, and the A2C names them
+    obs_space, act_space = vec.single_observation_space, vec.single_action_space
+    simple_actions = (gym.spaces.Box, gym.spaces.Discrete, gym.spaces.MultiDiscrete, gym.spaces.MultiBinary)
+    for what, space, ok in (("observation", obs_space, isinstance(obs_space, gym.spaces.Box)),
+                            ("action", act_space, isinstance(act_space, simple_actions))):
+        if not ok:
+            vec.close()
+            hint = (" (flatten it: gymnasium.wrappers.FlattenObservation, registered under an id of its own)"
+                    if what == "observation" else " (A2C here has a Gaussian policy: continuous Box actions)")
+            raise ValueError(f"{env_id}: its {what} space is {type(space).__name__}; the A2C reads a Box {what}"
+                             f"{hint}")
     if supported(vec) and not torchrl_wrapper:
         env = GymVectorEnv(vec)
     else:

@@ -33,6 +33,15 @@ def test_pendulum_reads_its_specs_scales_actions_and_skips_the_fig5_checks(tmp_p
     assert a.shape == (7, 1) and a.abs().max() <= 2.0
 
 
+def test_a_resume_of_a_gymnasium_run_says_its_episodes_start_again(tmp_path, caplog):
+    """A collector-driven env is not snapshotted: the resume continues parameters and optimiser, and says so."""
+    cfg = config_from_dict({"env": "Pendulum-v1", "a2c": {**FAST, "num_envs": 2}})
+    train(cfg, tmp_path / "run", total_steps=2 * 4 * 4)
+    with caplog.at_level("WARNING", logger="algorithms.a2c"):
+        res = train(cfg, tmp_path / "run", total_steps=2 * 4 * 8, resume=True)
+    assert res.steps == 64 and "episodes start again from the seed" in caplog.text
+
+
 def test_mountain_car_with_two_observations_trains():
     # 2 observations, 1 action in [-1, 1]: was "shape '[-1, 3]' is invalid" with the point mass's sizes hard-coded
     cfg = config_from_dict({"env": "MountainCarContinuous-v0", "a2c": {**FAST, "num_envs": 2}})

@@ -308,6 +308,12 @@ def test_a_section_given_a_value_is_refused_whatever_else_fills_it(tmp_path):
             parse_overrides(items)
 
 
+def test_advantage_normalisation_needs_two_samples_per_update():
+    with pytest.raises(ConfigError, match="normalize_advantage: needs at least two samples per update"):
+        load_config(None, {"a2c": {"normalize_advantage": True, "num_envs": 1, "n_steps": 1}})
+    assert load_config(None, {"a2c": {"normalize_advantage": True, "num_envs": 1, "n_steps": 2}}).a2c.n_steps == 2
+
+
 def test_a_key_written_twice_in_a_file_is_refused_with_both_lines(tmp_path):
     (tmp_path / "dup.yaml").write_text("a2c:\n  learning_rate: 1e-3\n  gamma: 0.9\n  learning_rate: 2e-3\n")
     with pytest.raises(ConfigError, match=r"dup.yaml: a2c.learning_rate: given twice \(lines 2 and 4\)"):

@@ -104,6 +104,37 @@ def test_other_spaces_go_through_torchrls_gymwrapper_and_the_env_refuses_them():
         GymVectorEnv(gym.vector.SyncVectorEnv([Countdown] * 2))  # gymnasium's default: NEXT_STEP
 
 
+class _DictObs(gym.Env):
+    observation_space = gym.spaces.Dict({"observation": gym.spaces.Box(-1, 1, (3,)), "goal": gym.spaces.Box(-1, 1, (3,))})
+    action_space = gym.spaces.Box(-1, 1, (2,))
+
+
+class _Unbounded(gym.Env):
+    observation_space = gym.spaces.Box(-1, 1, (3,))
+    action_space = gym.spaces.Box(-np.inf, np.inf, (2,))
+
+    def reset(self, seed=None, options=None):  # noqa: ANN001, ANN201
+        super().reset(seed=seed)
+        return np.zeros(3, np.float32), {}
+
+    def step(self, action):  # noqa: ANN001, ANN201
+        return np.zeros(3, np.float32), float(np.sum(action)), False, False, {}
+
+
+def test_a_composite_observation_is_named_and_an_unbounded_action_passes_as_sampled():
+    """A Dict observation used to train on its 'observation' key alone and crash at the first episode end inside
+    TorchRL's wrapper; an unbounded action (±3.4e38 in TorchRL's spec) used to be scaled to inf."""
+    from algorithms.a2c import read_env_layout
+
+    gym.register("A3CQPTestDictObs-v0", entry_point=_DictObs, max_episode_steps=5)
+    gym.register("A3CQPTestUnbounded-v0", entry_point=_Unbounded, max_episode_steps=5)
+    with pytest.raises(ValueError, match=r"observation space is Dict; the A2C reads a Box observation.*FlattenObservation"):
+        gym_env("A3CQPTestDictObs-v0", 2, seed=0)
+    layout = read_env_layout(gym_env("A3CQPTestUnbounded-v0", 2, seed=0))
+    assert layout.low is None and layout.high is None
+    assert torch.equal(layout.to_env(torch.tensor([[0.0, 0.5]])), torch.tensor([[0.0, 0.5]]))
+
+
 def test_a_gymnasium_mujoco_task_runs_with_its_float64_observations_and_uneven_episode_ends():
     env = gym_env("InvertedPendulum-v5", 4, seed=0)  # needs gymnasium[mujoco] (imageio), a project dependency
     assert isinstance(env, GymVectorEnv) and env.observation_spec["observation"].dtype == torch.float64
