@@ -117,7 +117,7 @@ class PandaEnv(EnvBase):
         if trial_seeds is not None and len(trial_seeds) != n:
             raise ValueError(f"trial_seeds needs one seed per arm ({n}), got {len(trial_seeds)}")
         self._trial_seeds = None if trial_seeds is None else [int(x) for x in trial_seeds]
-        self._set_seed(seed)
+        self._seed_arms(seed)
         scene_name = scene or self.pcfg.scene
         from envs.scenarios import SCENES
 
@@ -265,6 +265,13 @@ class PandaEnv(EnvBase):
         self.done_spec = Composite(done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=N)
 
     def _set_seed(self, seed: int | None) -> None:
+        """`env.set_seed(seed)`: the arms' generators as construction with `seed` makes them, and their first trial
+        drawn as construction draws it, so that `PandaEnv(n, seed=s)` and `env.set_seed(s)` go on to the same
+        trials."""
+        self._seed_arms(seed)
+        self._reset_arms(np.arange(self.num_envs))
+
+    def _seed_arms(self, seed: int | None) -> None:
         """One generator per arm: spawned from `seed`, or the `trial_seeds` given at construction."""
         if self._trial_seeds is not None:
             self.arm_rngs = [np.random.default_rng(s) for s in self._trial_seeds]

@@ -164,6 +164,21 @@ def test_same_seed_same_numbers_and_trial_seeds_share_trials() -> None:
     assert not np.allclose(env.scene.offset[0], env.scene.offset[1])
 
 
+def test_set_seed_goes_on_to_the_trials_construction_with_that_seed_does() -> None:
+    """`PandaEnv(n, seed=s)` then a rollout, and `env.set_seed(s)` on another env then a rollout: the same trials and
+    numbers (construction draws its arms' first trial; set_seed used to leave it to the rollout's reset)."""
+    def rollout(env: PandaEnv) -> tuple[torch.Tensor, np.ndarray]:
+        obs = env.rollout(8, policy=lambda td: td.set("action", _ik_action(2)))["next", "observation"]
+        return obs, env.scene.offset.copy()  # (the trial's misalignment)
+
+    a = rollout(PandaEnv(2, _cfg(), seed=0))
+    other = PandaEnv(2, _cfg(), seed=5)
+    other.set_seed(0)
+    b = rollout(other)
+    assert torch.equal(b[0], a[0]) and np.array_equal(b[1], a[1])
+    assert not np.array_equal(rollout(PandaEnv(2, _cfg(), seed=5))[1], a[1])
+
+
 def test_resetting_one_arm_leaves_the_others_bit_for_bit() -> None:
     """A partial reset reads every arm's sensors again (mj_step1); the arms it does not name keep what their last
     control period measured, so their trajectories equal a run without the reset (it used to move them by 1e-14 to
