@@ -1564,7 +1564,8 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict:
                                   "(a section: SECTION.KEY=VALUE)")
             node = node.setdefault(p, {})
         if isinstance(node.get(parts[-1]), dict) and not isinstance(value, dict):
-            raise ConfigError(f"--set {item!r}: {key.strip()} is a section, also given keys inside it (SECTION.KEY=VALUE)")
+            raise ConfigError(f"--set {item!r}: {key.strip()} is a section, also given keys inside it "
+                              "(SECTION.KEY=VALUE)")
         node[parts[-1]] = value
     return out
 

@@ -499,7 +499,7 @@ def _backward_torch(P: Tensor, A: Tensor, G: Tensor, h: Tensor, x: Tensor, y: Te
     gnu = zr
     if gy is not None or gz is not None:
         gnu = torch.cat([zr[:, :p] if gy is None else gy, zr[:, p:] if gz is None else gz], 1)
-    g_max = max(float(gx.detach().abs().amax()) if gx.numel() else 0.0, float(gnu.detach().abs().amax()) if gnu.numel() else 0.0)
+    g_max = max((float(g.detach().abs().amax()) for g in (gx, gnu) if g.numel()), default=0.0)
     tol_w = 1e-12 * (1.0 + g_max)
     wx = wnu = res = None
     if gx.shape[0] <= LU_MAX_BATCH:

@@ -241,8 +241,9 @@ def main(argv: list[str] | None = None) -> int:
                                            ("--population", args.population), ("--workers", args.workers != 1),
                                            ("--ray", args.ray), ("--config", args.config)) if given]
             if run_only:
-                raise A3CQPError(f"{', '.join(run_only)} {'apply' if len(run_only) > 1 else 'applies'} to a run; --pick reads OUT/front.csv as the run wrote "
-                                 "it (give --pick K --out DIR alone)")
+                verb = "apply" if len(run_only) > 1 else "applies"
+                raise A3CQPError(f"{', '.join(run_only)} {verb} to a run; --pick reads OUT/front.csv as the run wrote it "
+                                 "(give --pick K --out DIR alone)")
             print(f"wrote {pick(args.out, args.pick)}")
             return 0
         cfg, out = cli_config(args.config, args.out, args.resume, "configs/nsga2_zdt1.yaml", "pareto", "nsga2",
