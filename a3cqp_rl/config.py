@@ -1530,13 +1530,24 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
     if path is not None:
         source = str(path)
         data = _read_with_base(Path(path), ())
-    if overrides:
-        try:
-            data = _merge(data, overrides)
-        except ConfigError as exc:
-            raise ConfigError(f"{source}: {exc}") from None
-        source += " with overrides"  # a bad override is not the file's fault
-    return config_from_dict(data, source)
+    if not overrides:
+        return config_from_dict(data, source)
+    try:
+        merged = _merge(data, overrides)
+    except ConfigError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
+    labelled = source + " with overrides"
+    try:
+        return config_from_dict(merged, labelled)
+    except ConfigError as exc:
+        if path is None:
+            raise
+        try:  # the same error from the file alone is the file's (not the options', e.g. --no-compile's)
+            config_from_dict(data, source)
+        except ConfigError as own:
+            if str(own)[len(source):] == str(exc)[len(labelled):]:
+                raise own from None
+        raise
 
 
 def read_config_file(path: str | Path) -> dict:

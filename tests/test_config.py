@@ -314,6 +314,17 @@ def test_advantage_normalisation_needs_two_samples_per_update():
     assert load_config(None, {"a2c": {"normalize_advantage": True, "num_envs": 1, "n_steps": 2}}).a2c.n_steps == 2
 
 
+def test_a_bad_value_in_the_file_is_named_as_the_files_whatever_options_come_with_it(tmp_path):
+    (tmp_path / "bad.yaml").write_text("a2c:\n  normalize_advantage: 'no'\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml: a2c.normalize_advantage") as exc:
+        load_config(tmp_path / "bad.yaml", {"a2c": {"compile": False}})
+    assert "with overrides" not in str(exc.value)
+    with pytest.raises(ConfigError, match=r"(?s)bad.yaml with overrides: .*a2c.gamma"):
+        load_config(tmp_path / "bad.yaml", {"a2c": {"gamma": 2.0, "normalize_advantage": True}})
+    (tmp_path / "g.yaml").write_text("a2c:\n  gamma: 2.0\n")  # an option may fix the file's value
+    assert load_config(tmp_path / "g.yaml", {"a2c": {"gamma": 0.9}}).a2c.gamma == 0.9
+
+
 def test_a_key_written_twice_in_a_file_is_refused_with_both_lines(tmp_path):
     (tmp_path / "dup.yaml").write_text("a2c:\n  learning_rate: 1e-3\n  gamma: 0.9\n  learning_rate: 2e-3\n")
     with pytest.raises(ConfigError, match=r"dup.yaml: a2c.learning_rate: given twice \(lines 2 and 4\)"):
