@@ -14,6 +14,7 @@ from a3cqp_rl.config import ControllerConfig
 from a3cqp_rl.control import A3CQPController, ControllerOptions, Inequality, Limit, wrench_from_joint_torques
 from a3cqp_rl.control.context import ControlContext
 from a3cqp_rl.control.controller import FALLBACK_LOG_EVERY, FALLBACK_LOG_FIRST
+from a3cqp_rl.control.exceptions import ControlShapeError
 from a3cqp_rl.robot import PANDA_HOME, PANDA_LIMITS, PandaSim, table_xml
 
 F64 = torch.float64
@@ -307,6 +308,11 @@ def test_non_finite_inputs_fall_back_without_nan() -> None:
     out = A3CQPController(n).step(s.q, s.qd, s.mass, s.bias, task_weights(n, [IK] * 6), torch.zeros(n, 6, dtype=F64),
                                   pos0, rot0, f_env=f_env)
     assert out.status.tolist() == [0, -1] and out.fallback.tolist() == [False, True]
+    # kinematics of another number of robots: named, not a reshape error from inside
+    kin3 = A3CQPController(3).model.kinematics(torch.cat([s.q, s.q[:1]]), torch.cat([s.qd, s.qd[:1]]))
+    with pytest.raises(ControlShapeError, match=r"kin must hold the kinematics of 2 robots"):
+        A3CQPController(n).step(s.q, s.qd, s.mass, s.bias, task_weights(n, [IK] * 6), torch.zeros(n, 6, dtype=F64),
+                                pos0, rot0, kin=kin3)
 
 
 def test_solver_exception_falls_back_for_all_robots(monkeypatch: pytest.MonkeyPatch,

@@ -887,6 +887,9 @@ class A3CQPController:
         if self.q_des is None:  # first call: q*, q̇* from the measured state, a harmless stand-in where not finite
             ok = torch.as_tensor(valid)[:, None]
             self.reset(torch.where(ok, t[0], self._q_center.to(t[0])), torch.where(ok, t[1], 0.0))
+        if kin is not None and tuple(kin.jac.shape) != (n, 6, 7):
+            raise ControlShapeError(f"kin must hold the kinematics of {n} robots (jac [{n}, 6, 7]), got jac "
+                                    f"{tuple(kin.jac.shape)}")
         if on_cpu and self._numpy_ok:  # the objects on numpy views: ~3x less overhead per op (arrays.py)
             if in_contact is None:
                 in_contact = self._contact_np(f_env)

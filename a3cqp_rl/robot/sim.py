@@ -613,7 +613,9 @@ class PandaSim:
         return self.data.site_xpos[sid] - self._origin, self.data.site_xmat[sid].reshape(-1, 3, 3)
 
     def contact_force(self, geom: str) -> np.ndarray:
-        """World-frame force [N, 3] (N) that all contacts involving `geom` exert on `geom`."""
+        """World-frame force [N, 3] (N) that all contacts involving `geom` exert on `geom`, as the last `step`
+        solved them: read it after `step()` (after `observe()`, mj_step1 has new contacts but their forces are not
+        solved yet, and the numbers are meaningless)."""
         m, d = self.model, self.data
         arm_of = np.full(m.ngeom, -1)
         arm_of[[m.geom(p + geom).id for p in self._prefixes]] = np.arange(self.n)
@@ -752,7 +754,8 @@ class ShardedPandaSim:
         return np.concatenate([x for x, _ in poses]), np.concatenate([r for _, r in poses])
 
     def contact_force(self, geom: str) -> np.ndarray:
-        """World-frame force [N, 3] (N) that all contacts involving `geom` exert on `geom`."""
+        """World-frame force [N, 3] (N) that all contacts involving `geom` exert on `geom` (PandaSim.contact_force:
+        read it after `step()`)."""
         return np.concatenate([p.contact_force(geom) for p in self.parts])
 
     def move_static_body(self, name: str, idx: list[int] | np.ndarray, offset: np.ndarray) -> None:
