@@ -166,6 +166,18 @@ def test_resume_after_ctrl_c_equals_an_uninterrupted_run(tmp_path):
     tune_pareto(cfg, tmp_path / "cut", resume=True, progress=False, plots=False)
     assert _rows(tmp_path / "cut") == _rows(tmp_path / "full")
     assert (tmp_path / "cut" / "front.csv").read_text() == (tmp_path / "full" / "front.csv").read_text()
+    # a finished run resumed for more generations and stopped: its old front is gone, not left to --pick from
+    longer = _cfg("zdt1", generations=10, population=12, objective="test_tuning_nsga2:zdt1_dies")
+    STOP["after"] = 5
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            tune_pareto(longer, tmp_path / "full", resume=True, progress=False, plots=False)
+    finally:
+        STOP["after"] = None
+    from a3cqp_rl.exceptions import A3CQPError
+
+    with pytest.raises(A3CQPError, match="front.csv not found; has the run finished"):
+        pick(tmp_path / "full", 0)
 
 
 def test_same_front_whatever_the_worker_count(tmp_path):

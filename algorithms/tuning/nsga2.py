@@ -62,6 +62,9 @@ def tune_pareto(cfg: ExperimentConfig, out: str | Path, *, workers: int = 1, ray
                 resume: bool = False, progress: bool = True, plots: bool = True) -> RunResult:
     """Run NSGA-II as `cfg.nsga2` says; write OUT's files (front.csv, plots); the runner's result."""
     problem, objective = make_problem(cfg)
+    if resume:  # the front of the generations so far would outlive an interrupted resume and be picked from
+        for name in ("front.csv", "pareto.png", "pareto_3d.png"):
+            (Path(out) / name).unlink(missing_ok=True)
     result = run(problem, cfg, out, workers=workers, ray=ray, resume=resume, progress=progress)
     front = pareto_front(result.values, keep=cfg.nsga2.population)
     _write_front(Path(out), problem, result, front)
