@@ -172,7 +172,9 @@ def _run(args: argparse.Namespace) -> int:
             print(f"{run_dir} had already trained its {res.steps:,} steps: nothing left to train (--steps N goes on "
                   "to N)")
         else:
-            print(f"trained {res.steps:,} steps in {res.seconds:.1f} s ("
+            done = (f"trained {res.steps:,} steps" if not res.resumed_steps else
+                    f"trained steps {res.resumed_steps:,} to {res.steps:,} (resumed)")
+            print(f"{done} in {res.seconds:.1f} s ("
                   + (f"{res.compile_seconds:.0f} s of it compiling; {res.steps_per_second:,.0f} steps/s after that"
                      if res.compile_seconds else f"{res.steps_per_second:,.0f} steps/s") + "); "
                   + _reward_text(res.final_metrics.get("episode_reward", float("nan")))

@@ -269,9 +269,11 @@ def test_steps_are_recorded_so_a_plain_resume_continues_to_them(tmp_path, capsys
         assert main([*again, "--resume"]) == 0
         assert "already trained its 160 steps" in capsys.readouterr().out
     assert main([*base, "--resume", "--steps", "320"]) == 0  # --steps changes it
-    assert "trained 320 steps" in capsys.readouterr().out and load_config(out / "config.yaml").a2c.total_steps == 320
+    assert "trained steps 160 to 320 (resumed)" in capsys.readouterr().out
+    assert load_config(out / "config.yaml").a2c.total_steps == 320
     assert main([*base, "--resume", "--set", "a2c.total_steps=480"]) == 0  # and so does --set
-    assert "trained 480 steps" in capsys.readouterr().out and load_config(out / "config.yaml").a2c.total_steps == 480
+    assert "trained steps 320 to 480 (resumed)" in capsys.readouterr().out
+    assert load_config(out / "config.yaml").a2c.total_steps == 480
 
 
 @pytest.mark.parametrize("started", [["--seed", "3"], ["--set", "seed=3"]])
@@ -283,7 +285,7 @@ def test_a_plain_resume_continues_the_runs_own_seed(tmp_path, capsys, started):
     capsys.readouterr()
     assert main(["train", "--out", str(out), "--resume", "--steps", "320", "--no-compile", "--quiet", "--no-plots",
                  "--no-eval"]) == 0
-    assert "trained 320 steps" in capsys.readouterr().out
+    assert "trained steps 160 to 320 (resumed)" in capsys.readouterr().out
     assert load_config(out / "config.yaml").seed == 3 and not (out / "overrides.log").exists()
     fresh = tmp_path / "fresh"  # the same 320 steps in one go: the resume lost and repeated nothing
     assert main([*base[:-1], str(fresh), "--steps", "320", *started]) == 0
