@@ -68,6 +68,10 @@ def write_output_text(path: str | Path, text: str) -> Path | None:
     return write_text_atomic(path, text)
 
 
+CHECKPOINT_FORMAT = 1
+"""The `format` policy.pt and checkpoint.pt files are written with; `load_checkpoint` refuses newer ones."""
+
+
 def load_checkpoint(path: str | Path, required: tuple[str, ...] = ()) -> dict:
     """Load a checkpoint dict with weights_only=True; clear CheckpointError if missing, corrupt or incomplete."""
     path = Path(path)
@@ -83,6 +87,10 @@ def load_checkpoint(path: str | Path, required: tuple[str, ...] = ()) -> dict:
     missing = [k for k in required if k not in data]
     if missing:
         raise CheckpointError(f"checkpoint {path} lacks {missing}; was it written by another program?")
+    fmt = data.get("format", CHECKPOINT_FORMAT)
+    if not isinstance(fmt, int) or fmt > CHECKPOINT_FORMAT:
+        raise CheckpointError(f"checkpoint {path} has format {fmt!r}; this version reads format {CHECKPOINT_FORMAT} "
+                              "and older (written by a newer version?)")
     return data
 
 

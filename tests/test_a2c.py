@@ -265,6 +265,10 @@ def test_a_policy_with_non_finite_parameters_is_refused_and_a_run_folder_loads(t
     save_atomic(data, tmp_path / "nan.pt")
     with pytest.raises(CheckpointError, match="1 of its .* parameters are not finite"):
         load_policy(tmp_path / "nan.pt")
+    newer = load_checkpoint(shipped, ("flat", "layout"))
+    save_atomic({**newer, "format": 99}, tmp_path / "newer.pt")  # a file of a later version: refused, not misread
+    with pytest.raises(CheckpointError, match="has format 99; this version reads format 1"):
+        load_policy(tmp_path / "newer.pt")
 
 
 def test_torchrl_collector_path_trains_on_a_plain_envbase():
