@@ -116,6 +116,9 @@ def test_file_errors_are_one_line_naming_the_file(tmp_path, capsys, monkeypatch)
     assert main([*args, "--out", str(run), "--resume"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{run / 'metrics.csv'} is not a metrics file" in err
+    (run / "metrics.csv").write_text("step,update\n16,1,7\n")  # a row longer than the header: named, not a TypeError
+    assert main(["plot", "loss-curves", str(run), "--out", str(tmp_path / "l.png")]) == 2
+    assert "data row 1 has another number of fields than the header's 2" in capsys.readouterr().err
     (run / "checkpoint.pt").write_bytes(b"PK\x03\x04 not really")
     assert main([*args, "--out", str(run), "--resume"]) == 2
     err = capsys.readouterr().err

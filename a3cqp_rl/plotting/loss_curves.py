@@ -23,6 +23,11 @@ def read_metrics(run_dir: str | Path) -> dict[str, np.ndarray]:
             rows = list(csv.DictReader(f))
         if not rows:
             raise ValueError(f"{path} has no rows yet")
+        header = [k for k in rows[0] if k is not None]
+        for i, r in enumerate(rows):  # csv.DictReader files extra fields under None and fills missing ones with None
+            if None in r or None in r.values():
+                raise ValueError(f"{path}: data row {i + 1} has another number of fields than the header's "
+                                 f"{len(header)}")
         return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
     except (UnicodeDecodeError, csv.Error, TypeError, ValueError) as exc:
         if str(exc).startswith(str(path)):
