@@ -81,9 +81,7 @@ def truncate_csv(path: Path, keep_until_update: int, log_every: int, keep_last: 
     except (OSError, UnicodeDecodeError, csv.Error, KeyError, TypeError, ValueError) as exc:
         raise RunFolderError(f"{path} is not a metrics file a3cqp train wrote (an integer 'update' column on every "
                              f"row): {type(exc).__name__}: {exc}") from None
-    if not rows:
-        return
-    text = io.StringIO(newline="")
+    text = io.StringIO(newline="")  # (a file without rows gets the header the log appends under, whatever it had)
     w = csv.DictWriter(text, fieldnames=CSV_COLUMNS, restval="nan", extrasaction="ignore")  # older files: NaN columns
     w.writeheader()
     w.writerows(keep)

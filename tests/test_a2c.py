@@ -232,6 +232,9 @@ def test_resuming_a_run_logged_before_the_region_columns_keeps_its_rows(tmp_path
         rows = list(csv.DictReader(f))
     assert list(rows[0]) == list(CSV_COLUMNS) and [r["policy_loss"] for r in rows] == ["0.5", "0.25"]
     assert rows[0]["regions_ok"] == "nan"
+    path.write_text("garbage\n")  # no rows under a header of another program: the resumed log gets its own header
+    _truncate_csv(path, keep_until_update=2, log_every=1)
+    assert path.read_text().splitlines() == [",".join(CSV_COLUMNS)]
 
 
 def test_missing_and_corrupt_checkpoints(tmp_path):
