@@ -328,7 +328,7 @@ class PandaEnv(EnvBase):
         # its physics step, their next step's reference rules would start from other numbers: a reset must not
         # touch an arm it does not name)
         keep = np.setdiff1d(np.arange(self.num_envs), idx)
-        held = {a: getattr(self, a)[keep].copy() for a in _MEASURED} if len(keep) and hasattr(self, "q") else {}
+        held = {a: getattr(self, a)[keep].copy() for a in _MEASURED} if len(keep) else {}
         self._measure()
         for a, v in held.items():
             getattr(self, a)[keep] = v
@@ -412,7 +412,10 @@ class PandaEnv(EnvBase):
         return self.ctrl.options.desired_state_leak * extra if np.any(extra > 0.0) else None
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = action_of(tensordict, (self.num_envs, 6, 4))
+        return self._advance(action_of(tensordict, (self.num_envs, 6, 4)))
+
+    def _advance(self, action: torch.Tensor) -> TensorDictBase:
+        """One agent step of a checked action [N, 6, 4] (eq. 29, then 10 control periods); the step's outputs."""
         self._adapt(action)
         self.max_penetration[:] = 0.0
         w_ctrl, scale = self.controller_weights()
@@ -837,8 +840,7 @@ class PandaAxisAgents(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = action_of(tensordict, (self.batch_size[0], 4)).reshape(self.num_arms, 6, 4)
-        td = TensorDict({"action": action}, batch_size=self.inner.batch_size)
-        return self._flat(self.inner._step(td), reward=True)
+        return self._flat(self.inner._advance(action), reward=True)
 
     def _set_seed(self, seed: int | None) -> None:
         self.inner._set_seed(seed)
