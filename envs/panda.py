@@ -47,7 +47,7 @@ from envs.native.tick import DONE as NATIVE_DONE
 from envs.native.tick import native_tick
 from envs.scenarios import Operator, Scene, SceneInput, make_scene, rotvec_to_matrix
 
-__all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "AXES", "INFO_KEYS", "TASK_BLENDS"]
+__all__ = ["PandaEnv", "PandaAxisAgents", "axis_agents", "agent_done_flags", "AXES", "INFO_KEYS", "TASK_BLENDS"]
 
 logger = logging.getLogger(__name__)
 
@@ -788,6 +788,20 @@ class PandaEnv(EnvBase):
 def _softmax(x: np.ndarray) -> np.ndarray:
     z = np.exp(x - x.max(-1, keepdims=True))
     return z / z.sum(-1, keepdims=True)
+
+
+def agent_done_flags(rollout: TensorDictBase) -> TensorDictBase:
+    """Adds ("next", "agent_done") and ("next", "agent_terminated"): the arm's flags [..., N, 1] expanded to the six
+    agents' reward shape [..., N, 6, 1], in place, for TorchRL's value estimators.
+
+    PandaEnv keeps TorchRL's multi-agent layout (one done per arm, one reward per axis agent), so a GAE or TD(λ)
+    estimator needs the arm's flag once per agent, as TorchRL's MAPPO tutorial expands it by hand; then
+    `GAE(...).set_keys(done="agent_done", terminated="agent_terminated")`. PandaAxisAgents needs none of this.
+    """
+    shape = rollout.get(("next", "reward")).shape
+    for key in ("done", "terminated"):
+        rollout.set(("next", f"agent_{key}"), rollout.get(("next", key)).unsqueeze(-2).expand(shape))
+    return rollout
 
 
 class PandaAxisAgents(EnvBase):

@@ -525,6 +525,31 @@ def test_axis_agents_view_trains_one_shared_policy_with_a2c(tmp_path) -> None:  
     assert res.steps == 240 and load_policy(res.policy_path)(torch.zeros(6, 3)).shape == (6, 4)
 
 
+def test_torchrls_gae_gives_the_arms_and_the_axis_agents_the_same_advantages() -> None:
+    from tensordict.nn import TensorDictModule
+    from torchrl.objectives.value import GAE
+
+    from envs.panda import PandaAxisAgents, agent_done_flags
+
+    torch.manual_seed(0)
+    value = TensorDictModule(torch.nn.Sequential(torch.nn.Linear(3, 8), torch.nn.Tanh(), torch.nn.Linear(8, 1)),
+                             in_keys=["observation"], out_keys=["state_value"])
+    gae = GAE(gamma=0.9, lmbda=0.8, value_network=value)
+    steps, cfg = 6, _cfg({"panda": {"max_episode_time": 0.04}})  # 4 agent steps: an episode ends inside
+
+    def act(td):  # noqa: ANN001, ANN202
+        return td.set("action", torch.full((*td["observation"].shape[:-1], 4), 0.3))
+
+    flat = gae(PandaAxisAgents(2, cfg, seed=0).rollout(steps, act, break_when_any_done=False))
+    arms = PandaEnv(2, cfg, seed=0).rollout(steps, act, break_when_any_done=False)
+    with pytest.raises(RuntimeError, match="share a unique shape"):
+        gae(arms.clone())  # TorchRL's own error: one done per arm, one reward per agent
+    gae.set_keys(done="agent_done", terminated="agent_terminated")
+    arms = gae(agent_done_flags(arms))
+    assert arms["next", "agent_done"].shape == (2, steps, 6, 1) and arms["next", "done"].any()
+    assert torch.allclose(arms["advantage"].transpose(1, 2).reshape(12, steps, 1), flat["advantage"], atol=1e-6)
+
+
 def _steps_held(env: PandaEnv, steps: int):  # noqa: ANN201
     """Step a one-arm env `steps` agent periods with w = (0, 0.5, 0.5) and f_d = 0 held on every axis (the weights
     the point-mass policy leaves after guiding), yielding after each step."""
