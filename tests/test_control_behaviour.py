@@ -369,6 +369,24 @@ def test_a_negative_weight_is_that_robots_invalid_input() -> None:
     assert out.status.tolist() == [-1, 0] and out.fallback.tolist() == [True, False]
 
 
+def test_a_reference_that_is_no_rotation_is_that_robots_invalid_input() -> None:
+    """A scaled, sheared or reflected rot_d would give eq. 3 a meaningless orientation error: that robot falls back
+    (INVALID_INPUT); a float32 rotation's round-off is taken."""
+    n = 4
+    sim, ctrl = PandaSim(n), A3CQPController(n)
+    pos0, rot0 = home_reference(ctrl, n)
+    s = sim.observe()
+    w, f_d = task_weights(n, [IK] * 6), torch.zeros(n, 6, dtype=F64)
+    ref = A3CQPController(n).step(s.q, s.qd, s.mass, s.bias, w, f_d, pos0, rot0)
+    rot = rot0.clone()
+    rot[0] *= 1.01  # scaled
+    rot[1, :, 0] = -rot[1, :, 0]  # a reflection: orthonormal, det -1
+    rot[3] = rot[3].to(torch.float32).to(F64)  # round-off only
+    out = ctrl.step(s.q, s.qd, s.mass, s.bias, w, f_d, pos0, rot)
+    assert out.status.tolist() == [-1, -1, 0, 0] and out.fallback.tolist() == [True, True, False, False]
+    torch.testing.assert_close(out.tau[2], ref.tau[2], rtol=0, atol=1e-12)
+
+
 def test_step_and_reset_inputs_are_checked_with_named_shapes() -> None:
     from a3cqp_rl.control.exceptions import ControlShapeError
 

@@ -237,7 +237,10 @@ _INPUT_NAMES = ("q", "qd", "mass", "bias", "weights", "f_d", "pos_d", "rot_d", "
 _INPUT_SHAPES = ((7,), (7,), (7, 7), (7,), (6, 3), (6,), (3,), (3, 3), (6,))
 """Their per-robot shapes."""
 _WEIGHTS = _INPUT_NAMES.index("weights")
+_ROT_D = _INPUT_NAMES.index("rot_d")
 W_MAX = 1e6
+ROT_TOL = 1e-5
+"""Largest |R_dᵀ R_d − I| entry a reference rotation may have (a float32 rotation's round-off is ~1e-7)."""
 """The largest task weight `step` takes. Up to 1e6 the C and Python routes agree to 5e-7 N m on random inputs; at 1e9
 the QP runs out of iterations (a fallback, said so); at 1e12 it reported SOLVED with torques 40 N m apart and
 accelerations of 1e8 rad/s² (2026-12-01). The A3CQP weights lie in [0, 1] (eq. 28)."""
@@ -777,7 +780,8 @@ class A3CQPController:
             weights: local per-axis task weights w^𝓛 [N, 6, 3], columns (w1 IK, w2 AC, w3 FC) (eq. 8, 28), in
                 [0, W_MAX]; a robot with one outside (or NaN) gets the fallback, status INVALID_INPUT.
             f_d: local desired contact wrench f_d^𝓛 [N, 6] (N, N m), clipped to [0, f̄_d] (eq. 21).
-            pos_d, rot_d: Cartesian reference of the control site [N, 3] (m), [N, 3, 3].
+            pos_d, rot_d: Cartesian reference of the control site [N, 3] (m), [N, 3, 3]; a robot whose rot_d is no
+                rotation (|R_dᵀR_d − I| > ROT_TOL, or det < 0) gets the fallback, status INVALID_INPUT.
             f_ext: measured external wrench at the control site [N, 6], world frame (default 0).
             in_contact: bool [N] activating the friction pyramid; default |f_env force| > threshold, else False.
             f_env: measured environment (F/T) wrench [N, 6], world frame, only used to infer `in_contact` (a
@@ -874,6 +878,12 @@ class A3CQPController:
         # invalid (the fallback), as a NaN's
         w = arrays[_WEIGHTS] if on_cpu else t[_WEIGHTS]
         valid = valid & ((w >= 0.0) & (w <= W_MAX)).reshape(n, -1).all(-1)
+        # a rot_d that is no rotation (scaled, sheared, a reflection) makes eq. 3's orientation error meaningless
+        r = arrays[_ROT_D] if on_cpu else t[_ROT_D]
+        xp = np if on_cpu else torch
+        eye = np.eye(3) if on_cpu else torch.eye(3, dtype=r.dtype, device=r.device)
+        off = xp.abs(xp.einsum("nji,njk->nik", r, r) - eye)
+        valid = valid & (off <= ROT_TOL).reshape(n, -1).all(-1) & (xp.linalg.det(r) > 0.0)
         if in_contact is not None:
             c = in_contact if isinstance(in_contact, (torch.Tensor, np.ndarray)) else np.asarray(in_contact)
             if tuple(c.shape) != (n,) or c.dtype not in (torch.bool, np.bool_):
