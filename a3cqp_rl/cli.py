@@ -46,6 +46,19 @@ def seed_arg(text: str) -> int:
     return seed
 
 
+DEBUG_ENV = "A3CQP_DEBUG"
+"""Set to 1 (`A3CQP_DEBUG=1 a3cqp ...`), the commands raise their errors with the traceback instead of one line."""
+
+
+def error_exit(exc: BaseException, text: str | None = None) -> int:
+    """A command's error as `error: TEXT` (default: the exception's) on stderr and exit code 2, or the traceback
+    where A3CQP_DEBUG is set (not "" or "0")."""
+    if os.environ.get(DEBUG_ENV, "") not in ("", "0"):
+        raise exc
+    print(f"error: {exc if text is None else text}", file=sys.stderr)
+    return 2
+
+
 def positive_int(text: str) -> int:
     """A count option (`--workers`, `--generations`, ...): an integer >= 1, refused before any work starts."""
     try:

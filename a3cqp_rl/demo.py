@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from a3cqp_rl.cli import help_summary
+from a3cqp_rl.cli import error_exit, help_summary
 from a3cqp_rl.run_folder import RunFolderError, check_output_path
 
 __all__ = ["main", "controller_demo"]
@@ -153,8 +153,7 @@ def main(argv: list[str] | None = None) -> int:
                     args.out = args.out.with_suffix(".png")
                 check_output_path(args.out, "--out")
         except RunFolderError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
+            return error_exit(exc)
         path = controller_demo(args.seconds, args.out, args.tool)
         print(f"wrote {path}")
     return 0

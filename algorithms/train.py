@@ -22,7 +22,7 @@ import signal
 import sys
 from pathlib import Path
 
-from a3cqp_rl.cli import add_set_option, help_summary, seed_arg
+from a3cqp_rl.cli import add_set_option, error_exit, help_summary, seed_arg
 from a3cqp_rl.config import MAX_SEED
 from a3cqp_rl.exceptions import A3CQPError
 
@@ -98,7 +98,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--timings", action="store_true", help="print where the time went (start-up, named loop blocks)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--no-eval", action="store_true", help="skip the closed-loop evaluation at the end (point mass)")
-    p.add_argument("--debug", action="store_true", help="show the full traceback of errors")
+    p.add_argument("--debug", action="store_true", help="show the full traceback of errors (any command: A3CQP_DEBUG=1)")
     return p
 
 
@@ -116,8 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     except (A3CQPError, OSError, ValueError) as exc:
         if args.debug:
             raise
-        print(f"error: {_one_line(exc)}", file=sys.stderr)
-        return 2
+        return error_exit(exc, _one_line(exc))
 
 
 def _run(args: argparse.Namespace) -> int:

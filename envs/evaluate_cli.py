@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
 from a3cqp_rl import worker_start
-from a3cqp_rl.cli import help_summary, seed_arg
+from a3cqp_rl.cli import error_exit, help_summary, seed_arg
 from a3cqp_rl.exceptions import A3CQPError
 
 if TYPE_CHECKING:  # annotations only
@@ -72,8 +72,7 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 worker_start.start(PANDA_WORKER_IMPORTS)
             except ValueError as exc:
-                print(f"error: {exc}", file=sys.stderr)
-                return 2
+                return error_exit(exc)
         try:
             panda = importlib.import_module("envs.panda_eval")
         except ModuleNotFoundError as exc:
@@ -98,8 +97,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.json and args.json != "-":  # a3cqp_rl.checkpoint.STDOUT (its module imports torch)
             check_output_path(args.json, "--json")
     except (RunFolderError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return error_exit(exc)
 
     import torch
 
@@ -112,8 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         report(args.policy, config=config, episodes=args.episodes, seed=args.seed, json_path=args.json,
                out=sys.stderr if args.json == STDOUT else None)  # stdout: the JSON alone, for a pipe
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return error_exit(exc)
     return 0
 
 

@@ -57,7 +57,7 @@ import torch
 
 from a3cqp_rl import worker_start
 from a3cqp_rl.checkpoint import STDOUT, write_atomic, write_text_atomic
-from a3cqp_rl.cli import add_set_option, help_summary, seed_arg
+from a3cqp_rl.cli import add_set_option, error_exit, help_summary, seed_arg
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.run_folder import check_output_path, policy_file
 from a3cqp_rl.transfer import (FREE_MOTION_E, GUIDED_OBS, free_motion_rates, guided_rates,  # noqa: F401 (re-exported)
@@ -767,8 +767,7 @@ def _cli(args: argparse.Namespace, json_out: TextIO | None = None) -> int:
                           "describes this run)", file=sys.stderr)
             _print_report(args, cfg_path, res, policy, prints, docs[-1])
     except (A3CQPError, OSError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return error_exit(exc)
     except KeyboardInterrupt:
         kept = (f"; the seeds that ended are kept in {args.cache} and the same command resumes" if args.cache else
                 "" if not (args.json and docs and json_out is None) else f"; the policies that ended are in {args.json}")

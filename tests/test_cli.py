@@ -385,3 +385,18 @@ def test_the_panda_only_options_are_those_of_evaluate_scene_that_the_point_mass_
         return {s for a in parser._actions for s in a.option_strings}
 
     assert evaluate_cli.PANDA_ONLY == flags(panda_eval._parser()) - flags(evaluate_cli._parser())
+
+
+@pytest.mark.parametrize("argv", [["plot", "policy-map", "MISSING"], ["evaluate", "--episodes", "2", "--policy", "MISSING.pt"],
+                                  ["train", "--config", "MISSING.yaml"]])
+def test_a_commands_error_is_one_line_or_with_a3cqp_debug_its_traceback(argv, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("A3CQP_DEBUG", raising=False)
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "MISSING" in err and "Traceback" not in err
+    monkeypatch.setenv("A3CQP_DEBUG", "1")
+    with pytest.raises(Exception, match="MISSING"):
+        main(argv)
+    monkeypatch.setenv("A3CQP_DEBUG", "0")
+    assert main(argv) == 2

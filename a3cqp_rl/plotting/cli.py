@@ -18,7 +18,7 @@ import os
 import sys
 from pathlib import Path
 
-from a3cqp_rl.cli import help_summary
+from a3cqp_rl.cli import error_exit, help_summary
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.run_folder import check_output_path, policy_file
 
@@ -184,7 +184,6 @@ def main(argv: list[str] | None = None) -> int:
             out = Path(args.out) if args.out else _beside_runs(args.runs, "regions" + ext)
             plot_region_history(args.runs, out)
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return error_exit(exc)
     print(f"wrote {out}")
     return 0

@@ -33,7 +33,7 @@ import numpy as np
 import yaml
 
 from a3cqp_rl.checkpoint import write_text_atomic
-from a3cqp_rl.cli import add_set_option, help_summary, positive_int
+from a3cqp_rl.cli import add_set_option, error_exit, help_summary, positive_int
 from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, config_to_dict
 from a3cqp_rl.exceptions import A3CQPError, ConfigError
 
@@ -246,8 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\n{interrupted(out)}", file=sys.stderr)
         return 130
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return error_exit(exc)
     return 0
 
 

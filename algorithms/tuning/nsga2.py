@@ -27,7 +27,7 @@ import numpy as np
 import yaml
 
 from a3cqp_rl.checkpoint import write_text_atomic
-from a3cqp_rl.cli import add_set_option, help_summary, positive_int
+from a3cqp_rl.cli import add_set_option, error_exit, help_summary, positive_int
 from a3cqp_rl.config import ExperimentConfig
 from a3cqp_rl.exceptions import A3CQPError
 from a3cqp_rl.tuning_files import read_rows, read_state
@@ -265,6 +265,5 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\n{interrupted(out)}", file=sys.stderr)
         return 130
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return error_exit(exc)
     return 0
