@@ -674,14 +674,11 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
     average = ParameterAverage(num_updates, hp.average_last)
     selection = TransferSelection(layout, spec, num_updates, hp)
     ckpt = Checkpoints(folder, cfg, layout, spec, flat, square_avg, gen, runner, average, selection)
-    start = ckpt.begin(resume, override)
+    start = ckpt.begin(resume, override, num_updates, total)
     if start and not runner.state_dict():  # a collector-driven env: its episodes start again, not bit for bit
         logging.getLogger(__name__).warning(
             "resumed at update %d with the parameters and optimiser state; the env (%s) is not snapshotted, so its "
             "episodes start again from the seed: the run will not be bit for bit an uninterrupted one", start, cfg.env)
-    if start > num_updates:  # the averaged policy and the logs would be cut back to a shorter run
-        raise ValueError(f"the run already trained {start * per_update:,} steps, more than the {total:,} asked for: "
-                         f"resume with --steps {start * per_update} or more, or train into a new --out")
     log = RunLog(folder.path if folder else None, start, per_update, hp.log_every, finished=start == num_updates)
     regions = RegionChecks(layout, flat, average, num_updates, hp) if _fig5_applies(env) else None
     bar = _ProgressBar(num_updates * per_update, start * per_update, progress, runner.compiles and start < num_updates)

@@ -176,10 +176,15 @@ class Checkpoints:
         self.episodes_before = 0
         """Episodes that ended before the checkpoint this run resumed from, beyond the ones `runner.finished` holds."""
 
-    def begin(self, resume: bool, override: bool) -> int:
+    def begin(self, resume: bool, override: bool, num_updates: int, total_steps: int) -> int:
         """Restore the checkpoint if `resume` (see `restore`), then record the run's config in OUT/config.yaml; returns
-        the update to continue after (0 for a new run)."""
+        the update to continue after (0 for a new run). A run that already trained more than `num_updates` updates (the
+        `total_steps` asked for) is refused before its config.yaml is touched: a plain --resume still continues it."""
         start = self.restore(override) if resume else 0
+        if start > num_updates:  # the averaged policy and the logs would be cut back to a shorter run
+            per_update = self.cfg.a2c.n_steps * self.runner.num_envs
+            raise ValueError(f"the run already trained {start * per_update:,} steps, more than the {total_steps:,} asked "
+                             f"for: resume with --steps {start * per_update} or more, or train into a new --out")
         if self.folder is not None:
             self._write_config()
         return start

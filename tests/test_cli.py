@@ -195,6 +195,10 @@ def test_a_finished_run_resumed_keeps_its_log_a_shorter_one_is_refused_and_resum
     assert main([*args, "--steps", "160", "--resume"]) == 2
     assert "more than the 160 asked for" in capsys.readouterr().err
     assert (out / "metrics.csv").read_bytes() == csv0
+    # the refusal leaves the run's config as it was: a plain resume still continues to the run's own length
+    assert "total_steps: 464" in (out / "config.yaml").read_text()
+    assert main(["train", "--out", str(out), "--resume", "--no-compile", "--quiet", "--no-plots", "--no-eval"]) == 0
+    assert "had already trained its 464 steps" in capsys.readouterr().out
     # the README's `a3cqp train --out runs/paper --resume`: the run's own config, not the default one
     assert main(["train", "--out", str(out), "--resume", "--steps", "640", "--no-compile", "--quiet",
                  "--no-plots", "--no-eval"]) == 0
