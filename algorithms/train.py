@@ -144,7 +144,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.resume and not sweep and args.seed is None and "seed" not in overrides and saved_run.is_file():
         seed = load_config(saved_run).seed  # a plain --resume continues the run's own seed, not the config's
     seeds = args.seeds if sweep else [seed]
-    run_dirs, results, passed = [], [], []
+    run_dirs, results, passed, run_cfgs = [], [], [], []
     if sweep and args.force:  # the sweep's own plots and table describe the old runs (each seed's folder: RunFolder)
         from a3cqp_rl.run_folder import remove_outputs
 
@@ -167,6 +167,7 @@ def _run(args: argparse.Namespace) -> int:
                     override=args.override, progress=not args.quiet)
         run_dirs.append(run_dir)
         results.append(res)
+        run_cfgs.append(run_cfg)
         if res.resumed_steps == res.steps:  # a finished run resumed: no rate or reward to report from this call
             print(f"{run_dir} had already trained its {res.steps:,} steps: nothing left to train (--steps N goes on "
                   "to N)")
@@ -192,7 +193,8 @@ def _run(args: argparse.Namespace) -> int:
         from envs.evaluate_cli import report
 
         print()
-        report([d / "policy.pt" for d in run_dirs], config=cfg, json_path=out / "evaluation.json")
+        # the runs' own reward and dynamics: a resume without --config scores with the run's config.yaml
+        report([d / "policy.pt" for d in run_dirs], config=run_cfgs[0], json_path=out / "evaluation.json")
     plots = [] if args.no_plots else _plot(run_dirs, out, results, cfg.a2c.region_checks)
     print(f"results in {out}/{'seed_*/' if sweep else ''}: policy.pt (load with algorithms.a2c.load_policy / "
           f"load_actor), checkpoint.pt, metrics.csv" + (f"; plots {', '.join(plots)}" if plots else ""))

@@ -404,3 +404,14 @@ def test_a_commands_error_is_one_line_or_with_a3cqp_debug_its_traceback(argv, tm
         main(argv)
     monkeypatch.setenv("A3CQP_DEBUG", "0")
     assert main(argv) == 2
+
+
+def test_a_resume_without_config_scores_the_run_with_its_own_reward(tmp_path, capsys):
+    out = tmp_path / "paper"
+    common = ["--no-compile", "--quiet", "--no-plots", "--out", str(out)]
+    assert main(["train", "--config", CONFIG, "--steps", "160", "--no-eval", *common]) == 0
+    capsys.readouterr()
+    assert main(["train", "--resume", "--steps", "320", *common]) == 0  # the README's `--out runs/paper --resume`
+    said = capsys.readouterr().out
+    assert "returns with eq. 30 alpha = (0.5, 20, 2, 1)" in said, said[-600:]  # the run's, not the default (5, 40, 8, 1)
+    assert json.loads((out / "evaluation.json").read_text())
