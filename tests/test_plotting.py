@@ -1,5 +1,6 @@
 """Policy maps and loss curves: right grid, right values, real image files."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -129,3 +130,40 @@ def test_region_checks_follow_the_config(tmp_path):
     assert checked("off", region_checks=0) == []
     with pytest.raises(ValueError, match="region_checks"):
         config_from_dict({"a2c": {"region_checks": -1}})
+
+
+def _metrics_csv(path, steps, losses, env="point_mass"):
+    path.mkdir(parents=True)
+    rows = ["step,policy_loss,value_loss,episode_reward", *(f"{s},{v},{2 * v},nan" for s, v in zip(steps, losses))]
+    (path / "metrics.csv").write_text("\n".join(rows) + "\n")
+    (path / "config.yaml").write_text(f"env: {env}\n")
+
+
+def test_loss_curves_put_runs_of_other_grids_on_their_union_whatever_the_order(tmp_path):
+    from a3cqp_rl.plotting.loss_curves import aligned, read_runs
+
+    _metrics_csv(tmp_path / "short", [100], [5.0])  # one row: it once set the grid of every other run
+    _metrics_csv(tmp_path / "long", [50, 100, 150, 200], [1.0, 2.0, 3.0, 4.0])
+    a = read_runs([tmp_path / "short", tmp_path / "long"])
+    steps, ys = aligned(a, "policy_loss")
+    assert steps.tolist() == [50, 100, 150, 200]
+    assert ys[1].tolist() == [1.0, 2.0, 3.0, 4.0] and ys[0, 1] == 5.0 and np.isnan(ys[0, [0, 2, 3]]).all()
+    steps_b, ys_b = aligned(read_runs([tmp_path / "long", tmp_path / "short"]), "policy_loss")
+    assert steps_b.tolist() == steps.tolist() and np.array_equal(ys_b[::-1], ys, equal_nan=True)
+    with pytest.warns(UserWarning, match="short/metrics.csv has 1 row"):
+        assert plot_loss_curves([tmp_path / "short", tmp_path / "long"], tmp_path / "l.png").is_file()
+    with pytest.raises(ValueError, match="given twice"):
+        read_runs([tmp_path / "long", tmp_path / "x" / ".." / "long"])
+    _metrics_csv(tmp_path / "pend", [100, 200], [1.0, 2.0], env="Pendulum-v1")
+    with pytest.raises(ValueError, match=r"different envs: .*pend \(Pendulum-v1\)"):
+        read_runs([tmp_path / "long", tmp_path / "pend"])
+
+
+def test_region_history_counts_every_runs_checks_in_any_order(tmp_path):
+    _region_csv(tmp_path / "a", [10, 30], [[1, 1, 1, 1], [1, 1, 1, 1]])
+    _region_csv(tmp_path / "b", [20, 40], [[0, 1, 1, 1], [1, 1, 1, 1]])
+    steps, frac = region_history([tmp_path / "a", tmp_path / "b"])
+    assert steps.tolist() == [10, 20, 30, 40]
+    assert frac[4].tolist() == [0.5, 0.5, 0.5, 1.0]  # b not yet checked at 10 counts as not passed
+    steps_b, frac_b = region_history([tmp_path / "b", tmp_path / "a"])
+    assert steps_b.tolist() == steps.tolist() and np.array_equal(frac_b, frac)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from a3cqp_rl.plotting.loss_curves import read_metrics
+from a3cqp_rl.plotting.loss_curves import read_runs, steps_axis
 
 __all__ = ["TERMS", "kept_update", "plot_transfer_history"]
 
@@ -37,23 +37,23 @@ def plot_transfer_history(run_dirs: Sequence[str | Path], out: str | Path) -> Pa
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    if not run_dirs:
-        raise ValueError("no runs given")
-    tables = [read_metrics(d) for d in run_dirs]
+    tables = read_runs(run_dirs)
     for d, t in zip(run_dirs, tables):
         if "transfer_margin" not in t or not np.isfinite(t["transfer_margin"]).any():
             raise ValueError(f"{Path(d) / 'metrics.csv'} has no transfer columns: they are written for the per-axis "
                              "agents' policy (eq. 26 observation, four actions) by a3cqp train since 2026-11-29")
     cols = min(4, len(tables))
     rows = math.ceil(len(tables) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 2.9 * rows), sharey=True, squeeze=False,
+    # (a panel at least 8.4 wide alone: the two-line title fits)
+    fig, axes = plt.subplots(rows, cols, figsize=(max(4.2 * cols, 8.4), 2.9 * rows + 0.6), sharey=True, squeeze=False,
                              constrained_layout=True)
     for ax, d, t in zip(axes.flat, run_dirs, tables):
         steps = t["step"]
+        mark = "o" if len(steps) <= 30 else None  # a short series drawn as a bare line is invisible
         for column, sign, label in TERMS:
             if column in t:  # free_w2 came a little after the other columns
-                ax.plot(steps, sign * t[column], lw=0.8, alpha=0.75, label=label)
-        ax.plot(steps, t["transfer_margin"], color="k", lw=1.6, label="margin (their minimum)")
+                ax.plot(steps, sign * t[column], lw=0.8, alpha=0.75, marker=mark, ms=2.5, label=label)
+        ax.plot(steps, t["transfer_margin"], color="k", lw=1.6, marker=mark, ms=3, label="margin (their minimum)")
         ax.axhline(0.0, color="grey", lw=0.6)
         kept = kept_update(d)
         name = Path(d).name or str(d)
@@ -63,11 +63,12 @@ def plot_transfer_history(run_dirs: Sequence[str | Path], out: str | Path) -> Pa
             name += f" (kept: update {kept:,})"
         ax.set_title(name, fontsize=9)
         ax.set_ylim(-1.05, 1.05)
-        ax.set_xlabel("steps")
+        steps_axis(ax)
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[len(tables):]:
         ax.set_visible(False)
-    axes[0][0].legend(fontsize=7, loc="lower left")
+    handles, labels = axes[0][0].get_legend_handles_labels()  # below the panels, not over the curves
+    fig.legend(handles, labels, fontsize=7, loc="outside lower center", ncol=len(labels))
     fig.suptitle("Panda transfer checks over training (a3cqp_rl.transfer)\nevery line > 0: raises IK over admittance in "
                  "free motion and yields to the operator", fontsize=9)
     out = Path(out)
