@@ -114,3 +114,34 @@ def test_an_episode_file_is_titled_by_its_own_controller(tmp_path, capsys, monke
     assert titles[-1].startswith("peg_in_hole: vic")  # not the --controller default, learned
     assert plot_main(["episode", str(tmp_path / "episode_vic.npz"), "--controller", "equal"]) == 2
     assert "--controller equal: episode_vic.npz is the vic controller's episode" in capsys.readouterr().err
+
+
+def test_the_shading_shows_two_tasks_that_share_the_lead_and_no_flicker() -> None:
+    from a3cqp_rl.plotting.episode import leading_task
+
+    t = np.arange(0.0, 3.0, 0.01)
+    w = np.zeros((len(t), 3))
+    w[:100] = (1.0, 0.0, 0.0)  # IK
+    w[100:200] = (0.49938108, 0.0012378, 0.49938108)  # a saturated blend: an exact tie argmax gives to IK
+    w[200:] = (0.0, 0.6, 0.4)  # AC
+    w[250:253] = (0.0, 0.4, 0.6)  # 30 ms of FC: joins the span before it
+    lab = leading_task(w, t)
+    assert lab[:100].tolist() == [0] * 100 and lab[100:200].tolist() == [4] * 100 and lab[200:].tolist() == [1] * 100
+
+
+def test_a_long_episodes_snapshots_spread_over_its_cycles() -> None:
+    ep = _episode()  # phases approach (t <= 1), insert, disengage (t > 2)
+    for k in ("time", "phase", "depth", "f_ope_local", "f_env_local", "e_local", "weights", "f_d"):
+        ep[k] = np.concatenate([ep[k], ep[k], ep[k]])  # three cycles
+    n = len(ep["time"]) // 3
+    ep["time"] = np.arange(3 * n) * 0.01
+    t = ep["time"]
+    ep["contact_time"], ep["bore_time"] = np.array([1.2]), np.array([1.5])
+    ep["depth"][:] = np.where((t % 3.0) >= 1.5, 0.01, 0.0)
+    ep["depth"][(t % 3.0) >= 2.6] = -0.01
+    ep["f_ope_local"][(t % 3.0) >= 2.3, 2] = 8.0
+    got = snapshot_events(ep)
+    names = [n for _, n in got]
+    assert len(got) == 6 and names[0] == "first contact" and names[-1] == "end"
+    assert any(n.endswith("(3)") for n in names)  # the last cycle is shown, not only the first
+    assert all(b > a for (a, _), (b, _) in zip(got, got[1:]))

@@ -18,6 +18,12 @@ TASK_COLOURS = {"IK": "#9ecae1", "AC": "#a1d99b", "FC": "#fc9272"}
 """Fig. 7/8's colours: blue IK, green AC, red FC."""
 _TASKS = ("IK", "AC", "FC")
 _LETTERS = "ABCDEFGHIJKL"
+TIE = 0.05
+"""Weights closer than this share the lead: the shading then mixes the two tasks' colours (a saturated blend such as
+w1 = w3 = 0.499 is a tie that argmax would give to the lower index)."""
+MIN_SPAN = 0.1
+"""Shorter runs of one shading [s] join the run before them (a tie that flickers would draw stripes)."""
+_SHARED = ((0, 1), (0, 2), (1, 2))
 
 
 def load_episode(path: str | Path) -> dict[str, np.ndarray]:
@@ -49,11 +55,13 @@ PULL_FORCE = 5.0
 def snapshot_events(ep: dict[str, np.ndarray], frames: int = 6) -> list[tuple[float, str]]:
     """Up to `frames` (time [s], name) moments worth a snapshot, as Fig. 7's (A)-(F), from the episode's own signals.
 
-    Peg-in-hole (a `depth` signal; the first cycle): the first contact and the tip in the bore (the scene's own
-    `contact_time` and `bore_time`, which `a3cqp evaluate --out` records with the episode), the end of the insertion
-    phase, the operator pulling (|f_ope| > 5 N in the disengagement), the tip back above the rim, the end. Other
-    scenes: the start of each phase after the first, then the end. Moments the episode never reaches are left out,
-    and so is one within 0.05 s of the moment before; evenly spaced times stand in when only the end is left."""
+    Peg-in-hole (a `depth` signal): the first contact and the tip in the bore (the scene's own `contact_time` and
+    `bore_time`, which `a3cqp evaluate --out` records with the episode), the end of the insertion phase, the operator
+    pulling (|f_ope| > 5 N in the disengagement), the tip back above the rim; for each later cycle its insertion's
+    end and its peg out; the end. Other scenes: the start of each phase after the first, then the end. Moments the
+    episode never reaches are left out, and so is one within 0.05 s of the moment before; evenly spaced times stand
+    in when only the end is left. With more moments than `frames`, frames spread over them, the first and the end
+    kept (Fig. 8's (A)-(F) span the whole episode)."""
     t = np.asarray(ep["time"], dtype=float)
     names = [str(x) for x in ep.get("phase_names", [])]
     phase = np.asarray(ep["phase"]) if "phase" in ep else np.zeros(len(t), dtype=np.int64)
@@ -75,13 +83,15 @@ def snapshot_events(ep: dict[str, np.ndarray], frames: int = 6) -> list[tuple[fl
             if np.isfinite(when):
                 events.append((float(when), name))
         ends = np.flatnonzero(insert[:-1] & ~insert[1:])
-        if len(ends):
-            events.append((float(t[ends[0] + 1]), "insertion over"))
+        pull = np.linalg.norm(np.asarray(ep["f_ope_local"])[:, :3], axis=1) > PULL_FORCE
+        for c, end in enumerate(ends):
+            cycle = "" if c == 0 else f" ({c + 1})"
+            events.append((float(t[end + 1]), "insertion over" + cycle))
             if "disengage" in names:
-                pull = np.linalg.norm(np.asarray(ep["f_ope_local"])[:, :3], axis=1) > PULL_FORCE
-                d = first((after > ends[0]) & (phase == names.index("disengage")) & pull, "operator pulls")
+                d = (first((after > end) & (phase == names.index("disengage")) & pull, "operator pulls")
+                     if c == 0 else next(iter(np.flatnonzero((after > end) & pull)), None))
                 if d is not None:
-                    first((after > d) & (depth < 0.0), "peg out")
+                    first((after > d) & (depth < 0.0), "peg out" + cycle)
     else:
         for s, _e, _lab in _spans(phase)[1:]:
             events.append((float(t[s]), names[int(phase[s])] if names else f"phase {int(phase[s])}"))
@@ -92,7 +102,55 @@ def snapshot_events(ep: dict[str, np.ndarray], frames: int = 6) -> list[tuple[fl
             kept.append((te, name))
     if len(kept) < 2:  # nothing happened before the end: evenly spaced
         return [(float(x), "") for x in np.linspace(t[0], t[-1], frames + 2)[1:-1]]
-    return kept[:frames]
+    if len(kept) > frames:
+        return [kept[i] for i in np.unique(np.linspace(0, len(kept) - 1, frames).round().astype(int))]
+    return kept
+
+
+def leading_task(w: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The shading's label per sample from weights [T, 3]: 0-2 one task leads (IK, AC, FC), 3-5 two share the lead
+    within TIE (IK+AC, IK+FC, AC+FC); runs shorter than MIN_SPAN [s] take the label before them."""
+    order = np.argsort(-w, axis=1, kind="stable")
+    top, second = order[:, 0], order[:, 1]
+    gap = np.take_along_axis(w, order[:, :1], 1)[:, 0] - np.take_along_axis(w, order[:, 1:2], 1)[:, 0]
+    pair = np.sort(np.stack([top, second], 1), axis=1)
+    shared = 3 + np.array([_SHARED.index((int(a), int(b))) for a, b in pair]) if len(w) else np.zeros(0, int)
+    lab = np.where(gap < TIE, shared, top)
+    for s, e, _ in _spans(lab)[1:]:
+        if t[min(e, len(t) - 1)] - t[s] < MIN_SPAN:
+            lab[s:e] = lab[s - 1]
+    return lab
+
+
+def _shade_colour(label: int) -> str | tuple:
+    """A single task's colour, or the mean of the two that share the lead."""
+    import matplotlib.colors as mcolors
+
+    if label < 3:
+        return TASK_COLOURS[_TASKS[label]]
+    a, b = _SHARED[label - 3]
+    return tuple((np.array(mcolors.to_rgb(TASK_COLOURS[_TASKS[a]])) + mcolors.to_rgb(TASK_COLOURS[_TASKS[b]])) / 2)
+
+
+def _shade_name(label: int) -> str:
+    return f"{_TASKS[label]} leads" if label < 3 else " + ".join(_TASKS[i] for i in _SHARED[label - 3]) + " share"
+
+
+def _robust_ylim(a, y: np.ndarray, unit: str) -> None:  # noqa: ANN001
+    """Limits that show the working range: 1-ms contact spikes beyond 4x the 99th percentile are clipped (and said),
+    a signal at round-off (|y| < 1e-3) gets a ±1 range instead of its noise blown up."""
+    y = np.asarray(y, dtype=float)
+    y = y[np.isfinite(y)]
+    if not len(y):
+        return
+    lo, hi = np.percentile(y, [0.5, 99.5])
+    span = max(hi - lo, 1e-9)
+    if np.abs(y).max() < 1e-3:
+        a.set_ylim(-1.0, 1.0)
+    elif y.min() < lo - 4 * span or y.max() > hi + 4 * span:
+        a.set_ylim(lo - 0.3 * span, hi + 0.3 * span)
+        a.text(0.005, 0.03, f"spikes to {y.min():.0f} / {y.max():.0f} {unit} clipped", transform=a.transAxes,
+               fontsize=7, color="0.3")
 
 
 def _spans(labels: np.ndarray) -> list[tuple[int, int, int]]:
@@ -133,32 +191,35 @@ def plot_episode(ep: dict[str, np.ndarray], out: str | Path, axis: str = "z", ti
     ax[0].set_ylabel(f"weights ({axis})")
     ax[0].set_ylim(-0.05, 1.05)
     ax[1].plot(t, np.asarray(ep["f_d"])[:, k], color="C3", label=f"f_d [{force}]")
-    ax[1].set_ylabel(f"f_d [{force}]")
+    ax[1].set_ylabel(f"f_d [{force}]\n(the tool's push)")
     ax[2].plot(t, np.asarray(ep["e_local"])[:, k], color="C0", label=f"e [{lin}]")
     ax[2].set_ylabel(f"e [{lin}]")
     ax[3].plot(t, np.asarray(ep["f_env_local"])[:, k], color="C3", label=f"f_env [{force}]")
-    ax[3].set_ylabel(f"f_env [{force}]")
+    ax[3].set_ylabel(f"f_env [{force}]\n(on the tool: < 0 pushes back)")
+    _robust_ylim(ax[3], np.asarray(ep["f_env_local"])[:, k], force)
     ax[4].plot(t, np.asarray(ep["f_ope_local"])[:, k], color="C2", label=f"f_ope [{force}]")
     ax[4].set_ylabel(f"f_ope [{force}]")
+    _robust_ylim(ax[4], np.asarray(ep["f_ope_local"])[:, k], force)
     for j, (label, curves) in enumerate(bottom):
         a = ax[5 + j]
         for c, (y, name) in enumerate(curves):
             a.plot(t, y, color=f"C{c + 4}", label=name)
         a.set_ylabel(label)
-    # shading: the task leading this axis (largest weight), as Fig. 7/8's patches
-    lead = np.argmax(w, axis=1)
+    # shading: the task leading this axis (largest weight, or two within TIE), as Fig. 7/8's patches
+    lead = leading_task(w, t)
     for a in ax:
         for s, e, lab in _spans(lead):
-            a.axvspan(t[s], t[min(e, len(t) - 1)], color=TASK_COLOURS[_TASKS[lab]], alpha=0.35, lw=0)
+            a.axvspan(t[s], t[min(e, len(t) - 1)], color=_shade_colour(lab), alpha=0.35, lw=0)
         a.grid(alpha=0.3)
         a.legend(loc="upper right", fontsize=8)
     # the procedure's phases as thin lines with their names
     if "phase" in ep and "phase_names" in ep:
         names = [str(x) for x in ep["phase_names"]]
-        for s, _e, lab in _spans(np.asarray(ep["phase"])):
+        for j, (s, _e, lab) in enumerate(_spans(np.asarray(ep["phase"]))):
             for a in ax:
                 a.axvline(t[s], color="0.4", lw=0.6, ls=":")
-            ax[0].text(t[s], 1.07, names[lab], fontsize=7, rotation=30, va="bottom")
+            # staggered heights: phases a second apart would print their names over each other
+            ax[0].text(t[s], 1.07 + 0.16 * (j % 2), names[lab], fontsize=7, va="bottom")
     # the image strip's moments (render_strip), lettered as Fig. 7's snapshots
     for j, ((te, name), letter) in enumerate(zip(snapshot_events(ep) if "phase" in ep else [], _LETTERS)):
         if name:
@@ -168,8 +229,9 @@ def plot_episode(ep: dict[str, np.ndarray], out: str | Path, axis: str = "z", ti
             ax[-1].text(te, 0.97 - 0.14 * (j % 3), f" {letter}", transform=ax[-1].get_xaxis_transform(), fontsize=8,
                         va="top", fontweight="bold")
     ax[-1].set_xlabel("time [s]")
-    handles = [matplotlib.patches.Patch(color=TASK_COLOURS[n], alpha=0.5, label=f"{n} leads") for n in _TASKS]
-    fig.legend(handles=handles, loc="upper left", ncol=3, fontsize=8)
+    shown = sorted(set(range(3)) | set(np.unique(lead).tolist()))
+    handles = [matplotlib.patches.Patch(color=_shade_colour(i), alpha=0.5, label=_shade_name(i)) for i in shown]
+    fig.legend(handles=handles, loc="upper left", ncol=len(handles), fontsize=8, bbox_to_anchor=(0.01, 0.985))
     fig.suptitle(title or f"{scene} episode, local axis {axis}", y=0.995)
     fig.tight_layout(rect=(0, 0, 1, 0.97))
     out = Path(out)
