@@ -310,3 +310,65 @@ def test_tuners_take_set_overrides_kept_in_the_run_and_refused_on_a_different_re
             main([cmd, "--out", str(tmp_path / "never"), flag, "0", "--quiet"])
         assert exc.value.code == 2 and f"argument {flag}: must be an integer >= 1, got 0" in capsys.readouterr().err
         assert not (tmp_path / "never").exists()
+
+
+def test_a_stop_within_a_generation_keeps_its_finished_chunks_for_the_resume(tmp_path, capsys):
+    from a3cqp_rl.cli import main
+
+    cfg = _cfg("zdt1", generations=3, population=12, objective="test_tuning_nsga2:zdt1_dies", chunk_size=3)
+    tune_pareto(cfg, tmp_path / "full", progress=False, plots=False)
+    for after, gen in ((7, None), (24 + 12 + 7, 1)):  # within the initial population; within a later generation
+        cut = tmp_path / f"cut_{after}"
+        STOP["after"] = after
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                tune_pareto(cfg, cut, progress=False, plots=False)
+        finally:
+            STOP["after"] = None
+        kept = len((cut / "pending.csv").read_text().splitlines()) - 1
+        assert kept > 0 and kept % 3 == 0  # whole chunks of three, as they finished
+        if gen is None:
+            assert kept == 6 and not (cut / "state.json").exists()
+        else:
+            assert read_state(cut)["generation"] >= gen
+        res = tune_pareto(cfg, cut, resume=True, progress=False, plots=False)
+        assert _rows(cut) == _rows(tmp_path / "full") and not (cut / "pending.csv").exists()
+        assert res.evaluations == read_state(tmp_path / "full")["evaluations"]  # the kept six not evaluated again
+    # the command says what it kept, and SIGTERM is a stop like Ctrl-C
+    path = tmp_path / "dies.yaml"
+    path.write_text(yaml.safe_dump({"nsga2": {"objective": "test_tuning_nsga2:zdt1_dies", "population": 12,
+                                              "generations": 3, "chunk_size": 3}}))
+    STOP["after"] = 7
+    try:
+        assert main(["pareto", "--config", str(path), "--out", str(tmp_path / "cli"), "--quiet"]) == 130
+    finally:
+        STOP["after"] = None
+    err = capsys.readouterr().err
+    assert "interrupted within the initial population; 6 genome(s) evaluated are kept in" in err
+    assert main(["pareto", "--out", str(tmp_path / "cli"), "--resume", "--quiet"]) == 0
+    assert read_state(tmp_path / "cli")["generation"] == 3
+
+
+def test_sigterm_stops_a_tuner_as_ctrl_c_does(tmp_path, capsys, monkeypatch):
+    import os
+    import signal
+
+    from a3cqp_rl.cli import main
+    from algorithms.tuning import runner
+
+    calls = {"n": 0}
+    real = runner._evaluate_chunk
+
+    def term_after_two(*args):  # noqa: ANN002, ANN202
+        calls["n"] += 1
+        if calls["n"] == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(*args)
+
+    monkeypatch.setattr(runner, "_evaluate_chunk", term_after_two)
+    path = tmp_path / "z.yaml"
+    path.write_text(yaml.safe_dump({"nsga2": {"objective": "zdt1", "population": 12, "generations": 3,
+                                              "chunk_size": 3}}))
+    assert main(["pareto", "--config", str(path), "--out", str(tmp_path / "run"), "--quiet"]) == 143
+    assert "interrupted within the initial population" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGTERM) is not runner.stop_on_sigterm._raise  # the handler is put back

@@ -38,7 +38,7 @@ from a3cqp_rl.config import A2CConfig, ExperimentConfig, config_from_dict, confi
 from a3cqp_rl.exceptions import A3CQPError, ConfigError
 
 from .genome import GenomeSpec
-from .runner import Problem, RunResult, cli_config, interrupted, run
+from .runner import Problem, RunResult, Terminated, cli_config, interrupted, run, stop_on_sigterm
 
 __all__ = ["FITNESS", "make_problem", "tune", "trial_config", "episode_reward", "behaviour", "write_best", "main"]
 
@@ -210,6 +210,11 @@ def _comparison(genes: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """`a3cqp tune`: run or resume the GA; returns an exit code."""
+    with stop_on_sigterm():  # SIGTERM stops as Ctrl-C does: OUT keeps what was evaluated, and the command says so
+        return _main(argv)
+
+
+def _main(argv: list[str] | None) -> int:
     p = argparse.ArgumentParser(prog="a3cqp tune", description=help_summary(__doc__))
     p.add_argument("--config", default=None,
                    help="YAML config (default: configs/ga_point_mass.yaml; OUT/config.yaml with --resume)")
@@ -242,9 +247,9 @@ def main(argv: list[str] | None = None) -> int:
               f"({per_gen:.1f} s per generation); best fitness {row['fitness']:.4g} (generation "
               f"{int(row['generation'])}):\n{_comparison(genes)}")
         print(f"results in {out}/: best.yaml (a3cqp train --config {out}/best.yaml), evaluations.csv, ga.png")
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (stop_on_sigterm)
         print(f"\n{interrupted(out)}", file=sys.stderr)
-        return 130
+        return 143 if isinstance(exc, Terminated) else 130
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         return error_exit(exc)
     return 0

@@ -35,7 +35,7 @@ from a3cqp_rl.tuning_files import read_rows, read_state
 from .genome import GenomeSpec
 from .objectives import Objective, get_objective
 from .pareto import hypervolume, non_dominated
-from .runner import Problem, RunResult, cli_config, interrupted, run
+from .runner import Problem, RunResult, Terminated, cli_config, interrupted, run, stop_on_sigterm
 
 __all__ = ["make_problem", "tune_pareto", "crowded_tournament_sbx", "rank_and_crowding", "pareto_front", "read_front",
            "pick", "main"]
@@ -217,6 +217,11 @@ def pick(out: str | Path, k: int) -> Path:
 # ----------------------------------------------------------------------------------------------- CLI
 def main(argv: list[str] | None = None) -> int:
     """`a3cqp pareto`: run / resume NSGA-II, or pick a Pareto solution; returns an exit code."""
+    with stop_on_sigterm():  # SIGTERM stops as Ctrl-C does: OUT keeps what was evaluated, and the command says so
+        return _main(argv)
+
+
+def _main(argv: list[str] | None) -> int:
     p = argparse.ArgumentParser(prog="a3cqp pareto", description=help_summary(__doc__))
     p.add_argument("--config", default=None, help="YAML config (default: configs/nsga2_zdt1.yaml; OUT/config.yaml "
                                                   "with --resume or --pick)")
@@ -261,9 +266,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"NSGA-II: {result.generation} generations, {result.evaluations} evaluations in {result.seconds:.1f} s; "
               f"Pareto front of {len(front)} solutions{hv}")
         print(f"results in {out}/: front.csv (pick one with --pick K), evaluations.csv, pareto.png")
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (stop_on_sigterm)
         print(f"\n{interrupted(out)}", file=sys.stderr)
-        return 130
+        return 143 if isinstance(exc, Terminated) else 130
     except (A3CQPError, FileNotFoundError, ValueError) as exc:
         return error_exit(exc)
     return 0

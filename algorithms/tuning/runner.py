@@ -10,6 +10,9 @@ Files in OUT:
 - ``state.json``: after each finished generation (0 = the initial population): the population (pygad's genes u in
   [0, 1]), its values, the states of pygad's two random generators, and the run time at each finished generation.
   Written atomically.
+- ``pending.csv``: the genomes evaluated since the last finished generation, a row per genome as its chunk ends
+  (decoded genes, values, seconds); a resume takes them from there instead of evaluating them again, also when the
+  run was stopped before its initial population was done.
 
 Resuming restores the population and the random states of the last finished generation and rebuilds the cache of
 evaluated genomes from evaluations.csv, so pygad's next steps draw the same numbers and see the same values: a
@@ -41,7 +44,10 @@ from .genome import GenomeSpec
 from .pool import make_pool
 from .pygad_ga import GA
 
-__all__ = ["Problem", "RunResult", "run", "build_ga", "read_evaluations", "read_state", "STATE_FORMAT"]
+__all__ = ["Problem", "RunResult", "run", "build_ga", "read_evaluations", "read_state", "STATE_FORMAT", "Terminated",
+           "stop_on_sigterm"]
+
+PENDING = "pending.csv"
 
 Evaluate = Callable[[list[dict], ExperimentConfig], np.ndarray]
 """A batch of decoded genomes and the experiment config -> values [B, M] (float64, finite)."""
@@ -114,6 +120,14 @@ def _run_locked(problem: Problem, cfg: ExperimentConfig, out: Path, workers: int
                 progress: bool) -> RunResult:
     state_path = out / "state.json"
     cfg_dict = config_to_dict(cfg)
+    columns = ["generation", "individual", *problem.spec.columns, *problem.objectives, "seconds", "new"]
+    csv_path = out / "evaluations.csv"
+    pending = _read_pending(out, problem) if resume else {}
+    if resume and not state_path.exists() and pending:  # stopped within the initial population: start it again
+        _check_same_run(out, cfg_dict, problem, {"kind": problem.kind})
+        resume = False
+        state_path.unlink(missing_ok=True)
+        csv_path.unlink(missing_ok=True)
     if resume:
         state = read_state(out)
         _check_same_run(out, cfg_dict, problem, state)
@@ -124,10 +138,10 @@ def _run_locked(problem: Problem, cfg: ExperimentConfig, out: Path, workers: int
         if state_path.exists():
             raise CheckpointError(f"{out} already holds a tuning run: add --resume to continue it, or pick another --out")
         state, start_gen = None, None
+        if not pending:  # a new run: another run's evaluations are not its own
+            (out / PENDING).unlink(missing_ok=True)
     write_text_atomic(out / "config.yaml", yaml.safe_dump(cfg_dict, sort_keys=False))
 
-    columns = ["generation", "individual", *problem.spec.columns, *problem.objectives, "seconds", "new"]
-    csv_path = out / "evaluations.csv"
     cache: dict[tuple, np.ndarray] = {}
     if resume:
         rows = _truncate_rows(csv_path, columns, start_gen)
@@ -137,6 +151,10 @@ def _run_locked(problem: Problem, cfg: ExperimentConfig, out: Path, workers: int
         write_text_atomic(csv_path, ",".join(columns) + "\n")
 
     loop = _Loop(problem, cfg, out, columns, cache, state, start_gen, progress)
+    for key, (values, seconds) in pending.items():  # evaluated before the stop: counted as this generation's
+        cache[key] = values
+        loop.fresh[key] = seconds
+    loop.evaluations += len(pending)
     pool = make_pool(workers, ray, problem.preload)
     loop.pool = pool
     try:
@@ -190,14 +208,50 @@ def _check_tuner_config(data: dict, path: str, section: str) -> None:
 
 
 def interrupted(out: str | Path | None) -> str:
-    """The line a tuner prints on Ctrl-C: which generation OUT holds and how to continue."""
+    """The line a tuner prints on Ctrl-C or SIGTERM: which generation OUT holds and how to continue."""
     if out is None:
         return "interrupted"
+    path = Path(out) / PENDING
+    try:
+        kept = max(0, len(path.read_text().splitlines()) - 1) if path.is_file() else 0
+    except OSError:
+        kept = 0
+    since = f"; the {kept} genome(s) evaluated since are kept in {path}" if kept else ""
     try:
         gen = int(read_state(out)["generation"])
     except CheckpointError:
+        if kept:
+            return (f"interrupted within the initial population; {kept} genome(s) evaluated are kept in {path}, "
+                    f"continue with --resume --out {out}")
         return f"interrupted before the initial population was evaluated; nothing in {out} to resume"
-    return f"interrupted after generation {gen}; {out}/state.json holds it, continue with --resume --out {out}"
+    return f"interrupted after generation {gen}{since}; {out}/state.json holds it, continue with --resume --out {out}"
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where Ctrl-C raises KeyboardInterrupt (a tuner then says what OUT holds; exit code 143)."""
+
+
+class stop_on_sigterm:  # noqa: N801 (a context manager used like a function)
+    """While active, SIGTERM raises Terminated in the main thread, as Ctrl-C raises KeyboardInterrupt."""
+
+    def __enter__(self) -> stop_on_sigterm:
+        import signal
+        import threading
+
+        self._previous = None
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGTERM, self._raise)
+        return self
+
+    @staticmethod
+    def _raise(signum: int, frame: object) -> None:
+        raise Terminated()
+
+    def __exit__(self, *exc: object) -> None:
+        import signal
+
+        if self._previous is not None:
+            signal.signal(signal.SIGTERM, self._previous)
 
 
 def build_ga(problem: Problem, cfg: ExperimentConfig, fitness_func: Callable, state: dict | None = None,
@@ -268,12 +322,21 @@ class _Loop:
         if self.p.cost is not None:  # longest first (a stable sort: ties keep the population's order)
             starts.sort(key=lambda s: -sum(self.p.cost(g) for g in genomes[s:s + size]))
         done = 0
+        self.bar.set_postfix_str(f"evaluating {len(todo)} genome(s){self._best_text()}", refresh=True)
+        pending = self.out / PENDING
+        if not pending.is_file():
+            write_text_atomic(pending, ",".join([*self.p.spec.columns, *self.p.objectives, "seconds"]) + "\n")
         for i, values, seconds in self.pool.imap(_evaluate_chunk, [genomes[s:s + size] for s in starts],
                                                  (self.p.evaluate, self.cfg, len(self.p.objectives))):
             chunk = todo[starts[i]:starts[i] + size]
             for key, v in zip(chunk, values):
                 self.cache[key] = v
                 self.fresh[key] = seconds / len(chunk)
+            with pending.open("a") as f:  # kept at once: a stop within the generation loses no finished chunk
+                f.write("".join(",".join(repr(float(x)) for x in [*key, *v, seconds / len(chunk)]) + "\n"
+                                for key, v in zip(chunk, values)))
+                f.flush()
+                os.fsync(f.fileno())
             done += len(chunk)
             self.bar.set_postfix_str(f"evaluated {done}/{len(todo)}{self._best_text()}", refresh=True)
         self.evaluations += len(todo)
@@ -309,6 +372,7 @@ class _Loop:
                  "python_rng": _plain(ga.python_random_generator.getstate()),
                  "seconds": seconds, "times": self.times, "evaluations": self.evaluations}
         write_text_atomic(self.out / "state.json", json.dumps(state))
+        (self.out / PENDING).unlink(missing_ok=True)  # its genomes are in evaluations.csv now
         self.saved = gen
         self.fresh.clear()
         self.bar.update(1)
@@ -339,6 +403,27 @@ def _evaluate_chunk(genomes: list[dict], evaluate: Evaluate, cfg: ExperimentConf
 def read_evaluations(out: str | Path) -> list[dict]:
     """OUT/evaluations.csv as dicts of floats."""
     return read_rows(out, "evaluations.csv")
+
+
+def _read_pending(out: Path, problem: Problem) -> dict[tuple, tuple[np.ndarray, float]]:
+    """OUT/pending.csv as {decoded genes: (values, seconds)} ({} without one; a row cut short by a kill is dropped)."""
+    path = out / PENDING
+    if not path.is_file():
+        return {}
+    genes, m = len(problem.spec.columns), len(problem.objectives)
+    lines = path.read_text().splitlines()
+    if not lines or lines[0] != ",".join([*problem.spec.columns, *problem.objectives, "seconds"]):
+        raise CheckpointError(f"{path} has the columns of another run ({lines[0] if lines else 'empty'}); remove it "
+                              "to evaluate those genomes again")
+    rows = {}
+    for line in lines[1:]:
+        try:
+            x = [float(v) for v in line.split(",")]
+        except ValueError:
+            continue
+        if len(x) == genes + m + 1:
+            rows[tuple(x[:genes])] = (np.array(x[genes:genes + m]), x[-1])
+    return rows
 
 
 def _truncate_rows(path: Path, columns: list[str], last_gen: int) -> list[dict]:
