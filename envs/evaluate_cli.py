@@ -114,6 +114,16 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+FLAT = 0.05
+"""Rates whose magnitudes all stay below this read as flat in the report: a sign test on ±0.01 says little."""
+
+
+def _verdict(passed: bool, rates, yes: str, no: str) -> str:  # noqa: ANN001
+    """The report's word for a sign test, with "flat" where every rate it tests is within ±FLAT."""
+    word = yes if passed else no
+    return f"{word}, but flat: |rates| < {FLAT}" if max(abs(float(r)) for r in rates) < FLAT else word
+
+
 PANDA_ONLY = {"--trials", "--seeds", "--controllers", "--controller-config", "--record-trial", "--out", "--cache",
               "--workers", "--threads", "--cycles", "--set", "--no-park", "--quiet"}
 """`a3cqp evaluate --scene`'s options that the point-mass evaluation does not take (tests/test_cli.py checks it
@@ -208,10 +218,10 @@ def report(policies: Sequence[str | Path], config: ExperimentConfig | None = Non
     if learned:
         print(f"\nPanda free motion (|e|/ē {FREE_MOTION_E[0]}-{FREE_MOTION_E[-1]}, no force; a policy must raise "
               "IK's weight over admittance's there to follow the Panda's references, docs/panda.md): "
-              + ", ".join(f"{n} ẇ1 {r[0]:+.2f} ẇ2 {r[1]:+.2f} ({'raises IK' if raises[n] else 'does not raise IK'})"
+              + ", ".join(f"{n} ẇ1 {r[0]:+.2f} ẇ2 {r[1]:+.2f} ({_verdict(raises[n], r[:2], 'raises IK', 'does not raise IK')})"
                           for n, r in free_rates.items()), file=out)
         print("Panda guidance (|f_ope|/f̄_ope 0.1-0.5; a policy must raise w2 and lower f_d there to let the operator "
-              "guide it): " + ", ".join(f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({'yields' if yielding[n] else 'resists'})"
+              "guide it): " + ", ".join(f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({_verdict(yielding[n], (a, d), 'yields', 'resists')})"
                                         for n, (a, d) in guided.items()), file=out)
         if not (all(raises.values()) and all(yielding.values())):
             print(PANDA_HINT, file=out)
