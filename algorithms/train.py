@@ -184,8 +184,8 @@ def _run(args: argparse.Namespace) -> int:
         if args.timings:
             blocks = ", ".join(f"{k} {v:.2f} s" for k, v in res.timings.items())
             print(f"timings: start-up {res.startup_seconds:.2f} s (process start to the first update); {blocks}")
-        if res.fig5_applies:
-            passed.append(_print_regions(res.policy_path))
+        if res.fig5_applies:  # (the closed-loop report below prints a single run's table itself)
+            passed.append(_print_regions(res.policy_path, show=sweep or args.no_eval or cfg.env != "point_mass"))
     if len(seeds) > 1 and passed:
         print(f"Fig. 5 regions (literal): all four on {passed.count(4)} of {len(passed)} seeds, at least three on "
               f"{sum(k >= 3 for k in passed)}")
@@ -265,13 +265,15 @@ def _selection_text(res, select_last: float) -> str:  # noqa: ANN001
     return text
 
 
-def _print_regions(policy_path: Path) -> int:
-    """Print both Fig. 5 region checks of the saved policy (a3cqp_rl.regions); returns how many pass the literal one."""
+def _print_regions(policy_path: Path, show: bool = True) -> int:
+    """Print (if `show`) both Fig. 5 region checks of the saved policy (a3cqp_rl.regions); returns how many pass the
+    literal one."""
     from a3cqp_rl.regions import check_fig5_regions, format_regions
     from algorithms.a2c import load_policy
 
     results = check_fig5_regions(load_policy(policy_path))
-    print(format_regions(results))
+    if show:
+        print(format_regions(results))
     return sum(r.literal for r in results)
 
 
