@@ -77,6 +77,9 @@ def load_checkpoint(path: str | Path, required: tuple[str, ...] = ()) -> dict:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint not found: {path}")
+    if _is_npz(path):  # torch's own error names a .npy "not in a subdirectory"
+        raise CheckpointError(f"{path} is a numpy .npz archive, not a policy or checkpoint (an episode of `a3cqp "
+                              "evaluate --out`? `a3cqp plot episode` draws those)")
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # truncated zip, wrong format, pickled code...
@@ -92,6 +95,20 @@ def load_checkpoint(path: str | Path, required: tuple[str, ...] = ()) -> dict:
         raise CheckpointError(f"checkpoint {path} has format {fmt!r}; this version reads format {CHECKPOINT_FORMAT} "
                               "and older (written by a newer version?)")
     return data
+
+
+def _is_npz(path: Path) -> bool:
+    """Whether `path` is a zip of top-level .npy arrays (numpy's .npz), which torch.load cannot read."""
+    import zipfile
+
+    try:
+        if not zipfile.is_zipfile(path):
+            return False
+        with zipfile.ZipFile(path) as z:
+            names = z.namelist()
+    except (OSError, zipfile.BadZipFile):
+        return False
+    return bool(names) and all(n.endswith(".npy") and "/" not in n for n in names)
 
 
 def _reason(exc: Exception) -> str:

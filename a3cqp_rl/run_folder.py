@@ -69,6 +69,10 @@ def policy_file(path: str | Path) -> Path:
     path = Path(path)
     if not path.is_dir():
         return path
+    seeds = sorted(p.name for p in path.glob("seed_*") if (p / "policy.pt").is_file())
+    if not (path / "policy.pt").is_file() and seeds:
+        raise CheckpointError(f"{path} is a sweep of {len(seeds)} run(s) ({', '.join(seeds[:4])}"
+                              f"{', ...' if len(seeds) > 4 else ''}): pass its seed folders, e.g. {path}/seed_*")
     if not (path / "policy.pt").is_file() and (path / "checkpoint.pt").is_file():
         raise CheckpointError(f"{path} holds no policy.pt (a run writes it when it ends or is stopped), only "
                               f"checkpoint.pt: pass {path / 'checkpoint.pt'} for its last parameters, or finish the "

@@ -415,3 +415,29 @@ def test_a_resume_without_config_scores_the_run_with_its_own_reward(tmp_path, ca
     said = capsys.readouterr().out
     assert "returns with eq. 30 alpha = (0.5, 20, 2, 1)" in said, said[-600:]  # the run's, not the default (5, 40, 8, 1)
     assert json.loads((out / "evaluation.json").read_text())
+
+
+def test_a_sweep_folder_an_episode_file_and_a_policy_file_given_to_the_wrong_command_are_named(tmp_path, capsys):
+    import numpy as np
+
+    from a3cqp_rl.checkpoint import save_atomic
+
+    sweep = tmp_path / "sweep"
+    for s in (0, 1):
+        (sweep / f"seed_{s}").mkdir(parents=True)
+        save_atomic({"flat": torch_zeros()}, sweep / f"seed_{s}" / "policy.pt")
+    np.savez(tmp_path / "episode_learned.npz", time=np.zeros(3))
+    cases = ((["evaluate", "--policy", str(sweep), "--episodes", "2"], "is a sweep of 2 run(s) (seed_0, seed_1)"),
+             (["plot", "policy-map", str(sweep)], "pass its seed folders"),
+             (["plot", "policy-map", str(tmp_path / "episode_learned.npz")], "is a numpy .npz archive"),
+             (["plot", "episode", str(sweep / "seed_0" / "policy.pt")], "it is a torch file (a policy or checkpoint"))
+    for argv, said in cases:
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert said in err and "Traceback" not in err and "inline_container" not in err, err
+
+
+def torch_zeros():  # noqa: ANN201
+    import torch
+
+    return torch.zeros(3)

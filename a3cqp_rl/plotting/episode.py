@@ -44,7 +44,10 @@ def load_episode(path: str | Path) -> dict[str, np.ndarray]:
                          f"({type(exc).__name__})") from None
     missing = [k for k in ("time", "phase", "e_local", "f_env_local", "f_ope_local", "weights") if k not in data]
     if missing:
-        raise ValueError(f"{path} is not an episode file of `a3cqp evaluate --scene ... --out`: it lacks {missing}")
+        torch_file = any(k.endswith("data.pkl") or "/data/" in k for k in data)  # a torch zip read as an .npz
+        what = ("it is a torch file (a policy or checkpoint: `a3cqp plot policy-map` draws a policy)" if torch_file
+                else f"it lacks {missing}")
+        raise ValueError(f"{path} is not an episode file of `a3cqp evaluate --scene ... --out`: {what}")
     return data
 
 
