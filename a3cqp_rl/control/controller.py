@@ -756,8 +756,11 @@ class A3CQPController:
         self._fallback_steps += 1
         k = self._fallback_steps
         if k <= FALLBACK_LOG_FIRST or k % FALLBACK_LOG_EVERY == 0:  # a scene that falls back often fills no log
-            logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s, valid input %s"
-                           " (step %d with a fallback, %d robot-steps in all%s)", bad, _status_names(qp_status[bad]),
+            names = _status_names(qp_status[bad])
+            why = (" (no command meets the joint-limit, torque and wrench rows together this period: the arm brakes "
+                   "instead, safely; docs/panda.md, \"Joints in contact\")") if "PRIMAL_INFEASIBLE" in names else ""
+            logger.warning("A3CQP fallback (brake + gravity compensation) for robots %s: QP status %s%s, valid input %s"
+                           " (step %d with a fallback, %d robot-steps in all%s)", bad, names, why,
                            [bool(valid[i]) for i in bad], k, self.fallback_count,
                            f"; now logged every {FALLBACK_LOG_EVERY}th" if k == FALLBACK_LOG_FIRST else "")
         # a failed instance's multipliers are no working set to start from; the others' still are
