@@ -533,6 +533,13 @@ def main(argv: list[str] | None = None) -> int:
         ("osqp (loop)", osqp_solver, "osqp"),
         ("cvxpylayers (defaults)", cvxpylayers_solver, "cvxpylayers"),
     ]
+    import importlib.util
+
+    missing = sorted({key for _n, _m, key in peers if key != "ours" and key not in args.skip
+                      and importlib.util.find_spec(key) is None})
+    if missing:  # said first: the ratios below are against the peers that did run
+        print(f"peers not installed, skipped: {', '.join(missing)} (pip install -e '.[bench]'; qpth separately: it "
+              "requires numpy < 2)", flush=True)
     rows: list[Row] = []
     for B in batches:
         qp = random_qp_batch(B, N_VARS, N_ROWS, spread=args.spread, seed=1000 + B)
@@ -577,7 +584,10 @@ def main(argv: list[str] | None = None) -> int:
         for kind, attr in (("forward", "fwd_us"), ("forward+backward", "fwd_bwd_us")):
             for label, pool in (("any accuracy", others), ("accurate", accurate)):
                 cands = [r for r in pool if getattr(r, attr) is not None]
-                if mine is None or getattr(mine, attr) is None or not cands:
+                if mine is None or getattr(mine, attr) is None:
+                    continue
+                if not cands:  # said, not left out: a missing line would read as nothing to compare
+                    print(f"  B={B:5d} {kind:17s} no peer ({label}) ran: none installed or none within 1e-6")
                     continue
                 best = min(cands, key=lambda r: getattr(r, attr))
                 ratio = getattr(best, attr) / getattr(mine, attr)

@@ -67,7 +67,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{repeats} run(s) each, interleaved (median wall, whole command):")
     for m in METHODS:
         print(f"  {m:10s} {med[m]:7.2f} s  ({', '.join(f'{w:.2f}' for w in walls[m])})")
-    print(f"forkserver vs spawn: {med['spawn'] / med['forkserver']:.2f}x faster; same results: "
+    ratio = med["spawn"] / med["forkserver"]
+    print(f"forkserver vs spawn: {f'{ratio:.2f}x faster' if ratio >= 1 else f'{1 / ratio:.2f}x slower'}; same results: "
           f"{'yes' if results['forkserver'] == results['spawn'] else 'NO'}")
     return 0 if results["forkserver"] == results["spawn"] else 1
 
