@@ -41,18 +41,24 @@ def plot_pareto(values: np.ndarray, generation: np.ndarray, front: np.ndarray, n
         if len(front) <= 30:
             for k, p in enumerate(front):
                 ax.annotate(str(k), (p[i], p[j]), fontsize=6, xytext=(3, 3), textcoords="offset points")
-        # frame the front and what lies just behind it: early generations can be orders of magnitude away
+        # frame the front and what lies just behind it: early generations can be orders of magnitude away; and the
+        # known front, the distance to which is the point of drawing it
         lo, hi = (front.min(0), front.max(0)) if len(front) else (values.min(0), values.max(0))
+        if reference is not None and len(reference):
+            lo = np.minimum(lo, np.asarray(reference, dtype=float).min(0))
         span = np.where(hi - lo > 0, hi - lo, np.maximum(np.abs(hi), 1.0))
         top = np.minimum(values.max(0), hi + 0.6 * span) + 0.05 * span
         ax.set_xlim(lo[i] - 0.08 * span[i], top[i])
         ax.set_ylim(lo[j] - 0.08 * span[j], top[j])
-        ax.set_xlabel(names[i])
-        ax.set_ylabel(names[j])
+        ax.set_xlabel(_label(names[i]))
+        ax.set_ylabel(_label(names[j]))
         ax.legend(fontsize=7, loc="upper right")
     for ax in list(axes.flat)[len(pairs):]:
         ax.axis("off")
-    fig.colorbar(sc, ax=axes, label="generation", shrink=0.8)
+    gens = np.unique(np.asarray(generation))
+    bar = fig.colorbar(sc, ax=axes, label="generation", shrink=0.8)
+    if len(gens) <= 12:  # whole generations, not 0.2 steps
+        bar.set_ticks(gens)
     fig.suptitle(f"{len(values)} evaluated genomes; all objectives minimised")
     fig.savefig(out, dpi=110)
     plt.close(fig)
@@ -69,15 +75,26 @@ def plot_pareto(values: np.ndarray, generation: np.ndarray, front: np.ndarray, n
         ax.set_xlim(lo[0] - 0.08 * span[0], top[0])
         ax.set_ylim(lo[1] - 0.08 * span[1], top[1])
         ax.set_zlim(lo[2] - 0.08 * span[2], top[2])
-        ax.set_xlabel(names[0])
-        ax.set_ylabel(names[1])
-        ax.set_zlabel(names[2])
+        ax.set_xlabel(_label(names[0]))
+        ax.set_ylabel(_label(names[1]))
+        ax.set_zlabel(_label(names[2]))
         ax.legend(fontsize=7)
         path = out.with_name(out.stem + "_3d" + out.suffix)
         fig.savefig(path, dpi=110)
         plt.close(fig)
         written.append(path)
     return written
+
+
+_UNITS = {"_cm": " [cm]", "_mm": " [mm]", "_n": " [N]", "_s": " [s]", "_deg": " [deg]"}
+
+
+def _label(name: str) -> str:
+    """An objective's column name as an axis label: `tracking_cm` -> `tracking [cm]`."""
+    for suffix, unit in _UNITS.items():
+        if name.endswith(suffix):
+            return name[: -len(suffix)].replace("_", " ") + unit
+    return name.replace("_", " ")
 
 
 def plot_pareto_run(run: str | Path, out: str | Path | None = None) -> list[Path]:

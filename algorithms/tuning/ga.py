@@ -243,7 +243,7 @@ def _main(argv: list[str] | None) -> int:
         spec = GenomeSpec(cfg.ga.genes)
         genes = spec.as_dicts(np.array([[row[c] for c in spec.columns]]))[0]
         per_gen = result.seconds / (result.generation + 1)  # the initial population counts as one
-        print(f"GA: {result.generation} generations, {result.evaluations} trainings in {result.seconds / 60:.1f} min "
+        print(f"GA: {result.generation} generation{'' if result.generation == 1 else 's'}, {result.evaluations} trainings in {result.seconds / 60:.1f} min "
               f"({per_gen:.1f} s per generation); best fitness {row['fitness']:.4g} (generation "
               f"{int(row['generation'])}):\n{_comparison(genes)}")
         print(f"results in {out}/: best.yaml (a3cqp train --config {out}/best.yaml), evaluations.csv, ga.png")

@@ -263,7 +263,7 @@ def _main(argv: list[str] | None) -> int:
         if objective.reference_point:
             pts = np.array([[r[n] for n in objective.objectives] for r in front])
             hv = f", hypervolume {hypervolume(pts, objective.reference_point):.4f} (reference {objective.reference_point})"
-        print(f"NSGA-II: {result.generation} generations, {result.evaluations} evaluations in {result.seconds:.1f} s; "
+        print(f"NSGA-II: {result.generation} generation{'' if result.generation == 1 else 's'}, {result.evaluations} evaluations in {result.seconds:.1f} s; "
               f"Pareto front of {len(front)} solutions{hv}")
         print(f"results in {out}/: front.csv (pick one with --pick K), evaluations.csv, pareto.png")
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (stop_on_sigterm)
