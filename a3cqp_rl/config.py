@@ -1526,7 +1526,7 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
     A top-level `base: OTHER.yaml` (relative to the file) reads that file first and applies this one over it, key by
     key, so that a training config can share every setting of the evaluation config it is judged with."""
     data: dict = {}
-    source = "the paper's defaults"
+    source = "the built-in defaults (paper Tables I-V)"
     if path is not None:
         source = str(path)
         data = _read_with_base(Path(path), ())
@@ -1536,7 +1536,7 @@ def load_config(path: str | Path | None = None, overrides: dict | None = None) -
         merged = _merge(data, overrides)
     except ConfigError as exc:
         raise ConfigError(f"{source}: {exc}") from None
-    labelled = source + " with overrides"
+    labelled = source + " with the command's overrides"
     try:
         return config_from_dict(merged, labelled)
     except ConfigError as exc:
@@ -1563,7 +1563,9 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict:
         key, sep, text = item.partition("=")
         parts = [p.strip() for p in key.split(".")]
         if not sep or not all(parts):
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE with a dotted KEY, e.g. panda.blocked_force=2.0")
+            what = "no '=' between KEY and VALUE" if not sep else "an empty part in KEY"
+            raise ConfigError(f"--set {item!r}: {what}; expected KEY=VALUE, KEY a config key (dotted for a section's: "
+                              "seed=3, panda.blocked_force=2.0)")
         try:
             value = yaml.safe_load(text) if text.strip() else None
         except yaml.YAMLError as exc:

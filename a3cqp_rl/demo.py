@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -118,7 +117,7 @@ def controller_demo(seconds: float = 6.0, png: Path | None = None, tool: str = "
         ax[0].text(r["t"][i] + 0.02, ax[0].get_ylim()[1] * 0.5, r["phase"][i], fontsize=9)
     fig.suptitle(f"A3CQP controller on the Panda ({tool}), {seconds:.1f} s simulated in {wall:.1f} s")
     fig.tight_layout()
-    png = png or Path(tempfile.gettempdir()) / "a3cqp_demo_controller.png"
+    png = png or Path("runs") / "demo_controller.png"
     png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(png, dpi=110)
     plt.close(fig)
@@ -140,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="name", required=True)
     p = sub.add_parser("controller", help="Panda A3CQP controller: IK -> AC -> IK+JC -> FC, plot to a PNG")
     p.add_argument("--seconds", type=float, default=6.0, help="simulated time [s] (the schedule needs 6)")
-    p.add_argument("--out", type=Path, default=None, help="PNG path (default: <tmp>/a3cqp_demo_controller.png)")
+    p.add_argument("--out", type=Path, default=None, help="PNG path (default: runs/demo_controller.png)")
     p.add_argument("--tool", default="peg", choices=("peg", "disc", "none"), help="tool below the F/T sensor")
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(max(1, min(2, os.cpu_count() or 1)))

@@ -174,7 +174,7 @@ def test_train_set_overrides_reach_the_run_folders_config(tmp_path, capsys):
     capsys.readouterr()
     assert train_main(["--set", "a2c.n_step=4", "--out", str(tmp_path / "bad"), "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert "with overrides: unknown key(s) a2c.n_step" in err and "Traceback" not in err
+    assert "with the command's overrides: unknown key(s) a2c.n_step" in err and "Traceback" not in err
 
 
 def test_a_finished_run_resumed_keeps_its_log_a_shorter_one_is_refused_and_resume_reads_its_config(tmp_path, capsys):

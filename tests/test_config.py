@@ -288,7 +288,9 @@ def test_set_overrides_parse_dotted_keys_with_yaml_values_and_name_bad_items():
     for bad in ("seed", "=3", "a..b=1", "a2c.gamma=[1"):
         with pytest.raises(ConfigError, match="--set"):
             parse_overrides([bad])
-    with pytest.raises(ConfigError, match=r"the paper's defaults with overrides: unknown key\(s\) a2c.gama"):
+    with pytest.raises(ConfigError, match=r"no '=' between KEY and VALUE; .*\(dotted for a section's: seed=3"):
+        parse_overrides(["a2c.learning_rate"])
+    with pytest.raises(ConfigError, match=r"the built-in defaults \(paper Tables I-V\) with the command's overrides: unknown key\(s\) a2c.gama"):
         load_config(None, parse_overrides(["a2c.gama=0.9"]))
 
 
@@ -319,7 +321,7 @@ def test_a_bad_value_in_the_file_is_named_as_the_files_whatever_options_come_wit
     with pytest.raises(ConfigError, match=r"bad.yaml: a2c.normalize_advantage") as exc:
         load_config(tmp_path / "bad.yaml", {"a2c": {"compile": False}})
     assert "with overrides" not in str(exc.value)
-    with pytest.raises(ConfigError, match=r"(?s)bad.yaml with overrides: .*a2c.gamma"):
+    with pytest.raises(ConfigError, match=r"(?s)bad.yaml with the command's overrides: .*a2c.gamma"):
         load_config(tmp_path / "bad.yaml", {"a2c": {"gamma": 2.0, "normalize_advantage": True}})
     (tmp_path / "g.yaml").write_text("a2c:\n  gamma: 2.0\n")  # an option may fix the file's value
     assert load_config(tmp_path / "g.yaml", {"a2c": {"gamma": 0.9}}).a2c.gamma == 0.9

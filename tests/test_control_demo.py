@@ -40,3 +40,9 @@ def test_bench_controller_quick_runs(capsys) -> None:  # noqa: ANN001
     assert module.main(["--quick", "--sizes", "1"]) == 0
     out = capsys.readouterr().out
     assert "RTF" in out and "<1000 µs" in out
+
+
+def test_demo_controller_writes_under_runs_by_default(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    monkeypatch.chdir(tmp_path)
+    assert demo_main(["controller", "--seconds", "0.02"]) == 0
+    assert (tmp_path / "runs" / "demo_controller.png").is_file()

@@ -74,6 +74,22 @@ def _expand_sweeps(runs: list[str]) -> list[str]:
     return out
 
 
+def _run_provenance(folder: Path, controller: str) -> str:
+    """The seed and, for the learned controller, the policy that the run folder's results.json names ("" without)."""
+    import json
+
+    try:
+        res = json.loads((folder / "results.json").read_text())
+    except (OSError, ValueError):
+        return ""
+    seeds = res.get("seeds") or []
+    parts = [f"seed {seeds[0]}" if len(seeds) == 1 else ""]
+    if controller == "learned" and res.get("policy"):
+        parts.append(f"policy {res['policy']} ({res.get('policy_fingerprint', '?')})")
+    text = ", ".join(p for p in parts if p)
+    return f"; {text}" if text else ""
+
+
 def _episode_controller(src: Path, given: str | None) -> str:
     """The controller whose episode `plot episode` draws: `given` (default learned) in a run folder; an
     episode_<controller>.npz's own name, which a different `given` contradicts."""
@@ -155,7 +171,8 @@ def main(argv: list[str] | None = None) -> int:
             out = Path(args.out) if args.out else base.with_suffix(ext)
             trial = f", trial {int(data['trial'])}" if "trial" in data else ""  # `evaluate --record-trial`
             plot_episode(data, out, axis=args.axis,
-                         title=f"{data.get('scene', '')}: {controller}{trial}, axis {args.axis}")
+                         title=f"{data.get('scene', '')}: {controller}{trial}, axis {args.axis}"
+                               + _run_provenance(npz.parent, controller))
             if args.strip:
                 try:
                     strip = render_strip(data, out.with_name(out.stem + "_strip.png"))

@@ -29,6 +29,7 @@ def plot_ga_history(rows: Sequence[Mapping[str, float]], genes: Sequence[str], s
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator, NullFormatter, ScalarFormatter
 
     if not rows:
         raise ValueError("no evaluations to plot")
@@ -50,6 +51,7 @@ def plot_ga_history(rows: Sequence[Mapping[str, float]], genes: Sequence[str], s
     lo = np.percentile(fit, 5)
     ax.set_ylim(lo - 0.1 * (fit.max() - lo) - 1e-9, fit.max() + 0.1 * (fit.max() - lo) + 1e-9)
     ax.set_xlabel("generation")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel(fitness)
     ax.set_title("fitness (lowest 5 % of points cut off)", fontsize=9)
     ax.legend(fontsize=7, loc="lower right")
@@ -64,7 +66,14 @@ def plot_ga_history(rows: Sequence[Mapping[str, float]], genes: Sequence[str], s
             ax.axhline(reference[name], color="0.3", ls="--", lw=1, label=f"reference {reference[name]:.3g}")
         if scale == "log":
             ax.set_yscale("log")
+            if np.allclose(v, np.round(v)):  # an integer gene (n_steps): its values as plain integers, not 4×10⁰
+                ticks = np.unique(np.concatenate([v, [reference[name]] if reference and name in reference else []]))
+                if len(ticks) <= 10:
+                    ax.set_yticks(ticks)
+                ax.yaxis.set_major_formatter(ScalarFormatter())
+                ax.yaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("generation")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_title(name, fontsize=9)
         ax.legend(fontsize=7)
     for ax in list(axes.flat)[panels:]:
@@ -93,6 +102,7 @@ def plot_ga_run(run: str | Path, out: str | Path | None = None) -> Path:
     rows = read_rows(run)
     paper = A2CConfig()
     reference = {g: float(getattr(paper, g)) for g in state["genes"] if "." not in g and hasattr(paper, g)}
-    title = (f"GA: {state['generation']} generations, {state['evaluations']} trainings, "
+    title = (f"{run}: GA, {state['generation']} generation{'' if state['generation'] == 1 else 's'}, "
+             f"{state['evaluations']} trainings, "
              f"{state['seconds'] / 60:.1f} min; dashed: Table IV")
     return plot_ga_history(rows, state["genes"], state["scales"], out or run / "ga.png", reference, title=title)
