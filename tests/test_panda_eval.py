@@ -107,9 +107,12 @@ def test_scripted_force_control_inserts_the_peg() -> None:
     assert s["successes"] >= 3 and 0.0 < s["insertion_time_mean_s"] < 15.0
 
 
-def _learned_peg_trial(trial: int, align_time: float | None = None, seed: int = 0, **panda: object) -> dict:
+def _learned_peg_trial(trial: int, align_time: float | None = None, seed: int = 0, hand: dict | None = None,
+                       **panda: object) -> dict:
     """The metrics of trial `trial` of `seed`, the learned policy alone, under the peg config with `panda` set (and
-    the scene's x-y alignment time [s])."""
+    the scene's x-y alignment time [s], the operator's `hand` settings)."""
+    import dataclasses
+
     from a3cqp_rl.config import load_config
     from envs.panda_eval import _run, trial_seeds
 
@@ -120,6 +123,8 @@ def _learned_peg_trial(trial: int, align_time: float | None = None, seed: int = 
         setattr(cfg.panda, key, value)
     if align_time is not None:
         cfg.panda.peg_in_hole.align_time = align_time
+    if hand:
+        cfg.panda.operator = dataclasses.replace(cfg.panda.operator, **hand)
     out = _run("peg_in_hole", str(root / cfg.panda.policy), [trial_seeds(seed, 26)[trial]], cfg, ("learned",), (), 1,
                False, None, True)
     return out["metrics"]["learned"]
@@ -149,8 +154,9 @@ def test_the_operator_pulls_out_a_peg_that_wedged_once_the_handles_moment_reads_
     Normalised by 1.5 N m (a 0.1 m lever) that moment reads as the operator's full push, the rotational agents yield
     to it, the peg tilts and wedges, and it stays in under the hand's full 15 N; with the peg config's 3 N m (a 0.2 m
     lever) they give way to the bore more than to the hand and the operator pulls it out. The insertion is the same
-    (6.38 s on the machine of 2026-12-03)."""
-    m = _learned_peg_trial(19, f_ope_max_rot=f_ope_max_rot)  # (3.0: the peg config's own, which the helper checks)
+    (6.38 s on the machine of 2026-12-03). With the hand whose damping is all delayed (the peg config's before
+    2026-12-03): the peg config's hand, half of it on the present velocity, pulls this peg out under either value."""
+    m = _learned_peg_trial(19, f_ope_max_rot=f_ope_max_rot, hand={"damping": 60.0, "intrinsic_damping": 0.0})
     assert bool(m["success"].ravel()[0]) and m["insertion_time"].ravel()[0] < 8.21
     assert bool(m["extracted"].ravel()[0]) == (f_ope_max_rot == 3.0)
     assert (m["disengage_force"].ravel()[0] > 14.0) == (f_ope_max_rot == 1.5)  # the hand at its bound: held
