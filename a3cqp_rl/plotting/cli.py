@@ -130,9 +130,10 @@ def main(argv: list[str] | None = None) -> int:
                                                        "episode_<controller>.npz names its own)")
     ep.add_argument("--axis", default="z", choices=["x", "y", "z", "rx", "ry", "rz"], help="local axis (default z)")
     ep.add_argument("--strip", action="store_true", help="also an image strip of the scene (needs EGL or OSMesa)")
-    for name, text in (("ga", "GA run (a3cqp tune): fitness per generation, best and spread, genes"),
-                       ("pareto", "NSGA-II run (a3cqp pareto): evaluations and Pareto front, 2-D (and 3-D)")):
-        _plot_parser(sub, name, text, "run", "the run's folder (OUT of a3cqp tune / a3cqp pareto)")
+    for name, text, command in (("ga", "GA run (a3cqp tune): fitness per generation, best and spread, genes", "tune"),
+                                ("pareto", "NSGA-II run (a3cqp pareto): evaluations and Pareto front, 2-D (and 3-D)",
+                                 "pareto")):
+        _plot_parser(sub, name, text, "run", f"the run's folder (OUT of a3cqp {command})")
     args = p.parse_args(argv)
     if getattr(args, "strip", False):
         os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen; read when MuJoCo is first imported
@@ -153,7 +154,13 @@ def main(argv: list[str] | None = None) -> int:
             # checkpoint.pt holds the last parameters, policy.pt the kept ones: their maps must not replace each other
             name = "policy_map" if src.name == "policy.pt" else f"policy_map_{src.stem}"
             out = Path(args.out) if args.out else src.with_name(name + ext)
-            plot_policy_map(_load_policy(src), out, args.x, args.y, fixed, levels, title=str(src))
+            from a3cqp_rl.plotting.transfer_history import kept_update
+
+            policy = _load_policy(src)
+            kept = kept_update(src.parent) if src.name == "policy.pt" else None  # a2c.select_policy's choice
+            plot_policy_map(policy, out, args.x, args.y, fixed, levels,
+                            title=str(src) + (f" (the parameters of update {int(kept):,}, a2c.select_policy)"
+                                              if kept is not None else ""))
         elif args.what == "loss-curves":
             from a3cqp_rl.plotting.loss_curves import plot_loss_curves
 

@@ -30,6 +30,17 @@ def kept_update(run_dir: str | Path) -> int | None:
     return None if value is None else int(value)
 
 
+def _select_last(run_dir: str | Path) -> float | None:
+    """The run's `a2c.select_last` from OUT/config.yaml (None without one)."""
+    import yaml
+
+    try:
+        data = yaml.safe_load((Path(run_dir) / "config.yaml").read_text())
+        return float(data["a2c"]["select_last"])
+    except (OSError, yaml.YAMLError, KeyError, TypeError, ValueError):
+        return None
+
+
 def plot_transfer_history(run_dirs: Sequence[str | Path], out: str | Path) -> Path:
     """One panel per run of the transfer margin and its terms against steps; PNG or PDF by suffix of `out`."""
     import matplotlib
@@ -61,6 +72,10 @@ def plot_transfer_history(run_dirs: Sequence[str | Path], out: str | Path) -> Pa
             per_update = float(t["step"][0] / t["update"][0])
             ax.axvline(kept * per_update, color="tab:red", ls="--", lw=1.2, label="kept by select_policy")
             name += f" (kept: update {kept:,})"
+            last = _select_last(d)
+            if last is not None:  # the rows the selection chose among: a better margin before them was not a candidate
+                ax.axvspan(steps[-1] * (1.0 - last), steps[-1], color="tab:red", alpha=0.06, lw=0,
+                           label=f"searched (the last {last:.0%})")
         ax.set_title(name, fontsize=9)
         ax.set_ylim(-1.05, 1.05)
         steps_axis(ax)
@@ -68,7 +83,7 @@ def plot_transfer_history(run_dirs: Sequence[str | Path], out: str | Path) -> Pa
     for ax in list(axes.flat)[len(tables):]:
         ax.set_visible(False)
     handles, labels = axes[0][0].get_legend_handles_labels()  # below the panels, not over the curves
-    fig.legend(handles, labels, fontsize=7, loc="outside lower center", ncol=len(labels))
+    fig.legend(handles, labels, fontsize=7, loc="outside lower center", ncol=min(len(labels), 4))
     fig.suptitle("Panda transfer checks over training (a3cqp_rl.transfer)\nevery line > 0: raises IK over admittance in "
                  "free motion and yields to the operator", fontsize=9)
     out = Path(out)
