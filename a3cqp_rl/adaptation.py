@@ -107,6 +107,8 @@ def reward(
 
     The clipping follows section IV-A ("all the variables have been normalized within [0, 1]") and
     bounds the reward to [−(α1+α2+α4), α3], so a large contact force cannot be farmed without limit.
+    Training on the point mass runs a C copy of this reward and of the eq. 35 step by default
+    (envs/native/point_mass.c, `a2c.backend: auto`): an edit here needs the same there, or `a2c.backend: torch`.
     """
     if check:
         check_finite(e=e, f_env=f_env, f_ope=f_ope, f_d=f_d)

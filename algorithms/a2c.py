@@ -334,6 +334,8 @@ class FusedRollout:
             return a2c_update(layout, flat, square_avg, batch, hp)
 
         self._native = _native_iteration(env, layout, hp)
+        self.route = _route(self._native is not None, hp, env, layout)
+        """Which code runs the iteration, said after training (the C copy of the step ignores Python edits of it)."""
         self.compiles = hp.compile and self._native is None
         """Whether the first `iterate` pays for torch.compile."""
         if self._native is None:  # the torch graphs (the C iteration needs none)
@@ -417,6 +419,19 @@ class FusedRollout:
         if "noise" in d:
             self.noise.load_state_dict(d["noise"])
         self.ep_return, self.ep_length = d["ep_return"], d["ep_length"]
+
+
+def _route(native_runs: bool, hp: A2CConfig, env, layout: ParamLayout) -> str:  # noqa: ANN001
+    """The fused point-mass iteration's route in words, with why the C iteration does not run where it could."""
+    if native_runs:
+        return "the C iteration (algorithms/native: its own copy of the eq. 35 step and eq. 30 reward)"
+    route = "the torch step" + (", compiled" if hp.compile else "")
+    if hp.backend == "torch":
+        return route + " (a2c.backend: torch)"
+    from algorithms import native
+
+    why = native.unsupported(env, layout)
+    return route + (f" ({why})" if why else "")
 
 
 def _native_iteration(env, layout: ParamLayout, hp: A2CConfig):
@@ -603,6 +618,8 @@ class TrainResult:
     """With `a2c.select_policy: panda`, each candidate's row (algorithms.panda_select), in the margins' order."""
     resumed_steps: int = 0
     """Steps the run had trained before this call (a resume); equal to `steps`: nothing was left to train."""
+    route: str = ""
+    """Which code ran the iteration (the C iteration, the torch step, a TorchRL collector)."""
 
 
 def train(
@@ -743,6 +760,7 @@ def _train(cfg, folder, total, resume, override, progress, env, callback) -> Tra
         selected_update=selection.update if selection.best is not None else None,
         transfer_margin=selection.margin if selection.best is not None else float("nan"),
         panda_selection=panda_rows, resumed_steps=start * per_update,
+        route=getattr(runner, "route", "a TorchRL rollout of the env's own step"),
     )
 
 
@@ -785,10 +803,11 @@ def _prepare_env(env, cfg: ExperimentConfig):
 
 
 def _fig5_applies(env) -> bool:
-    """The Fig. 5 regions are boxes in the point mass's eq. 26 observation: checked on PointMassEnv only."""
+    """The Fig. 5 regions are boxes in the point mass's eq. 26 observation: checked on PointMassEnv only, and only
+    while its observation is eq. 26's three values (an extended one has no Fig. 5 to be checked against)."""
     from envs.point_mass import PointMassEnv
 
-    return isinstance(env, PointMassEnv)
+    return isinstance(env, PointMassEnv) and env.observation_spec["observation"].shape[-1] == 3
 
 
 def _log_row(log: RunLog, ckpt, updates, per_update, runner, t_start, compile_s, start, checks) -> dict[str, float]:

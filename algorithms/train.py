@@ -174,6 +174,7 @@ def _run(args: argparse.Namespace) -> int:
         else:
             done = (f"trained {res.steps:,} steps" if not res.resumed_steps else
                     f"trained steps {res.resumed_steps:,} to {res.steps:,} (resumed)")
+            print(f"ran on {res.route}")
             print(f"{done} in {res.seconds:.1f} s ("
                   + (f"{res.compile_seconds:.0f} s of it compiling; {res.steps_per_second:,.0f} steps/s after that"
                      if res.compile_seconds else f"{res.steps_per_second:,.0f} steps/s") + "); "

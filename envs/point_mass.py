@@ -19,6 +19,10 @@ All randomness is drawn at reset (targets, walls and the whole operator force sc
 step is a pure function of (state, action): deterministic, and compilable by `torch.compile`.
 Each env also holds a *pending* next episode, drawn in advance, so fused trainers can step through
 episode ends inside one compiled graph (`fused_functions`) and draw the next pending episode afterwards.
+The trainer's C iteration (`a2c.backend: auto`, algorithms/native) runs its own copy of this step and of the eq. 30
+reward (envs/native/point_mass.c): an edit of the Python step needs the same there, or `a2c.backend: torch`. A config
+field newer than the C file sends training to this torch step (`envs.native.C_FIELDS`), and `a3cqp train` says which
+ran.
 
 Physics runs in float64; observations and rewards are float32 for the networks.
 """

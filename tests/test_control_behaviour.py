@@ -437,3 +437,15 @@ def test_the_simulation_refuses_bad_torques_and_states_instead_of_touching_other
         sim.reset(q)
     with pytest.raises(ValueError, match="number of arms"):
         PandaSim(0)
+
+
+def test_two_tasks_of_one_name_are_refused_not_one_silently_dropped() -> None:
+    from a3cqp_rl.control.tasks import JointCentering
+
+    tasks = A3CQPController(1).tasks
+    jc = next(t for t in tasks if t.name == "jc")
+    again = JointCentering(jc.q_center.clone(), 1.0, 1.0) if hasattr(jc, "q_center") else None
+    if again is None:
+        pytest.skip("JointCentering keeps its centre under another name")
+    with pytest.raises(ValueError, match=r"task names must differ, got \['jc'\]"):
+        A3CQPController(1, tasks=[*tasks, again])

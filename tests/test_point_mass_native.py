@@ -58,3 +58,18 @@ def test_params_layout_and_bad_library_switch(monkeypatch):
     monkeypatch.setattr(native, "load", lambda: None)
     with pytest.raises(RuntimeError, match="native point mass is unavailable"):
         native.NativePointMass(config_from_dict({}))
+
+
+def test_a_config_field_newer_than_the_c_point_mass_trains_on_the_torch_step(monkeypatch, tmp_path):
+    import envs.native as pm_native
+    from a3cqp_rl.config import ExperimentConfig, config_from_dict
+    from algorithms.a2c import train
+
+    assert pm_native.unsupported(ExperimentConfig()) is None  # every field of today's sections is the C file's
+    monkeypatch.setitem(pm_native.C_FIELDS, "reward", frozenset())  # as if reward.alpha had been added after it
+    assert "not written for reward.alpha" in pm_native.unsupported(ExperimentConfig())
+    res = train(config_from_dict({"a2c": {"compile": False}}), tmp_path / "r", total_steps=16 * 4, progress=False)
+    assert res.route.startswith("the torch step") and "reward.alpha" in res.route
+    monkeypatch.undo()
+    res = train(config_from_dict({"a2c": {"compile": False}}), tmp_path / "c", total_steps=16 * 4, progress=False)
+    assert res.route.startswith("the C iteration")

@@ -388,6 +388,11 @@ class A3CQPController:
         ]
         if tasks is None and opt.cartesian_regularization > 0:
             self.tasks.append(CartesianAccelerationRegularizer(opt.cartesian_regularization))
+        names = [t.name for t in self.tasks]
+        twice = sorted({x for x in names if names.count(x) > 1})
+        if twice:  # residuals are kept by name: a second task of a name would silently replace or drop the first
+            raise ValueError(f"task names must differ, got {twice} more than once in {names}; give each task its own "
+                             "`name` attribute")
         lim = limits.tensors()
         self.tau_max = lim["tau_max"]
         self._tau_max_np = self.tau_max.to(torch.float64).numpy()
