@@ -333,9 +333,9 @@ class FusedRollout:
         def update(flat, square_avg, batch):
             return a2c_update(layout, flat, square_avg, batch, hp)
 
-        self._native = _native_iteration(env, layout, hp)
-        self.route = _route(self._native is not None, hp, env, layout)
-        """Which code runs the iteration, said after training (the C copy of the step ignores Python edits of it)."""
+        self._native, self.route = _native_iteration(env, layout, hp)
+        """`route`: which code runs the iteration, said after training (the C copy of the step ignores Python edits
+        of it)."""
         self.compiles = hp.compile and self._native is None
         """Whether the first `iterate` pays for torch.compile."""
         if self._native is None:  # the torch graphs (the C iteration needs none)
@@ -421,35 +421,25 @@ class FusedRollout:
         self.ep_return, self.ep_length = d["ep_return"], d["ep_length"]
 
 
-def _route(native_runs: bool, hp: A2CConfig, env, layout: ParamLayout) -> str:  # noqa: ANN001
-    """The fused point-mass iteration's route in words, with why the C iteration does not run where it could."""
-    if native_runs:
-        return "the C iteration (algorithms/native: its own copy of the eq. 35 step and eq. 30 reward)"
-    route = "the torch step" + (", compiled" if hp.compile else "")
+def _native_iteration(env, layout: ParamLayout, hp: A2CConfig):  # noqa: ANN201
+    """(the C iteration (algorithms/native) for this trainer per `hp.backend`, or None for the torch path; that route
+    in words, with why the C iteration does not run where it could)."""
+    torch_route = "the torch step" + (", compiled" if hp.compile else "")
     if hp.backend == "torch":
-        return route + " (a2c.backend: torch)"
-    from algorithms import native
-
-    why = native.unsupported(env, layout)
-    return route + (f" ({why})" if why else "")
-
-
-def _native_iteration(env, layout: ParamLayout, hp: A2CConfig):
-    """The C iteration (algorithms/native) for this trainer per `hp.backend`, or None for the torch path."""
-    if hp.backend == "torch":
-        return None
+        return None, torch_route + " (a2c.backend: torch)"
     from algorithms import native
 
     why = native.unsupported(env, layout)
     if why is None and hp.backend == "auto" and hp.n_steps * env.num_envs > native.AUTO_MAX_BATCH:
-        return None  # large batches are GEMM-bound: MKL through torch is faster there
+        return None, torch_route  # large batches are GEMM-bound: MKL through torch is faster there
     lib = native.load() if why is None else None
     if lib is None:
         if hp.backend == "native":
             reason = why or "no C compiler, a failed build or A3CQP_NATIVE_A2C=0 (see the warning above)"
             raise ValueError(f"a2c.backend: native is not available here: {reason}")
-        return None
-    return native.NativeIteration(lib, env, layout, hp)
+        return None, torch_route + (f" ({why})" if why else " (the C library is not built)")
+    return (native.NativeIteration(lib, env, layout, hp),
+            "the C iteration (algorithms/native: its own copy of the eq. 35 step and eq. 30 reward)")
 
 
 def _randn_splits(n: int, shape: tuple[int, ...]) -> bool:

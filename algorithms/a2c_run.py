@@ -183,8 +183,8 @@ class Checkpoints:
         start = self.restore(override) if resume else 0
         if start > num_updates:  # the averaged policy and the logs would be cut back to a shorter run
             per_update = self.cfg.a2c.n_steps * self.runner.num_envs
-            raise ValueError(f"the run already trained {start * per_update:,} steps, more than the {total_steps:,} asked "
-                             f"for: resume with --steps {start * per_update} or more, or train into a new --out")
+            raise ValueError(f"the run already trained {start * per_update:,} steps, more than the {total_steps:,} "
+                             f"asked for: resume with --steps {start * per_update} or more, or train into a new --out")
         if self.folder is not None:
             self._write_config()
         return start

@@ -98,7 +98,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--timings", action="store_true", help="print where the time went (start-up, named loop blocks)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--no-eval", action="store_true", help="skip the closed-loop evaluation at the end (point mass)")
-    p.add_argument("--debug", action="store_true", help="show the full traceback of errors (any command: A3CQP_DEBUG=1)")
+    p.add_argument("--debug", action="store_true",
+                   help="show the full traceback of errors (any command: A3CQP_DEBUG=1)")
     return p
 
 

@@ -130,8 +130,6 @@ PANDA_ONLY = {"--trials", "--seeds", "--controllers", "--controller-config", "--
 against both parsers)."""
 
 
-
-
 def _names(paths: Sequence[Path], reserved: Iterable[str] = ()) -> list[str]:
     """Row names: the run folder's name (seed_3, ...), made unique; one that is `reserved` (a baseline's) gets _run."""
     names: list[str] = []
@@ -218,10 +216,12 @@ def report(policies: Sequence[str | Path], config: ExperimentConfig | None = Non
     if learned:
         print(f"\nPanda free motion (|e|/ē {FREE_MOTION_E[0]}-{FREE_MOTION_E[-1]}, no force; a policy must raise "
               "IK's weight over admittance's there to follow the Panda's references, docs/panda.md): "
-              + ", ".join(f"{n} ẇ1 {r[0]:+.2f} ẇ2 {r[1]:+.2f} ({_verdict(raises[n], r[:2], 'raises IK', 'does not raise IK')})"
+              + ", ".join(f"{n} ẇ1 {r[0]:+.2f} ẇ2 {r[1]:+.2f} "
+                          f"({_verdict(raises[n], r[:2], 'raises IK', 'does not raise IK')})"
                           for n, r in free_rates.items()), file=out)
         print("Panda guidance (|f_ope|/f̄_ope 0.1-0.5; a policy must raise w2 and lower f_d there to let the operator "
-              "guide it): " + ", ".join(f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} ({_verdict(yielding[n], (a, d), 'yields', 'resists')})"
+              "guide it): " + ", ".join(f"{n} ẇ2 {a:+.2f} ḟd {d:+.2f} "
+                                        f"({_verdict(yielding[n], (a, d), 'yields', 'resists')})"
                                         for n, (a, d) in guided.items()), file=out)
         if not (all(raises.values()) and all(yielding.values())):
             print(PANDA_HINT, file=out)

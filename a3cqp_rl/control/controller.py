@@ -239,11 +239,11 @@ _INPUT_SHAPES = ((7,), (7,), (7, 7), (7,), (6, 3), (6,), (3,), (3, 3), (6,))
 _WEIGHTS = _INPUT_NAMES.index("weights")
 _ROT_D = _INPUT_NAMES.index("rot_d")
 W_MAX = 1e6
-ROT_TOL = 1e-5
-"""Largest |R_dᵀ R_d − I| entry a reference rotation may have (a float32 rotation's round-off is ~1e-7)."""
 """The largest task weight `step` takes. Up to 1e6 the C and Python routes agree to 5e-7 N m on random inputs; at 1e9
 the QP runs out of iterations (a fallback, said so); at 1e12 it reported SOLVED with torques 40 N m apart and
 accelerations of 1e8 rad/s² (2026-12-01). The A3CQP weights lie in [0, 1] (eq. 28)."""
+ROT_TOL = 1e-5
+"""Largest |R_dᵀ R_d − I| entry a reference rotation may have (a float32 rotation's round-off is ~1e-7)."""
 
 
 RELAX_L1 = 1e4

@@ -116,8 +116,7 @@ def leading_task(w: np.ndarray, t: np.ndarray) -> np.ndarray:
     order = np.argsort(-w, axis=1, kind="stable")
     top, second = order[:, 0], order[:, 1]
     gap = np.take_along_axis(w, order[:, :1], 1)[:, 0] - np.take_along_axis(w, order[:, 1:2], 1)[:, 0]
-    pair = np.sort(np.stack([top, second], 1), axis=1)
-    shared = 3 + np.array([_SHARED.index((int(a), int(b))) for a, b in pair]) if len(w) else np.zeros(0, int)
+    shared = 2 + top + second  # 3 + the pair's index in _SHARED: (0, 1) -> 3, (0, 2) -> 4, (1, 2) -> 5
     lab = np.where(gap < TIE, shared, top)
     for s, e, _ in _spans(lab)[1:]:
         if t[min(e, len(t) - 1)] - t[s] < MIN_SPAN:

@@ -220,8 +220,10 @@ def _main(argv: list[str] | None) -> int:
                    help="YAML config (default: configs/ga_point_mass.yaml; OUT/config.yaml with --resume)")
     p.add_argument("--generations", type=positive_int, default=None,
                    help="generations after the initial one (>= 1; ga.num_generations)")
-    p.add_argument("--steps-per-trial", type=positive_int, default=None, help="agent steps per trial training (ga.steps_per_trial)")
-    p.add_argument("--workers", type=positive_int, default=1, help="local worker processes, one training each (default 1)")
+    p.add_argument("--steps-per-trial", type=positive_int, default=None,
+                   help="agent steps per trial training (ga.steps_per_trial)")
+    p.add_argument("--workers", type=positive_int, default=1,
+                   help="local worker processes, one training each (default 1)")
     p.add_argument("--ray", default=None, metavar="ADDRESS", help="run trials as Ray tasks: 'auto', host:port, or "
                                                                   "'local' (a Ray instance on this machine)")
     p.add_argument("--out", default=None, help="output folder (default: runs/tune_<config name>)")
@@ -243,7 +245,8 @@ def _main(argv: list[str] | None) -> int:
         spec = GenomeSpec(cfg.ga.genes)
         genes = spec.as_dicts(np.array([[row[c] for c in spec.columns]]))[0]
         per_gen = result.seconds / (result.generation + 1)  # the initial population counts as one
-        print(f"GA: {result.generation} generation{'' if result.generation == 1 else 's'}, {result.evaluations} trainings in {result.seconds / 60:.1f} min "
+        gens = f"{result.generation} generation{'' if result.generation == 1 else 's'}"
+        print(f"GA: {gens}, {result.evaluations} trainings in {result.seconds / 60:.1f} min "
               f"({per_gen:.1f} s per generation); best fitness {row['fitness']:.4g} (generation "
               f"{int(row['generation'])}):\n{_comparison(genes)}")
         print(f"results in {out}/: best.yaml (a3cqp train --config {out}/best.yaml), evaluations.csv, ga.png")

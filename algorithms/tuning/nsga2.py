@@ -250,8 +250,8 @@ def _main(argv: list[str] | None) -> int:
                                            ("--ray", args.ray), ("--config", args.config)) if given]
             if run_only:
                 verb = "apply" if len(run_only) > 1 else "applies"
-                raise A3CQPError(f"{', '.join(run_only)} {verb} to a run; --pick reads OUT/front.csv as the run wrote it "
-                                 "(give --pick K --out DIR alone)")
+                raise A3CQPError(f"{', '.join(run_only)} {verb} to a run; --pick reads OUT/front.csv as the run wrote "
+                                 "it (give --pick K --out DIR alone)")
             print(f"wrote {pick(args.out, args.pick)}")
             return 0
         cfg, out = cli_config(args.config, args.out, args.resume, "configs/nsga2_zdt1.yaml", "pareto", "nsga2",
@@ -263,7 +263,8 @@ def _main(argv: list[str] | None) -> int:
         if objective.reference_point:
             pts = np.array([[r[n] for n in objective.objectives] for r in front])
             hv = f", hypervolume {hypervolume(pts, objective.reference_point):.4f} (reference {objective.reference_point})"
-        print(f"NSGA-II: {result.generation} generation{'' if result.generation == 1 else 's'}, {result.evaluations} evaluations in {result.seconds:.1f} s; "
+        gens = f"{result.generation} generation{'' if result.generation == 1 else 's'}"
+        print(f"NSGA-II: {gens}, {result.evaluations} evaluations in {result.seconds:.1f} s; "
               f"Pareto front of {len(front)} solutions{hv}")
         print(f"results in {out}/: front.csv (pick one with --pick K), evaluations.csv, pareto.png")
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (stop_on_sigterm)

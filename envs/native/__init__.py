@@ -43,8 +43,8 @@ class PMParams(ctypes.Structure):
 
 C_FIELDS = {
     "point_mass": frozenset({
-        "c_d", "depth_max", "depth_min", "disturbance_max", "episode_steps", "idle_force", "kp", "kv", "lambda_d", "mass",
-        "operator_force_min", "operator_goal_max", "operator_goal_min", "operator_grip", "operator_hand_damping",
+        "c_d", "depth_max", "depth_min", "disturbance_max", "episode_steps", "idle_force", "kp", "kv", "lambda_d",
+        "mass", "operator_force_min", "operator_goal_max", "operator_goal_min", "operator_grip", "operator_hand_damping",
         "operator_hand_stiffness", "operator_model", "operator_move_time", "operator_off_max", "operator_off_min",
         "operator_on_max", "operator_on_min", "operator_target_range", "operator_toward_wall", "operator_v_hand",
         "physics_dt", "random_initial_fraction", "random_initial_weights", "scenario_probs", "substeps", "target_max",
